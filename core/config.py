@@ -1,0 +1,80 @@
+"""Settings of the core algorithms as small pydantic models (one per stage, composed).
+
+Core functions take explicit keyword arguments; these models are how the CLI, the service and
+the benchmarks carry a validated set of them. ``randt config`` prints the defaults.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = ["Method", "RegistrationSettings"]
+
+Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
+
+
+class RegistrationSettings(BaseModel):
+    """How :func:`core.registration.register` aligns two clouds.
+
+    Voxel sizes left ``None`` are derived from the target's spatial scale (see
+    :func:`core.registration.auto_voxel_sizes`), so the same defaults serve a 15 cm bunny and a
+    120 m LiDAR sweep.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    method: Method = "randt"
+    voxel_sizes_m: tuple[float, ...] | None = Field(
+        default=None,
+        description="NDT voxel sizes, coarse to fine; None derives them from the cloud",
+    )
+    source_voxel_fraction: float = Field(
+        default=0.5, gt=0, le=2, description="source downsampling voxel / finest NDT voxel"
+    )
+    target_voxel_fraction: float = Field(
+        default=0.25, gt=0, le=1, description="target pre-downsampling voxel / finest NDT voxel"
+    )
+    min_points_per_voxel: int = Field(default=6, ge=3)
+    eigenvalue_ratio: float = Field(default=0.01, gt=0, lt=1, description="Magnusson eq. 6.11")
+    outlier_ratio: float = Field(default=0.55, gt=0, lt=1, description="NDT mixture outlier ratio")
+    n_neighbors: Literal[1, 7, 27] = 7
+    max_iterations: int = Field(default=30, ge=1, description="Newton iterations per level")
+    translation_eps_m: float = Field(default=1e-4, gt=0)
+    rotation_eps_rad: float = Field(default=1e-5, gt=0)
+    outlier_removal: Literal["iqr", "sor", "none"] = Field(
+        default="iqr", description="reference outlier removal: the paper's IQR rule, SOR, or none"
+    )
+    iqr_k: float = Field(default=1.5, gt=0, description="Tukey fence multiplier")
+    iqr_min_points_for_voxel_quartiles: int = Field(default=10, ge=4)
+    select_moving_points: bool = Field(
+        default=True, description="drop low-probability moving points before matching (Alg. 1)"
+    )
+    svd_refinement: bool = Field(default=True, description="the paper's Algorithm 3 step")
+    svd_iterations: int = Field(default=30, ge=1)
+    svd_fence_k: float = Field(
+        default=6.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
+    )
+    degeneracy_threshold: float = Field(
+        default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"
+    )
+    min_points: int = Field(default=10, ge=3, description="fewer finite points is an invalid cloud")
+
+    @model_validator(mode="after")
+    def _check_levels(self) -> RegistrationSettings:
+        if self.voxel_sizes_m is not None:
+            if not self.voxel_sizes_m or any(v <= 0 for v in self.voxel_sizes_m):
+                raise ValueError("voxel_sizes_m must be non-empty and positive")
+            if list(self.voxel_sizes_m) != sorted(self.voxel_sizes_m, reverse=True):
+                raise ValueError("voxel_sizes_m must go from coarse to fine (descending)")
+        return self
+
+    @classmethod
+    def for_method(cls, method: Method, **overrides: object) -> RegistrationSettings:
+        """Defaults for a method: classic NDT switches off outlier removal and the SVD step."""
+        base: dict[str, object] = {"method": method}
+        if method != "randt":
+            base.update(outlier_removal="none", select_moving_points=False, svd_refinement=False)
+        base.update(overrides)
+        return cls(**base)

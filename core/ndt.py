@@ -1,0 +1,249 @@
+"""Point-to-distribution NDT (Magnusson 2009): score, analytic gradient and Hessian, Newton solver.
+
+The cost minimised is the negative log-likelihood of the moving points under the reference's
+voxel Gaussians, with Magnusson's Gaussian approximation of the Gaussian + uniform-outlier mixture
+(eq. 6.8-6.9)::
+
+    f(T) = sum over (point i, voxel v) pairs of  d1 * exp(-d2/2 * x^T Sigma_v^-1 x),   x = T p_i - mu_v
+
+with ``c1 = 10 (1 - outlier_ratio)``, ``c2 = outlier_ratio / voxel_size^3``, ``d3 = -log c2``,
+``d1 = -log(c1 + c2) - d3`` (negative) and ``d2 = -2 log((-log(c1 e^-1/2 + c2) - d3) / d1)``.
+
+Derivatives are taken w.r.t. the left perturbation ``delta = (t, r)`` of :mod:`core.transforms`:
+``x(delta) = R(r) q + t - mu`` with ``q = T p``, so ``dx/dt = I``, ``dx/dr = -[q]x`` and the
+second derivative ``d2x/dr_i dr_j = (e_i x (e_j x q) + e_j x (e_i x q)) / 2``. With
+``a = Sigma^-1 x``, ``m = x^T a``, ``e = exp(-d2 m / 2)`` and ``w = -d1 d2 e`` (> 0)::
+
+    gradient  g = sum w * J^T a                                     (Magnusson eq. 6.12)
+    Hessian   H = sum w * (-d2 (J^T a)(J^T a)^T + J^T Sigma^-1 J + S(a, q))    (eq. 6.13)
+
+where ``S`` is the rotation-rotation block ``S_ij = (a_i q_j + a_j q_i)/2 - (a.q) delta_ij``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.transforms import apply_update, transform_points
+from core.voxel import VoxelGaussianMap
+
+__all__ = [
+    "NdtConstants",
+    "NdtEvaluation",
+    "ndt_constants",
+    "ndt_cost",
+    "ndt_derivatives",
+    "ndt_newton",
+    "ndt_point_scores",
+]
+
+
+@dataclass(frozen=True)
+class NdtConstants:
+    """Magnusson's d1, d2 (eq. 6.9) for one voxel size and outlier ratio."""
+
+    d1: float
+    d2: float
+
+
+def ndt_constants(voxel_size_m: float, outlier_ratio: float = 0.55) -> NdtConstants:
+    """Constants of the Gaussian approximation of the outlier mixture (Magnusson eq. 6.9).
+
+    ``outlier_ratio`` 0.55 is PCL's and Autoware's default.
+    """
+    if not 0.0 < outlier_ratio < 1.0:
+        raise ValueError(f"outlier_ratio must be in (0, 1), got {outlier_ratio}")
+    c1 = 10.0 * (1.0 - outlier_ratio)
+    c2 = outlier_ratio / voxel_size_m**3
+    d3 = -np.log(c2)
+    d1 = -np.log(c1 + c2) - d3
+    d2 = -2.0 * np.log((-np.log(c1 * np.exp(-0.5) + c2) - d3) / d1)
+    return NdtConstants(d1=float(d1), d2=float(d2))
+
+
+@dataclass(frozen=True)
+class NdtEvaluation:
+    """Cost, gradient (6,) and Hessian (6,6) of the NDT cost at one pose, plus pair counts."""
+
+    cost: float
+    gradient: np.ndarray
+    hessian: np.ndarray
+    gauss_newton_hessian: np.ndarray
+    n_pairs: int
+
+
+def _pairs(q: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int):
+    pidx, vidx = gmap.neighbors(q, n_neighbors)
+    x = q[pidx] - gmap.means[vidx]
+    a = np.einsum("pij,pj->pi", gmap.inv_covariances[vidx], x)
+    m = np.einsum("pi,pi->p", x, a)
+    return pidx, vidx, x, a, m
+
+
+def ndt_cost(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> float:
+    """The NDT cost ``f(T)`` (module docstring) of ``points_xyz`` moved by ``T``."""
+    q = transform_points(T, points_xyz)
+    _, _, _, _, m = _pairs(q, gmap, n_neighbors)
+    return float(consts.d1 * np.exp(-0.5 * consts.d2 * m).sum())
+
+
+def ndt_derivatives(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> NdtEvaluation:
+    """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13)."""
+    q_all = transform_points(T, points_xyz)
+    pidx, vidx, _, a, m = _pairs(q_all, gmap, n_neighbors)
+    q = q_all[pidx]
+    e = np.exp(-0.5 * consts.d2 * m)
+    cost = float(consts.d1 * e.sum())
+    w = -consts.d1 * consts.d2 * e
+    # J^T a = (a, q x a) for J = [I, -[q]x]
+    ja = np.concatenate([a, np.cross(q, a)], axis=1)  # (P,6)
+    grad = ja.T @ w
+    # J^T Sigma^-1 J, assembled blockwise from Sigma^-1 and q without forming J per pair.
+    Sinv = gmap.inv_covariances[vidx]
+    qx = _skew(q)  # [q]x, (P,3,3); -[q]x is dx/dr
+    Sq = -Sinv @ qx  # Sigma^-1 (dx/dr)
+    tt = np.einsum("p,pij->ij", w, Sinv)
+    tr = np.einsum("p,pij->ij", w, Sq)
+    rr = np.einsum("p,pki,pkj->ij", w, -qx, Sq)
+    jsj = np.block([[tt, tr], [tr.T, rr]])
+    outer = np.einsum("p,pi,pj->ij", w * consts.d2, ja, ja)
+    aq = np.einsum("p,pi,pj->ij", w, a, q)
+    s_rr = 0.5 * (aq + aq.T) - np.eye(3) * np.einsum("p,pi,pi->", w, a, q)
+    hess = jsj - outer
+    hess[3:, 3:] += s_rr
+    return NdtEvaluation(
+        cost=cost,
+        gradient=grad,
+        hessian=0.5 * (hess + hess.T),
+        gauss_newton_hessian=0.5 * (jsj + jsj.T),
+        n_pairs=int(pidx.size),
+    )
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+def ndt_point_scores(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-point scores as Autoware reports them.
+
+    Returns
+    -------
+    score_sum : (N,) sum over neighbour voxels of ``-d1 exp(-d2 m / 2)`` (>= 0)
+    score_max : (N,) the largest single-voxel term (0 where no voxel is near)
+    best_m : (N,) squared Mahalanobis distance to the best voxel (``inf`` where none)
+    """
+    q = transform_points(T, points_xyz)
+    pidx, _, _, _, m = _pairs(q, gmap, n_neighbors)
+    s = -consts.d1 * np.exp(-0.5 * consts.d2 * m)
+    n = points_xyz.shape[0]
+    score_sum = np.bincount(pidx, weights=s, minlength=n)
+    score_max = np.zeros(n)
+    np.maximum.at(score_max, pidx, s)
+    best_m = np.full(n, np.inf)
+    np.minimum.at(best_m, pidx, m)
+    return score_sum, score_max, best_m
+
+
+@dataclass(frozen=True)
+class NewtonOutcome:
+    """What :func:`ndt_newton` reached."""
+
+    T: np.ndarray
+    iterations: int
+    converged: bool
+    evaluation: NdtEvaluation
+
+
+def _descent_direction(ev: NdtEvaluation) -> np.ndarray:
+    """Newton direction with the Hessian made positive definite (eigenvalues mirrored and floored)."""
+    evals, evecs = np.linalg.eigh(ev.hessian)
+    top = max(float(np.abs(evals).max()), 1e-12)
+    evals = np.maximum(np.abs(evals), 1e-6 * top)
+    return -(evecs @ ((evecs.T @ ev.gradient) / evals))
+
+
+def ndt_newton(
+    points_xyz: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    T_init: np.ndarray,
+    *,
+    n_neighbors: int = 7,
+    max_iterations: int = 30,
+    translation_eps_m: float = 1e-4,
+    rotation_eps_rad: float = 1e-5,
+    max_step_m: float | None = None,
+    max_step_rad: float = 0.1,
+) -> NewtonOutcome:
+    """Minimise the NDT cost by Newton steps with step-length control.
+
+    Each step is the Newton direction of the (positive-definite-ified) analytic Hessian, clamped to
+    ``max_step_m`` (default: the voxel size) and ``max_step_rad``, then halved until the cost
+    decreases (Armijo backtracking, up to 8 halvings). Converged when a step moves less than
+    ``translation_eps_m`` and ``rotation_eps_rad``.
+    """
+    if max_step_m is None:
+        max_step_m = gmap.voxel_size_m
+    T = T_init.copy()
+    ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors)
+    converged = False
+    it = 0
+    for it in range(1, max_iterations + 1):  # noqa: B007 - iterations count is returned
+        if ev.n_pairs == 0:
+            break
+        step = _descent_direction(ev)
+        scale = min(
+            1.0,
+            max_step_m / max(np.linalg.norm(step[:3]), 1e-15),
+            max_step_rad / max(np.linalg.norm(step[3:]), 1e-15),
+        )
+        step *= scale
+        slope = float(ev.gradient @ step)
+        alpha = 1.0
+        accepted = False
+        for _ in range(9):
+            T_try = apply_update(alpha * step, T)
+            c_try = ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors)
+            if c_try <= ev.cost + 1e-4 * alpha * slope:
+                accepted = True
+                break
+            alpha *= 0.5
+        small = (
+            np.linalg.norm(alpha * step[:3]) < translation_eps_m
+            and np.linalg.norm(alpha * step[3:]) < rotation_eps_rad
+        )
+        if not accepted:
+            # No decrease along a descent direction: we sit at a (numerical) minimum.
+            converged = True
+            break
+        T = T_try
+        ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors)
+        if small:
+            converged = True
+            break
+    return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev)

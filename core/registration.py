@@ -1,0 +1,476 @@
+"""Register a moving scan to a reference, the RANDT way or with a baseline.
+
+The whole pipeline in one screen (:func:`register`)::
+
+    sanitize  -> drop non-finite points (counted), reject empty / too small / wrong-shape clouds
+    levels    -> NDT voxel sizes, coarse to fine (given, or derived from the target's scale)
+    reference -> downsample; Algorithm 1: IQR outlier removal on Mahalanobis distances; Gaussians
+    moving    -> downsample; Algorithm 1: keep only high-probability moving points
+    match     -> per level: Newton on the NDT cost (core.ndt) from the previous level's pose
+    refine    -> Algorithm 3: SVD on high-probability correspondences, kept only if NDT agrees
+    judge     -> fitness as Autoware reports it, inlier ratio, covariance from the Hessian,
+                 degeneracy test; never the initial guess dressed up as a result
+
+Baselines share every stage they can: ``ndt`` is the same solver without outlier removal, moving
+point selection or the SVD step; ``icp-point`` and ``icp-plane`` replace the NDT solver.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from core.config import Method, RegistrationSettings
+from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
+from core.icp import icp_point_to_plane, icp_point_to_point
+from core.ndt import ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
+from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
+from core.svd import kabsch
+from core.transforms import as_transform, invert, transform_points
+from core.voxel import VoxelGaussianMap, voxel_downsample
+
+__all__ = [
+    "PreparedReference",
+    "RegistrationResult",
+    "auto_voxel_sizes",
+    "prepare_reference",
+    "register",
+    "sanitize_points",
+]
+
+log = logging.getLogger(__name__)
+
+#: 99 % quantile of the chi-square distribution with 3 degrees of freedom: a moving point whose
+#: squared Mahalanobis distance to its best voxel is below this counts as an inlier.
+CHI2_3DOF_99 = 11.3449
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Everything a caller needs to judge a registration, not just the matrix.
+
+    Attributes
+    ----------
+    T_target_source : (4,4) maps source points into the target frame.
+    converged : the solver met its convergence criteria at every level.
+    iterations : solver iterations summed over levels (plus SVD iterations).
+    transform_probability : Autoware's TP: NDT score per moving point at the finest level.
+    nearest_voxel_transformation_likelihood : Autoware's NVTL: mean best-voxel score of the
+        moving points that have a voxel nearby.
+    inlier_ratio : share of moving points whose squared Mahalanobis distance to the best voxel is
+        below the chi-square(3) 99 % quantile (11.34).
+    covariance : (6,6) pose covariance, order (tx, ty, tz, rx, ry, rz), the inverse Hessian of the
+        NDT negative log-likelihood at the solution (Laplace approximation). Points are treated as
+        independent, so it is optimistic; compare it between scans rather than read it absolutely.
+    """
+
+    T_target_source: np.ndarray
+    converged: bool
+    iterations: int
+    transform_probability: float
+    nearest_voxel_transformation_likelihood: float
+    inlier_ratio: float
+    covariance: np.ndarray
+    method: str
+    voxel_sizes_m: tuple[float, ...]
+    n_source_points: int
+    n_target_points: int
+    n_source_used: int
+    n_nonfinite_dropped: int
+    svd_accepted: bool
+    stage_times_s: dict[str, float] = field(default_factory=dict)
+    message: str = ""
+
+    @property
+    def fitness(self) -> float:
+        """The single fitness number: NVTL (higher is better; 0 means no overlap)."""
+        return self.nearest_voxel_transformation_likelihood
+
+    @property
+    def time_s(self) -> float:
+        return float(sum(self.stage_times_s.values()))
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready summary (the ``randt register --json`` object)."""
+        return {
+            "T_target_source": self.T_target_source.tolist(),
+            "converged": self.converged,
+            "iterations": self.iterations,
+            "fitness": self.fitness,
+            "transform_probability": self.transform_probability,
+            "nearest_voxel_transformation_likelihood": self.nearest_voxel_transformation_likelihood,
+            "inlier_ratio": self.inlier_ratio,
+            "time_s": self.time_s,
+            "method": self.method,
+            "voxel_sizes_m": list(self.voxel_sizes_m),
+            "covariance": self.covariance.tolist(),
+            "n_source_points": self.n_source_points,
+            "n_target_points": self.n_target_points,
+            "n_nonfinite_dropped": self.n_nonfinite_dropped,
+            "svd_accepted": self.svd_accepted,
+            "stage_times_s": self.stage_times_s,
+            "message": self.message,
+        }
+
+
+def sanitize_points(points: np.ndarray, *, name: str, min_points: int) -> tuple[np.ndarray, int]:
+    """Return ``(finite (N,3) float64 points, number of non-finite rows dropped)``.
+
+    Accepts (N,3) or (N,>=4) arrays (extra columns such as intensity are ignored).
+    """
+    arr = np.asarray(points)
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise InvalidCloudError(f"{name}: expected an (N,3) array of points, got shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise InvalidCloudError(f"{name}: points must be numeric, got dtype {arr.dtype}")
+    xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
+    finite = np.isfinite(xyz).all(axis=1)
+    n_bad = int(xyz.shape[0] - finite.sum())
+    if n_bad:
+        xyz = xyz[finite]
+    if xyz.shape[0] < min_points:
+        raise InvalidCloudError(
+            f"{name}: {xyz.shape[0]} finite points (after dropping {n_bad} non-finite), "
+            f"need at least {min_points}"
+        )
+    return xyz, n_bad
+
+
+def auto_voxel_sizes(points_xyz: np.ndarray) -> tuple[float, ...]:
+    """Four NDT levels (8r, 4r, 2r, r) from the cloud's scale.
+
+    ``r`` is the median distance of the points from their median point divided by 12, rounded to
+    one significant digit: about 1 m for a KITTI sweep, 0.5 m indoors, 4 mm for a bunny scan.
+    """
+    centre = np.median(points_xyz, axis=0)
+    spread = float(np.median(np.linalg.norm(points_xyz - centre, axis=1)))
+    if spread <= 0:
+        raise InvalidCloudError("cloud has no spatial extent (all points coincide)")
+    r = spread / 12.0
+    exp = np.floor(np.log10(r))
+    r = float(np.round(r / 10**exp) * 10**exp)
+    return (8 * r, 4 * r, 2 * r, r)
+
+
+@dataclass(frozen=True)
+class PreparedReference:
+    """A reference cloud made ready for repeated registration: filtered points and NDT pyramid."""
+
+    points_xyz: np.ndarray
+    maps: tuple[VoxelGaussianMap, ...]
+    n_input_points: int
+    n_removed_outliers: int
+
+    @property
+    def voxel_sizes_m(self) -> tuple[float, ...]:
+        return tuple(m.voxel_size_m for m in self.maps)
+
+
+def prepare_reference(
+    target_xyz: np.ndarray, settings: RegistrationSettings, voxel_sizes_m: tuple[float, ...]
+) -> PreparedReference:
+    """Downsample the reference, remove outliers (IQR, SOR or none) and build the NDT pyramid."""
+    finest = voxel_sizes_m[-1]
+    pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
+    n_in = pts.shape[0]
+    if settings.outlier_removal == "iqr":
+        pts = pts[
+            iqr_inlier_mask(
+                pts,
+                finest,
+                k=settings.iqr_k,
+                min_points_per_voxel=settings.min_points_per_voxel,
+                min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
+                eigenvalue_ratio=settings.eigenvalue_ratio,
+            )
+        ]
+    elif settings.outlier_removal == "sor":
+        pts = pts[statistical_outlier_mask(pts)]
+    maps = tuple(
+        VoxelGaussianMap.build(
+            pts,
+            v,
+            min_points_per_voxel=settings.min_points_per_voxel,
+            eigenvalue_ratio=settings.eigenvalue_ratio,
+        )
+        for v in voxel_sizes_m
+    )
+    return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
+
+
+def _select_moving_points(
+    source_xyz: np.ndarray, settings: RegistrationSettings, finest: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Algorithm 1 on the moving cloud: keep points of high probability under its own Gaussians.
+
+    Returns the selected points at the reference's pre-downsampling resolution (for the SVD
+    refinement) and further downsampled for the NDT solver.
+    """
+    pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
+    if settings.select_moving_points:
+        keep = iqr_inlier_mask(
+            pre,
+            finest,
+            k=settings.iqr_k,
+            min_points_per_voxel=settings.min_points_per_voxel,
+            min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
+            eigenvalue_ratio=settings.eigenvalue_ratio,
+        )
+        if keep.sum() >= settings.min_points:
+            pre = pre[keep]
+    return pre, voxel_downsample(pre, finest * settings.source_voxel_fraction)
+
+
+def _svd_refine(
+    moving: np.ndarray,
+    ref: PreparedReference,
+    T: np.ndarray,
+    settings: RegistrationSettings,
+    tree: cKDTree,
+) -> tuple[np.ndarray, int, float, float]:
+    """Algorithm 3: iterate Kabsch on high-probability correspondences.
+
+    A moving point takes part when its squared Mahalanobis distance to its best reference voxel is
+    under the chi-square(3) 99 % quantile and its nearest-neighbour distance is inside the Tukey
+    fence of all such distances. Its partner is the nearest reference point projected onto that
+    point's local plane (normal from the 10 nearest reference points): the SVD of these pairs has
+    the point-to-plane optimum as its fixed point, so the step refines NDT's voxel-level fit with
+    the surface itself instead of pulling points onto sampled positions.
+
+    Returns the refined transform, iterations, and the trimmed point-to-plane RMSE before and after.
+    """
+    finest = ref.maps[-1]
+    sel = moving
+    normals = np.zeros_like(ref.points_xyz)
+    known = np.zeros(ref.points_xyz.shape[0], dtype=bool)
+
+    def pairs(T_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = transform_points(T_cur, sel)
+        dist, idx = tree.query(q, distance_upper_bound=finest.voxel_size_m)
+        ok = np.isfinite(dist)
+        if ok.sum() < 10:
+            return q[:0], q[:0], q[:0, 0]
+        _, hi = tukey_fences(dist[ok], settings.svd_fence_k)
+        ok &= dist <= hi
+        idx_ok = idx[ok]
+        need = np.unique(idx_ok[~known[idx_ok]])
+        if need.size:
+            normals[need] = _local_normals(ref.points_xyz, need, tree)
+            known[need] = True
+        n = normals[idx_ok]
+        qo = q[ok]
+        r = np.einsum("ij,ij->i", qo - ref.points_xyz[idx_ok], n)
+        return qo, qo - n * r[:, None], r
+
+    q, proj, r = pairs(T)
+    if q.shape[0] < 10:
+        return T, 0, np.inf, np.inf
+    rmse_before = float(np.sqrt(np.mean(r**2)))
+    it = 0
+    for it in range(1, settings.svd_iterations + 1):
+        D = kabsch(q, proj)
+        T = D @ T
+        q, proj, r = pairs(T)
+        if q.shape[0] < 10:
+            return T, it, rmse_before, np.inf
+        if np.linalg.norm(D[:3, 3]) < settings.translation_eps_m:
+            break
+    return T, it, rmse_before, float(np.sqrt(np.mean(r**2)))
+
+
+def _local_normals(
+    points_xyz: np.ndarray, which: np.ndarray, tree: cKDTree, k: int = 10
+) -> np.ndarray:
+    """Unit normals at ``points_xyz[which]`` from their k nearest neighbours' covariance."""
+    _, idx = tree.query(points_xyz[which], k=k)
+    nb = points_xyz[idx]
+    d = nb - nb.mean(axis=1, keepdims=True)
+    _, evecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
+    return evecs[:, :, 0]
+
+
+def _plane_information(
+    moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int
+) -> np.ndarray:
+    """6x6 point-to-plane information of the matched points, rotation scaled by their RMS radius."""
+    q = transform_points(T, moving)
+    pidx, vidx = gmap.neighbors(q, 1)
+    if pidx.size < 6:
+        return np.zeros((6, 6))
+    qq, n = q[pidx], gmap.normals[vidx]
+    centre = qq.mean(axis=0)
+    rel = qq - centre
+    radius = max(float(np.sqrt((rel**2).sum(axis=1).mean())), 1e-9)
+    J = np.concatenate([n, np.cross(rel, n) / radius], axis=1)
+    return J.T @ J / pidx.size
+
+
+_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+def register(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    init_T_target_source: np.ndarray | None = None,
+    *,
+    settings: RegistrationSettings | None = None,
+    method: Method | None = None,
+    reference: PreparedReference | None = None,
+) -> RegistrationResult:
+    """Align ``source_xyz`` to ``target_xyz``; returns a :class:`RegistrationResult`.
+
+    Parameters
+    ----------
+    source_xyz : (N,3) moving points (extra columns ignored; non-finite rows dropped and counted).
+    target_xyz : (M,3) reference points (ignored when ``reference`` is given).
+    init_T_target_source : (4,4) initial guess, identity when ``None``.
+    settings : algorithm settings; ``method`` overrides ``settings.method`` with that method's
+        defaults (:meth:`RegistrationSettings.for_method`).
+    reference : a :class:`PreparedReference` to reuse across calls (incremental matching).
+
+    Raises
+    ------
+    InvalidCloudError : empty, too small or wrongly shaped input.
+    DegenerateProblemError : the geometry leaves a direction unconstrained (``.result`` holds
+        the pose reached, ``.weak_directions`` names the directions).
+    RegistrationFailedError : the solver produced a non-finite pose or found no overlap at all.
+    """
+    if settings is None:
+        settings = RegistrationSettings.for_method(method or "randt")
+    elif method is not None and method != settings.method:
+        settings = RegistrationSettings.for_method(method)
+    T0 = as_transform(init_T_target_source, name="init_T_target_source")
+    times: dict[str, float] = {}
+    t0 = time.perf_counter()
+    src, n_bad_s = sanitize_points(source_xyz, name="source", min_points=settings.min_points)
+    if reference is None:
+        tgt, n_bad_t = sanitize_points(target_xyz, name="target", min_points=settings.min_points)
+        levels = settings.voxel_sizes_m or auto_voxel_sizes(tgt)
+    else:
+        tgt, n_bad_t = reference.points_xyz, 0
+        levels = reference.voxel_sizes_m
+    finest = levels[-1]
+    times["sanitize"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ref = reference if reference is not None else prepare_reference(tgt, settings, levels)
+    times["reference"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    _, moving = _select_moving_points(src, settings, finest)
+    if moving.shape[0] < settings.min_points:
+        raise InvalidCloudError(
+            f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m"
+        )
+    times["moving"] = time.perf_counter() - t0
+
+    T = T0
+    iterations = 0
+    converged = True
+    t0 = time.perf_counter()
+    tree: cKDTree | None = None
+    if settings.method in ("randt", "ndt"):
+        for gmap in ref.maps:
+            consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
+            out = ndt_newton(
+                moving,
+                gmap,
+                consts,
+                T,
+                n_neighbors=settings.n_neighbors,
+                max_iterations=settings.max_iterations,
+                translation_eps_m=settings.translation_eps_m,
+                rotation_eps_rad=settings.rotation_eps_rad,
+            )
+            T, iterations = out.T, iterations + out.iterations
+            converged = converged and out.converged
+    else:
+        tree = cKDTree(ref.points_xyz)
+        icp = icp_point_to_point if settings.method == "icp-point" else icp_point_to_plane
+        for v in levels:
+            out_icp = icp(
+                moving,
+                ref.points_xyz,
+                T,
+                max_correspondence_m=v,
+                max_iterations=settings.max_iterations,
+                translation_eps_m=settings.translation_eps_m,
+                rotation_eps_rad=settings.rotation_eps_rad,
+                tree=tree,
+            )
+            T, iterations = out_icp.T, iterations + out_icp.iterations
+        converged = out_icp.converged
+    times["match"] = time.perf_counter() - t0
+
+    finest_map = ref.maps[-1]
+    consts = ndt_constants(finest_map.voxel_size_m, settings.outlier_ratio)
+    svd_accepted = False
+    if settings.svd_refinement:
+        t0 = time.perf_counter()
+        tree = cKDTree(ref.points_xyz) if tree is None else tree
+        T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings, tree)
+        iterations += n_svd
+        step_t = float(np.linalg.norm((invert(T) @ T_svd)[:3, 3]))
+        # Accept when the surface residual improves and the step stays within one finest voxel.
+        if rmse_after < rmse_before and step_t < finest_map.voxel_size_m:
+            T, svd_accepted = T_svd, True
+        times["svd"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if not np.all(np.isfinite(T)):
+        raise RegistrationFailedError("registration produced a non-finite transform")
+    score_sum, score_max, best_m = ndt_point_scores(
+        moving, T, finest_map, consts, settings.n_neighbors
+    )
+    has = score_max > 0
+    if not np.any(has):
+        raise RegistrationFailedError(
+            "no moving point lies near a reference voxel at the final pose: the clouds do not "
+            "overlap from this initial guess"
+        )
+    tp = float(score_sum.sum() / moving.shape[0])
+    nvtl = float(score_max[has].mean())
+    inlier_ratio = float(np.mean(best_m < CHI2_3DOF_99))
+    ev = ndt_derivatives(moving, T, finest_map, consts, settings.n_neighbors)
+    H = ev.hessian
+    if np.linalg.eigvalsh(H).min() <= 0:
+        H = ev.gauss_newton_hessian
+    covariance = np.linalg.pinv(H)
+    info = _plane_information(moving, T, finest_map, settings.n_neighbors)
+    times["judge"] = time.perf_counter() - t0
+
+    result = RegistrationResult(
+        T_target_source=T,
+        converged=bool(converged),
+        iterations=int(iterations),
+        transform_probability=tp,
+        nearest_voxel_transformation_likelihood=nvtl,
+        inlier_ratio=inlier_ratio,
+        covariance=0.5 * (covariance + covariance.T),
+        method=settings.method,
+        voxel_sizes_m=tuple(float(v) for v in levels),
+        n_source_points=int(src.shape[0]),
+        n_target_points=int(tgt.shape[0]),
+        n_source_used=int(moving.shape[0]),
+        n_nonfinite_dropped=n_bad_s + n_bad_t,
+        svd_accepted=svd_accepted,
+        stage_times_s=times,
+        message="" if converged else "solver stopped at the iteration limit before converging",
+    )
+    evals, evecs = np.linalg.eigh(info)
+    ratio = evals / max(evals[-1], 1e-300)
+    weak = ratio < settings.degeneracy_threshold
+    if np.any(weak):
+        names = tuple(_AXES[int(np.argmax(np.abs(evecs[:, i])))] for i in np.flatnonzero(weak))
+        raise DegenerateProblemError(
+            f"the geometry does not constrain {len(names)} degree(s) of freedom "
+            f"(mostly {', '.join(names)}; eigenvalue ratios {np.array2string(ratio[weak], precision=2)}): "
+            "the scene is likely a single plane or a featureless corridor",
+            result=result,
+            weak_directions=names,
+        )
+    return result

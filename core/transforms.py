@@ -1,0 +1,90 @@
+"""Rigid transforms: 4x4 homogeneous matrices, small-perturbation updates and error measures.
+
+Conventions
+-----------
+``T_a_b`` maps points of frame ``b`` into frame ``a``: ``p_a = T_a_b @ p_b``.
+A 6-vector perturbation ``delta = (tx, ty, tz, rx, ry, rz)`` (translation first, as in ROS pose
+covariances) updates a transform on the left: ``T <- exp(delta) @ T`` with
+``exp(delta) = [[R(r), t], [0, 1]]`` and ``R(r)`` the rotation vector ``r``'s rotation (the
+"decoupled" left update used by the NDT derivatives in :mod:`core.ndt`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "apply_update",
+    "as_transform",
+    "invert",
+    "make_transform",
+    "rotation_angle_deg",
+    "transform_error",
+    "transform_points",
+]
+
+
+def as_transform(T: np.ndarray | None, *, name: str = "transform") -> np.ndarray:
+    """Validate and copy a 4x4 rigid transform (``None`` gives the identity)."""
+    if T is None:
+        return np.eye(4)
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ValueError(f"{name} last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name} rotation block is not a proper rotation")
+    return T.copy()
+
+
+def make_transform(
+    rotvec: np.ndarray | None = None,
+    translation: np.ndarray | None = None,
+    *,
+    euler_deg: tuple[float, float, float] | None = None,
+) -> np.ndarray:
+    """Build a 4x4 transform from a rotation vector (rad) or xyz Euler angles (deg) and a translation."""
+    T = np.eye(4)
+    if euler_deg is not None:
+        T[:3, :3] = Rotation.from_euler("xyz", euler_deg, degrees=True).as_matrix()
+    elif rotvec is not None:
+        T[:3, :3] = Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
+    if translation is not None:
+        T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (exact, no general matrix inverse)."""
+    Ti = np.eye(4)
+    R = T[:3, :3]
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def transform_points(T: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
+    """Apply ``T`` (4x4) to ``points_xyz`` (N,3); returns (N,3) float64."""
+    return points_xyz @ T[:3, :3].T + T[:3, 3]
+
+
+def apply_update(delta: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Left-update ``T`` by the 6-vector ``delta = (t, r)``: ``exp(delta) @ T`` (module docstring)."""
+    U = np.eye(4)
+    U[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
+    U[:3, 3] = delta[:3]
+    return U @ T
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a 3x3 rotation in degrees (robust near 0 and 180 degrees)."""
+    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())))
+
+
+def transform_error(T_estimate: np.ndarray, T_reference: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of ``inv(T_reference) @ T_estimate``."""
+    E = invert(T_reference) @ T_estimate
+    return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
