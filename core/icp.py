@@ -28,9 +28,7 @@ class IcpOutcome:
     rmse_m: float
 
 
-def estimate_normals(
-    points_xyz: np.ndarray, tree: cKDTree | None = None, k: int = 10
-) -> np.ndarray:
+def estimate_normals(points_xyz: np.ndarray, tree: cKDTree | None = None, k: int = 10) -> np.ndarray:
     """Unit normals (N,3): smallest-eigenvalue eigenvector of each point's k-neighbour covariance."""
     tree = cKDTree(points_xyz) if tree is None else tree
     _, idx = tree.query(points_xyz, k=k)
@@ -74,9 +72,7 @@ def icp_point_to_point(
         if _small(np.linalg.norm(D[:3, 3]), dr, translation_eps_m, rotation_eps_rad):
             converged = True
             break
-    return IcpOutcome(
-        T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse
-    )
+    return IcpOutcome(T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse)
 
 
 def icp_point_to_plane(
@@ -121,6 +117,4 @@ def icp_point_to_plane(
         ):
             converged = True
             break
-    return IcpOutcome(
-        T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse
-    )
+    return IcpOutcome(T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse)

@@ -40,9 +40,7 @@ def tukey_fences(values: np.ndarray, k: float = 1.5) -> tuple[float, float]:
     return float(q1 - k * iqr), float(q3 + k * iqr)
 
 
-def mahalanobis_to_own_voxel(
-    points_xyz: np.ndarray, gmap: VoxelGaussianMap
-) -> tuple[np.ndarray, np.ndarray]:
+def mahalanobis_to_own_voxel(points_xyz: np.ndarray, gmap: VoxelGaussianMap) -> tuple[np.ndarray, np.ndarray]:
     """Squared Mahalanobis distance of each point to the Gaussian of the voxel it falls in.
 
     Returns

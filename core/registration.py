@@ -282,9 +282,7 @@ def _svd_refine(
     return T, it, rmse_before, float(np.sqrt(np.mean(r**2)))
 
 
-def _local_normals(
-    points_xyz: np.ndarray, which: np.ndarray, tree: cKDTree, k: int = 10
-) -> np.ndarray:
+def _local_normals(points_xyz: np.ndarray, which: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
     """Unit normals at ``points_xyz[which]`` from their k nearest neighbours' covariance."""
     _, idx = tree.query(points_xyz[which], k=k)
     nb = points_xyz[idx]
@@ -363,9 +361,7 @@ def register(
     t0 = time.perf_counter()
     _, moving = _select_moving_points(src, settings, finest)
     if moving.shape[0] < settings.min_points:
-        raise InvalidCloudError(
-            f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m"
-        )
+        raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
     times["moving"] = time.perf_counter() - t0
 
     T = T0
@@ -423,9 +419,7 @@ def register(
     t0 = time.perf_counter()
     if not np.all(np.isfinite(T)):
         raise RegistrationFailedError("registration produced a non-finite transform")
-    score_sum, score_max, best_m = ndt_point_scores(
-        moving, T, finest_map, consts, settings.n_neighbors
-    )
+    score_sum, score_max, best_m = ndt_point_scores(moving, T, finest_map, consts, settings.n_neighbors)
     has = score_max > 0
     if not np.any(has):
         raise RegistrationFailedError(

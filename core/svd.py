@@ -12,9 +12,7 @@ import numpy as np
 __all__ = ["kabsch"]
 
 
-def kabsch(
-    source_xyz: np.ndarray, target_xyz: np.ndarray, weights: np.ndarray | None = None
-) -> np.ndarray:
+def kabsch(source_xyz: np.ndarray, target_xyz: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Rigid 4x4 ``T`` minimising ``sum w_i |T s_i - t_i|^2`` over corresponding rows.
 
     Parameters

@@ -174,9 +174,7 @@ class VoxelGaussianMap:
         idx = np.minimum(idx, self.keys.size - 1)
         return np.where(self.keys[idx] == q, idx, -1)
 
-    def neighbors(
-        self, points_xyz: np.ndarray, n_neighbors: int = 7
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def neighbors(self, points_xyz: np.ndarray, n_neighbors: int = 7) -> tuple[np.ndarray, np.ndarray]:
         """Pairs (point, voxel) for the 1-, 7- or 27-voxel neighbourhood of each point.
 
         Returns
