@@ -75,11 +75,13 @@ class NdtEvaluation:
 
 
 def _pairs(q: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int):
+    """Point-voxel pairs with ``y = W x`` (whitened offsets) and ``m = |y|^2``."""
     pidx, vidx = gmap.neighbors(q, n_neighbors)
     x = q[pidx] - gmap.means[vidx]
-    a = np.einsum("pij,pj->pi", gmap.inv_covariances[vidx], x)
-    m = np.einsum("pi,pi->p", x, a)
-    return pidx, vidx, x, a, m
+    W = gmap.whitening[vidx]
+    y = (W * x[:, None, :]).sum(axis=2)
+    m = (y * y).sum(axis=1)
+    return pidx, W, y, m
 
 
 def ndt_cost(
@@ -91,7 +93,7 @@ def ndt_cost(
 ) -> float:
     """The NDT cost ``f(T)`` (module docstring) of ``points_xyz`` moved by ``T``."""
     q = transform_points(T, points_xyz)
-    _, _, _, _, m = _pairs(q, gmap, n_neighbors)
+    _, _, _, m = _pairs(q, gmap, n_neighbors)
     return float(consts.d1 * np.exp(-0.5 * consts.d2 * m).sum())
 
 
@@ -104,25 +106,21 @@ def ndt_derivatives(
 ) -> NdtEvaluation:
     """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13)."""
     q_all = transform_points(T, points_xyz)
-    pidx, vidx, _, a, m = _pairs(q_all, gmap, n_neighbors)
+    pidx, W, y, m = _pairs(q_all, gmap, n_neighbors)
     q = q_all[pidx]
     e = np.exp(-0.5 * consts.d2 * m)
     cost = float(consts.d1 * e.sum())
     w = -consts.d1 * consts.d2 * e
+    a = (W * y[:, :, None]).sum(axis=1)  # Sigma^-1 x = W^T y
     # J^T a = (a, q x a) for J = [I, -[q]x]
     ja = np.concatenate([a, np.cross(q, a)], axis=1)  # (P,6)
     grad = ja.T @ w
-    # J^T Sigma^-1 J, assembled blockwise from Sigma^-1 and q without forming J per pair.
-    Sinv = gmap.inv_covariances[vidx]
-    qx = _skew(q)  # [q]x, (P,3,3); -[q]x is dx/dr
-    Sq = -Sinv @ qx  # Sigma^-1 (dx/dr)
-    tt = np.einsum("p,pij->ij", w, Sinv)
-    tr = np.einsum("p,pij->ij", w, Sq)
-    rr = np.einsum("p,pki,pkj->ij", w, -qx, Sq)
-    jsj = np.block([[tt, tr], [tr.T, rr]])
-    outer = np.einsum("p,pi,pj->ij", w * consts.d2, ja, ja)
-    aq = np.einsum("p,pi,pj->ij", w, a, q)
-    s_rr = 0.5 * (aq + aq.T) - np.eye(3) * np.einsum("p,pi,pi->", w, a, q)
+    # J^T Sigma^-1 J = B^T B with B = W J, whose row r is (W_r, q x W_r): one product for all pairs.
+    B = np.concatenate([W, np.cross(q[:, None, :], W)], axis=2).reshape(-1, 6)  # (3P,6)
+    jsj = (B * np.repeat(w, 3)[:, None]).T @ B
+    outer = (ja * (w * consts.d2)[:, None]).T @ ja
+    aq = (a * w[:, None]).T @ q
+    s_rr = 0.5 * (aq + aq.T) - np.eye(3) * np.trace(aq)
     hess = jsj - outer
     hess[3:, 3:] += s_rr
     return NdtEvaluation(
@@ -132,14 +130,6 @@ def ndt_derivatives(
         gauss_newton_hessian=0.5 * (jsj + jsj.T),
         n_pairs=int(pidx.size),
     )
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros((v.shape[0], 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
 
 
 def ndt_point_scores(
@@ -158,7 +148,7 @@ def ndt_point_scores(
     best_m : (N,) squared Mahalanobis distance to the best voxel (``inf`` where none)
     """
     q = transform_points(T, points_xyz)
-    pidx, _, _, _, m = _pairs(q, gmap, n_neighbors)
+    pidx, _, _, m = _pairs(q, gmap, n_neighbors)
     s = -consts.d1 * np.exp(-0.5 * consts.d2 * m)
     n = points_xyz.shape[0]
     score_sum = np.bincount(pidx, weights=s, minlength=n)
@@ -224,26 +214,29 @@ def ndt_newton(
         )
         step *= scale
         slope = float(ev.gradient @ step)
+        # Full step first, evaluated with derivatives (reused when accepted, the common case);
+        # then Armijo backtracking on the cheaper cost alone.
         alpha = 1.0
-        accepted = False
-        for _ in range(9):
-            T_try = apply_update(alpha * step, T)
-            c_try = ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors)
-            if c_try <= ev.cost + 1e-4 * alpha * slope:
-                accepted = True
-                break
-            alpha *= 0.5
-        small = (
-            np.linalg.norm(alpha * step[:3]) < translation_eps_m
-            and np.linalg.norm(alpha * step[3:]) < rotation_eps_rad
-        )
+        T_try = apply_update(step, T)
+        ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors)
+        accepted = ev_try.cost <= ev.cost + 1e-4 * slope
+        if not accepted:
+            for _ in range(8):
+                alpha *= 0.5
+                T_try = apply_update(alpha * step, T)
+                if ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors) <= ev.cost + 1e-4 * alpha * slope:
+                    accepted = True
+                    ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors)
+                    break
         if not accepted:
             # No decrease along a descent direction: we sit at a (numerical) minimum.
             converged = True
             break
-        T = T_try
-        ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors)
-        if small:
+        T, ev = T_try, ev_try
+        if (
+            np.linalg.norm(alpha * step[:3]) < translation_eps_m
+            and np.linalg.norm(alpha * step[3:]) < rotation_eps_rad
+        ):
             converged = True
             break
     return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev)

@@ -225,6 +225,24 @@ def _select_moving_points(
     return pre, voxel_downsample(pre, finest * settings.source_voxel_fraction)
 
 
+#: Coarse NDT levels use at least this many moving points (or all of them).
+MIN_COARSE_POINTS = 1500
+
+
+def _coarse_points(moving: np.ndarray, voxel_size_m: float, settings: RegistrationSettings) -> np.ndarray:
+    """The moving points a coarse level sees: downsampled at half its voxel, halving the voxel
+    until at least :data:`MIN_COARSE_POINTS` remain (small objects keep enough shape to rotate)."""
+    v = voxel_size_m * settings.source_voxel_fraction
+    finest = v
+    while True:
+        pts = voxel_downsample(moving, v)
+        if pts.shape[0] >= MIN_COARSE_POINTS or pts.shape[0] >= 0.5 * moving.shape[0]:
+            return pts
+        v *= 0.5
+        if v < 0.05 * finest:
+            return moving
+
+
 def _svd_refine(
     moving: np.ndarray,
     ref: PreparedReference,
@@ -370,17 +388,20 @@ def register(
     t0 = time.perf_counter()
     tree: cKDTree | None = None
     if settings.method in ("randt", "ndt"):
-        for gmap in ref.maps:
+        for level, gmap in enumerate(ref.maps):
+            final = level == len(ref.maps) - 1
             consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
+            # Coarse levels only need to hand a good start to the next: stop at 1 % of a voxel.
+            level_moving = moving if final else _coarse_points(moving, gmap.voxel_size_m, settings)
             out = ndt_newton(
-                moving,
+                level_moving,
                 gmap,
                 consts,
                 T,
                 n_neighbors=settings.n_neighbors,
                 max_iterations=settings.max_iterations,
-                translation_eps_m=settings.translation_eps_m,
-                rotation_eps_rad=settings.rotation_eps_rad,
+                translation_eps_m=settings.translation_eps_m if final else 0.01 * gmap.voxel_size_m,
+                rotation_eps_rad=settings.rotation_eps_rad if final else 1e-3,
             )
             T, iterations = out.T, iterations + out.iterations
             converged = converged and out.converged

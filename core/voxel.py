@@ -92,6 +92,8 @@ class VoxelGaussianMap:
     means : (M,3) float64 voxel means.
     covariances : (M,3,3) float64 conditioned covariances.
     inv_covariances : (M,3,3) float64 their inverses.
+    whitening : (M,3,3) float64 ``W`` with ``W^T W = Sigma^-1``: ``|W x|^2`` is the squared
+        Mahalanobis distance, and ``W`` turns the NDT Hessian into plain matrix products.
     normals : (M,3) float64 eigenvector of the smallest eigenvalue (surface normal estimate).
     counts : (M,) int64 points per voxel.
     """
@@ -101,6 +103,7 @@ class VoxelGaussianMap:
     means: np.ndarray
     covariances: np.ndarray
     inv_covariances: np.ndarray
+    whitening: np.ndarray
     normals: np.ndarray
     counts: np.ndarray
 
@@ -157,12 +160,14 @@ class VoxelGaussianMap:
         evals = np.maximum(evals, floor)
         cov = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
         inv = (evecs / evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
+        whitening = np.swapaxes(evecs / np.sqrt(evals)[:, None, :], 1, 2)
         return cls(
             voxel_size_m=float(voxel_size_m),
             keys=uniq,
             means=mean,
             covariances=cov,
             inv_covariances=inv,
+            whitening=whitening,
             normals=evecs[:, :, 0],
             counts=counts.astype(np.int64),
         )
@@ -198,6 +203,7 @@ class VoxelGaussianMap:
             means=self.means[mask],
             covariances=self.covariances[mask],
             inv_covariances=self.inv_covariances[mask],
+            whitening=self.whitening[mask],
             normals=self.normals[mask],
             counts=self.counts[mask],
         )
