@@ -226,7 +226,7 @@ def _select_moving_points(
 
 
 #: Coarse NDT levels use at least this many moving points (or all of them).
-MIN_COARSE_POINTS = 1500
+MIN_COARSE_POINTS = 3000
 
 
 def _coarse_points(moving: np.ndarray, voxel_size_m: float, settings: RegistrationSettings) -> np.ndarray:
