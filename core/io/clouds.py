@@ -7,7 +7,7 @@ suffix                     handled by
 =========================  ==========================================================
 ``.bin``                   :func:`numpy.fromfile` (raw little-endian float32 records)
 ``.pcd``                   pypcd4 (ascii, binary, binary_compressed/LZF; BSD-3)
-``.ply``                   plyfile (ascii and binary, any element layout)
+``.ply``                   :mod:`core.io.ply` (numpy; ascii, binary little/big-endian)
 ``.csv`` ``.txt`` ``.xyz``  :func:`numpy.loadtxt` after sniffing delimiter and header
 ``.npy``                   :func:`numpy.load` (``allow_pickle=False``)
 ``.off``                   :mod:`core.io.mesh` (read, then area-weighted sampling)
@@ -23,19 +23,18 @@ from __future__ import annotations
 
 import logging
 import os
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import plyfile
 import pypcd4
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io.atomic import atomic_open
 from core.io.mesh import read_off, sample_surface
+from core.io.ply import read_ply_vertices, write_ply_binary
 
 __all__ = [
     "SUPPORTED_READ_SUFFIXES",
@@ -68,26 +67,6 @@ _FLOAT32_SAFE_RANGE_M = 1.0e5
 _INTENSITY_NAMES = ("intensity", "scalar_intensity", "i")
 _NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 
-# PLY scalar types (both spellings of the spec) -> numpy type codes, for the ASCII fast path.
-_PLY_SCALAR_TYPES = {
-    "char": "i1",
-    "int8": "i1",
-    "uchar": "u1",
-    "uint8": "u1",
-    "short": "i2",
-    "int16": "i2",
-    "ushort": "u2",
-    "uint16": "u2",
-    "int": "i4",
-    "int32": "i4",
-    "uint": "u4",
-    "uint32": "u4",
-    "float": "f4",
-    "float32": "f4",
-    "double": "f8",
-    "float64": "f8",
-}
-_PLY_MAX_HEADER_LINES = 1000
 _PCD_MAX_HEADER_LINES = 64
 
 
@@ -301,90 +280,16 @@ def _read_pcd(path: Path) -> PointCloud:
     )
 
 
-def _ascii_ply_vertex_fast(path: Path) -> np.ndarray | None:
-    """Read the vertex rows of an ASCII PLY whose first element is ``vertex`` with numpy.
-
-    plyfile parses ASCII rows in Python, which takes seconds on the Stanford bunny scans (their
-    204,800-row ``range_grid`` list element follows the vertices). When the file is ASCII and its
-    first element is ``vertex`` with scalar properties only, this reads just those rows with
-    :func:`numpy.loadtxt`, rounding each column to its declared type as plyfile would.
-
-    Returns
-    -------
-    np.ndarray | None
-        (V,) structured array like plyfile's ``ply["vertex"].data``, or ``None`` when the file
-        does not have that shape (plyfile then reads it and reports any error).
-    """
-    header: list[str] = []
-    with path.open("rb") as fh:
-        for raw in fh:
-            header.append(raw.decode("ascii", errors="replace").strip())
-            if header[-1] == "end_header" or len(header) > _PLY_MAX_HEADER_LINES:
-                break
-    if (
-        len(header) < 3
-        or header[0] != "ply"
-        or header[-1] != "end_header"
-        or header[1].split()[:2] != ["format", "ascii"]
-    ):
-        return None
-    fields: list[tuple[str, str]] = []
-    count: int | None = None
-    for line in header[2:-1]:
-        tokens = line.split()
-        if not tokens or tokens[0] in ("comment", "obj_info"):
-            continue
-        if tokens[0] == "element":
-            if count is not None:
-                break  # the second element: the vertices are complete
-            if len(tokens) != 3 or tokens[1] != "vertex" or not tokens[2].isdigit():
-                return None
-            count = int(tokens[2])
-        elif tokens[0] == "property" and count is not None and len(tokens) == 3:
-            if tokens[1] not in _PLY_SCALAR_TYPES:
-                return None
-            fields.append((tokens[2], _PLY_SCALAR_TYPES[tokens[1]]))
-        else:  # a list property, or a property before any element
-            return None
-    if not count or not fields:
-        return None
-    try:
-        table = np.loadtxt(
-            path, dtype=np.float64, skiprows=len(header), max_rows=count, comments=None, ndmin=2
-        )
-    except ValueError:
-        return None
-    if table.shape != (count, len(fields)):
-        return None
-    vertex = np.empty(count, dtype=[(name, f"<{code}") for name, code in fields])
-    for i, (name, _) in enumerate(fields):  # a handful of properties
-        vertex[name] = table[:, i]
-    return vertex
-
-
 def _read_ply(path: Path) -> PointCloud:
-    vertex = _ascii_ply_vertex_fast(path)
-    if vertex is None:
-        try:
-            with warnings.catch_warnings():
-                # plyfile warns on every empty list row of ASCII files.
-                warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
-                # mmap="c" is plyfile's fast path for binary files (its non-mmap path reads row
-                # by row); the columns are copied below, so nothing keeps the mapping alive.
-                ply = plyfile.PlyData.read(str(path), mmap="c")
-        except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors...
-            raise FormatError(f"{path}: cannot parse as PLY: {exc}") from exc
-        if "vertex" not in ply:
-            raise FormatError(f"{path}: PLY has no 'vertex' element")
-        vertex = ply["vertex"].data
-    names = list(vertex.dtype.names or ())
+    vertex = read_ply_vertices(path)
+    names = list(vertex)
     if not {"x", "y", "z"} <= set(names):
         raise FormatError(f"{path}: PLY vertex element has no x, y, z (has {' '.join(names)})")
     intensity_name = _find_intensity(names)
     normal_names = _find_normals(names)
     return PointCloud(
         xyz=np.column_stack([vertex["x"], vertex["y"], vertex["z"]]).astype(np.float64),
-        intensity=(None if intensity_name is None else np.array(vertex[intensity_name], np.float32)),
+        intensity=(None if intensity_name is None else vertex[intensity_name].astype(np.float32)),
         normals=(
             None
             if normal_names is None
@@ -644,15 +549,7 @@ def write_ply(path: str | os.PathLike[str], cloud: PointCloud) -> None:
     """
     path = Path(path)
     xyz, intensity = _xyzi_float32(cloud, path)
-    vertex = np.empty(
-        cloud.n_points,
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")],
-    )
-    vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    vertex["intensity"] = intensity
-    ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], text=False, byte_order="<")
-    with atomic_open(path, "wb") as fh:
-        ply.write(fh)
+    write_ply_binary(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "intensity": intensity})
     logger.debug("wrote %s: %d points", path, cloud.n_points)
 
 

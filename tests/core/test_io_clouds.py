@@ -265,23 +265,22 @@ def read_cloud_last_vertex(path: Path, n_vertices: int) -> np.ndarray:
     return np.array(lines[body + n_vertices - 1].split(), dtype=np.float32).astype(np.float64)
 
 
-def test_ascii_ply_fast_path_matches_plyfile(tmp_path: Path) -> None:
-    import plyfile
-
+def test_ascii_ply_mesh_vertices_before_faces(tmp_path: Path) -> None:
+    # The vertex rows are read; the face rows after them (lists, empty lists) are skipped.
     rng = np.random.default_rng(3)
-    vertex = np.zeros(50, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
-    for name in ("x", "y", "z", "intensity"):
-        vertex[name] = rng.normal(size=50)
-    face = np.zeros(2, dtype=[("vertex_indices", "O")])
-    face["vertex_indices"] = [np.array([0, 1, 2], "i4"), np.array([2, 3, 4, 5], "i4")]
+    vertex = rng.normal(size=(50, 4)).astype(np.float32)  # x, y, z, intensity
+    rows = [" ".join(str(v) for v in row) for row in vertex]
     path = tmp_path / "mesh.ply"
-    plyfile.PlyData(
-        [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(face, "face")],
-        text=True,
-    ).write(str(path))
+    path.write_text(
+        "ply\nformat ascii 1.0\ncomment hand-written\nelement vertex 50\n"
+        + "".join(f"property float {name}\n" for name in ("x", "y", "z", "intensity"))
+        + "element face 3\nproperty list uchar int vertex_indices\nend_header\n"
+        + "\n".join([*rows, "3 0 1 2", "4 2 3 4 5", "0"])
+        + "\n"
+    )
     cloud = read_cloud(path)
-    np.testing.assert_array_equal(cloud.xyz, np.column_stack([vertex["x"], vertex["y"], vertex["z"]]))
-    np.testing.assert_array_equal(cloud.intensity, vertex["intensity"])
+    np.testing.assert_array_equal(cloud.xyz, vertex[:, :3])
+    np.testing.assert_array_equal(cloud.intensity, vertex[:, 3])
 
 
 def test_read_3dmatch_npy() -> None:
