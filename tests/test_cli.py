@@ -82,3 +82,16 @@ def test_config_dumps_defaults() -> None:
     assert proc.returncode == 0
     doc = json.loads(proc.stdout)
     assert doc["method"] == "randt" and doc["iqr_k"] == 1.5 and doc["n_neighbors"] == 7
+
+
+def test_demo_main_job_reports_small_errors(tmp_path) -> None:
+    """The README's first command: every method recovers the synthetic room's known transform."""
+    import re
+
+    proc = _randt("demo", "--data-dir", str(tmp_path / "no-data-here"))
+    assert proc.returncode == 0, proc.stderr
+    rows = re.findall(r"^\s+(\S+)\s+error\s+([\d.]+) cm\s+([\d.]+) deg", proc.stdout, flags=re.M)
+    assert [r[0] for r in rows] == ["randt", "ndt", "icp-point", "icp-plane"]
+    for method, cm, deg in rows:
+        assert float(cm) < 2.0 and float(deg) < 0.2, f"{method}: {cm} cm {deg} deg"
+    assert "no real data" in proc.stdout
