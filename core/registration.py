@@ -178,16 +178,7 @@ def prepare_reference(
     pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
     n_in = pts.shape[0]
     if settings.outlier_removal == "iqr":
-        pts = pts[
-            iqr_inlier_mask(
-                pts,
-                finest,
-                k=settings.iqr_k,
-                min_points_per_voxel=settings.min_points_per_voxel,
-                min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
-                eigenvalue_ratio=settings.eigenvalue_ratio,
-            )
-        ]
+        pts = pts[_algorithm1_mask(pts, finest, settings)]
     elif settings.outlier_removal == "sor":
         pts = pts[statistical_outlier_mask(pts)]
     maps = tuple(
@@ -202,27 +193,31 @@ def prepare_reference(
     return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
 
 
+def _algorithm1_mask(
+    points_xyz: np.ndarray, voxel_size_m: float, settings: RegistrationSettings
+) -> np.ndarray:
+    """Algorithm 1's inlier mask with the settings' fence, voxel and quartile rules."""
+    return iqr_inlier_mask(
+        points_xyz,
+        voxel_size_m,
+        k=settings.iqr_k,
+        min_points_per_voxel=settings.min_points_per_voxel,
+        min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
+        eigenvalue_ratio=settings.eigenvalue_ratio,
+    )
+
+
 def _select_moving_points(
     source_xyz: np.ndarray, settings: RegistrationSettings, finest: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Algorithm 1 on the moving cloud: keep points of high probability under its own Gaussians.
-
-    Returns the selected points at the reference's pre-downsampling resolution (for the SVD
-    refinement) and further downsampled for the NDT solver.
-    """
+) -> np.ndarray:
+    """Algorithm 1 on the moving cloud: keep points of high probability under its own Gaussians,
+    then downsample the survivors for the NDT solver."""
     pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
     if settings.select_moving_points:
-        keep = iqr_inlier_mask(
-            pre,
-            finest,
-            k=settings.iqr_k,
-            min_points_per_voxel=settings.min_points_per_voxel,
-            min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
-            eigenvalue_ratio=settings.eigenvalue_ratio,
-        )
+        keep = _algorithm1_mask(pre, finest, settings)
         if keep.sum() >= settings.min_points:
             pre = pre[keep]
-    return pre, voxel_downsample(pre, finest * settings.source_voxel_fraction)
+    return voxel_downsample(pre, finest * settings.source_voxel_fraction)
 
 
 #: Coarse NDT levels use at least this many moving points (or all of them).
@@ -377,7 +372,7 @@ def register(
     times["reference"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    _, moving = _select_moving_points(src, settings, finest)
+    moving = _select_moving_points(src, settings, finest)
     if moving.shape[0] < settings.min_points:
         raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
     times["moving"] = time.perf_counter() - t0

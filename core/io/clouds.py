@@ -262,40 +262,31 @@ def _read_pcd_table(path: Path) -> np.ndarray:
     return table
 
 
-def _read_pcd(path: Path) -> PointCloud:
-    table = _read_pcd_table(path)
-    names = list(table.dtype.names or ())
+def _cloud_from_fields(path: Path, fields: Any, names: list[str], what: str) -> PointCloud:
+    """PointCloud from named columns (a PCD table or PLY vertex element): xyz, intensity, normals."""
     if not {"x", "y", "z"} <= set(names):
-        raise FormatError(f"{path}: PCD has no x, y, z fields (fields: {' '.join(names)})")
+        raise FormatError(f"{path}: {what} has no x, y, z fields (has {' '.join(names)})")
     intensity_name = _find_intensity(names)
     normal_names = _find_normals(names)
     return PointCloud(
-        xyz=np.column_stack([table["x"], table["y"], table["z"]]).astype(np.float64),
-        intensity=(None if intensity_name is None else table[intensity_name].astype(np.float32)),
+        xyz=np.column_stack([fields["x"], fields["y"], fields["z"]]).astype(np.float64),
+        intensity=(None if intensity_name is None else fields[intensity_name].astype(np.float32)),
         normals=(
             None
             if normal_names is None
-            else np.column_stack([table[n] for n in normal_names]).astype(np.float64)
+            else np.column_stack([fields[n] for n in normal_names]).astype(np.float64)
         ),
     )
+
+
+def _read_pcd(path: Path) -> PointCloud:
+    table = _read_pcd_table(path)
+    return _cloud_from_fields(path, table, list(table.dtype.names or ()), "PCD")
 
 
 def _read_ply(path: Path) -> PointCloud:
     vertex = read_ply_vertices(path)
-    names = list(vertex)
-    if not {"x", "y", "z"} <= set(names):
-        raise FormatError(f"{path}: PLY vertex element has no x, y, z (has {' '.join(names)})")
-    intensity_name = _find_intensity(names)
-    normal_names = _find_normals(names)
-    return PointCloud(
-        xyz=np.column_stack([vertex["x"], vertex["y"], vertex["z"]]).astype(np.float64),
-        intensity=(None if intensity_name is None else vertex[intensity_name].astype(np.float32)),
-        normals=(
-            None
-            if normal_names is None
-            else np.column_stack([vertex[n] for n in normal_names]).astype(np.float64)
-        ),
-    )
+    return _cloud_from_fields(path, vertex, list(vertex), "PLY vertex element")
 
 
 def _parses_as_float(token: str) -> bool:
