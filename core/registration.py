@@ -214,9 +214,13 @@ def _select_moving_points(
     then downsample the survivors for the NDT solver."""
     pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
     if settings.select_moving_points:
-        keep = _algorithm1_mask(pre, finest, settings)
-        if keep.sum() >= settings.min_points:
-            pre = pre[keep]
+        try:
+            keep = _algorithm1_mask(pre, finest, settings)
+        except InvalidCloudError:
+            log.debug("moving cloud too sparse for Algorithm 1 at %g m: selection skipped", finest)
+        else:
+            if keep.sum() >= settings.min_points:
+                pre = pre[keep]
     return voxel_downsample(pre, finest * settings.source_voxel_fraction)
 
 

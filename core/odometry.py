@@ -1,0 +1,309 @@
+"""The paper's Algorithm 2: incremental scan-to-keyframe-model matching with density equalization.
+
+One :class:`IncrementalMatcher` per driving session, fed one sweep at a time. The whole step
+(:meth:`IncrementalMatcher.register_scan`) in one screen::
+
+    sanitize  -> finite points only (counted)
+    predict   -> constant velocity: T_pred = T_last @ delta_last  (or the prior pose, if given)
+    deskew    -> per-point time offsets: each point moved to the sweep's start pose
+    features  -> density-based split (core.features): noise out, ground thinned, objects kept
+    get model -> the fused keyframe model (the paper's Get), prepared once per keyframe change
+    match     -> core.registration.register(features, model, T_pred) with Algorithm 1 and 3
+    guard     -> failed, low-fitness or prior-inconsistent results fall back to the prediction,
+                 flagged on the scan's result, never silently accepted
+    set model -> a new keyframe when the sensor moved or turned enough (the paper's Set): its
+                 points join the fused model, which is density-equalized and bounded in size
+
+Poses are ``T_world_sensor`` (4x4), the world being the first sweep's sensor frame unless a prior
+pose places the session in a map frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+from core.config import RegistrationSettings
+from core.errors import InvalidCloudError, RandtError
+from core.features import extract_features
+from core.registration import (
+    PreparedReference,
+    auto_voxel_sizes,
+    prepare_reference,
+    register,
+    sanitize_points,
+)
+from core.transforms import as_transform, invert, rotation_angle_deg, transform_points
+from core.voxel import voxel_downsample
+
+__all__ = ["IncrementalMatcher", "MatcherSettings", "PosePrior", "ScanResult"]
+
+log = logging.getLogger(__name__)
+
+
+class MatcherSettings(BaseModel):
+    """Settings of the incremental matcher (Algorithm 2)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    voxel_sizes_m: tuple[float, ...] | None = Field(
+        default=None,
+        description="NDT levels against the keyframe model, coarse to fine; None: (4r, 2r, r) with r "
+        "from the first sweep's scale (core.registration.auto_voxel_sizes), 1 m for a KITTI sweep",
+    )
+    feature_voxel_m: float | None = Field(default=None, gt=0, description="object downsampling; None: r/2")
+    keyframe_distance_m: float = Field(default=2.0, gt=0, description="new keyframe after this travel")
+    keyframe_rotation_deg: float = Field(default=10.0, gt=0, description="or after this rotation")
+    max_keyframes: int = Field(default=20, ge=1, description="keyframes fused into the model")
+    model_radius_m: float = Field(default=80.0, gt=0, description="model points kept around the sensor")
+    model_voxel_m: float | None = Field(
+        default=None, gt=0, description="density equalization of the model; None: r/4"
+    )
+    max_range_m: float = Field(default=100.0, gt=0, description="points farther are ignored")
+    min_range_m: float = Field(default=2.0, ge=0, description="points nearer are ignored (the vehicle)")
+    min_inlier_ratio: float = Field(
+        default=0.3, ge=0, le=1, description="a match with fewer inliers (chi2 gate) is a failed match"
+    )
+    max_correction_m: float = Field(
+        default=2.0, gt=0, description="a match moving the prediction farther than this is rejected"
+    )
+    prior_gate_chi2: float = Field(
+        default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
+    )
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """An external pose (GNSS/INS): ``T_world_sensor`` and its 6x6 covariance (t then r)."""
+
+    T_world_sensor: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """What the matcher concluded for one sweep.
+
+    ``status`` is ``"first"`` (the first sweep, placed at the identity or its prior), ``"ok"`` (a
+    match was accepted) or ``"fallback"`` (the match failed or was rejected; ``T_world_sensor`` is
+    the motion prediction or the prior and ``message`` says why).
+    """
+
+    index: int
+    T_world_sensor: np.ndarray
+    status: Literal["first", "ok", "fallback"]
+    converged: bool
+    fitness: float
+    inlier_ratio: float
+    is_keyframe: bool
+    time_s: float
+    covariance: np.ndarray
+    deskewed_xyz: np.ndarray
+    n_points: int
+    n_nonfinite_dropped: int
+    message: str = ""
+    stage_times_s: dict[str, float] = field(default_factory=dict)
+
+
+def deskew(
+    points_xyz: np.ndarray, time_offset_s: np.ndarray, delta: np.ndarray, period_s: float
+) -> np.ndarray:
+    """Move each point to the sweep's start pose assuming constant velocity across the sweep.
+
+    ``delta`` is the sensor motion over one ``period_s`` (``T_start_end``); a point measured at
+    ``tau`` seconds after the start was seen from ``T_start_tau = exp(tau / period * log(delta))``
+    (rotation by the scaled rotation vector, translation scaled linearly).
+    """
+    s = np.clip(time_offset_s / period_s, 0.0, 1.5)
+    rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
+    R = Rotation.from_rotvec(s[:, None] * rotvec[None, :])
+    return R.apply(points_xyz) + s[:, None] * delta[:3, 3][None, :]
+
+
+class IncrementalMatcher:
+    """Algorithm 2 for one session (module docstring). Feed sweeps in order with :meth:`register_scan`."""
+
+    def __init__(
+        self,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
+        *,
+        period_s: float = 0.1,
+    ) -> None:
+        self.settings = settings or MatcherSettings()
+        self._registration_given = registration
+        self.registration = registration or RegistrationSettings(select_moving_points=False)
+        self.period_s = period_s
+        self.feature_voxel_m = 0.0
+        self.model_voxel_m = 0.0
+        self.poses: list[np.ndarray] = []
+        self._delta = np.eye(4)
+        self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.settings.max_keyframes)
+        self._model: PreparedReference | None = None
+        self._last_keyframe_pose: np.ndarray | None = None
+
+    def _resolve_scales(self, first_xyz: np.ndarray) -> None:
+        """Fix the voxel sizes from the first sweep (or the settings) for the whole session."""
+        s = self.settings
+        levels = s.voxel_sizes_m
+        if levels is None and self._registration_given is not None:
+            levels = self._registration_given.voxel_sizes_m
+        if levels is None:
+            levels = auto_voxel_sizes(first_xyz)[1:]
+        r = levels[-1]
+        # The density-based feature extraction already removes the sweep's noise, and features are
+        # too sparse for Algorithm 1's own-voxel Gaussians: the moving-point selection is off here.
+        base = self._registration_given or RegistrationSettings(select_moving_points=False)
+        self.registration = base.model_copy(update={"voxel_sizes_m": tuple(levels)})
+        self.feature_voxel_m = s.feature_voxel_m or r / 2
+        self.model_voxel_m = s.model_voxel_m or r / 4
+
+    # -- the paper's Get and Set of the keyframe model ------------------------------------------
+    def get_model(self) -> PreparedReference | None:
+        """The fused, density-equalized keyframe model (prepared for matching), if any."""
+        return self._model
+
+    def set_keyframe(self, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
+        """Add a keyframe and rebuild the fused model around it (bounded in count and radius)."""
+        world = transform_points(T_world_sensor, points_sensor)
+        self._keyframes.append((T_world_sensor.copy(), voxel_downsample(world, self.model_voxel_m)))
+        centre = T_world_sensor[:3, 3]
+        fused = np.vstack([pts for _, pts in self._keyframes])
+        fused = fused[np.linalg.norm(fused[:, :2] - centre[:2], axis=1) <= self.settings.model_radius_m]
+        fused = voxel_downsample(fused, self.model_voxel_m)
+        self._model = prepare_reference(fused, self.registration, self.registration.voxel_sizes_m or ())
+        self._last_keyframe_pose = T_world_sensor.copy()
+
+    @property
+    def model_size(self) -> int:
+        """Points in the fused model (bounded by ``max_keyframes`` and ``model_radius_m``)."""
+        return 0 if self._model is None else int(self._model.points_xyz.shape[0])
+
+    # -- one sweep --------------------------------------------------------------------------------
+    def register_scan(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+    ) -> ScanResult:
+        """Register one sweep (sensor frame) and return its :class:`ScanResult`."""
+        t_start = time.perf_counter()
+        times: dict[str, float] = {}
+        s = self.settings
+        xyz, n_bad = sanitize_points(points_xyz, name="scan", min_points=self.registration.min_points)
+        if time_offset_s is not None:
+            time_offset_s = np.asarray(time_offset_s, dtype=np.float64)
+            if time_offset_s.shape != (np.asarray(points_xyz).shape[0],):
+                raise InvalidCloudError(
+                    f"scan: {time_offset_s.shape[0]} time offsets for "
+                    f"{np.asarray(points_xyz).shape[0]} points"
+                )
+            time_offset_s = time_offset_s[
+                np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
+            ]
+        rng = np.linalg.norm(xyz, axis=1)
+        keep = (rng >= s.min_range_m) & (rng <= s.max_range_m)
+        xyz = xyz[keep]
+        if time_offset_s is not None:
+            time_offset_s = time_offset_s[keep]
+        if xyz.shape[0] < self.registration.min_points:
+            raise InvalidCloudError(f"scan: {xyz.shape[0]} points within {s.min_range_m}-{s.max_range_m} m")
+
+        index = len(self.poses)
+        if index == 0:
+            self._resolve_scales(xyz)
+        prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
+        first_pose = np.eye(4) if prior_T is None else prior_T
+        T_pred = first_pose if index == 0 else self.poses[-1] @ self._delta
+        t0 = time.perf_counter()
+        if time_offset_s is not None and index > 0:
+            xyz = deskew(xyz, time_offset_s, self._delta, self.period_s)
+        times["deskew"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        feats = extract_features(xyz, voxel_size_m=self.feature_voxel_m)
+        times["features"] = time.perf_counter() - t0
+
+        status: Literal["first", "ok", "fallback"]
+        message = ""
+        converged, fitness, inliers, cov = False, 0.0, 0.0, np.full((6, 6), np.nan)
+        if index == 0:
+            T, status, converged, inliers = T_pred, "first", True, 1.0
+        else:
+            t0 = time.perf_counter()
+            T, status, message = T_pred, "fallback", ""
+            try:
+                res = register(
+                    feats.matching_xyz, None, T_pred, settings=self.registration, reference=self._model
+                )
+                converged, fitness, cov = res.converged, res.fitness, res.covariance
+                inliers = res.inlier_ratio
+                correction = float(np.linalg.norm((invert(T_pred) @ res.T_target_source)[:3, 3]))
+                if inliers < s.min_inlier_ratio:
+                    message = f"inlier ratio {inliers:.2f} below {s.min_inlier_ratio}"
+                elif correction > s.max_correction_m:
+                    message = f"match moved the prediction {correction:.2f} m (limit {s.max_correction_m} m)"
+                elif prior_T is not None and not self._agrees(res.T_target_source, prior):
+                    message = "match disagrees with the prior pose beyond its covariance"
+                else:
+                    T, status = res.T_target_source, "ok"
+            except RandtError as exc:
+                message = f"registration failed: {exc}"
+            if status == "fallback":
+                if prior_T is not None:
+                    T = prior_T
+                log.warning(
+                    "scan %d: falling back to the %s: %s",
+                    index,
+                    "prior" if prior_T is not None else "motion prediction",
+                    message,
+                )
+            times["match"] = time.perf_counter() - t0
+
+        if index > 0:
+            self._delta = invert(self.poses[-1]) @ T
+        self.poses.append(T)
+        is_kf = self._model is None or self._needs_keyframe(T)
+        if is_kf and status != "fallback":
+            t0 = time.perf_counter()
+            self.set_keyframe(T, xyz[~feats.noise_mask])
+            times["model"] = time.perf_counter() - t0
+        return ScanResult(
+            index=index,
+            T_world_sensor=T,
+            status=status,
+            converged=bool(converged),
+            fitness=float(fitness),
+            inlier_ratio=float(inliers),
+            is_keyframe=bool(is_kf and status != "fallback"),
+            time_s=time.perf_counter() - t_start,
+            covariance=cov,
+            deskewed_xyz=xyz,
+            n_points=int(xyz.shape[0]),
+            n_nonfinite_dropped=n_bad,
+            message=message,
+            stage_times_s=times,
+        )
+
+    def _needs_keyframe(self, T: np.ndarray) -> bool:
+        last = self._last_keyframe_pose
+        if last is None:
+            return True
+        rel = invert(last) @ T
+        return bool(
+            np.linalg.norm(rel[:3, 3]) >= self.settings.keyframe_distance_m
+            or rotation_angle_deg(rel[:3, :3]) >= self.settings.keyframe_rotation_deg
+        )
+
+    def _agrees(self, T: np.ndarray, prior: PosePrior) -> bool:
+        d = T[:3, 3] - prior.T_world_sensor[:3, 3]
+        cov = np.asarray(prior.covariance, dtype=np.float64)[:3, :3]
+        return float(d @ np.linalg.solve(cov, d)) <= self.settings.prior_gate_chi2
