@@ -148,6 +148,8 @@ class IncrementalMatcher:
         self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.settings.max_keyframes)
         self._model: PreparedReference | None = None
         self._last_keyframe_pose: np.ndarray | None = None
+        # The first sweep cannot be deskewed (no velocity yet): kept raw until the second gives one.
+        self._first_raw: tuple[np.ndarray, np.ndarray] | None = None
 
     def _resolve_scales(self, first_xyz: np.ndarray) -> None:
         """Fix the voxel sizes from the first sweep (or the settings) for the whole session."""
@@ -174,12 +176,16 @@ class IncrementalMatcher:
         """Add a keyframe and rebuild the fused model around it (bounded in count and radius)."""
         world = transform_points(T_world_sensor, points_sensor)
         self._keyframes.append((T_world_sensor.copy(), voxel_downsample(world, self.model_voxel_m)))
+        self._rebuild_model(T_world_sensor)
+        self._last_keyframe_pose = T_world_sensor.copy()
+
+    def _rebuild_model(self, T_world_sensor: np.ndarray) -> None:
+        """Fuse the keyframes near ``T_world_sensor`` into the density-equalized matching model."""
         centre = T_world_sensor[:3, 3]
         fused = np.vstack([pts for _, pts in self._keyframes])
         fused = fused[np.linalg.norm(fused[:, :2] - centre[:2], axis=1) <= self.settings.model_radius_m]
         fused = voxel_downsample(fused, self.model_voxel_m)
         self._model = prepare_reference(fused, self.registration, self.registration.voxel_sizes_m or ())
-        self._last_keyframe_pose = T_world_sensor.copy()
 
     @property
     def model_size(self) -> int:
@@ -228,6 +234,8 @@ class IncrementalMatcher:
             xyz = deskew(xyz, time_offset_s, self._delta, self.period_s)
         times["deskew"] = time.perf_counter() - t0
 
+        if index == 0 and time_offset_s is not None:
+            self._first_raw = (xyz, time_offset_s)
         t0 = time.perf_counter()
         feats = extract_features(xyz, voxel_size_m=self.feature_voxel_m)
         times["features"] = time.perf_counter() - t0
@@ -271,6 +279,17 @@ class IncrementalMatcher:
         if index > 0:
             self._delta = invert(self.poses[-1]) @ T
         self.poses.append(T)
+        if index == 1 and self._first_raw is not None and status == "ok":
+            # Now that the velocity is known, replace the first keyframe by its deskewed sweep.
+            raw, tau = self._first_raw
+            first = deskew(raw, tau, self._delta, self.period_s)
+            self._keyframes.popleft()
+            self._keyframes.appendleft(
+                (self.poses[0], voxel_downsample(transform_points(self.poses[0], first), self.model_voxel_m))
+            )
+            self._first_raw = None
+            if not (self._model is None or self._needs_keyframe(T)):
+                self._rebuild_model(self.poses[0])
         is_kf = self._model is None or self._needs_keyframe(T)
         if is_kf and status != "fallback":
             t0 = time.perf_counter()
