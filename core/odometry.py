@@ -91,6 +91,10 @@ class PosePrior:
 class ScanResult:
     """What the matcher concluded for one sweep.
 
+    ``deskewed_xyz`` holds the sweep's points worth mapping (in range, not noise, deskewed, sensor
+    frame) and ``map_index`` their row in the input, so per-point attributes such as intensity can
+    follow them into the map.
+
     ``status`` is ``"first"`` (the first sweep, placed at the identity or its prior), ``"ok"`` (a
     match was accepted) or ``"fallback"`` (the match failed or was rejected; ``T_world_sensor`` is
     the motion prediction or the prior and ``message`` says why).
@@ -106,6 +110,7 @@ class ScanResult:
     time_s: float
     covariance: np.ndarray
     deskewed_xyz: np.ndarray
+    map_index: np.ndarray
     n_points: int
     n_nonfinite_dropped: int
     message: str = ""
@@ -215,9 +220,13 @@ class IncrementalMatcher:
             time_offset_s = time_offset_s[
                 np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
             ]
+        source_index = np.flatnonzero(
+            np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
+        )
         rng = np.linalg.norm(xyz, axis=1)
         keep = (rng >= s.min_range_m) & (rng <= s.max_range_m)
         xyz = xyz[keep]
+        source_index = source_index[keep]
         if time_offset_s is not None:
             time_offset_s = time_offset_s[keep]
         if xyz.shape[0] < self.registration.min_points:
@@ -305,7 +314,8 @@ class IncrementalMatcher:
             is_keyframe=bool(is_kf and status != "fallback"),
             time_s=time.perf_counter() - t_start,
             covariance=cov,
-            deskewed_xyz=xyz,
+            deskewed_xyz=xyz[~feats.noise_mask],
+            map_index=source_index[~feats.noise_mask],
             n_points=int(xyz.shape[0]),
             n_nonfinite_dropped=n_bad,
             message=message,

@@ -1,0 +1,86 @@
+"""Scan sequences on disk: a KITTI odometry sequence folder or a folder of point-cloud files.
+
+- **KITTI layout**: ``DIR/velodyne/*.bin`` (float32 x, y, z, intensity), optionally ``DIR/times.txt``
+  (one time in seconds per scan), ``DIR/poses.txt`` and ``DIR/calib.txt`` (ground truth, camera
+  frame, converted with ``Tr`` to the velodyne frame).
+- **Plain folder**: every ``.bin``, ``.pcd``, ``.ply``, ``.csv``, ``.txt`` or ``.npy`` file in ``DIR``,
+  in file-name order (sorted lexicographically: zero-pad your numbers).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import FormatError, NotFoundError
+from core.io import PointCloud, kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
+from core.transforms import invert
+
+__all__ = ["ScanSequence", "open_sequence"]
+
+_SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".csv", ".txt", ".npy")
+
+
+@dataclass(frozen=True)
+class ScanSequence:
+    """The files of one sequence, their times and (if present) reference poses."""
+
+    root: Path
+    layout: str
+    files: tuple[Path, ...]
+    stamps_s: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read(self, index: int) -> PointCloud:
+        """Read scan ``index`` (any supported format)."""
+        return read_cloud(self.files[index])
+
+    def __iter__(self) -> Iterator[PointCloud]:
+        for i in range(len(self.files)):
+            yield self.read(i)
+
+    def reference_poses(self) -> np.ndarray | None:
+        """KITTI ground truth as velodyne poses in the first scan's frame, if the folder has it."""
+        poses, calib = self.root / "poses.txt", self.root / "calib.txt"
+        if self.layout != "kitti" or not poses.is_file():
+            return None
+        P = read_kitti_poses(poses)
+        if calib.is_file():
+            P = kitti_velodyne_poses(P, read_kitti_calib(calib)["Tr"])
+        P = P[: len(self.files)]
+        return np.array([invert(P[0]) @ p for p in P])
+
+
+def open_sequence(directory: str | Path, *, start: int = 0, end: int | None = None) -> ScanSequence:
+    """Find the scans of a sequence folder (module docstring); ``start``/``end`` slice them."""
+    root = Path(directory)
+    if not root.is_dir():
+        raise NotFoundError(f"{root}: no such directory")
+    velodyne = root / "velodyne"
+    if velodyne.is_dir():
+        files = sorted(velodyne.glob("*.bin"))
+        layout = "kitti"
+        times = root / "times.txt"
+        stamps = np.loadtxt(times, ndmin=1) if times.is_file() else None
+    else:
+        files = sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in _SCAN_SUFFIXES)
+        layout = "files"
+        stamps = None
+    if not files:
+        raise FormatError(
+            f"{root}: no scans found (expected velodyne/*.bin or files ending in {', '.join(_SCAN_SUFFIXES)})"
+        )
+    if stamps is not None and stamps.shape[0] < len(files):
+        stamps = None
+    sl = slice(start, end)
+    files = files[sl]
+    if stamps is not None:
+        stamps = stamps[sl]
+    if not files:
+        raise FormatError(f"{root}: no scans in the range start={start} end={end}")
+    return ScanSequence(root=root, layout=layout, files=tuple(files), stamps_s=stamps)
