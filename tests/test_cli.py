@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from core.io import read_cloud
 from core.transforms import transform_error
@@ -95,3 +96,57 @@ def test_demo_main_job_reports_small_errors(tmp_path) -> None:
     for method, cm, deg in rows:
         assert float(cm) < 2.0 and float(deg) < 0.2, f"{method}: {cm} cm {deg} deg"
     assert "no real data" in proc.stdout
+
+
+def test_map_on_kitti00_writes_poses_tiles_and_summary(tmp_path) -> None:
+    import yaml
+
+    from core.io import read_kitti_poses, read_tum
+
+    root = require_data("kitti00/velodyne/000010.bin")
+    out = tmp_path / "out"
+    proc = _randt("map", str(root / "kitti00"), "--out", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    poses = read_kitti_poses(out / "poses_kitti.txt")
+    stamps, tum = read_tum(out / "poses_tum.txt")
+    assert poses.shape == (11, 4, 4) and tum.shape == (11, 4, 4)
+    np.testing.assert_allclose(stamps, np.loadtxt(root / "kitti00/times.txt")[:11], atol=1e-6)
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(tum, poses, atol=1e-6)
+    assert 7.4 < np.linalg.norm(poses[-1][:3, 3]) < 7.8  # what the scans imply (data README)
+    summary = json.loads((out / "summary.json").read_text())
+    assert [s["index"] for s in summary["scans"]] == list(range(11))
+    assert all({"index", "time_s", "fitness", "converged"} <= s.keys() for s in summary["scans"])
+    assert all(s["converged"] for s in summary["scans"])
+    meta = yaml.safe_load((out / "map/pointcloud_map_metadata.yaml").read_text())
+    assert meta["x_resolution"] == meta["y_resolution"] == 20
+    tiles = {k: v for k, v in meta.items() if k.endswith(".pcd")}
+    assert len(tiles) == summary["map"]["tiles"] > 10
+    assert sorted(tiles) == sorted(p.name for p in (out / "map").glob("*.pcd"))
+    for name, corner in tiles.items():
+        ix, iy = (int(v) for v in name[:-4].split("_"))
+        assert corner == [ix * 20, iy * 20]
+    n = sum(read_cloud(out / "map" / name).n_points for name in tiles)
+    assert n == summary["map"]["points"]
+    assert summary["map"]["pdu"] > 0.0, "the equalized map is more uniform than raw scans (PDU < -1)"
+
+
+def test_eval_reports_known_errors(tmp_path) -> None:
+    from core.io import write_kitti_poses
+    from core.transforms import make_transform
+
+    ref = np.array([make_transform(translation=(i * 1.0, 0.0, 0.0)) for i in range(200)])
+    est = np.array([make_transform(translation=(i * 1.01, 0.0, 0.0)) for i in range(200)])
+    write_kitti_poses(tmp_path / "ref.txt", ref)
+    write_kitti_poses(tmp_path / "est.txt", est)
+    proc = _randt(
+        "eval", "--reference", str(tmp_path / "ref.txt"), "--estimate", str(tmp_path / "est.txt"), "--json"
+    )
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["rpe"]["translation_m"]["rmse"] == pytest.approx(0.01, abs=1e-9)
+    # straight line, 1 % scale: the devkit's segment ends one frame past the length, (L+1)/L * 1 %
+    assert report["kitti"]["translation_pct"] == pytest.approx(1.0, rel=0.02)
+    assert report["kitti"]["rotation_deg_per_100m"] == pytest.approx(0.0, abs=1e-9)
+    bad = _randt("eval", "--reference", str(tmp_path / "ref.txt"), "--estimate", str(tmp_path / "nope.txt"))
+    assert bad.returncode == 2 and "nope.txt" in bad.stderr
