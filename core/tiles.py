@@ -1,0 +1,934 @@
+"""The tiled, density-equalized global map, updated incrementally from registered scans.
+
+Layout
+------
+An axis-aligned XY grid with integer-metre origins and one square cell size per map (Autoware's
+divided maps use 20 m). Tile ``(ix, iy)`` owns the half-open cell
+``[ix * tile, (ix + 1) * tile) x [iy * tile, (iy + 1) * tile)`` and every ``z``; its id is
+``f"{ix}_{iy}"``, the suffix of its wire key ``randt/map/<map>/tile/<ix>_<iy>``. Tiles never
+overlap, so a point belongs to exactly one tile (``x = 20.0`` with 20 m tiles is in tile 1).
+
+Density equalization
+--------------------
+The RANDT paper's density equalization is a cap on points per voxel. Each tile is cut into cubic
+voxels of ``voxel_size_m`` aligned to the tile's corner (so no voxel straddles two tiles) and holds
+at most ``max_points_per_voxel`` points per voxel. The policy is **keep the first arrivals**:
+
+* a new point is stored only while its voxel holds fewer than the cap; once the voxel is full, later
+  points in it are dropped;
+* a point identical (after float32 rounding) to one already stored, or to an earlier point of the
+  same batch, is dropped, so re-inserting the same data never changes the map;
+* stored points are never moved, replaced or deleted.
+
+Why this policy: it is *stable* — a tile's content only changes where the map gains coverage, so
+revisiting a mapped street does not rewrite its tiles, bump their versions and republish them
+(replacing points, e.g. to track a voxel centroid, would touch every revisited voxel on every scan);
+it is *bounded* — a tile holds at most ``ceil(tile / voxel)^2 * n_z_voxels * cap`` points, however
+many scans a fleet drives through it; and every stored point is a real measurement, not an average
+smeared across surfaces. The price is that the first pass through a voxel decides what it keeps.
+
+Storage and precision
+---------------------
+Points are stored as float32 (what the exported PCD files hold) and every tile and voxel assignment
+is computed from the float32-rounded coordinates, so an exported map loads back into exactly the
+same tiles, voxels and points. float32 resolves better than 1 cm up to about 1e5 m from the map
+origin; keep map frames local (as Autoware's MGRS grid squares are). A tile keeps one (N, 4)
+float32 x,y,z,intensity buffer sorted by packed voxel key (:func:`core.voxel.pack_keys` of
+tile-local voxel coordinates; arrival order within a voxel) and the (N,) sorted key array beside
+it, so the occupancy of a voxel is a :func:`numpy.searchsorted` (O(log N)) and an insert is a sort
+of the new points plus one merge of the new rows into fresh arrays per touched tile — no Python
+loop over points or voxels, only over the handful of tiles a scan touches.
+
+Autoware format
+---------------
+:meth:`TileGrid.export_autoware` writes one binary PCD (``x y z intensity``, float32) per non-empty
+tile, named ``<ix>_<iy>.pcd``, and ``pointcloud_map_metadata.yaml`` as Autoware's
+``pointcloud_map_loader`` reads it (and ``pointcloud_divider`` writes it)::
+
+    x_resolution: 20.0
+    y_resolution: 20.0
+    -1_0.pcd: [-20, 0]      # file name -> integer [x_min, y_min] of its cell, metres
+    0_0.pcd: [0, 0]
+
+The loader skips the two resolution keys and parses every other value as a list of two integers, so
+nothing else may go into that file. The grid's own settings and tile versions go into a sidecar,
+``randt_tile_grid.yaml``, which Autoware ignores and :func:`load_autoware` uses to restore the map
+exactly (versions included, so tile updates stay monotonic across a service restart).
+
+Thread safety
+-------------
+Inserts are serialized by an internal lock. Readers get immutable :class:`Tile` snapshots: a tile's
+arrays are read-only and an insert replaces them instead of writing into them, so a snapshot stays
+valid (and unchanged) while the map keeps growing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from core.errors import FormatError, InvalidCloudError, NotFoundError
+from core.io import PointCloud, atomic_open, read_cloud, write_cloud, write_pcd
+from core.metrics import pdu
+from core.voxel import pack_keys, voxel_coords
+
+__all__ = [
+    "AUTOWARE_METADATA_NAME",
+    "GRID_SIDECAR_NAME",
+    "Tile",
+    "TileBounds",
+    "TileGrid",
+    "load_autoware",
+    "parse_tile_id",
+    "tile_id",
+]
+
+logger = logging.getLogger(__name__)
+
+#: File name Autoware's map loader expects next to the divided PCD files.
+AUTOWARE_METADATA_NAME = "pointcloud_map_metadata.yaml"
+#: Our sidecar: grid settings and tile versions (Autoware does not read it).
+GRID_SIDECAR_NAME = "randt_tile_grid.yaml"
+_SIDECAR_FORMAT = "randt-tile-grid/1"
+
+_TILE_ID_RE = re.compile(r"^(-?\d+)_(-?\d+)$")
+_TILE_FILE_RE = re.compile(r"^(-?\d+)_(-?\d+)\.pcd$")
+_RESOLUTION_KEYS = ("x_resolution", "y_resolution")
+
+# Tile indices are packed into one int64 (31 bits each) to group points by tile; coordinates beyond
+# this are not a map frame (and float32 would hold them to metres, not centimetres).
+_MAX_ABS_XY_M = 1.0e8
+_TILE_OFFSET = 1 << 30
+
+
+def tile_id(ix: int, iy: int) -> str:
+    """The id ``"<ix>_<iy>"`` of tile ``(ix, iy)`` (also its PCD file stem and wire-key suffix)."""
+    return f"{int(ix)}_{int(iy)}"
+
+
+def parse_tile_id(tid: str) -> tuple[int, int]:
+    """Inverse of :func:`tile_id`.
+
+    Raises
+    ------
+    ValueError
+        ``tid`` is not two integers joined by ``_``.
+    """
+    match = _TILE_ID_RE.match(tid)
+    if match is None:
+        raise ValueError(f"not a tile id (expected '<ix>_<iy>'): {tid!r}")
+    return int(match.group(1)), int(match.group(2))
+
+
+# --------------------------------------------------------------------------------------------
+# snapshots
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TileBounds:
+    """Where a tile is: its nominal cell and the box around its points (map frame, metres).
+
+    Attributes
+    ----------
+    cell_min_xy:
+        ``(ix * tile, iy * tile)``: the cell's lower corner, inclusive, integer metres (the corner
+        Autoware's metadata lists).
+    cell_max_xy:
+        ``((ix + 1) * tile, (iy + 1) * tile)``: the upper corner, exclusive.
+    min_xyz, max_xyz:
+        Per-axis minimum and maximum of the tile's points (float32 values widened to float).
+    """
+
+    cell_min_xy: tuple[int, int]
+    cell_max_xy: tuple[int, int]
+    min_xyz: tuple[float, float, float]
+    max_xyz: tuple[float, float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class Tile:
+    """An immutable snapshot of one tile.
+
+    Attributes
+    ----------
+    ix, iy:
+        Tile indices: the tile covers ``[ix * tile, (ix + 1) * tile)`` in x, likewise in y.
+    version:
+        Incremented on every change of the tile's content; 1 for a tile's first content.
+    points:
+        (N, 3) float32 positions in the map frame, metres; a read-only view (columns 0-2 of the
+        tile's (N, 4) x,y,z,intensity buffer). Sorted by voxel, first arrivals first within a
+        voxel.
+    intensity:
+        (N,) float32 return intensity (zeros where scans had none); a read-only view (column 3).
+    bounds:
+        The nominal cell and the box around ``points``.
+    """
+
+    ix: int
+    iy: int
+    version: int
+    points: np.ndarray
+    intensity: np.ndarray
+    bounds: TileBounds
+
+    @property
+    def id(self) -> str:
+        """``"<ix>_<iy>"``."""
+        return tile_id(self.ix, self.iy)
+
+    @property
+    def n_points(self) -> int:
+        """Number of points ``N``."""
+        return int(self.points.shape[0])
+
+    def to_cloud(self) -> PointCloud:
+        """The tile's points as a :class:`~core.io.PointCloud` (xyz widened to float64)."""
+        return PointCloud(xyz=self.points, intensity=self.intensity)
+
+
+@dataclass(frozen=True, eq=False)
+class _TileState:
+    """A tile, its (N, 4) float32 x,y,z,intensity buffer and sorted voxel keys (N,) int64, row by row."""
+
+    tile: Tile
+    xyzi: np.ndarray
+    keys: np.ndarray
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+def _scatter(old: np.ndarray, new: np.ndarray, is_new: np.ndarray) -> np.ndarray:
+    """Merge the rows of ``old`` and ``new`` into a fresh array: ``new`` where ``is_new``, else ``old``.
+
+    Rows are moved as opaque byte records: fancy indexing a (N,) 16-byte record array is several
+    times faster than indexing the (N, 4) float32 array it views.
+    """
+    out = np.empty((is_new.size, *old.shape[1:]), dtype=old.dtype)
+    row = np.dtype((np.void, out.itemsize * (out.size // max(out.shape[0], 1))))
+
+    def records(a: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(a).view(row).reshape(a.shape[0])
+
+    out_rec = records(out)
+    out_rec[is_new] = records(new)
+    out_rec[~is_new] = records(old)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the grid
+# --------------------------------------------------------------------------------------------
+
+
+class TileGrid:
+    """A tiled, density-equalized global map (see the module docstring for the policy).
+
+    Parameters
+    ----------
+    tile_size_m:
+        Edge of the square tiles, whole metres (integer-metre tile origins), > 0.
+    voxel_size_m:
+        Edge of the equalization voxels, metres, > 0. Voxels are aligned to each tile's corner;
+        choose a divisor of ``tile_size_m`` to keep them all whole.
+    max_points_per_voxel:
+        The density cap: points kept per voxel, >= 1.
+
+    Raises
+    ------
+    ValueError
+        A parameter is out of range (or ``tile_size_m`` is not a whole number).
+
+    Examples
+    --------
+    >>> grid = TileGrid(tile_size_m=20, voxel_size_m=0.5)
+    >>> grid.insert(np.array([[1.0, 2.0, 0.0], [25.0, -3.0, 1.0]]))
+    ['0_0', '1_-1']
+    >>> grid.tile(1, -1).bounds.cell_min_xy
+    (20, -20)
+    """
+
+    def __init__(
+        self, tile_size_m: int = 20, voxel_size_m: float = 0.2, max_points_per_voxel: int = 1
+    ) -> None:
+        if isinstance(tile_size_m, bool) or not float(tile_size_m).is_integer() or tile_size_m <= 0:
+            raise ValueError(f"tile_size_m must be a positive whole number of metres, got {tile_size_m!r}")
+        if not (math.isfinite(voxel_size_m) and voxel_size_m > 0):
+            raise ValueError(f"voxel_size_m must be positive, got {voxel_size_m!r}")
+        if voxel_size_m > tile_size_m:
+            raise ValueError(f"voxel_size_m ({voxel_size_m}) must not exceed tile_size_m ({tile_size_m})")
+        if isinstance(max_points_per_voxel, bool) or int(max_points_per_voxel) != max_points_per_voxel:
+            raise ValueError(f"max_points_per_voxel must be an integer, got {max_points_per_voxel!r}")
+        if max_points_per_voxel < 1:
+            raise ValueError(f"max_points_per_voxel must be >= 1, got {max_points_per_voxel}")
+        self._tile_size = int(tile_size_m)
+        self._voxel = float(voxel_size_m)
+        self._cap = int(max_points_per_voxel)
+        self._lock = threading.Lock()
+        self._tiles: dict[tuple[int, int], _TileState] = {}
+
+    def __repr__(self) -> str:
+        return (
+            f"TileGrid(tile_size_m={self._tile_size}, voxel_size_m={self._voxel:g}, "
+            f"max_points_per_voxel={self._cap}; {len(self._tiles)} tiles, {self.n_points} points)"
+        )
+
+    # ---------------------------------------------------------------------------- settings
+
+    @property
+    def tile_size_m(self) -> int:
+        """Edge of the square tiles, metres."""
+        return self._tile_size
+
+    @property
+    def voxel_size_m(self) -> float:
+        """Edge of the equalization voxels, metres."""
+        return self._voxel
+
+    @property
+    def max_points_per_voxel(self) -> int:
+        """The density cap."""
+        return self._cap
+
+    # ---------------------------------------------------------------------------- insert
+
+    def insert(self, points_xyz: np.ndarray, intensity: np.ndarray | None = None) -> list[str]:
+        """Fold registered points into the map, keeping at most the cap per voxel.
+
+        Parameters
+        ----------
+        points_xyz:
+            (N, 3) positions in the map frame, metres (any real dtype; rounded to float32).
+            Points with a non-finite coordinate are dropped.
+        intensity:
+            (N,) return intensity, or ``None`` (stored as zeros).
+
+        Returns
+        -------
+        list[str]
+            Ids of the tiles whose content changed (each got ``version + 1``), sorted by
+            ``(ix, iy)``. Tiles whose voxels were already full are not listed.
+
+        Raises
+        ------
+        InvalidCloudError
+            Wrong shapes, or coordinates too far from the origin to be a map frame.
+        """
+        xyz, inten = _validated_float32(points_xyz, intensity)
+        if xyz.shape[0] == 0:
+            return []
+        xyzi = np.column_stack([xyz, inten])
+        t = float(self._tile_size)
+        local = xyz.astype(np.float64)
+        txy = np.floor(local[:, :2] / t).astype(np.int64)
+        # Tile-local coordinates (x - ix * tile is exact in float64 for float32 x) for the voxels.
+        local[:, :2] -= txy * t
+        vkeys = pack_keys(voxel_coords(local, self._voxel))
+
+        tkeys = ((txy[:, 0] + _TILE_OFFSET) << 31) | (txy[:, 1] + _TILE_OFFSET)
+        order = np.argsort(tkeys, kind="stable")  # arrival order kept within a tile
+        sorted_tkeys = tkeys[order]
+        starts = np.flatnonzero(np.r_[True, sorted_tkeys[1:] != sorted_tkeys[:-1]])
+        ends = np.r_[starts[1:], order.size]
+
+        changed: list[tuple[int, int]] = []
+        n_added = 0
+        with self._lock:
+            for start, end in zip(starts.tolist(), ends.tolist(), strict=True):
+                idx = order[start:end]
+                ix, iy = (int(v) for v in txy[idx[0]])
+                old = self._tiles.get((ix, iy))
+                new = self._merged(ix, iy, old, xyzi[idx], vkeys[idx])
+                if new is not None:
+                    n_added += new.tile.n_points - (0 if old is None else old.tile.n_points)
+                    self._tiles[(ix, iy)] = new
+                    changed.append((ix, iy))
+        logger.debug(
+            "insert: %d points over %d tiles, %d kept, %d tiles changed",
+            xyz.shape[0],
+            starts.size,
+            n_added,
+            len(changed),
+        )
+        return [tile_id(ix, iy) for ix, iy in sorted(changed)]
+
+    def _merged(
+        self,
+        ix: int,
+        iy: int,
+        old: _TileState | None,
+        xyzi: np.ndarray,
+        keys: np.ndarray,
+    ) -> _TileState | None:
+        """The tile after adding the candidates, or ``None`` if nothing was kept.
+
+        ``xyzi`` (M, 4) float32 and ``keys`` (M,) int64 are the candidates in arrival order.
+        """
+        cap = self._cap
+        xyz = xyzi[:, :3]
+        cand = np.argsort(keys, kind="stable")  # by voxel, then arrival
+        k = keys[cand]
+
+        if old is None:
+            old_keys = np.empty(0, dtype=np.int64)
+            left = right = np.zeros(k.size, dtype=np.intp)
+        elif cap == 1:
+            # One search suffices: the voxel is occupied iff the key just before ``right`` is k.
+            old_keys = old.keys
+            right = np.searchsorted(old_keys, k, side="right")
+            occupied = (right > 0) & (old_keys[np.maximum(right - 1, 0)] == k)
+            left = right - occupied
+        else:
+            old_keys = old.keys
+            left = np.searchsorted(old_keys, k, side="left")
+            right = np.searchsorted(old_keys, k, side="right")
+        stored = right - left
+
+        # Candidates in full voxels are dropped before any finer (costlier) test: on a revisited
+        # street that is almost all of them.
+        live = stored < cap
+        cand, k, left, right, stored = cand[live], k[live], left[live], right[live], stored[live]
+
+        if cap > 1 and k.size:
+            # Exact duplicates inside the batch: keep the first arrival of each. ``cand`` is
+            # ordered by (voxel, arrival), so its position breaks ties in arrival order.
+            p = xyz[cand]
+            o = np.lexsort((np.arange(k.size), p[:, 2], p[:, 1], p[:, 0], k))
+            same = (k[o][1:] == k[o][:-1]) & np.all(p[o][1:] == p[o][:-1], axis=1)
+            fresh = np.ones(k.size, dtype=bool)
+            fresh[o[1:][same]] = False
+            if old is not None:
+                # Candidates equal to a stored point of their (not full) voxel are duplicates too.
+                sel = np.flatnonzero(stored > 0)
+                counts = stored[sel]
+                pair_cand = np.repeat(sel, counts)
+                pair_offset = np.arange(pair_cand.size) - np.repeat(np.cumsum(counts) - counts, counts)
+                pair_stored = np.repeat(left[sel], counts) + pair_offset
+                equal = np.all(old.xyzi[pair_stored, :3] == p[pair_cand], axis=1)
+                fresh[pair_cand[equal]] = False
+            cand, k, right, stored = cand[fresh], k[fresh], right[fresh], stored[fresh]
+
+        # Rank of each candidate among the batch's candidates of its voxel (0 = first arrival).
+        position = np.arange(k.size)
+        first = np.r_[True, k[1:] != k[:-1]] if k.size else np.zeros(0, dtype=bool)
+        rank = position - np.maximum.accumulate(np.where(first, position, 0))
+        accept = stored + rank < cap
+        if not np.any(accept):
+            return None
+        cand, k, at = cand[accept], k[accept], right[accept]
+        new_xyzi = xyzi[cand]
+        new_xyz = new_xyzi[:, :3]
+
+        t = self._tile_size
+        if old is None:
+            merged_xyzi, merged_keys, version = new_xyzi, k, 1
+            lo, hi = new_xyz.min(axis=0), new_xyz.max(axis=0)
+        else:
+            # Insert after the stored points of the same voxel (arrival order within a voxel).
+            # ``at`` is non-decreasing, so new point j lands at ``at[j] + j``: one scatter mask
+            # serves both arrays (what np.insert does, without re-sorting ``at`` each time).
+            is_new = np.zeros(old_keys.size + k.size, dtype=bool)
+            is_new[at + np.arange(k.size)] = True
+            merged_xyzi = _scatter(old.xyzi, new_xyzi, is_new)
+            merged_keys = _scatter(old_keys, k, is_new)
+            version = old.tile.version + 1
+            lo = np.minimum(np.asarray(old.tile.bounds.min_xyz, np.float32), new_xyz.min(axis=0))
+            hi = np.maximum(np.asarray(old.tile.bounds.max_xyz, np.float32), new_xyz.max(axis=0))
+        bounds = TileBounds(
+            cell_min_xy=(ix * t, iy * t),
+            cell_max_xy=((ix + 1) * t, (iy + 1) * t),
+            min_xyz=(float(lo[0]), float(lo[1]), float(lo[2])),
+            max_xyz=(float(hi[0]), float(hi[1]), float(hi[2])),
+        )
+        merged_xyzi = _readonly(np.ascontiguousarray(merged_xyzi, dtype=np.float32))
+        tile = Tile(
+            ix=ix,
+            iy=iy,
+            version=version,
+            points=merged_xyzi[:, :3],
+            intensity=merged_xyzi[:, 3],
+            bounds=bounds,
+        )
+        return _TileState(tile=tile, xyzi=merged_xyzi, keys=_readonly(merged_keys))
+
+    # ---------------------------------------------------------------------------- accessors
+
+    def _snapshot(self) -> list[Tile]:
+        """The current tiles sorted by ``(ix, iy)`` (a consistent set, taken under the lock)."""
+        with self._lock:
+            states = list(self._tiles.items())
+        return [state.tile for _, state in sorted(states, key=lambda item: item[0])]
+
+    def __len__(self) -> int:
+        return len(self._tiles)
+
+    def __contains__(self, tid: object) -> bool:
+        if not isinstance(tid, str):
+            return False
+        try:
+            return parse_tile_id(tid) in self._tiles
+        except ValueError:
+            return False
+
+    def tile_ids(self) -> list[str]:
+        """Ids of the non-empty tiles, sorted by ``(ix, iy)``."""
+        return [t.id for t in self._snapshot()]
+
+    def tiles(self) -> list[Tile]:
+        """Snapshots of every non-empty tile, sorted by ``(ix, iy)``."""
+        return self._snapshot()
+
+    def tile(self, ix: int, iy: int) -> Tile:
+        """The snapshot of tile ``(ix, iy)``.
+
+        Raises
+        ------
+        NotFoundError
+            The tile holds no points.
+        """
+        state = self._tiles.get((int(ix), int(iy)))
+        if state is None:
+            raise NotFoundError(f"tile {tile_id(ix, iy)} does not exist (holds no points)")
+        return state.tile
+
+    def get(self, tid: str) -> Tile:
+        """The snapshot of the tile with id ``"<ix>_<iy>"``.
+
+        Raises
+        ------
+        NotFoundError
+            No such tile (or ``tid`` is not a tile id).
+        """
+        try:
+            ix, iy = parse_tile_id(tid)
+        except ValueError as exc:
+            raise NotFoundError(str(exc)) from exc
+        return self.tile(ix, iy)
+
+    def tile_of(self, x: float, y: float) -> tuple[int, int]:
+        """Indices ``(ix, iy)`` of the tile owning the map-frame point ``(x, y)`` (after float32 rounding)."""
+        xy = np.array([x, y], dtype=np.float32).astype(np.float64)
+        ix, iy = np.floor(xy / self._tile_size).astype(np.int64)
+        return int(ix), int(iy)
+
+    @property
+    def n_points(self) -> int:
+        """Total number of points over all tiles."""
+        return sum(t.n_points for t in self._snapshot())
+
+    @property
+    def extent(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(min_xyz, max_xyz)``, each (3,) float64 metres, of all points; ``None`` when empty."""
+        tiles = self._snapshot()
+        if not tiles:
+            return None
+        lo = np.min([t.bounds.min_xyz for t in tiles], axis=0).astype(np.float64)
+        hi = np.max([t.bounds.max_xyz for t in tiles], axis=0).astype(np.float64)
+        return lo, hi
+
+    # ---------------------------------------------------------------------------- queries
+
+    def _cell_corners(self, tiles: list[Tile]) -> np.ndarray:
+        """(T, 2) float64 lower cell corners of ``tiles``, metres."""
+        ij = np.array([(t.ix, t.iy) for t in tiles], dtype=np.float64).reshape(-1, 2)
+        return ij * self._tile_size
+
+    def _tiles_in_bbox(self, min_xy: Iterable[float], max_xy: Iterable[float]) -> list[Tile]:
+        lo = np.asarray(tuple(min_xy), dtype=np.float64)
+        hi = np.asarray(tuple(max_xy), dtype=np.float64)
+        if lo.shape != (2,) or hi.shape != (2,):
+            raise ValueError("min_xy and max_xy must be (x, y) pairs")
+        if np.any(lo > hi):
+            raise ValueError(f"min_xy {tuple(lo)} exceeds max_xy {tuple(hi)}")
+        tiles = self._snapshot()
+        corner = self._cell_corners(tiles)
+        # Half-open cell [c, c + tile) meets the closed box [lo, hi] on both axes.
+        hit = np.all((corner <= hi) & (corner + self._tile_size > lo), axis=1)
+        return [t for t, h in zip(tiles, hit, strict=True) if h]
+
+    def tiles_in_bbox(self, min_xy: Iterable[float], max_xy: Iterable[float]) -> list[str]:
+        """Ids of the non-empty tiles whose cell meets the closed box ``[min_xy, max_xy]``.
+
+        A cell is half-open, so a box ending exactly at ``x = 20`` reaches tile 1 (which owns
+        ``x = 20``) and a box starting at ``x = 20`` does not reach tile 0.
+
+        Parameters
+        ----------
+        min_xy, max_xy:
+            (x, y) corners of the box in the map frame, metres, ``min_xy <= max_xy``.
+
+        Raises
+        ------
+        ValueError
+            Malformed or inverted box.
+        """
+        return [t.id for t in self._tiles_in_bbox(min_xy, max_xy)]
+
+    def points_in_bbox(self, min_xy: Iterable[float], max_xy: Iterable[float]) -> PointCloud:
+        """The points with ``min_xy <= (x, y) <= max_xy`` (any z), tile by tile in ``(ix, iy)`` order.
+
+        Returns
+        -------
+        PointCloud
+            ``xyz`` (M, 3) float64 (float32 values widened), ``intensity`` (M,) float32; M may be 0.
+        """
+        lo = np.asarray(tuple(min_xy), dtype=np.float64)
+        hi = np.asarray(tuple(max_xy), dtype=np.float64)
+        xyz_parts: list[np.ndarray] = [np.empty((0, 3), dtype=np.float32)]
+        int_parts: list[np.ndarray] = [np.empty(0, dtype=np.float32)]
+        for t in self._tiles_in_bbox(lo, hi):
+            xy = t.points[:, :2].astype(np.float64)
+            inside = np.all((xy >= lo) & (xy <= hi), axis=1)
+            xyz_parts.append(t.points[inside])
+            int_parts.append(t.intensity[inside])
+        return PointCloud(xyz=np.concatenate(xyz_parts), intensity=np.concatenate(int_parts))
+
+    def tiles_within_radius(self, center_xy: Iterable[float], radius_m: float) -> list[str]:
+        """Ids of the non-empty tiles whose cell comes within ``radius_m`` of ``center_xy`` in XY.
+
+        This is the cylinder query of Autoware's partial map loading: a tile counts when the
+        nearest point of its (closed) cell is at most ``radius_m`` from the centre.
+
+        Parameters
+        ----------
+        center_xy:
+            (x, y) in the map frame, metres.
+        radius_m:
+            Radius, metres, >= 0.
+
+        Raises
+        ------
+        ValueError
+            Negative or non-finite radius, or a malformed centre.
+        """
+        c = np.asarray(tuple(center_xy), dtype=np.float64)
+        if c.shape != (2,):
+            raise ValueError("center_xy must be an (x, y) pair")
+        if not (math.isfinite(radius_m) and radius_m >= 0):
+            raise ValueError(f"radius_m must be finite and >= 0, got {radius_m!r}")
+        tiles = self._snapshot()
+        corner = self._cell_corners(tiles)
+        gap = np.maximum(np.maximum(corner - c, c - (corner + self._tile_size)), 0.0)
+        hit = np.hypot(gap[:, 0], gap[:, 1]) <= radius_m
+        return [t.id for t, h in zip(tiles, hit, strict=True) if h]
+
+    # ---------------------------------------------------------------------------- metrics
+
+    def tile_pdu(self, voxel_size_m: float | None = None) -> dict[str, float]:
+        """Point Density Uniformity of every tile: ``1 - std / mean`` of its voxel point counts.
+
+        :func:`core.metrics.pdu` of each tile's points: counts over the tile's occupied voxels,
+        population standard deviation. The points are shifted to the tile's corner first, so the
+        voxels are aligned to it as the equalization voxels are. With the default voxel size
+        and a cap of 1 every tile scores exactly 1; pass a coarser voxel to see how evenly the
+        equalized points cover a tile.
+
+        Parameters
+        ----------
+        voxel_size_m:
+            Voxel edge, metres; ``None`` uses the grid's ``voxel_size_m``.
+
+        Returns
+        -------
+        dict[str, float]
+            Tile id -> PDU (<= 1; 1 is perfectly uniform).
+        """
+        v = self._voxel if voxel_size_m is None else float(voxel_size_m)
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"voxel_size_m must be positive, got {voxel_size_m!r}")
+        out: dict[str, float] = {}
+        for t in self._snapshot():
+            local = t.points.astype(np.float64)
+            local[:, :2] -= np.array(t.bounds.cell_min_xy, dtype=np.float64)
+            out[t.id] = pdu(local, v)
+        return out
+
+    # ---------------------------------------------------------------------------- export
+
+    def to_cloud(self) -> PointCloud:
+        """All points, tile by tile in ``(ix, iy)`` order, as one :class:`~core.io.PointCloud`."""
+        tiles = self._snapshot()
+        return PointCloud(
+            xyz=np.concatenate([np.empty((0, 3), np.float32)] + [t.points for t in tiles]),
+            intensity=np.concatenate([np.empty(0, np.float32)] + [t.intensity for t in tiles]),
+        )
+
+    def export_merged(self, path: str | os.PathLike[str]) -> None:
+        """Write the whole map as one ``.pcd`` or ``.ply`` (float32 ``x y z intensity``), atomically.
+
+        Raises
+        ------
+        InvalidCloudError
+            The map is empty.
+        FormatError
+            Unsupported suffix or the write failed.
+        """
+        cloud = self.to_cloud()
+        if cloud.n_points == 0:
+            raise InvalidCloudError("the map is empty: nothing to export")
+        write_cloud(path, cloud)
+        logger.info("exported %d points in %d tiles to %s", cloud.n_points, len(self._tiles), path)
+
+    def export_autoware(self, directory: str | os.PathLike[str]) -> dict[str, list[int]]:
+        """Write the map as an Autoware divided point-cloud map.
+
+        Writes, each file atomically, ``<ix>_<iy>.pcd`` per non-empty tile (binary PCD, float32
+        ``x y z intensity``), then :data:`GRID_SIDECAR_NAME`, then
+        :data:`AUTOWARE_METADATA_NAME` last, so the metadata never names a missing file. Stale
+        ``<ix>_<iy>.pcd`` files of tiles no longer in the map are removed afterwards (Autoware
+        globs every ``*.pcd`` of the directory); other ``.pcd`` files are left alone with a
+        warning.
+
+        Parameters
+        ----------
+        directory:
+            Target directory; created if missing.
+
+        Returns
+        -------
+        dict[str, list[int]]
+            The tile entries of the metadata: PCD file name -> ``[x_min, y_min]`` integer metres.
+
+        Raises
+        ------
+        InvalidCloudError
+            The map is empty.
+        FormatError
+            A file could not be written.
+        """
+        directory = Path(directory)
+        tiles = self._snapshot()
+        if not tiles:
+            raise InvalidCloudError("the map is empty: nothing to export")
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FormatError(f"cannot create {directory}: {exc}") from exc
+
+        entries: dict[str, list[int]] = {}
+        for t in tiles:
+            name = f"{t.id}.pcd"
+            write_pcd(directory / name, t.to_cloud())
+            entries[name] = [int(t.bounds.cell_min_xy[0]), int(t.bounds.cell_min_xy[1])]
+
+        sidecar = {
+            "format": _SIDECAR_FORMAT,
+            "tile_size_m": self._tile_size,
+            "voxel_size_m": self._voxel,
+            "max_points_per_voxel": self._cap,
+            "versions": {t.id: t.version for t in tiles},
+        }
+        _write_yaml(directory / GRID_SIDECAR_NAME, sidecar)
+        resolution = float(self._tile_size)
+        metadata: dict[str, Any] = {"x_resolution": resolution, "y_resolution": resolution, **entries}
+        _write_yaml(directory / AUTOWARE_METADATA_NAME, metadata)
+
+        for path in sorted(directory.glob("*.pcd")):
+            if path.name in entries:
+                continue
+            if _TILE_FILE_RE.match(path.name):
+                logger.info("removing stale tile file %s (tile no longer in the map)", path)
+                path.unlink(missing_ok=True)
+            else:
+                logger.warning(
+                    "%s is not one of this map's tiles; Autoware would load it too (not in %s)",
+                    path,
+                    AUTOWARE_METADATA_NAME,
+                )
+        logger.info(
+            "exported %d tiles (%d points) to %s", len(tiles), sum(t.n_points for t in tiles), directory
+        )
+        return entries
+
+    def _restore_version(self, key: tuple[int, int], version: int) -> None:
+        with self._lock:
+            state = self._tiles[key]
+            tile = state.tile
+            restored = Tile(tile.ix, tile.iy, version, tile.points, tile.intensity, tile.bounds)
+            self._tiles[key] = _TileState(tile=restored, xyzi=state.xyzi, keys=state.keys)
+
+
+# --------------------------------------------------------------------------------------------
+# Autoware files
+# --------------------------------------------------------------------------------------------
+
+
+def _write_yaml(path: Path, document: dict[str, Any]) -> None:
+    text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
+    with atomic_open(path, "w") as fh:
+        fh.write(text)
+
+
+def _read_yaml_mapping(path: Path) -> dict[Any, Any]:
+    if not path.is_file():
+        raise NotFoundError(f"{path}: no such file")
+    try:
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise FormatError(f"{path}: cannot read YAML: {exc}") from exc
+    if not isinstance(document, dict):
+        raise FormatError(f"{path}: expected a mapping at the top level")
+    return document
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _parse_metadata(path: Path) -> tuple[int, dict[str, tuple[int, int]]]:
+    """Tile size and ``file name -> (ix, iy)`` from an Autoware ``pointcloud_map_metadata.yaml``."""
+    document = _read_yaml_mapping(path)
+    resolutions = []
+    for key in _RESOLUTION_KEYS:
+        value = document.get(key)
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise FormatError(f"{path}: {key} must be a number, got {value!r}")
+        resolutions.append(float(value))
+    x_res, y_res = resolutions
+    if x_res != y_res or not x_res.is_integer() or x_res <= 0:
+        raise FormatError(
+            f"{path}: a TileGrid needs square tiles of whole metres, got x_resolution={x_res:g}, "
+            f"y_resolution={y_res:g}"
+        )
+    tile = int(x_res)
+    files: dict[str, tuple[int, int]] = {}
+    for key, value in document.items():
+        if key in _RESOLUTION_KEYS:
+            continue
+        name = str(key)
+        if Path(name).name != name or not name.lower().endswith(".pcd"):
+            raise FormatError(f"{path}: key {name!r} is not a PCD file name")
+        if not (isinstance(value, list) and len(value) == 2 and all(_is_int(v) for v in value)):
+            raise FormatError(f"{path}: {name} must map to [x_min, y_min] integers, got {value!r}")
+        x_min, y_min = value
+        if x_min % tile or y_min % tile:
+            raise FormatError(f"{path}: {name} corner {value} is not a multiple of the {tile} m tile size")
+        files[name] = (x_min // tile, y_min // tile)
+    if not files:
+        raise FormatError(f"{path}: lists no PCD files")
+    return tile, files
+
+
+def load_autoware(
+    directory: str | os.PathLike[str],
+    *,
+    voxel_size_m: float | None = None,
+    max_points_per_voxel: int | None = None,
+) -> TileGrid:
+    """Restore a :class:`TileGrid` from an Autoware divided map (ours or another tool's).
+
+    The tile size comes from the metadata's resolutions. Voxel size, cap and tile versions come
+    from :data:`GRID_SIDECAR_NAME` when present, else from the arguments, else the defaults of
+    :class:`TileGrid`. A map exported by :meth:`TileGrid.export_autoware` and loaded with its own
+    settings comes back identical: same points in the same order, same versions. Other settings
+    re-equalize the points (and such tiles get ``version + 1`` so subscribers see the change).
+
+    Parameters
+    ----------
+    directory:
+        Holds ``pointcloud_map_metadata.yaml`` and the PCD files it names.
+    voxel_size_m, max_points_per_voxel:
+        Override the sidecar's settings.
+
+    Raises
+    ------
+    NotFoundError
+        The metadata or a PCD file it names does not exist.
+    FormatError
+        Malformed metadata (non-square or fractional tiles, bad corners) or sidecar, or an
+        unreadable PCD file.
+    """
+    directory = Path(directory)
+    tile, files = _parse_metadata(directory / AUTOWARE_METADATA_NAME)
+
+    versions: dict[str, int] = {}
+    saved: dict[str, Any] = {}
+    sidecar_path = directory / GRID_SIDECAR_NAME
+    if sidecar_path.is_file():
+        saved = _read_yaml_mapping(sidecar_path)
+        if saved.get("format") != _SIDECAR_FORMAT:
+            raise FormatError(f"{sidecar_path}: unknown format {saved.get('format')!r}")
+        if saved.get("tile_size_m") != tile:
+            raise FormatError(
+                f"{sidecar_path}: tile_size_m {saved.get('tile_size_m')!r} disagrees with the "
+                f"metadata's {tile} m resolution"
+            )
+        raw_versions = saved.get("versions") or {}
+        if not isinstance(raw_versions, dict) or not all(
+            _is_int(v) and v >= 1 for v in raw_versions.values()
+        ):
+            raise FormatError(f"{sidecar_path}: versions must map tile ids to integers >= 1")
+        versions = {str(k): int(v) for k, v in raw_versions.items()}
+
+    voxel = voxel_size_m if voxel_size_m is not None else saved.get("voxel_size_m", 0.2)
+    cap = max_points_per_voxel if max_points_per_voxel is not None else saved.get("max_points_per_voxel", 1)
+    try:
+        grid = TileGrid(tile_size_m=tile, voxel_size_m=voxel, max_points_per_voxel=cap)
+    except (TypeError, ValueError) as exc:
+        raise FormatError(f"{directory}: invalid grid settings: {exc}") from exc
+    saved_settings = (saved.get("voxel_size_m"), saved.get("max_points_per_voxel"))
+    same_settings = bool(saved) and (voxel, cap) == saved_settings
+
+    for name, (ix, iy) in sorted(files.items(), key=lambda item: item[1]):
+        cloud = read_cloud(directory / name)
+        xyz32 = cloud.xyz.astype(np.float32)
+        owner = np.floor(xyz32[:, :2].astype(np.float64) / tile).astype(np.int64)
+        outside = int(np.count_nonzero(np.any(owner != (ix, iy), axis=1)))
+        if outside:
+            logger.warning(
+                "%s: %d of %d points lie outside its cell %s; they go to the tiles owning them",
+                directory / name,
+                outside,
+                cloud.n_points,
+                tile_id(ix, iy),
+            )
+        grid.insert(xyz32, cloud.intensity)
+
+    for tid in grid.tile_ids():
+        if tid in versions:
+            grid._restore_version(parse_tile_id(tid), versions[tid] + (0 if same_settings else 1))
+    logger.info("loaded %s: %s", directory, grid)
+    return grid
+
+
+def _validated_float32(points_xyz: np.ndarray, intensity: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) float32 finite points and (M,) float32 intensity; M <= N after dropping non-finite."""
+    xyz = np.asarray(points_xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InvalidCloudError(f"points_xyz must be (N, 3), got shape {xyz.shape}")
+    if xyz.dtype.kind not in "fiu":
+        raise InvalidCloudError(f"points_xyz must be real numbers, got dtype {xyz.dtype}")
+    n = xyz.shape[0]
+    if intensity is None:
+        inten = np.zeros(n, dtype=np.float32)
+    else:
+        inten = np.asarray(intensity, dtype=np.float32)
+        if inten.shape != (n,):
+            raise InvalidCloudError(
+                f"intensity must have shape ({n},) to match points_xyz, got {inten.shape}"
+            )
+    xyz64 = xyz.astype(np.float64, copy=False)
+    finite = np.all(np.isfinite(xyz64), axis=1)
+    if not np.all(finite):
+        logger.debug("insert: dropping %d points with non-finite coordinates", n - int(finite.sum()))
+        xyz64, inten = xyz64[finite], inten[finite]
+    if xyz64.size and np.abs(xyz64[:, :2]).max() > _MAX_ABS_XY_M:
+        raise InvalidCloudError(
+            f"coordinates up to {np.abs(xyz64[:, :2]).max():.3g} m are not a local map frame "
+            f"(limit {_MAX_ABS_XY_M:.0e} m)"
+        )
+    return xyz64.astype(np.float32), np.ascontiguousarray(inten)
