@@ -23,35 +23,20 @@ failure, and in the protocol statistics its error is that of the identity start.
 
 from __future__ import annotations
 
-import os
-
-os.environ["OMP_NUM_THREADS"] = "1"
-os.environ["OPENBLAS_NUM_THREADS"] = "1"
-os.environ["MKL_NUM_THREADS"] = "1"
-os.environ["VECLIB_MAXIMUM_THREADS"] = "1"
-os.environ["NUMEXPR_NUM_THREADS"] = "1"
-os.environ["BLIS_NUM_THREADS"] = "1"
-
 import argparse
 import datetime
-import platform
+import os
 import shlex
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import metadata
-from pathlib import Path
 
 import numpy as np
-
-# tests/ is not part of the installed package; its pair loaders are the single source of truth.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import open3d as o3d
 import small_gicp
+from common import git_line, heading, machine_line, progress, table, version
 
 from core.config import RegistrationSettings
 from core.errors import DegenerateProblemError, RegistrationFailedError
@@ -320,71 +305,8 @@ def run_protocol(n_trials: int) -> tuple[list[ProtocolStats], list[str], str]:
 # output
 
 
-def progress(message: str) -> None:
-    print(f"  .. {message}", file=sys.stderr, flush=True)
-
-
 def fmt_err(x: float) -> str:
     return "n/a" if not np.isfinite(x) else f"{x:.3g}"
-
-
-def table(headers: list[str], rows: list[list[str]], markdown: bool) -> str:
-    if markdown:
-        lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-        lines += ["| " + " | ".join(r) + " |" for r in rows]
-        return "\n".join(lines)
-    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)]
-    out = ["  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))]
-    out.append("  ".join("-" * w for w in widths))
-    out += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
-    return "\n".join(out)
-
-
-def version(dist: str) -> str:
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return "?"
-
-
-def machine_line() -> str:
-    model = platform.processor() or platform.machine()
-    try:
-        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout
-        model = next(
-            (ln.split(":", 1)[1].strip() for ln in lscpu.splitlines() if ln.startswith("Model name")), model
-        )
-    except OSError:
-        pass
-    return (
-        f"machine: {model}, {os.cpu_count()} logical cores ({platform.system()} {platform.release()}); "
-        f"python {platform.python_version()}, numpy {np.__version__}, scipy {version('scipy')}, "
-        f"small_gicp {version('small_gicp')}, open3d {o3d.__version__}; single-threaded "
-        "(OMP/OPENBLAS/MKL_NUM_THREADS=1, small_gicp num_threads=1)"
-    )
-
-
-def git_line() -> str:
-    repo = Path(__file__).resolve().parents[1]
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        status = subprocess.run(
-            ["git", "status", "--porcelain", "--", "core", "tests/pairs.py", "tests/data.py"],
-            cwd=repo,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return "git: unknown"
-    dirty = sorted(line[3:] for line in status.splitlines() if line.strip())
-    return f"git: {sha}" + (f" + uncommitted changes to {', '.join(dirty)}" if dirty else " (core clean)")
-
-
-def heading(text: str, markdown: bool) -> str:
-    return f"\n### {text}\n" if markdown else f"\n== {text} =="
 
 
 def pair_rows(runs: list[PairRun], with_vgicp: bool) -> list[list[str]]:
@@ -416,7 +338,7 @@ def main() -> None:
 
     command = "python " + shlex.join(sys.argv)
     print(f"command: {command}")
-    print(machine_line())
+    print(machine_line({"small_gicp": version("small_gicp"), "open3d": o3d.__version__}))
     print(f"{git_line()}; run on {datetime.date.today().isoformat()}; data: {data_root()}")
     print(f"1-min load average at start: {os.getloadavg()[0]:.2f} (other processes share the cores)")
 

@@ -1,0 +1,96 @@
+"""Plumbing shared by the benchmarks: one-thread set-up, machine and git lines, plain/markdown tables.
+
+Import this module first in a benchmark script: it limits BLAS/OpenMP to one thread before numpy is
+imported, so every figure is single-threaded.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "BLIS_NUM_THREADS",
+):
+    os.environ[_var] = "1"
+
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from importlib import metadata  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+# tests/ is not part of the installed package; its data loaders are the single source of truth.
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+
+def progress(message: str) -> None:
+    print(f"  .. {message}", file=sys.stderr, flush=True)
+
+
+def table(headers: list[str], rows: list[list[str]], markdown: bool) -> str:
+    if markdown:
+        lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)]
+    out = ["  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))]
+    out.append("  ".join("-" * w for w in widths))
+    out += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(out)
+
+
+def version(dist: str) -> str:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "?"
+
+
+def machine_line(peers: dict[str, str]) -> str:
+    """One line naming CPU, cores, OS, Python, numpy, scipy and the given peer versions."""
+    model = platform.processor() or platform.machine()
+    try:
+        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout
+        model = next(
+            (ln.split(":", 1)[1].strip() for ln in lscpu.splitlines() if ln.startswith("Model name")), model
+        )
+    except OSError:
+        pass
+    return (
+        f"machine: {model}, {os.cpu_count()} logical cores ({platform.system()} {platform.release()}); "
+        f"python {platform.python_version()}, numpy {np.__version__}, scipy {version('scipy')}, "
+        + ", ".join(f"{k} {v}" for k, v in peers.items())
+        + "; single-threaded (OMP/OPENBLAS/MKL_NUM_THREADS=1)"
+    )
+
+
+def git_line() -> str:
+    repo = REPO
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        status = subprocess.run(
+            ["git", "status", "--porcelain", "--", "core", "tests/pairs.py", "tests/data.py"],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return "git: unknown"
+    dirty = sorted(line[3:] for line in status.splitlines() if line.strip())
+    return f"git: {sha}" + (f" + uncommitted changes to {', '.join(dirty)}" if dirty else " (core clean)")
+
+
+def heading(text: str, markdown: bool) -> str:
+    return f"\n### {text}\n" if markdown else f"\n== {text} =="
