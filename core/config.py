@@ -53,6 +53,8 @@ class RegistrationSettings(BaseModel):
     )
     svd_refinement: bool = Field(default=True, description="the paper's Algorithm 3 step")
     svd_iterations: int = Field(default=30, ge=1)
+    svd_translation_eps_m: float = Field(default=1e-4, gt=0, description="SVD step stops below this")
+    svd_rotation_eps_rad: float = Field(default=1e-5, gt=0)
     svd_fence_k: float = Field(
         default=6.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
     )

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -30,7 +31,7 @@ from core.icp import icp_point_to_plane, icp_point_to_point
 from core.ndt import ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
 from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
 from core.svd import kabsch
-from core.transforms import as_transform, invert, transform_points
+from core.transforms import as_transform, invert, rotation_angle_deg, transform_points
 from core.voxel import VoxelGaussianMap, voxel_downsample
 
 __all__ = [
@@ -158,7 +159,11 @@ def auto_voxel_sizes(points_xyz: np.ndarray) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class PreparedReference:
-    """A reference cloud made ready for repeated registration: filtered points and NDT pyramid."""
+    """A reference cloud made ready for repeated registration: filtered points and NDT pyramid.
+
+    Its KD-tree and the surface normals the SVD step asks for are computed on first use and kept,
+    so an incremental matcher pays for them once per keyframe, not once per sweep.
+    """
 
     points_xyz: np.ndarray
     maps: tuple[VoxelGaussianMap, ...]
@@ -168,6 +173,24 @@ class PreparedReference:
     @property
     def voxel_sizes_m(self) -> tuple[float, ...]:
         return tuple(m.voxel_size_m for m in self.maps)
+
+    @cached_property
+    def kdtree(self) -> cKDTree:
+        """KD-tree over :attr:`points_xyz` (built on first use)."""
+        return cKDTree(self.points_xyz)
+
+    @cached_property
+    def _normal_cache(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros_like(self.points_xyz), np.zeros(self.points_xyz.shape[0], dtype=bool)
+
+    def normals_at(self, index: np.ndarray) -> np.ndarray:
+        """Unit surface normals at ``points_xyz[index]`` (10 nearest neighbours), computed once each."""
+        normals, known = self._normal_cache
+        need = np.unique(index[~known[index]])
+        if need.size:
+            normals[need] = _local_normals(self.points_xyz, need, self.kdtree)
+            known[need] = True
+        return normals[index]
 
 
 def prepare_reference(
@@ -262,8 +285,6 @@ def _svd_refine(
     """
     finest = ref.maps[-1]
     sel = moving
-    normals = np.zeros_like(ref.points_xyz)
-    known = np.zeros(ref.points_xyz.shape[0], dtype=bool)
 
     def pairs(T_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = transform_points(T_cur, sel)
@@ -274,11 +295,7 @@ def _svd_refine(
         _, hi = tukey_fences(dist[ok], settings.svd_fence_k)
         ok &= dist <= hi
         idx_ok = idx[ok]
-        need = np.unique(idx_ok[~known[idx_ok]])
-        if need.size:
-            normals[need] = _local_normals(ref.points_xyz, need, tree)
-            known[need] = True
-        n = normals[idx_ok]
+        n = ref.normals_at(idx_ok)
         qo = q[ok]
         r = np.einsum("ij,ij->i", qo - ref.points_xyz[idx_ok], n)
         return qo, qo - n * r[:, None], r
@@ -294,7 +311,9 @@ def _svd_refine(
         q, proj, r = pairs(T)
         if q.shape[0] < 10:
             return T, it, rmse_before, np.inf
-        if np.linalg.norm(D[:3, 3]) < settings.translation_eps_m:
+        if np.linalg.norm(D[:3, 3]) < settings.svd_translation_eps_m and rotation_angle_deg(
+            D[:3, :3]
+        ) < np.degrees(settings.svd_rotation_eps_rad):
             break
     return T, it, rmse_before, float(np.sqrt(np.mean(r**2)))
 
@@ -385,7 +404,6 @@ def register(
     iterations = 0
     converged = True
     t0 = time.perf_counter()
-    tree: cKDTree | None = None
     if settings.method in ("randt", "ndt"):
         for level, gmap in enumerate(ref.maps):
             final = level == len(ref.maps) - 1
@@ -405,7 +423,7 @@ def register(
             T, iterations = out.T, iterations + out.iterations
             converged = converged and out.converged
     else:
-        tree = cKDTree(ref.points_xyz)
+        tree = ref.kdtree
         icp = icp_point_to_point if settings.method == "icp-point" else icp_point_to_plane
         for v in levels:
             out_icp = icp(
@@ -427,7 +445,7 @@ def register(
     svd_accepted = False
     if settings.svd_refinement:
         t0 = time.perf_counter()
-        tree = cKDTree(ref.points_xyz) if tree is None else tree
+        tree = ref.kdtree
         T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings, tree)
         iterations += n_svd
         step_t = float(np.linalg.norm((invert(T) @ T_svd)[:3, 3]))
