@@ -31,7 +31,7 @@ from core.icp import icp_point_to_plane, icp_point_to_point
 from core.ndt import ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
 from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
 from core.svd import kabsch
-from core.transforms import as_transform, invert, rotation_angle_deg, transform_points
+from core.transforms import as_transform, invert, orthonormalize, rotation_angle_deg, transform_points
 from core.voxel import VoxelGaussianMap, voxel_downsample
 
 __all__ = [
@@ -457,6 +457,7 @@ def register(
     t0 = time.perf_counter()
     if not np.all(np.isfinite(T)):
         raise RegistrationFailedError("registration produced a non-finite transform")
+    T = orthonormalize(T)
     score_sum, score_max, best_m = ndt_point_scores(moving, T, finest_map, consts, settings.n_neighbors)
     has = score_max > 0
     if not np.any(has):

@@ -19,6 +19,7 @@ __all__ = [
     "as_transform",
     "invert",
     "make_transform",
+    "orthonormalize",
     "rotation_angle_deg",
     "transform_error",
     "transform_points",
@@ -55,6 +56,15 @@ def make_transform(
     if translation is not None:
         T[:3, 3] = np.asarray(translation, dtype=np.float64)
     return T
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """Project the rotation block back onto SO(3) (long products of transforms drift off it)."""
+    out = T.copy()
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def invert(T: np.ndarray) -> np.ndarray:
