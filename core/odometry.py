@@ -181,6 +181,9 @@ class IncrementalMatcher:
         if levels is None:
             levels = auto_voxel_sizes(first_xyz)
         r = levels[-1]
+        self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, s.model_voxel_m or r / 4)
+
+    def _apply_scales(self, levels: tuple[float, ...], feature_voxel_m: float, model_voxel_m: float) -> None:
         # The density-based feature extraction already removes the sweep's noise, and features are
         # too sparse for Algorithm 1's own-voxel Gaussians: the moving-point selection is off here.
         # The SVD step converges linearly; sweep to sweep, the motion prior is good enough that 10
@@ -192,8 +195,8 @@ class IncrementalMatcher:
             svd_rotation_eps_rad=1e-4,
         )
         self.registration = base.model_copy(update={"voxel_sizes_m": tuple(levels)})
-        self.feature_voxel_m = s.feature_voxel_m or r / 2
-        self.model_voxel_m = s.model_voxel_m or r / 4
+        self.feature_voxel_m = feature_voxel_m
+        self.model_voxel_m = model_voxel_m
 
     # -- the paper's Get and Set of the keyframe model ------------------------------------------
     def get_model(self) -> PreparedReference | None:
@@ -345,6 +348,46 @@ class IncrementalMatcher:
             message=message,
             stage_times_s=times,
         )
+
+    # -- persistence ----------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume this session after a restart, as plain numpy arrays.
+
+        Keys: ``poses`` (N,4,4), ``delta`` (4,4), ``keyframe_poses`` (K,4,4), ``keyframe_points``
+        (M,3) with ``keyframe_sizes`` (K,), ``scales`` (feature voxel, model voxel), ``levels`` and
+        ``last_keyframe_pose``. Suitable for ``np.savez``; the settings are the caller's to keep.
+        """
+        kf = list(self._keyframes)
+        return {
+            "poses": np.array(self.poses).reshape(-1, 4, 4),
+            "delta": self._delta.copy(),
+            "keyframe_poses": np.array([p for p, _ in kf]).reshape(-1, 4, 4),
+            "keyframe_points": np.vstack([x for _, x in kf]) if kf else np.zeros((0, 3)),
+            "keyframe_sizes": np.array([x.shape[0] for _, x in kf], dtype=np.int64),
+            "scales": np.array([self.feature_voxel_m, self.model_voxel_m]),
+            "levels": np.array(self.registration.voxel_sizes_m or (), dtype=np.float64),
+            "last_keyframe_pose": (
+                np.full((4, 4), np.nan) if self._last_keyframe_pose is None else self._last_keyframe_pose
+            ),
+        }
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """Resume from :meth:`state_dict` output (same settings); the model is rebuilt from keyframes."""
+        self.poses = [np.asarray(p, dtype=np.float64) for p in state["poses"]]
+        self._delta = np.asarray(state["delta"], dtype=np.float64)
+        feature_voxel_m, model_voxel_m = (float(v) for v in state["scales"])
+        self._apply_scales(tuple(float(v) for v in state["levels"]), feature_voxel_m, model_voxel_m)
+        sizes = np.asarray(state["keyframe_sizes"], dtype=np.int64)
+        chunks = np.split(np.asarray(state["keyframe_points"], dtype=np.float64), np.cumsum(sizes)[:-1])
+        self._keyframes.clear()
+        for pose, pts in zip(state["keyframe_poses"], chunks if sizes.size else [], strict=True):
+            self._keyframes.append((np.asarray(pose, dtype=np.float64), pts))
+        last = np.asarray(state["last_keyframe_pose"], dtype=np.float64)
+        self._last_keyframe_pose = None if np.isnan(last).any() else last
+        self._first_raw = None
+        self._model = None
+        if self._keyframes:
+            self._rebuild_model(self._keyframes[-1][0])
 
     def _needs_keyframe(self, T: np.ndarray) -> bool:
         last = self._last_keyframe_pose

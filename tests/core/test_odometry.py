@@ -129,3 +129,18 @@ def test_features_split_ground_objects_noise(kitti00) -> None:
     assert np.median(ground_z) == pytest.approx(-1.73, abs=0.15)  # HDL-64E 1.73 m above the road
     assert f.noise_mask.mean() < 0.01
     assert 3000 < f.matching_xyz.shape[0] < 20000
+
+
+def test_state_dict_resumes_the_same_trajectory(kitti00) -> None:
+    """A matcher rebuilt from its state after 6 sweeps continues exactly like the original."""
+    scans, _ = kitti00
+    a = IncrementalMatcher()
+    for s in scans[:6]:
+        a.register_scan(s)
+    state = {k: v.copy() for k, v in a.state_dict().items()}
+    b = IncrementalMatcher()
+    b.load_state_dict(state)
+    for s in scans[6:9]:
+        ra, rb = a.register_scan(s), b.register_scan(s)
+        np.testing.assert_allclose(rb.T_world_sensor, ra.T_world_sensor, atol=1e-9)
+    assert len(b.poses) == 9
