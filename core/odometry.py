@@ -64,7 +64,7 @@ class MatcherSettings(BaseModel):
 
     voxel_sizes_m: tuple[float, ...] | None = Field(
         default=None,
-        description="NDT levels against the keyframe model, coarse to fine; None: (8r, 4r, 2r, r) with r "
+        description="NDT levels against the keyframe model, coarse to fine; None: (16r, 8r, 4r, 2r, r) with r "
         "from the first sweep's scale (core.registration.auto_voxel_sizes), 1 m for a KITTI sweep",
     )
     feature_voxel_m: float | None = Field(default=None, gt=0, description="object downsampling; None: r/2")
@@ -179,7 +179,11 @@ class IncrementalMatcher:
         if levels is None and self._registration_given is not None:
             levels = self._registration_given.voxel_sizes_m
         if levels is None:
-            levels = auto_voxel_sizes(first_xyz)
+            # One level coarser than pairwise registration uses: at a corner's onset the yaw rate
+            # can jump by 7 degrees per sweep (a 9 m arc at 12 m/s), a step (8r, ..., r) could not
+            # recover on simulated drives; a 16r level does, for about one more cheap level.
+            auto = auto_voxel_sizes(first_xyz)
+            levels = (2.0 * auto[0], *auto)
         r = levels[-1]
         self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, s.model_voxel_m or r / 4)
 
