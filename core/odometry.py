@@ -64,8 +64,8 @@ class MatcherSettings(BaseModel):
 
     voxel_sizes_m: tuple[float, ...] | None = Field(
         default=None,
-        description="NDT levels against the keyframe model, coarse to fine; None: (16r, 8r, 4r, 2r, r) with r "
-        "from the first sweep's scale (core.registration.auto_voxel_sizes), 1 m for a KITTI sweep",
+        description="NDT levels against the keyframe model, coarse to fine; None: (16r, 8r, 4r, 2r, r) "
+        "with r from the first sweep's scale (core.registration.auto_voxel_sizes), 1 m for a KITTI sweep",
     )
     feature_voxel_m: float | None = Field(default=None, gt=0, description="object downsampling; None: r/2")
     keyframe_distance_m: float = Field(default=2.0, gt=0, description="new keyframe after this travel")
