@@ -42,7 +42,14 @@ from core.registration import (
     register,
     sanitize_points,
 )
-from core.transforms import as_transform, invert, orthonormalize, rotation_angle_deg, transform_points
+from core.transforms import (
+    as_transform,
+    invert,
+    make_transform,
+    orthonormalize,
+    rotation_angle_deg,
+    transform_points,
+)
 from core.voxel import voxel_downsample
 
 __all__ = ["IncrementalMatcher", "MatcherSettings", "PosePrior", "ScanResult"]
@@ -82,6 +89,9 @@ class MatcherSettings(BaseModel):
     )
     max_correction_m: float = Field(
         default=2.0, gt=0, description="a match moving the prediction farther than this is rejected"
+    )
+    retry_yaw_deg: tuple[float, ...] = Field(
+        default=(5.0, 10.0), description="yaw hypotheses (both ways) tried when the predicted match fails"
     )
     prior_gate_chi2: float = Field(
         default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
@@ -287,23 +297,41 @@ class IncrementalMatcher:
         else:
             t0 = time.perf_counter()
             T, status, message = T_pred, "fallback", ""
-            try:
-                res = register(
-                    feats.matching_xyz, None, T_pred, settings=self.registration, reference=self._model
+            # The prediction first; if its match fails a gate, yaw hypotheses around it (a corner's
+            # onset changes the yaw rate faster than a constant-velocity prior can follow).
+            best = None
+            for attempt, init in enumerate(self._hypotheses(T_pred)):
+                try:
+                    res = register(
+                        feats.matching_xyz, None, init, settings=self.registration, reference=self._model
+                    )
+                except RandtError as exc:
+                    message = message or f"registration failed: {exc}"
+                    continue
+                why = self._gate(res, T_pred, prior_T, prior)
+                if why is None and (best is None or res.inlier_ratio > best[1].inlier_ratio):
+                    best = (attempt, res)
+                if attempt == 0 and best is None:
+                    converged, fitness, cov, inliers = (
+                        res.converged,
+                        res.fitness,
+                        res.covariance,
+                        res.inlier_ratio,
+                    )
+                message = message or (why or "")
+                if best is not None and best[0] == 0:
+                    break  # the prediction's match passed: no retries
+            if best is not None:
+                attempt, res = best
+                T, status, message = res.T_target_source, "ok", ""
+                converged, fitness, cov, inliers = (
+                    res.converged,
+                    res.fitness,
+                    res.covariance,
+                    res.inlier_ratio,
                 )
-                converged, fitness, cov = res.converged, res.fitness, res.covariance
-                inliers = res.inlier_ratio
-                correction = float(np.linalg.norm((invert(T_pred) @ res.T_target_source)[:3, 3]))
-                if inliers < s.min_inlier_ratio:
-                    message = f"inlier ratio {inliers:.2f} below {s.min_inlier_ratio}"
-                elif correction > s.max_correction_m:
-                    message = f"match moved the prediction {correction:.2f} m (limit {s.max_correction_m} m)"
-                elif prior_T is not None and not self._agrees(res.T_target_source, prior):
-                    message = "match disagrees with the prior pose beyond its covariance"
-                else:
-                    T, status = res.T_target_source, "ok"
-            except RandtError as exc:
-                message = f"registration failed: {exc}"
+                if attempt:
+                    log.info("scan %d: matched from yaw hypothesis %d", index, attempt)
             if status == "fallback":
                 if prior_T is not None:
                     T = prior_T
@@ -392,6 +420,28 @@ class IncrementalMatcher:
         self._model = None
         if self._keyframes:
             self._rebuild_model(self._keyframes[-1][0])
+
+    def _hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
+        """The prediction, then the prediction yawed by each of ``retry_yaw_deg`` both ways."""
+        out = [T_pred]
+        for deg in self.settings.retry_yaw_deg:
+            for sign in (1.0, -1.0):
+                out.append(T_pred @ make_transform(rotvec=(0.0, 0.0, np.radians(sign * deg))))
+        return out
+
+    def _gate(
+        self, res, T_pred: np.ndarray, prior_T: np.ndarray | None, prior: PosePrior | None
+    ) -> str | None:
+        """Why a registration result is not accepted, or None when it is."""
+        s = self.settings
+        correction = float(np.linalg.norm((invert(T_pred) @ res.T_target_source)[:3, 3]))
+        if res.inlier_ratio < s.min_inlier_ratio:
+            return f"inlier ratio {res.inlier_ratio:.2f} below {s.min_inlier_ratio}"
+        if correction > s.max_correction_m:
+            return f"match moved the prediction {correction:.2f} m (limit {s.max_correction_m} m)"
+        if prior_T is not None and prior is not None and not self._agrees(res.T_target_source, prior):
+            return "match disagrees with the prior pose beyond its covariance"
+        return None
 
     def _needs_keyframe(self, T: np.ndarray) -> bool:
         last = self._last_keyframe_pose
