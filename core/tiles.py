@@ -54,6 +54,8 @@ The loader skips the two resolution keys and parses every other value as a list 
 nothing else may go into that file. The grid's own settings and tile versions go into a sidecar,
 ``randt_tile_grid.yaml``, which Autoware ignores and :func:`load_autoware` uses to restore the map
 exactly (versions included, so tile updates stay monotonic across a service restart).
+:meth:`TileGrid.write_tiles` updates such a directory in place, rewriting only the tiles that changed
+(the service's store saves a growing map this way).
 
 Thread safety
 -------------
@@ -719,20 +721,10 @@ class TileGrid:
         except OSError as exc:
             raise FormatError(f"cannot create {directory}: {exc}") from exc
 
-        entries: dict[str, list[int]] = {}
         for t in tiles:
-            name = f"{t.id}.pcd"
-            write_pcd(directory / name, t.to_cloud())
-            entries[name] = [int(t.bounds.cell_min_xy[0]), int(t.bounds.cell_min_xy[1])]
-
-        sidecar = {
-            "format": _SIDECAR_FORMAT,
-            "tile_size_m": self._tile_size,
-            "voxel_size_m": self._voxel,
-            "max_points_per_voxel": self._cap,
-            "versions": {t.id: t.version for t in tiles},
-        }
-        _write_yaml(directory / GRID_SIDECAR_NAME, sidecar)
+            write_pcd(directory / f"{t.id}.pcd", t.to_cloud())
+        _write_yaml(directory / GRID_SIDECAR_NAME, self._sidecar_document(tiles))
+        entries = _metadata_entries(tiles)
         resolution = float(self._tile_size)
         metadata: dict[str, Any] = {"x_resolution": resolution, "y_resolution": resolution, **entries}
         _write_yaml(directory / AUTOWARE_METADATA_NAME, metadata)
@@ -754,6 +746,93 @@ class TileGrid:
         )
         return entries
 
+    def write_tiles(self, directory: str | os.PathLike[str], tile_ids: Iterable[str]) -> list[str]:
+        """Update an Autoware divided map in place: sidecar, the named tiles, metadata last.
+
+        The incremental counterpart of :meth:`export_autoware` for a directory that holds an
+        earlier save of this map. From one snapshot of the map it writes, each file atomically:
+
+        1. :data:`GRID_SIDECAR_NAME` (settings and the version of every tile);
+        2. ``<ix>_<iy>.pcd`` of every named tile, and of every tile whose file is missing (a first
+           save, or a tile the caller forgot), so the directory always holds every tile;
+        3. :data:`AUTOWARE_METADATA_NAME` last, listing every tile of the map.
+
+        Other tile files are neither rewritten nor removed. A reader (or a restart after a crash at
+        any point) therefore sees whole files only, and a metadata file that names only existing
+        tile files. The sidecar goes first so that recorded versions are never *older* than the
+        content on disk: after a crash between steps 1 and 3 a tile may be restored with the new
+        version and its previous content (its next change bumps the version again, and a
+        subscriber at worst refetches a tile it had), never with new content under an old version
+        that subscribers would take for the one they already hold.
+
+        Parameters
+        ----------
+        directory:
+            Target directory; created if missing.
+        tile_ids:
+            Ids ``"<ix>_<iy>"`` of the tiles whose content changed since the last save (as
+            :meth:`insert` returns them); may be empty.
+
+        Returns
+        -------
+        list[str]
+            Ids of the tiles whose PCD files were written, sorted by ``(ix, iy)``.
+
+        Raises
+        ------
+        TypeError
+            ``tile_ids`` is a single string instead of a collection of ids.
+        NotFoundError
+            A named tile is not in the map.
+        InvalidCloudError
+            The map is empty.
+        FormatError
+            A file could not be written.
+        """
+        if isinstance(tile_ids, str):
+            raise TypeError(f"tile_ids must be a collection of tile ids, not the string {tile_ids!r}")
+        directory = Path(directory)
+        tiles = self._snapshot()
+        if not tiles:
+            raise InvalidCloudError("the map is empty: nothing to write")
+        present = {t.id for t in tiles}
+        wanted = set()
+        for tid in tile_ids:
+            if tid not in present:
+                raise NotFoundError(f"tile {tid!r} is not in the map (holds no points)")
+            wanted.add(tid)
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FormatError(f"cannot create {directory}: {exc}") from exc
+
+        _write_yaml(directory / GRID_SIDECAR_NAME, self._sidecar_document(tiles))
+        written: list[str] = []
+        for t in tiles:
+            path = directory / f"{t.id}.pcd"
+            if t.id in wanted or not path.is_file():
+                write_pcd(path, t.to_cloud())
+                written.append(t.id)
+        resolution = float(self._tile_size)
+        metadata: dict[str, Any] = {
+            "x_resolution": resolution,
+            "y_resolution": resolution,
+            **_metadata_entries(tiles),
+        }
+        _write_yaml(directory / AUTOWARE_METADATA_NAME, metadata)
+        logger.debug("wrote %d of %d tiles to %s", len(written), len(tiles), directory)
+        return written
+
+    def _sidecar_document(self, tiles: list[Tile]) -> dict[str, Any]:
+        """The content of :data:`GRID_SIDECAR_NAME` for the snapshot ``tiles``."""
+        return {
+            "format": _SIDECAR_FORMAT,
+            "tile_size_m": self._tile_size,
+            "voxel_size_m": self._voxel,
+            "max_points_per_voxel": self._cap,
+            "versions": {t.id: t.version for t in tiles},
+        }
+
     def _restore_version(self, key: tuple[int, int], version: int) -> None:
         with self._lock:
             state = self._tiles[key]
@@ -765,6 +844,11 @@ class TileGrid:
 # --------------------------------------------------------------------------------------------
 # Autoware files
 # --------------------------------------------------------------------------------------------
+
+
+def _metadata_entries(tiles: list[Tile]) -> dict[str, list[int]]:
+    """The tile entries of Autoware's metadata: ``"<ix>_<iy>.pcd" -> [x_min, y_min]`` integer metres."""
+    return {f"{t.id}.pcd": [int(t.bounds.cell_min_xy[0]), int(t.bounds.cell_min_xy[1])] for t in tiles}
 
 
 def _write_yaml(path: Path, document: dict[str, Any]) -> None:

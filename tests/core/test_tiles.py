@@ -499,6 +499,54 @@ def test_reexport_removes_stale_tiles_only(tmp_path: Path) -> None:
     assert set(meta) == {"x_resolution", "y_resolution", "0_0.pcd"}
 
 
+def test_write_tiles_rewrites_only_the_named_tiles(tmp_path: Path, mapped: TileGrid) -> None:
+    assert mapped.write_tiles(tmp_path, []) == mapped.tile_ids()  # first save: every file is missing
+    first = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    inodes = {p.name: p.stat().st_ino for p in tmp_path.iterdir()}
+    assert set(first) == {f"{tid}.pcd" for tid in mapped.tile_ids()} | {
+        AUTOWARE_METADATA_NAME,
+        GRID_SIDECAR_NAME,
+    }
+
+    changed = mapped.insert(np.array([[-3.0, 4.0, 9.0], [45.0, 45.0, 0.0]]))  # 1 grown tile, 1 new tile
+    assert changed == ["-1_0", "2_2"]
+    assert mapped.write_tiles(tmp_path, changed) == ["-1_0", "2_2"]
+    after = {p.name: p.stat().st_ino for p in tmp_path.iterdir()}
+    rewritten = {name for name in inodes if after[name] != inodes[name]}
+    assert rewritten == {"-1_0.pcd", AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME}
+    assert set(after) - set(inodes) == {"2_2.pcd"}
+    assert read_cloud(tmp_path / "-1_0.pcd").n_points == mapped.get("-1_0").n_points
+    assert (tmp_path / "0_0.pcd").read_bytes() == first["0_0.pcd"]
+
+    # The same files as a full export, and the map loads back identical (versions included).
+    meta = yaml.safe_load((tmp_path / AUTOWARE_METADATA_NAME).read_text())
+    exported = tmp_path / "full"
+    entries = mapped.export_autoware(exported)
+    assert meta == yaml.safe_load((exported / AUTOWARE_METADATA_NAME).read_text())
+    assert {k: v for k, v in meta.items() if k.endswith(".pcd")} == entries
+    assert (tmp_path / GRID_SIDECAR_NAME).read_text() == (exported / GRID_SIDECAR_NAME).read_text()
+    restored = load_autoware(tmp_path)
+    for a, b in zip(mapped.tiles(), restored.tiles(), strict=True):
+        assert (a.id, a.version) == (b.id, b.version)
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+    assert restored.get("-1_0").version == 2 and restored.get("2_2").version == 1
+
+
+def test_write_tiles_restores_deleted_files_and_rejects_bad_ids(tmp_path: Path, mapped: TileGrid) -> None:
+    mapped.write_tiles(tmp_path, mapped.tile_ids())
+    (tmp_path / "0_0.pcd").unlink()
+    assert mapped.write_tiles(tmp_path, ["1_0"]) == ["0_0", "1_0"]  # a missing file is written too
+    assert load_autoware(tmp_path).n_points == mapped.n_points
+    with pytest.raises(NotFoundError):
+        mapped.write_tiles(tmp_path, ["7_7"])
+    with pytest.raises(TypeError):
+        mapped.write_tiles(tmp_path, "0_0")
+    with pytest.raises(InvalidCloudError):
+        TileGrid().write_tiles(tmp_path / "empty", [])
+    assert not (tmp_path / "empty").exists()
+
+
 def test_export_of_an_empty_map_fails(tmp_path: Path) -> None:
     with pytest.raises(InvalidCloudError):
         TileGrid().export_autoware(tmp_path)

@@ -1,0 +1,970 @@
+"""The wire format between vehicles, the service and map users: versioned msgpack messages.
+
+Every message is one msgpack map (packed with ``use_bin_type=True``, so raw bytes travel as msgpack
+``bin`` and text as ``str``) whose ``v`` key is the schema version, here :data:`SCHEMA_VERSION` = 1.
+``docs/wire-format.md`` is the reference for key expressions, fields, units, frames, error codes and
+versioning; this module implements it and is shared by the service and the vehicle clients (it does
+not import Zenoh, and clients never import ``service/``).
+
+Decoding in one screen::
+
+    payload --size check--> msgpack.unpackb --top-level map?--> v == 1? --pydantic (strict)-->
+        ids match the id pattern --> points: stride, count, limits, finite --> prior: rigid, PSD
+
+Each step raises :class:`~core.errors.BadMessageError` with a stable ``code`` (:data:`ERROR_CODES`)
+and a reason naming the field and the problem; nothing else escapes a ``decode_*`` function, whatever
+the bytes. Point buffers are kept as the ``bytes`` msgpack produced and read through
+``np.frombuffer`` (no further copy). :func:`peek_ids` and :func:`peek_seq` read the addressing
+fields of a message that failed to decode, so its error can still reach the right vehicle.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import logging
+import re
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from core.errors import BadMessageError
+
+if TYPE_CHECKING:
+    from core.io.clouds import PointCloud
+
+__all__ = [
+    "ERROR_CODES",
+    "SCHEMA_VERSION",
+    "UNKNOWN_ID",
+    "Bounds",
+    "ErrorMessage",
+    "PoseMessage",
+    "Prior",
+    "ScanMessage",
+    "TileUpdateMessage",
+    "WireLimits",
+    "WireMessage",
+    "decode_error",
+    "decode_pose",
+    "decode_scan",
+    "decode_tile_update",
+    "encode",
+    "matrix_to_pose",
+    "peek_ids",
+    "peek_seq",
+    "pose_to_matrix",
+    "scan_from_arrays",
+    "tile_update_from_arrays",
+]
+
+log = logging.getLogger(__name__)
+
+#: The schema version this module writes and the only one it reads.
+SCHEMA_VERSION = 1
+
+#: ``vehicle`` / ``session`` of an :class:`ErrorMessage` when the failed message did not say.
+UNKNOWN_ID = "?"
+
+#: Every ``code`` a ``decode_*`` function raises, with its meaning (docs/wire-format.md has the table).
+ERROR_CODES: dict[str, str] = {
+    "payload_too_large": "the payload exceeds max_payload_bytes (checked before unpacking)",
+    "malformed": "not msgpack, truncated, trailing bytes, or the top level is not a map",
+    "unsupported_version": "v is an integer other than 1",
+    "missing_field": "a required field is absent",
+    "invalid_field": "a field has the wrong type or value (the reason names the field)",
+    "invalid_id": "vehicle, session or map does not match the id pattern",
+    "invalid_points": "point bytes not a multiple of the point size, time offsets of the wrong length "
+    "or outside [0, max_time_offset_s], or a tile's point bytes not matching n_points",
+    "empty_scan": "the scan holds no points",
+    "too_many_points": "the scan holds more than max_points points",
+    "nonfinite_points": "a point has a NaN or infinite coordinate or intensity",
+    "invalid_prior": "the prior pose is not a finite rigid transform, or its covariance is not a "
+    "finite symmetric positive semi-definite 6x6 matrix",
+}
+
+_INT64_MAX = 2**63 - 1
+_INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
+_POINT_SIZE: dict[str, int] = {"xyz": 12, "xyzi": 16}
+_F32 = np.dtype("<f4")
+_TILE_POINT_SIZE = 16
+
+# Rigid-transform and covariance tolerances: senders may round-trip through float32.
+_ROTATION_ATOL = 1e-4
+_LAST_ROW_ATOL = 1e-9
+_SYMMETRY_RTOL = 1e-6
+_PSD_RTOL = 1e-9
+
+# Ids become Zenoh key-expression chunks and file names: a configured pattern must reject these.
+_UNSAFE_ID_SAMPLES = ("", "a/b", "*", "**", "$*", "a?b", "a#b", "a b", ".", "..", "a\nb")
+
+_PREVIEW_CHARS = 40
+
+
+# --------------------------------------------------------------------------------------------
+# limits
+# --------------------------------------------------------------------------------------------
+
+
+class WireLimits(BaseModel):
+    """What a decoder accepts. The service builds one from its settings; clients use the defaults.
+
+    Attributes
+    ----------
+    max_points:
+        Most points a scan may hold (``too_many_points`` beyond). Not applied to tile updates.
+    max_payload_bytes:
+        Largest payload accepted, checked before unpacking (``payload_too_large``).
+    id_pattern:
+        Regular expression a ``vehicle``, ``session`` or ``map`` id must match in full. The default
+        allows 1-64 letters, digits, ``_``, ``.`` and ``-``, starting with a letter or digit: no
+        ``/ * $ ? #`` or spaces, which would break Zenoh key expressions or file paths.
+    max_time_offset_s:
+        Per-point time offsets must lie in ``[0, max_time_offset_s]`` seconds.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    max_points: int = Field(default=300_000, ge=1)
+    max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1)
+    id_pattern: str = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+    max_time_offset_s: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+
+    @field_validator("id_pattern")
+    @classmethod
+    def _check_pattern(cls, value: str) -> str:
+        try:
+            compiled = _compiled(value)
+        except re.error as exc:
+            raise ValueError(f"id_pattern is not a regular expression: {exc}") from exc
+        for sample in _UNSAFE_ID_SAMPLES:
+            if compiled.fullmatch(sample):
+                raise ValueError(
+                    f"id_pattern accepts {sample!r}, which would break key expressions or file paths"
+                )
+        return value
+
+    def id_ok(self, value: object) -> bool:
+        """Whether ``value`` is a str matching :attr:`id_pattern` in full."""
+        return isinstance(value, str) and _compiled(self.id_pattern).fullmatch(value) is not None
+
+
+_DEFAULT_LIMITS = WireLimits()
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled(pattern: str) -> re.Pattern[str]:
+    return re.compile(pattern)
+
+
+def _limits_of(info: ValidationInfo) -> WireLimits:
+    context = info.context
+    if isinstance(context, dict) and isinstance(context.get("limits"), WireLimits):
+        return context["limits"]
+    return _DEFAULT_LIMITS
+
+
+# --------------------------------------------------------------------------------------------
+# field types and shared checks
+# --------------------------------------------------------------------------------------------
+
+
+def _as_tuple(value: Any) -> Any:
+    """Lists and arrays become tuples (so callers may pass ``T.ravel().tolist()`` or ``T``)."""
+    if isinstance(value, np.ndarray):
+        return tuple(value.ravel().tolist())
+    if isinstance(value, list):
+        return tuple(value)
+    return value
+
+
+Floats16 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=16, max_length=16)]
+Floats36 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=36, max_length=36)]
+Vec3 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=3, max_length=3)]
+Count = Annotated[int, Field(ge=0, le=_INT64_MAX)]
+
+
+def _fail(code: str, reason: str) -> PydanticCustomError:
+    """A validation error whose ``type`` is one of :data:`ERROR_CODES`."""
+    return PydanticCustomError(code, "{reason}", {"reason": reason})
+
+
+def _preview(value: object) -> str:
+    """A short, safe description of a received value (never its full repr)."""
+    if isinstance(value, str):
+        text = repr(value[:_PREVIEW_CHARS])
+        return f"{text}... ({len(value)} chars)" if len(value) > _PREVIEW_CHARS else text
+    if isinstance(value, bytes | bytearray | memoryview):
+        return f"bytes of length {len(value)}"
+    if value is None or isinstance(value, bool | int | float):
+        return repr(value)
+    if isinstance(value, list | tuple):
+        return f"an array of {len(value)} items"
+    if isinstance(value, dict):
+        return f"a map of {len(value)} entries"
+    return f"a {type(value).__name__}"
+
+
+def _check_id(value: str, info: ValidationInfo, *, allow_unknown: bool = False) -> str:
+    if allow_unknown and value == UNKNOWN_ID:
+        return value
+    limits = _limits_of(info)
+    if not limits.id_ok(value):
+        raise _fail("invalid_id", f"{_preview(value)} is not a valid id (must match {limits.id_pattern})")
+    return value
+
+
+def _rigid_problem(values: Sequence[float]) -> str | None:
+    """Why 16 row-major values are not a finite rigid transform, or ``None`` if they are."""
+    T = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    if not np.all(np.isfinite(T)):
+        return f"has {int(np.count_nonzero(~np.isfinite(T)))} non-finite entries"
+    if not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0), rtol=0.0, atol=_LAST_ROW_ATOL):
+        return f"last row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    err = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    det = float(np.linalg.det(R))
+    if err > _ROTATION_ATOL or det <= 0.0:
+        return f"rotation block is not a rotation (max |R R^T - I| = {err:.3g}, det = {det:.3g})"
+    return None
+
+
+def _covariance_problem(values: Sequence[float]) -> str | None:
+    """Why 36 row-major values are not a symmetric PSD 6x6 matrix, or ``None`` if they are."""
+    C = np.asarray(values, dtype=np.float64).reshape(6, 6)
+    if not np.all(np.isfinite(C)):
+        return f"has {int(np.count_nonzero(~np.isfinite(C)))} non-finite entries"
+    scale = float(np.max(np.abs(C)))
+    asym = float(np.max(np.abs(C - C.T)))
+    if asym > _SYMMETRY_RTOL * scale:
+        return f"is not symmetric (max |C - C^T| = {asym:.3g})"
+    lowest = float(np.linalg.eigvalsh(0.5 * (C + C.T))[0])
+    if lowest < -_PSD_RTOL * scale:
+        return f"is not positive semi-definite (smallest eigenvalue {lowest:.3g})"
+    return None
+
+
+def _first_nonfinite(values: np.ndarray) -> tuple[int, int]:
+    """Rows of an (N, k) or (N,) array holding a NaN/Inf: their count and the first index (-1 if none)."""
+    bad = ~np.isfinite(values)
+    if bad.ndim == 2:
+        bad = bad.any(axis=1)
+    rows = np.flatnonzero(bad)
+    return int(rows.size), int(rows[0]) if rows.size else -1
+
+
+# --------------------------------------------------------------------------------------------
+# messages
+# --------------------------------------------------------------------------------------------
+
+
+class _Message(BaseModel):
+    """Shared configuration: strict types, immutable, unknown keys ignored (newer v1 senders)."""
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
+
+    v: Literal[1] = SCHEMA_VERSION
+
+
+class Prior(BaseModel):
+    """An external pose for a scan (GNSS/INS), with its uncertainty.
+
+    Attributes
+    ----------
+    pose:
+        16 floats, row-major 4x4 ``T_map_sensor`` (maps sensor points into the map frame; metres).
+    covariance:
+        36 floats, row-major 6x6 covariance of the left perturbation ``(tx, ty, tz, rx, ry, rz)``
+        (m², rad², as :mod:`core.transforms`), symmetric positive semi-definite.
+    """
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=True)
+
+    pose: Floats16
+    covariance: Floats36
+
+    @model_validator(mode="after")
+    def _check(self) -> Prior:
+        problem = _rigid_problem(self.pose)
+        if problem is not None:
+            raise _fail("invalid_prior", f"pose {problem}")
+        problem = _covariance_problem(self.covariance)
+        if problem is not None:
+            raise _fail("invalid_prior", f"covariance {problem}")
+        return self
+
+
+class ScanMessage(_Message):
+    """One LiDAR sweep, vehicle to service, on ``randt/fleet/<vehicle>/scan``.
+
+    Attributes
+    ----------
+    v:
+        Schema version, 1.
+    vehicle, session:
+        Ids (:attr:`WireLimits.id_pattern`); a session is one drive, one matcher on the service.
+    seq:
+        Sequence number within the session, ``>= 0``, increasing.
+    stamp_ns:
+        Time of the sweep's first point, nanoseconds since the Unix epoch (UTC).
+    fields:
+        ``"xyz"`` or ``"xyzi"``: what each point holds.
+    points:
+        Little-endian float32, 12 (xyz) or 16 (xyzi) bytes per point, sensor frame, metres.
+    time_offsets:
+        Optional little-endian float32 per point: seconds after ``stamp_ns``, in
+        ``[0, max_time_offset_s]``.
+    prior:
+        Optional :class:`Prior` pose of the sensor at ``stamp_ns``.
+    """
+
+    vehicle: str
+    session: str
+    seq: Count
+    stamp_ns: Count
+    fields: Literal["xyz", "xyzi"]
+    points: bytes
+    time_offsets: bytes | None = None
+    prior: Prior | None = None
+
+    @field_validator("vehicle", "session")
+    @classmethod
+    def _check_ids(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info)
+
+    @model_validator(mode="after")
+    def _check_points(self, info: ValidationInfo) -> ScanMessage:
+        limits = _limits_of(info)
+        size = _POINT_SIZE[self.fields]
+        if len(self.points) % size:
+            raise _fail(
+                "invalid_points",
+                f"points: {len(self.points)} bytes is not a multiple of {size} (fields {self.fields})",
+            )
+        n = len(self.points) // size
+        if n == 0:
+            raise _fail("empty_scan", "points: the scan holds no points")
+        if n > limits.max_points:
+            raise _fail("too_many_points", f"points: {n} points exceed the limit of {limits.max_points}")
+        if self.time_offsets is not None:
+            if len(self.time_offsets) != 4 * n:
+                raise _fail(
+                    "invalid_points",
+                    f"time_offsets: {len(self.time_offsets)} bytes, expected {4 * n} "
+                    f"(one float32 per point, {n} points)",
+                )
+            offsets = np.frombuffer(self.time_offsets, dtype=_F32)
+            bad = ~((offsets >= 0.0) & (offsets <= limits.max_time_offset_s))  # NaN is bad too
+            if bad.any():
+                first = int(np.argmax(bad))
+                raise _fail(
+                    "invalid_points",
+                    f"time_offsets: {int(np.count_nonzero(bad))} offsets outside "
+                    f"[0, {limits.max_time_offset_s}] s, first at index {first} ({float(offsets[first])})",
+                )
+        table = self.points_f32()
+        if not np.isfinite(table).all():  # one pass over the buffer; details only on failure
+            count, first = _first_nonfinite(table[:, :3])
+            if count:
+                raise _fail(
+                    "nonfinite_points",
+                    f"points: {count} points have a non-finite coordinate (NaN or Inf), "
+                    f"first at index {first}",
+                )
+            count, first = _first_nonfinite(table[:, 3])
+            raise _fail(
+                "nonfinite_points",
+                f"points: {count} points have a non-finite intensity (NaN or Inf), first at index {first}",
+            )
+        return self
+
+    @property
+    def n_points(self) -> int:
+        """Number of points ``N``."""
+        return len(self.points) // _POINT_SIZE[self.fields]
+
+    def points_f32(self) -> np.ndarray:
+        """(N, 3) or (N, 4) float32 read-only view of :attr:`points` (no copy)."""
+        return np.frombuffer(self.points, dtype=_F32).reshape(-1, _POINT_SIZE[self.fields] // 4)
+
+    def xyz(self) -> np.ndarray:
+        """(N, 3) float64 positions, sensor frame, metres (a new array: float32 widened)."""
+        return self.points_f32()[:, :3].astype(np.float64)
+
+    def intensity(self) -> np.ndarray | None:
+        """(N,) float32 read-only view of the intensities, or ``None`` for ``fields == "xyz"``."""
+        return self.points_f32()[:, 3] if self.fields == "xyzi" else None
+
+    def time_offset_s(self) -> np.ndarray | None:
+        """(N,) float64 seconds after :attr:`stamp_ns`, or ``None`` when not sent."""
+        if self.time_offsets is None:
+            return None
+        return np.frombuffer(self.time_offsets, dtype=_F32).astype(np.float64)
+
+    def prior_pose(self) -> np.ndarray | None:
+        """(4, 4) float64 ``T_map_sensor`` of the prior, or ``None``."""
+        return None if self.prior is None else pose_to_matrix(self.prior.pose)
+
+    def prior_covariance(self) -> np.ndarray | None:
+        """(6, 6) float64 covariance of the prior (order tx ty tz rx ry rz), or ``None``."""
+        return None if self.prior is None else np.asarray(self.prior.covariance).reshape(6, 6)
+
+    def to_cloud(self) -> PointCloud:
+        """The sweep as a :class:`~core.io.PointCloud` (xyz, intensity, time offsets)."""
+        from core.io.clouds import PointCloud  # lazy: vehicle clients need not load the file formats
+
+        return PointCloud(xyz=self.xyz(), intensity=self.intensity(), time_offset_s=self.time_offset_s())
+
+
+class PoseMessage(_Message):
+    """The service's answer to one scan, on ``randt/fleet/<vehicle>/pose``.
+
+    Attributes
+    ----------
+    vehicle, session, seq, stamp_ns:
+        Copied from the scan.
+    pose:
+        16 floats, row-major 4x4 ``T_map_sensor`` (metres); the sensor at ``stamp_ns``, or at the
+        sweep's middle when the scan carried time offsets (the matcher deskews to it).
+    fitness:
+        The matcher's fitness (NVTL; higher is better, 0 means no overlap).
+    inlier_ratio:
+        Fraction of matched points kept as inliers, in ``[0, 1]``.
+    converged:
+        Whether the optimiser converged.
+    status:
+        ``"first"`` (a session's first scan), ``"ok"`` (a match was accepted) or ``"fallback"``
+        (rejected; ``pose`` is the motion prediction or the prior).
+    covariance:
+        36 floats, row-major 6x6 (tx ty tz rx ry rz; m², rad²), or ``None`` when unknown.
+    latency_ms:
+        Receive-to-publish time on the service, milliseconds.
+    map:
+        Name of the map the pose is in.
+    """
+
+    vehicle: str
+    session: str
+    seq: Count
+    stamp_ns: Count
+    pose: Floats16
+    fitness: float
+    inlier_ratio: float = Field(ge=0.0, le=1.0)
+    converged: bool
+    status: Literal["first", "ok", "fallback"]
+    covariance: Floats36 | None = None
+    latency_ms: float
+    map: str
+
+    @field_validator("vehicle", "session", "map")
+    @classmethod
+    def _check_ids(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info)
+
+    @model_validator(mode="after")
+    def _check_pose(self) -> PoseMessage:
+        problem = _rigid_problem(self.pose)
+        if problem is not None:
+            raise _fail("invalid_field", f"pose: {problem}")
+        return self
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 ``T_map_sensor``."""
+        return pose_to_matrix(self.pose)
+
+    def covariance_matrix(self) -> np.ndarray | None:
+        """(6, 6) float64 covariance, or ``None``."""
+        return None if self.covariance is None else np.asarray(self.covariance).reshape(6, 6)
+
+
+class ErrorMessage(_Message):
+    """Why the service rejected a scan, on ``randt/fleet/<vehicle>/error``.
+
+    Attributes
+    ----------
+    vehicle, session:
+        Ids of the rejected scan, or :data:`UNKNOWN_ID` (``"?"``) when it could not be read.
+    seq:
+        The rejected scan's ``seq``, or ``None`` when unknown.
+    code:
+        Stable machine-readable code: one of :data:`ERROR_CODES` for decoding failures, others for
+        the service's own refusals (lower-case letters, digits and ``_``).
+    reason:
+        Human-readable: what was wrong and where.
+    """
+
+    vehicle: str
+    session: str
+    seq: Count | None = None
+    code: str = Field(pattern=r"^[a-z][a-z0-9_]{0,63}$")
+    reason: str
+
+    @field_validator("vehicle", "session")
+    @classmethod
+    def _check_ids(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info, allow_unknown=True)
+
+
+class Bounds(BaseModel):
+    """Axis-aligned box, map frame, metres: per-axis ``min`` and ``max`` ``[x, y, z]``."""
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
+
+    min: Vec3
+    max: Vec3
+
+
+class TileUpdateMessage(_Message):
+    """A map tile's new content, on ``randt/map/<map>/tile/<ix>_<iy>``.
+
+    Attributes
+    ----------
+    map:
+        Map name (an id).
+    tile:
+        ``"<ix>_<iy>"``, equal to ``f"{ix}_{iy}"``.
+    ix, iy:
+        Tile indices: the tile covers ``[ix * size, (ix + 1) * size)`` in x, likewise in y.
+    version:
+        Incremented on every change of the tile; 1 for its first content.
+    bounds:
+        Box around the tile's points (map frame, metres).
+    n_points:
+        Number of points.
+    points:
+        Little-endian float32 x, y, z, intensity (16 bytes per point), map frame, metres.
+    """
+
+    map: str
+    tile: str
+    ix: int = Field(ge=_INT32_MIN, le=_INT32_MAX)
+    iy: int = Field(ge=_INT32_MIN, le=_INT32_MAX)
+    version: int = Field(ge=1, le=_INT64_MAX)
+    bounds: Bounds
+    n_points: Count
+    points: bytes
+
+    @field_validator("map")
+    @classmethod
+    def _check_map(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info)
+
+    @model_validator(mode="after")
+    def _check_tile(self) -> TileUpdateMessage:
+        expected = f"{self.ix}_{self.iy}"
+        if self.tile != expected:
+            raise _fail(
+                "invalid_field", f"tile: {_preview(self.tile)} does not match ix, iy (expected {expected!r})"
+            )
+        if len(self.points) != _TILE_POINT_SIZE * self.n_points:
+            raise _fail(
+                "invalid_points",
+                f"points: {len(self.points)} bytes, expected {_TILE_POINT_SIZE * self.n_points} "
+                f"({self.n_points} points of {_TILE_POINT_SIZE} bytes, x y z intensity)",
+            )
+        if self.n_points and any(lo > hi for lo, hi in zip(self.bounds.min, self.bounds.max, strict=True)):
+            raise _fail(
+                "invalid_field", f"bounds: min {list(self.bounds.min)} exceeds max {list(self.bounds.max)}"
+            )
+        count, first = _first_nonfinite(self.points_f32())
+        if count:
+            raise _fail(
+                "nonfinite_points",
+                f"points: {count} points have a non-finite value (NaN or Inf), first at index {first}",
+            )
+        return self
+
+    def points_f32(self) -> np.ndarray:
+        """(N, 4) float32 read-only view of :attr:`points` (no copy)."""
+        return np.frombuffer(self.points, dtype=_F32).reshape(-1, 4)
+
+    def xyz(self) -> np.ndarray:
+        """(N, 3) float64 positions, map frame, metres (a new array)."""
+        return self.points_f32()[:, :3].astype(np.float64)
+
+    def intensity(self) -> np.ndarray:
+        """(N,) float32 read-only view of the intensities."""
+        return self.points_f32()[:, 3]
+
+
+WireMessage = ScanMessage | PoseMessage | ErrorMessage | TileUpdateMessage
+_M = TypeVar("_M", ScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage)
+
+
+# --------------------------------------------------------------------------------------------
+# encode / decode
+# --------------------------------------------------------------------------------------------
+
+
+def encode(message: WireMessage) -> bytes:
+    """Pack a message as a msgpack map (``use_bin_type=True``; ``None`` fields as nil).
+
+    Raises
+    ------
+    TypeError
+        ``message`` is not one of the wire messages.
+    """
+    if not isinstance(message, _Message):
+        raise TypeError(f"not a wire message: {type(message).__name__}")
+    return msgpack.packb(message.model_dump(), use_bin_type=True)
+
+
+def _unpack(payload: bytes, limits: WireLimits) -> dict[str, Any]:
+    """Size check, msgpack, top-level map and version: the steps before field validation."""
+    size = memoryview(payload).nbytes
+    if size > limits.max_payload_bytes:
+        raise BadMessageError(
+            f"payload: {size} bytes exceed the limit of {limits.max_payload_bytes}", code="payload_too_large"
+        )
+    try:
+        obj = msgpack.unpackb(payload, raw=False, use_list=False, strict_map_key=True)
+    except msgpack.ExtraData as exc:
+        raise BadMessageError("payload: trailing bytes after the message", code="malformed") from exc
+    except Exception as exc:  # msgpack raises several unrelated types for bad input
+        detail = str(exc)[:120] or "truncated or invalid"
+        raise BadMessageError(
+            f"payload: not valid msgpack ({type(exc).__name__}: {detail})", code="malformed"
+        ) from exc
+    if not isinstance(obj, dict):
+        raise BadMessageError(f"payload: the top level must be a map, got {_preview(obj)}", code="malformed")
+    if "v" not in obj:
+        raise BadMessageError("v: required field is missing (the schema version)", code="missing_field")
+    version = obj["v"]
+    if type(version) is not int:
+        raise BadMessageError(
+            f"v: the schema version must be an integer, got {_preview(version)}", code="invalid_field"
+        )
+    if version != SCHEMA_VERSION:
+        raise BadMessageError(
+            f"v: schema version {version} is not supported (this decoder reads {SCHEMA_VERSION})",
+            code="unsupported_version",
+        )
+    return obj
+
+
+def _location(loc: tuple[int | str, ...]) -> str:
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text
+
+
+def _as_bad_message(exc: ValidationError) -> BadMessageError:
+    """The first validation problem as a :class:`BadMessageError` (field-declaration order)."""
+    errors = exc.errors(include_url=False)
+    first = errors[0]
+    kind, where = first["type"], _location(first["loc"])
+    if kind == "missing":
+        code, text = "missing_field", "required field is missing"
+    elif kind in ERROR_CODES:
+        code, text = kind, first["msg"]
+    elif kind in ("too_short", "too_long"):
+        ctx = first.get("ctx", {})
+        bound = (
+            f"at least {ctx.get('min_length')}" if kind == "too_short" else f"at most {ctx.get('max_length')}"
+        )
+        code, text = "invalid_field", f"expected {bound} values, got {ctx.get('actual_length')}"
+    else:
+        code, msg = "invalid_field", first["msg"]
+        text = f"{msg[:1].lower()}{msg[1:]}, got {_preview(first.get('input'))}"
+        if kind == "bytes_type" and isinstance(first.get("input"), str):
+            text += " (pack with use_bin_type=True so bytes travel as msgpack bin)"
+    reason = f"{where}: {text}" if where else text
+    if len(errors) > 1:
+        reason += f" (and {len(errors) - 1} more problems)"
+    return BadMessageError(reason, code=code)
+
+
+def _validate(model: type[_M], obj: dict[str, Any], limits: WireLimits) -> _M:
+    try:
+        return model.model_validate(obj, context={"limits": limits})
+    except ValidationError as exc:
+        raise _as_bad_message(exc) from None
+
+
+def _decode(model: type[_M], payload: bytes, limits: WireLimits | None) -> _M:
+    limits = _DEFAULT_LIMITS if limits is None else limits
+    memoryview(payload)  # TypeError for objects without the buffer protocol: a caller's bug, not bad input
+    try:
+        return _validate(model, _unpack(payload, limits), limits)
+    except BadMessageError:
+        raise
+    except Exception as exc:  # a decoder bug must not take down a transport callback
+        log.exception("decoding a %s raised %s; reported as malformed", model.__name__, type(exc).__name__)
+        raise BadMessageError(
+            f"payload: could not be decoded ({type(exc).__name__})", code="malformed"
+        ) from exc
+
+
+def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage:
+    """Decode and validate a scan message.
+
+    Parameters
+    ----------
+    payload:
+        The msgpack bytes (any object with the buffer protocol).
+    limits:
+        What to accept; ``None`` uses the defaults of :class:`WireLimits`.
+
+    Returns
+    -------
+    ScanMessage
+        Points stay in the unpacked ``bytes``; the array accessors are views or single conversions.
+
+    Raises
+    ------
+    BadMessageError
+        For any payload that is not a valid v1 scan; ``code`` is one of :data:`ERROR_CODES`.
+    TypeError
+        ``payload`` does not support the buffer protocol (a programming error, not bad input).
+    """
+    return _decode(ScanMessage, payload, limits)
+
+
+def decode_pose(payload: bytes, limits: WireLimits | None = None) -> PoseMessage:
+    """Decode and validate a pose message (errors as :func:`decode_scan`)."""
+    return _decode(PoseMessage, payload, limits)
+
+
+def decode_error(payload: bytes, limits: WireLimits | None = None) -> ErrorMessage:
+    """Decode and validate an error message (errors as :func:`decode_scan`)."""
+    return _decode(ErrorMessage, payload, limits)
+
+
+def decode_tile_update(payload: bytes, limits: WireLimits | None = None) -> TileUpdateMessage:
+    """Decode and validate a tile update (errors as :func:`decode_scan`; ``max_points`` not applied)."""
+    return _decode(TileUpdateMessage, payload, limits)
+
+
+# --------------------------------------------------------------------------------------------
+# peeking into messages that failed to decode
+# --------------------------------------------------------------------------------------------
+
+_PEEK_KEYS = frozenset({"vehicle", "session", "seq"})
+
+
+def _peek(payload: object) -> dict[str, Any]:
+    """Top-level ``vehicle``, ``session`` and ``seq`` values found before the payload breaks.
+
+    Streams the map key by key and skips other values unparsed, so it is cheap on a payload of any
+    size and reads what precedes a truncation.
+    """
+    found: dict[str, Any] = {}
+    try:
+        unpacker = msgpack.Unpacker(io.BytesIO(payload), raw=False, use_list=False)  # type: ignore[arg-type]
+        for _ in range(unpacker.read_map_header()):
+            key = unpacker.unpack()
+            if isinstance(key, str) and key in _PEEK_KEYS and key not in found:
+                found[key] = unpacker.unpack()
+                if len(found) == len(_PEEK_KEYS):
+                    break
+            else:
+                unpacker.skip()
+    except Exception:  # best effort by contract: whatever was read before the failure is kept
+        log.debug("peek stopped early", exc_info=True)
+    return found
+
+
+def peek_ids(payload: bytes, limits: WireLimits | None = None) -> tuple[str | None, str | None]:
+    """Best-effort ``(vehicle, session)`` of a message, valid or not; never raises.
+
+    An id is returned only when it is a string matching ``limits.id_pattern``, so it is safe to put
+    in a key expression; otherwise (absent, wrong type, unsafe, unreadable payload) it is ``None``.
+    """
+    limits = _DEFAULT_LIMITS if limits is None else limits
+    found = _peek(payload)
+    vehicle, session = found.get("vehicle"), found.get("session")
+    return (vehicle if limits.id_ok(vehicle) else None, session if limits.id_ok(session) else None)
+
+
+def peek_seq(payload: bytes) -> int | None:
+    """Best-effort ``seq`` of a message, valid or not (``None`` if absent or invalid); never raises."""
+    seq = _peek(payload).get("seq")
+    return seq if type(seq) is int and 0 <= seq <= _INT64_MAX else None
+
+
+# --------------------------------------------------------------------------------------------
+# helpers for senders
+# --------------------------------------------------------------------------------------------
+
+
+def pose_to_matrix(pose: Sequence[float] | np.ndarray | PoseMessage) -> np.ndarray:
+    """16 row-major values (or a :class:`PoseMessage`) to a (4, 4) float64 matrix (a new array).
+
+    Raises
+    ------
+    ValueError
+        Not 16 values.
+    """
+    values = pose.pose if isinstance(pose, PoseMessage) else pose
+    T = np.array(values, dtype=np.float64)
+    if T.size != 16:
+        raise ValueError(f"a pose has 16 values (row-major 4x4), got {T.size}")
+    return T.reshape(4, 4)
+
+
+def matrix_to_pose(T: np.ndarray) -> tuple[float, ...]:
+    """A (4, 4) matrix to its 16 row-major values (the wire's ``pose``).
+
+    Raises
+    ------
+    ValueError
+        ``T`` is not 4x4.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"a pose matrix is 4x4, got shape {T.shape}")
+    return tuple(T.ravel().tolist())
+
+
+def scan_from_arrays(
+    vehicle: str,
+    session: str,
+    seq: int,
+    stamp_ns: int,
+    xyz: np.ndarray,
+    intensity: np.ndarray | None = None,
+    time_offset_s: np.ndarray | None = None,
+    prior_pose: np.ndarray | None = None,
+    prior_covariance: np.ndarray | None = None,
+    *,
+    limits: WireLimits | None = None,
+) -> ScanMessage:
+    """Build a validated scan from arrays (points and offsets converted to little-endian float32).
+
+    Parameters
+    ----------
+    vehicle, session, seq, stamp_ns:
+        As :class:`ScanMessage` (``stamp_ns``: first point's time, ns since the Unix epoch).
+    xyz:
+        (N, 3) positions, sensor frame, metres.
+    intensity:
+        (N,) intensities, or ``None`` (then ``fields`` is ``"xyz"``).
+    time_offset_s:
+        (N,) seconds after ``stamp_ns``, or ``None``.
+    prior_pose, prior_covariance:
+        (4, 4) ``T_map_sensor`` and its (6, 6) covariance (tx ty tz rx ry rz), both or neither.
+    limits:
+        Limits to validate against (the defaults when ``None``).
+
+    Returns
+    -------
+    ScanMessage
+
+    Raises
+    ------
+    BadMessageError
+        The message would be rejected; ``code`` is the one the service would answer with
+        (``invalid_points`` also for arrays of the wrong shape).
+    """
+    limits = _DEFAULT_LIMITS if limits is None else limits
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code="invalid_points")
+    n = xyz.shape[0]
+    if intensity is None:
+        points = np.ascontiguousarray(xyz, dtype=_F32).tobytes()
+    else:
+        intensity = np.asarray(intensity)
+        if intensity.shape != (n,):
+            raise BadMessageError(
+                f"intensity: expected shape ({n},), got {intensity.shape}", code="invalid_points"
+            )
+        table = np.empty((n, 4), dtype=_F32)
+        table[:, :3] = xyz
+        table[:, 3] = intensity
+        points = table.tobytes()
+    offsets = None
+    if time_offset_s is not None:
+        time_offset_s = np.asarray(time_offset_s)
+        if time_offset_s.shape != (n,):
+            raise BadMessageError(
+                f"time_offsets: expected shape ({n},), got {time_offset_s.shape}", code="invalid_points"
+            )
+        offsets = np.ascontiguousarray(time_offset_s, dtype=_F32).tobytes()
+    if (prior_pose is None) != (prior_covariance is None):
+        raise BadMessageError("prior: pose and covariance go together", code="invalid_prior")
+    prior = None
+    if prior_pose is not None:
+        prior = {
+            "pose": np.asarray(prior_pose, np.float64),
+            "covariance": np.asarray(prior_covariance, np.float64),
+        }
+    obj = {
+        "v": SCHEMA_VERSION,
+        "vehicle": vehicle,
+        "session": session,
+        "seq": seq,
+        "stamp_ns": stamp_ns,
+        "fields": "xyz" if intensity is None else "xyzi",
+        "points": points,
+        "time_offsets": offsets,
+        "prior": prior,
+    }
+    return _validate(ScanMessage, obj, limits)
+
+
+def tile_update_from_arrays(
+    map_name: str,
+    ix: int,
+    iy: int,
+    version: int,
+    xyz: np.ndarray,
+    intensity: np.ndarray | None = None,
+) -> TileUpdateMessage:
+    """Build a validated tile update; ``bounds`` is the box of ``xyz`` after float32 rounding.
+
+    Parameters
+    ----------
+    map_name, ix, iy, version:
+        As :class:`TileUpdateMessage`.
+    xyz:
+        (N, 3) positions, map frame, metres.
+    intensity:
+        (N,) intensities (zeros when ``None``).
+
+    Raises
+    ------
+    BadMessageError
+        The message would not decode (``code`` as :func:`decode_tile_update` would give).
+    """
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code="invalid_points")
+    n = xyz.shape[0]
+    table = np.zeros((n, 4), dtype=_F32)
+    table[:, :3] = xyz
+    if intensity is not None:
+        intensity = np.asarray(intensity)
+        if intensity.shape != (n,):
+            raise BadMessageError(
+                f"intensity: expected shape ({n},), got {intensity.shape}", code="invalid_points"
+            )
+        table[:, 3] = intensity
+    lo = table[:, :3].min(axis=0).tolist() if n else [0.0, 0.0, 0.0]
+    hi = table[:, :3].max(axis=0).tolist() if n else [0.0, 0.0, 0.0]
+    obj = {
+        "v": SCHEMA_VERSION,
+        "map": map_name,
+        "tile": f"{int(ix)}_{int(iy)}",
+        "ix": int(ix),
+        "iy": int(iy),
+        "version": version,
+        "bounds": {"min": lo, "max": hi},
+        "n_points": n,
+        "points": table.tobytes(),
+    }
+    return _validate(TileUpdateMessage, obj, _DEFAULT_LIMITS)

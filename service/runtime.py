@@ -1,0 +1,81 @@
+"""The service instance: store, session manager and Zenoh transport, started and stopped together.
+
+``Service.start()`` opens the store (restoring every map and session it holds), the session
+manager and the Zenoh transport; ``Service.stop()`` stops intake, drains the session queues,
+flushes tiles and session state to the store and closes Zenoh. The FastAPI app's lifespan
+(``service.app``) calls both, so ``randt serve`` stops cleanly on SIGTERM and SIGINT.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from core.wire import encode
+from service.metrics import ServiceMetrics
+from service.sessions import SessionManager, tile_message
+from service.settings import ServiceSettings
+from service.store import Store
+from service.transport import ZenohTransport
+
+__all__ = ["Service"]
+
+log = logging.getLogger(__name__)
+
+
+class Service:
+    """One running instance (module docstring)."""
+
+    def __init__(self, settings: ServiceSettings, *, with_zenoh: bool = True) -> None:
+        self.settings = settings
+        self.metrics = ServiceMetrics()
+        self.started_at = time.time()
+        self.store: Store | None = None
+        self.sessions: SessionManager | None = None
+        self.transport: ZenohTransport | None = None
+        self._with_zenoh = with_zenoh
+        self._sent: list[object] = []  # outbound messages when running without Zenoh (tests)
+
+    def start(self) -> None:
+        s = self.settings
+        self.store = Store(s.data_dir)
+        if self._with_zenoh:
+            self.transport = ZenohTransport(s, self._on_scan, self.tile_payload)
+            outbox = self.transport.send
+        else:
+            outbox = self._sent.append
+        self.sessions = SessionManager(s, self.store, outbox, self.metrics)
+        if self.transport is not None:
+            self.transport.open()
+        log.info("service %s started, data in %s", s.instance, s.data_dir)
+
+    def _on_scan(self, vehicle: str, payload: bytes, received_ns: int) -> None:
+        if self.sessions is not None:
+            self.sessions.submit(vehicle, payload, received_ns)
+
+    def tile_payload(self, map_name: str, tile_id: str) -> bytes | None:
+        """The current tile update message of one tile (the Zenoh queryable's answer)."""
+        if self.sessions is None or map_name not in self.sessions.maps:
+            return None
+        grid = self.sessions.maps[map_name]
+        if tile_id not in grid:
+            return None
+        return encode(tile_message(map_name, grid, tile_id))
+
+    def stop(self) -> None:
+        """Stop intake, drain and save everything, close Zenoh (idempotent)."""
+        if self.sessions is not None:
+            self.sessions.stop()
+        if self.transport is not None:
+            self.transport.close()
+            self.transport = None
+        log.info("service %s stopped", self.settings.instance)
+
+    @property
+    def ready(self) -> bool:
+        return (
+            self.sessions is not None
+            and (not self._with_zenoh or (self.transport is not None and self.transport.is_open))
+            and self.store is not None
+            and self.store.writable()
+        )

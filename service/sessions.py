@@ -1,0 +1,469 @@
+"""Session management: one incremental matcher and one worker thread per (vehicle, session).
+
+Flow of a scan::
+
+    transport callback --decode+validate--> SessionManager.submit --seq check--> SessionWorker queue
+          (never blocks)                        (errors go to the outbox)         (bounded, drop oldest)
+    SessionWorker thread --> IncrementalMatcher --> map tiles (shared TileGrid) --> pose to the outbox
+    flusher thread (every flush_interval_s) --> dirty tiles and session state to the store,
+                                                tile updates to the outbox, idle sessions expired
+
+Every scan a vehicle sends gets exactly one answer on its keys: a pose, or an error whose ``code``
+says why (bad message, duplicate or out-of-order sequence number, dropped by overload, failed
+registration). One session's failure never touches another's worker, queue or map data.
+
+**Overload policy**: each session queue holds ``queue_size`` scans; when a new scan arrives at a
+full queue, the *oldest* waiting scan is dropped (a newer scan is worth more to a moving vehicle),
+counted in ``randt_scans_dropped`` and answered with error code ``dropped``.
+
+**Frames**: a session whose first scan carries a prior pose (GNSS/INS) lives in the map frame and
+folds into the shared map (``default``). A session without priors has its own frame, starting at
+its first sweep, and its own map ``<vehicle>.<session>`` until it can be placed; status reports
+which (``frame``: ``"map"`` or ``"session"``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.errors import BadMessageError, RandtError
+from core.odometry import IncrementalMatcher, PosePrior
+from core.tiles import TileGrid
+from core.transforms import transform_points
+from core.wire import (
+    ErrorMessage,
+    PoseMessage,
+    ScanMessage,
+    WireLimits,
+    decode_scan,
+    peek_ids,
+    peek_seq,
+    tile_update_from_arrays,
+)
+from service.metrics import ServiceMetrics
+from service.settings import ServiceSettings
+from service.store import SessionRecord, Store
+
+__all__ = ["Outbox", "SessionManager", "SessionWorker", "tile_message"]
+
+log = logging.getLogger(__name__)
+
+#: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
+Outbox = Callable[[object], None]
+
+
+@dataclass
+class _Job:
+    scan: ScanMessage
+    received_ns: int
+
+
+@dataclass
+class SessionState:
+    """What the service knows about one session (read by status and the flusher)."""
+
+    vehicle: str
+    session: str
+    map_name: str
+    frame: str
+    created: float = field(default_factory=time.time)
+    last_activity: float = field(default_factory=time.monotonic)
+    last_seq: int = -1
+    n_scans: int = 0
+    n_fallbacks: int = 0
+    n_errors: int = 0
+    stamps_s: list[float] = field(default_factory=list)
+    last_fitness: float = float("nan")
+    last_status: str = ""
+    last_latency_ms: float = float("nan")
+    dirty: bool = False
+    state: str = "active"
+
+
+class SessionWorker:
+    """One session's bounded queue, worker thread and matcher (module docstring)."""
+
+    def __init__(
+        self,
+        info: SessionState,
+        matcher: IncrementalMatcher,
+        grid: TileGrid,
+        manager: SessionManager,
+    ) -> None:
+        self.info = info
+        self.matcher = matcher
+        self.grid = grid
+        self._manager = manager
+        self._queue: deque[_Job] = deque()
+        self._cond = threading.Condition()
+        self._stopping = False
+        self.lock = threading.Lock()  # held while the matcher runs; the flusher takes it to save
+        self._thread = threading.Thread(
+            target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
+        )
+        self._thread.start()
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return self.info.vehicle, self.info.session
+
+    def depth(self) -> int:
+        return len(self._queue)
+
+    def submit(self, job: _Job) -> _Job | None:
+        """Enqueue ``job``; returns the job dropped to make room, if the queue was full."""
+        with self._cond:
+            dropped = None
+            if len(self._queue) >= self._manager.settings.queue_size:
+                dropped = self._queue.popleft()
+            self._queue.append(job)
+            self._cond.notify()
+            return dropped
+
+    def stop(self, *, drain: bool = True, timeout: float = 30.0) -> None:
+        """Stop the worker, after processing what is queued when ``drain``."""
+        with self._cond:
+            if not drain:
+                self._queue.clear()
+            self._stopping = True
+            self._cond.notify()
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stopping:
+                    self._cond.wait()
+                if not self._queue and self._stopping:
+                    return
+                job = self._queue.popleft()
+            try:
+                self._process(job)
+            except Exception:  # a bug in one scan must not kill the session or the service
+                log.exception("session %s/%s: scan %d failed", *self.key, job.scan.seq)
+                self._manager.reject(
+                    job.scan.vehicle,
+                    job.scan.session,
+                    job.scan.seq,
+                    "internal_error",
+                    "internal error while registering this scan (logged by the service)",
+                )
+
+    def _process(self, job: _Job) -> None:
+        scan = job.scan
+        m = self._manager
+        prior = None
+        pose = scan.prior_pose()
+        if pose is not None:
+            prior = PosePrior(pose, scan.prior_covariance())
+        intensity = scan.intensity()
+        with self.lock:
+            try:
+                result = self.matcher.register_scan(
+                    scan.xyz(), time_offset_s=scan.time_offset_s(), prior=prior
+                )
+            except RandtError as exc:
+                m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
+                return
+            changed: list[str] = []
+            if result.status != "fallback":
+                world = transform_points(result.T_world_sensor, result.deskewed_xyz)
+                inten = None if intensity is None else intensity[result.map_index]
+                changed = self.grid.insert(world, inten)
+            info = self.info
+            info.n_scans += 1
+            info.n_fallbacks += result.status == "fallback"
+            info.stamps_s.append(scan.stamp_ns * 1e-9)
+            info.last_fitness = result.fitness
+            info.last_status = result.status
+            info.last_activity = time.monotonic()
+            info.dirty = True
+        if changed:
+            m.mark_tiles_dirty(info.map_name, changed)
+        latency_ms = (time.time_ns() - job.received_ns) * 1e-6
+        info.last_latency_ms = latency_ms
+        cov = result.covariance
+        m.metrics.registration_seconds.observe(result.time_s)
+        m.metrics.latency_seconds.observe(latency_ms * 1e-3)
+        m.metrics.scans_processed.labels(result.status).inc()
+        m.outbox(
+            PoseMessage(
+                v=1,
+                vehicle=scan.vehicle,
+                session=scan.session,
+                seq=scan.seq,
+                stamp_ns=scan.stamp_ns,
+                pose=result.T_world_sensor.ravel().tolist(),
+                fitness=float(result.fitness),
+                inlier_ratio=float(result.inlier_ratio),
+                converged=bool(result.converged),
+                status=result.status,
+                covariance=None if not np.all(np.isfinite(cov)) else cov.ravel().tolist(),
+                latency_ms=latency_ms,
+                map=info.map_name,
+            )
+        )
+
+
+class SessionManager:
+    """Routes scans to session workers; owns the maps; saves to the store (module docstring)."""
+
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        store: Store,
+        outbox: Outbox,
+        metrics: ServiceMetrics | None = None,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.outbox = outbox
+        self.metrics = metrics or ServiceMetrics()
+        self.limits = WireLimits(max_points=settings.max_points, max_payload_bytes=settings.max_payload_bytes)
+        self._lock = threading.RLock()
+        self._workers: dict[tuple[str, str], SessionWorker] = {}
+        contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
+        for problem in contents.problems:
+            log.error("store: skipped %s %s: %s", problem.kind, problem.name, problem.message)
+        self._records: dict[tuple[str, str], SessionRecord] = {r.key: r for r in contents.sessions}
+        self.maps: dict[str, TileGrid] = dict(contents.maps)
+        self._dirty_tiles: dict[str, set[str]] = {}
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_loop, name="store-flusher", daemon=True)
+        self._flusher.start()
+
+    # -- intake (transport callback thread: decode, validate, enqueue; never blocks) ----------------
+    def submit(self, key_vehicle: str, payload: bytes, received_ns: int | None = None) -> None:
+        """Handle one scan payload published on ``randt/fleet/<key_vehicle>/scan``."""
+        received_ns = time.time_ns() if received_ns is None else received_ns
+        self.metrics.scans_received.inc()
+        try:
+            scan = decode_scan(payload, self.limits)
+            if scan.vehicle != key_vehicle:
+                raise BadMessageError(
+                    f"vehicle: message says {scan.vehicle!r} but was published on {key_vehicle!r}'s key",
+                    code="invalid_field",
+                )
+        except BadMessageError as exc:
+            _, session = peek_ids(payload)
+            seq = peek_seq(payload)
+            self.reject(key_vehicle, session or "?", seq, exc.code, str(exc))
+            return
+        key = (scan.vehicle, scan.session)
+        with self._lock:
+            worker = self._workers.get(key)
+            if worker is None:
+                try:
+                    worker = self._open_session(scan)
+                except RandtError as exc:
+                    self.reject(scan.vehicle, scan.session, scan.seq, "session_error", str(exc))
+                    return
+            info = worker.info
+            if scan.seq == info.last_seq:
+                self.reject(
+                    scan.vehicle,
+                    scan.session,
+                    scan.seq,
+                    "duplicate_seq",
+                    f"seq {scan.seq} was already received for this session",
+                )
+                return
+            if scan.seq < info.last_seq:
+                self.reject(
+                    scan.vehicle,
+                    scan.session,
+                    scan.seq,
+                    "out_of_order",
+                    f"seq {scan.seq} arrived after seq {info.last_seq}: scans must come in order",
+                )
+                return
+            info.last_seq = scan.seq
+            info.last_activity = time.monotonic()
+            dropped = worker.submit(_Job(scan, received_ns))
+            self.metrics.queue_depth.labels(f"{scan.vehicle}/{scan.session}").set(worker.depth())
+        if dropped is not None:
+            self.metrics.scans_dropped.inc()
+            self.reject(
+                dropped.scan.vehicle,
+                dropped.scan.session,
+                dropped.scan.seq,
+                "dropped",
+                f"dropped: the session queue was full ({self.settings.queue_size} scans waiting)",
+                count=False,
+            )
+
+    def reject(
+        self, vehicle: str, session: str, seq: int | None, code: str, reason: str, *, count: bool = True
+    ) -> None:
+        """Answer one scan with an error on its vehicle's error key and count it."""
+        if count:
+            self.metrics.scans_rejected.labels(code).inc()
+        if not self.limits.id_ok(vehicle):
+            # No valid key to answer on (randt/fleet/<vehicle>/error): counted and logged only.
+            log.warning(
+                "rejected a scan from an unaddressable vehicle id %r: %s: %s", vehicle[:40], code, reason
+            )
+            return
+        if not self.limits.id_ok(session):
+            session = "?"
+        with self._lock:
+            w = self._workers.get((vehicle, session))
+            if w is not None:
+                w.info.n_errors += 1
+        self.outbox(ErrorMessage(v=1, vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
+
+    def _open_session(self, scan: ScanMessage) -> SessionWorker:
+        key = (scan.vehicle, scan.session)
+        matcher = IncrementalMatcher()
+        record = self._records.get(key)
+        if record is not None and record.state == "active":
+            _, stamps, poses, state = self.store.load_session(*key)
+            matcher.load_state_dict(state)
+            info = SessionState(
+                scan.vehicle,
+                scan.session,
+                record.map,
+                record.frame,
+                last_seq=record.last_seq,
+                n_scans=record.n_scans,
+                n_fallbacks=record.n_fallbacks,
+                stamps_s=list(np.asarray(stamps, dtype=float)),
+            )
+            log.info("session %s/%s resumed at seq %d (%d poses)", *key, record.last_seq, len(poses))
+        else:
+            in_map = scan.prior_pose() is not None
+            map_name = self.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
+            info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
+        grid = self.maps.get(info.map_name)
+        if grid is None:
+            grid = self.maps[info.map_name] = TileGrid(
+                tile_size_m=self.settings.tile_size_m, voxel_size_m=self.settings.map_voxel_m
+            )
+        worker = SessionWorker(info, matcher, grid, self)
+        self._workers[key] = worker
+        self.metrics.sessions_active.set(len(self._workers))
+        return worker
+
+    # -- maps and persistence -----------------------------------------------------------------
+    def mark_tiles_dirty(self, map_name: str, tile_ids: list[str]) -> None:
+        with self._lock:
+            self._dirty_tiles.setdefault(map_name, set()).update(tile_ids)
+
+    def flush(self) -> None:
+        """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions."""
+        with self._lock:
+            dirty, self._dirty_tiles = self._dirty_tiles, {}
+            workers = list(self._workers.values())
+        for map_name, ids in dirty.items():
+            grid = self.maps[map_name]
+            try:
+                self.store.save_tiles(map_name, grid, sorted(ids))
+                self.metrics.tiles_written.inc(len(ids))
+            except (OSError, ValueError, RandtError):
+                self.metrics.store_errors.inc()
+                log.exception("saving %d tiles of map %s failed", len(ids), map_name)
+                with self._lock:
+                    self._dirty_tiles.setdefault(map_name, set()).update(ids)
+            for tid in sorted(ids):
+                self.outbox(tile_message(map_name, grid, tid))
+        now = time.monotonic()
+        for w in workers:
+            if w.info.dirty:
+                self._save_session(w)
+            if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
+                self.close(*w.key, state="expired")
+
+    def _save_session(self, w: SessionWorker, state: str | None = None) -> None:
+        with w.lock:
+            info = w.info
+            if state is not None:
+                info.state = state
+            record = SessionRecord(
+                vehicle=info.vehicle,
+                session=info.session,
+                map=info.map_name,
+                state=info.state,
+                last_seq=info.last_seq,
+                n_scans=info.n_scans,
+                n_fallbacks=info.n_fallbacks,
+                frame=info.frame,
+            )
+            poses = np.array(w.matcher.poses).reshape(-1, 4, 4)
+            stamps = np.array(info.stamps_s[: len(poses)], dtype=float)
+            matcher_state = w.matcher.state_dict()
+            info.dirty = False
+        try:
+            self.store.save_session(record, poses, stamps, matcher_state)
+            self._records[w.key] = record
+        except (OSError, ValueError, RandtError):
+            self.metrics.store_errors.inc()
+            log.exception("saving session %s/%s failed", *w.key)
+            info.dirty = True
+
+    def close(self, vehicle: str, session: str, *, state: str = "closed") -> bool:
+        """Finish a session: process what is queued, save it, stop its worker. False if unknown."""
+        with self._lock:
+            w = self._workers.pop((vehicle, session), None)
+            self.metrics.sessions_active.set(len(self._workers))
+        if w is None:
+            return False
+        w.stop(drain=True)
+        self._save_session(w, state=state)
+        return True
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self.settings.flush_interval_s):
+            try:
+                self.flush()
+            except Exception:  # keep flushing whatever one failure was
+                log.exception("flush failed")
+
+    def stop(self) -> None:
+        """Drain every session, save everything, stop the flusher (SIGTERM path)."""
+        self._stop.set()
+        self._flusher.join(10)
+        with self._lock:
+            workers = list(self._workers.values())
+        for w in workers:
+            w.stop(drain=True)
+        self.flush()
+        for w in workers:
+            self._save_session(w)
+
+    # -- status ---------------------------------------------------------------------------------
+    def sessions(self) -> list[SessionState]:
+        with self._lock:
+            return [w.info for w in self._workers.values()]
+
+    def worker(self, vehicle: str, session: str) -> SessionWorker | None:
+        with self._lock:
+            return self._workers.get((vehicle, session))
+
+    def queue_depths(self) -> dict[str, int]:
+        with self._lock:
+            return {f"{k[0]}/{k[1]}": w.depth() for k, w in self._workers.items()}
+
+
+def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> object:
+    """The current :class:`~core.wire.TileUpdateMessage` of one tile."""
+    tile = grid.get(tile_id)
+    return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
+
+
+def session_map_name(vehicle: str, session: str) -> str:
+    """The map of a session without priors: ``<vehicle>.<session>``, or a hash-suffixed form when
+    that would exceed the 64 characters a name may have."""
+    name = f"{vehicle}.{session}"
+    if len(name) <= 64:
+        return name
+    import hashlib
+
+    digest = hashlib.sha1(name.encode()).hexdigest()[:12]
+    return f"{vehicle[:40]}.{digest}"

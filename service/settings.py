@@ -1,0 +1,54 @@
+"""Service settings: one pydantic-settings model, every field settable as ``RANDT_<NAME>``.
+
+Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
+flags (``randt serve --help``) override the environment. Settings are built in the app factory
+(``service.runtime.Service``), never at import time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["ServiceSettings"]
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``randt serve`` needs; defaults run embedded on one machine, no router."""
+
+    model_config = SettingsConfigDict(env_prefix="RANDT_", extra="forbid", frozen=True)
+
+    data_dir: Path = Field(default=Path("randt-data"), description="maps, trajectories, session state")
+    instance: str = Field(default="randt-1", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    # Zenoh
+    zenoh_mode: Literal["peer", "client"] = "peer"
+    listen: tuple[str, ...] = Field(default=("tcp/127.0.0.1:7447",), description="Zenoh endpoints")
+    connect: tuple[str, ...] = Field(default=(), description="routers or peers to connect to")
+    # HTTP
+    http_host: str = "127.0.0.1"
+    http_port: int = Field(default=8080, ge=0, le=65535)
+    api_token: str | None = Field(default=None, description="bearer token for mutating endpoints")
+    # sessions
+    queue_size: int = Field(default=8, ge=1, description="scans waiting per session; oldest dropped")
+    idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
+    workers: int = Field(default=0, ge=0, description="session worker threads; 0 = one per session")
+    # map
+    default_map: str = Field(default="default", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    tile_size_m: int = Field(default=20, ge=1)
+    map_voxel_m: float = Field(default=0.2, gt=0)
+    flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
+    # wire limits
+    max_points: int = Field(default=300_000, ge=1)
+    max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for ep in value:
+            proto, _, addr = ep.partition("/")
+            if proto not in ("tcp", "udp", "quic", "tls", "ws", "unixsock-stream") or not addr:
+                raise ValueError(f"not a Zenoh endpoint (expected e.g. tcp/127.0.0.1:7447): {ep!r}")
+        return value

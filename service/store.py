@@ -1,0 +1,944 @@
+"""The service's durable, embedded store: tiled maps and driving sessions under one data directory.
+
+Layout
+------
+::
+
+    DATA/.randt-store.lock                       held (flock) while a Store has DATA open
+    DATA/maps/<map>/<ix>_<iy>.pcd                Autoware divided map, as core.tiles writes it
+    DATA/maps/<map>/pointcloud_map_metadata.yaml
+    DATA/maps/<map>/randt_tile_grid.yaml
+    DATA/sessions/<vehicle>/<session>/matcher.npz      matcher state + the session's commit record
+    DATA/sessions/<vehicle>/<session>/trajectory.tum   stamp_s tx ty tz qx qy qz qw, a line per scan
+    DATA/sessions/<vehicle>/<session>/session.json     the session's record (:class:`SessionRecord`)
+
+Map, vehicle and session names must match :data:`NAME_PATTERN` (letters, digits, ``_ . -``, at
+most 64 characters, starting with a letter or digit); every path is built from checked names only.
+
+Crash safety
+------------
+Every file is replaced atomically (:mod:`core.io.atomic`: temporary file, fsync, rename, fsync of
+the directory), so a reader, or a restart after a crash, sees each file whole: its old or its new
+content. What spans several files is ordered:
+
+* **maps** (:meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`): sidecar, changed
+  tiles, metadata last; the metadata never names a tile file that does not exist.
+* **sessions**: three files cannot be replaced in one step, so ``matcher.npz`` is the *commit
+  record*. Besides the arrays of :meth:`IncrementalMatcher.state_dict
+  <core.odometry.IncrementalMatcher.state_dict>` it holds the session's stamps, poses and record
+  (keys starting with ``_store_``; :meth:`~core.odometry.IncrementalMatcher.load_state_dict`
+  ignores them). It is written first, then ``trajectory.tum`` and ``session.json``, which are
+  views of it for people and other tools (``trajectory.tum`` appears with the first scan). A crash
+  between the writes leaves the matcher state and its ``last_seq`` consistent (they are in one
+  file); :meth:`Store.load_session` notices views that lag behind and rewrites them.
+
+A crash can leave the atomic writers' temporary files (``.<name>.<random>.tmp``) behind; opening a
+:class:`Store` removes them. One process at a time may open a data directory: the store holds an
+exclusive ``flock`` on ``DATA/.randt-store.lock`` (released by the kernel if the process dies), so
+the clean-up never deletes the temporary file of a live writer.
+
+Damaged files
+-------------
+A file that cannot be read (say, a truncated ``matcher.npz`` written by a buggy older version)
+fails only its own map or session: :meth:`Store.list_sessions` and :meth:`Store.load_all` skip it,
+log an error and report it as a :class:`StoreProblem`; everything else still loads.
+
+Thread safety
+-------------
+Writes to one map, or to one session, are serialized by a lock per map and per session; different
+maps and sessions are written concurrently.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import os
+import re
+import threading
+import weakref
+import zipfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Literal, NamedTuple, Self
+
+import numpy as np
+from pydantic import (
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
+from core.io import atomic_write_bytes, read_tum, write_tum
+from core.tiles import AUTOWARE_METADATA_NAME, TileGrid, load_autoware
+
+try:  # POSIX; elsewhere the store runs without the single-process guard
+    import fcntl
+except ImportError:  # pragma: no cover - not exercised on Linux
+    fcntl = None  # type: ignore[assignment]
+
+__all__ = [
+    "LOCK_FILENAME",
+    "MAPS_DIRNAME",
+    "MATCHER_FILENAME",
+    "NAME_PATTERN",
+    "SESSIONS_DIRNAME",
+    "SESSION_FILENAME",
+    "TRAJECTORY_FILENAME",
+    "LoadedSession",
+    "SessionRecord",
+    "SessionState",
+    "Store",
+    "StoreContents",
+    "StoreProblem",
+    "validate_name",
+]
+
+logger = logging.getLogger(__name__)
+
+#: What a map, vehicle or session name must match (and it must not be ``.`` or ``..``).
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+MAPS_DIRNAME = "maps"
+SESSIONS_DIRNAME = "sessions"
+SESSION_FILENAME = "session.json"
+TRAJECTORY_FILENAME = "trajectory.tum"
+MATCHER_FILENAME = "matcher.npz"
+LOCK_FILENAME = ".randt-store.lock"
+
+SessionState = Literal["active", "closed", "expired"]
+ProblemKind = Literal["map", "session", "entry"]
+
+# core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
+# in the target's directory. No name the store writes starts with a dot (NAME_PATTERN, fixed names).
+_TEMP_FILE_RE = re.compile(r"^\..+\.tmp$")
+# Keys of matcher.npz that belong to the store, not to the matcher state.
+_RESERVED_PREFIX = "_store_"
+_KEY_RECORD = "_store_record"
+_KEY_STAMPS = "_store_stamps"
+_KEY_POSES = "_store_poses"
+_STATE_KEY_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+# Views (trajectory.tum) agree with the commit record within this (TUM rounds stamps to 1 ns).
+_VIEW_TOLERANCE = 1e-6
+_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+# What np.load / zipfile raise on a damaged archive.
+_NPZ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
+
+
+def validate_name(name: object, what: str = "name") -> str:
+    """Return ``name`` if it is a safe map, vehicle or session name, else raise.
+
+    Parameters
+    ----------
+    name:
+        The candidate; must be a ``str`` matching :data:`NAME_PATTERN` and not ``.`` or ``..``.
+    what:
+        What the name names (``"map"``, ``"vehicle"``, ``"session"``), for the message.
+
+    Raises
+    ------
+    ValueError
+        Not a string, or not a safe name (path separators, ``..``, leading dot or dash, empty,
+        longer than 64 characters, characters outside ``A-Z a-z 0-9 _ . -``).
+    """
+    if not isinstance(name, str):
+        raise ValueError(f"{what} name must be a string, got {type(name).__name__}")
+    if name in (".", "..") or NAME_PATTERN.fullmatch(name) is None:
+        raise ValueError(
+            f"invalid {what} name {name!r}: use 1-64 characters from A-Z a-z 0-9 _ . -, "
+            "starting with a letter or digit"
+        )
+    return name
+
+
+def _utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class SessionRecord(BaseModel):
+    """What the store keeps about one driving session (``session.json``).
+
+    Attributes
+    ----------
+    vehicle, session:
+        Names (:data:`NAME_PATTERN`); the session lives in ``sessions/<vehicle>/<session>/``.
+    map:
+        The map the session's scans go into, or ``None``.
+    state:
+        ``"active"`` (scans may still arrive), ``"closed"`` (ended by the vehicle) or
+        ``"expired"`` (timed out by the service).
+    created, updated:
+        Timezone-aware times (ISO 8601 in the file). :meth:`Store.save_session` keeps ``created``
+        from the session's first save and sets ``updated`` to the time of the save.
+    last_seq:
+        Sequence number of the last scan processed; -1 before any.
+    n_scans:
+        Scans in the trajectory (one pose each, fallbacks included).
+    n_fallbacks:
+        Scans whose pose fell back to the prediction or a prior (<= ``n_scans``).
+    frame:
+        ``"map"`` if the poses are in the map's frame, ``"session"`` if in the session's own
+        (its first scan's) frame.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    vehicle: str
+    session: str
+    map: str | None = None
+    state: SessionState = "active"
+    created: AwareDatetime = Field(default_factory=_utcnow)
+    updated: AwareDatetime = Field(default_factory=_utcnow)
+    last_seq: int = Field(default=-1, ge=-1)
+    n_scans: int = Field(default=0, ge=0)
+    n_fallbacks: int = Field(default=0, ge=0)
+    frame: Literal["map", "session"] = "session"
+
+    @property
+    def key(self) -> tuple[str, str]:
+        """``(vehicle, session)``."""
+        return self.vehicle, self.session
+
+    @field_validator("vehicle", "session", "map")
+    @classmethod
+    def _safe_name(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else validate_name(value, info.field_name)
+
+    @model_validator(mode="after")
+    def _fallbacks_within_scans(self) -> SessionRecord:
+        if self.n_fallbacks > self.n_scans:
+            raise ValueError(f"n_fallbacks ({self.n_fallbacks}) exceeds n_scans ({self.n_scans})")
+        return self
+
+
+class LoadedSession(NamedTuple):
+    """A session as :meth:`Store.load_session` restores it.
+
+    Attributes
+    ----------
+    record:
+        The session's record.
+    stamps:
+        (N,) float64 scan times, seconds.
+    poses:
+        (N, 4, 4) float64 ``T_frame_sensor`` (``record.frame`` names the frame).
+    state:
+        The matcher state as saved (name -> array), for
+        :meth:`IncrementalMatcher.load_state_dict <core.odometry.IncrementalMatcher.load_state_dict>`.
+    """
+
+    record: SessionRecord
+    stamps: np.ndarray
+    poses: np.ndarray
+    state: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class StoreProblem:
+    """A map, session or directory entry that was skipped because it could not be read.
+
+    Attributes
+    ----------
+    kind:
+        ``"map"``, ``"session"`` or ``"entry"`` (an unexpected directory entry).
+    name:
+        The map name, ``"<vehicle>/<session>"``, or the entry's relative path.
+    path:
+        The file or directory at fault.
+    message:
+        Why it was skipped.
+    """
+
+    kind: ProblemKind
+    name: str
+    path: Path
+    message: str
+
+
+@dataclass
+class StoreContents:
+    """Everything :meth:`Store.load_all` could restore, and what it had to skip.
+
+    Attributes
+    ----------
+    maps:
+        Map name -> grid.
+    sessions:
+        ``(vehicle, session)`` -> the loaded session.
+    problems:
+        What was skipped, and why.
+    """
+
+    maps: dict[str, TileGrid] = field(default_factory=dict)
+    sessions: dict[tuple[str, str], LoadedSession] = field(default_factory=dict)
+    problems: list[StoreProblem] = field(default_factory=list)
+
+
+@dataclass
+class _HeldLock:
+    """A data directory's flock held by this process: its descriptor and the Stores using it."""
+
+    fd: int | None
+    users: int
+
+
+_HELD_LOCKS: dict[Path, _HeldLock] = {}  # by the data directory's real path
+_HELD_LOCKS_GUARD = threading.Lock()
+
+
+def _acquire_lock(directory: Path) -> tuple[Path, bool]:
+    """Hold ``directory``'s lock for one more Store of this process.
+
+    Returns the lock's key and whether this call took the lock (``False``: another Store of this
+    process already holds it and shares it).
+
+    Raises
+    ------
+    RandtError
+        Another process holds the lock.
+    FormatError
+        The lock file cannot be opened.
+    """
+    key = directory.resolve()
+    path = key / LOCK_FILENAME
+    with _HELD_LOCKS_GUARD:
+        held = _HELD_LOCKS.get(key)
+        if held is not None:
+            held.users += 1
+            return key, False
+        fd: int | None = None
+        if fcntl is None:  # pragma: no cover - not exercised on Linux
+            logger.debug("no fcntl: %s is not protected against a second process", key)
+        else:
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise FormatError(f"cannot open the store's lock file {path}: {exc}") from exc
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                raise RandtError(
+                    f"data directory {key} is already open in another process (lock {LOCK_FILENAME} is held)"
+                ) from exc
+        _HELD_LOCKS[key] = _HeldLock(fd=fd, users=1)
+        return key, True
+
+
+def _release_lock(key: Path) -> None:
+    """One Store of this process is done with ``key``; the last one releases the flock."""
+    with _HELD_LOCKS_GUARD:
+        held = _HELD_LOCKS.get(key)
+        if held is None:
+            return
+        held.users -= 1
+        if held.users > 0:
+            return
+        del _HELD_LOCKS[key]
+        if held.fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(held.fd)  # closing the descriptor releases the flock
+
+
+class Store:
+    """The durable store of maps and sessions under ``data_dir`` (see the module docstring).
+
+    Opening creates ``maps/`` and ``sessions/``, takes the directory's lock and removes temporary
+    files left by interrupted atomic writes (their number is logged and kept in
+    :attr:`removed_temp_files`). Close the store (or use it as a context manager) to release the
+    lock. Stores of one process share the lock (say, a service restarted in-process before the
+    old store was closed); only the first of them removes temporary files, since the others
+    might delete a live writer's. Use one open Store per directory and process at a time.
+
+    Parameters
+    ----------
+    data_dir:
+        The data directory; created if missing.
+
+    Raises
+    ------
+    RandtError
+        Another process has ``data_dir`` open.
+    FormatError
+        The directories or the lock file cannot be created.
+
+    Examples
+    --------
+    >>> with Store(tmp_dir) as store:  # doctest: +SKIP
+    ...     store.save_tiles("town", grid, changed_ids=grid.insert(points))
+    ...     contents = store.load_all()
+    """
+
+    def __init__(self, data_dir: str | os.PathLike[str]) -> None:
+        self._root = Path(data_dir).absolute()
+        self._maps = self._root / MAPS_DIRNAME
+        self._sessions = self._root / SESSIONS_DIRNAME
+        try:
+            for directory in (self._root, self._maps, self._sessions):
+                directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FormatError(f"cannot create the data directory {self._root}: {exc}") from exc
+        lock_key, first = _acquire_lock(self._root)
+        self._finalizer = weakref.finalize(self, _release_lock, lock_key)
+        self._guard = threading.Lock()
+        self._map_locks: dict[str, threading.Lock] = {}
+        self._session_locks: dict[tuple[str, str], threading.RLock] = {}
+        self._created: dict[tuple[str, str], datetime] = {}
+        self._problems: list[StoreProblem] = []
+        if first:
+            self.removed_temp_files = self._remove_temp_files()
+        else:
+            logger.warning("%s is already open in this process: temporary files are left alone", self._root)
+            self.removed_temp_files = 0
+        logger.info("store opened at %s", self._root)
+
+    def __repr__(self) -> str:
+        return f"Store({str(self._root)!r}{'' if self.is_open else ', closed'})"
+
+    # ------------------------------------------------------------------------------ lifecycle
+
+    @property
+    def data_dir(self) -> Path:
+        """The (absolute) data directory."""
+        return self._root
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the store still holds its data directory."""
+        return self._finalizer.alive
+
+    def writable(self) -> bool:
+        """Whether the store is open and its directories accept writes (a readiness check).
+
+        Checks permissions only (``os.access``); a full disk shows up as a :class:`FormatError`
+        from the next save.
+        """
+        return self.is_open and all(os.access(d, os.W_OK | os.X_OK) for d in (self._maps, self._sessions))
+
+    @property
+    def problems(self) -> list[StoreProblem]:
+        """What the last :meth:`list_sessions` or :meth:`load_all` skipped (a copy)."""
+        return list(self._problems)
+
+    def close(self) -> None:
+        """Release the data directory's lock; the store cannot be used afterwards."""
+        if self._finalizer.alive:
+            self._finalizer()
+            logger.info("store closed at %s", self._root)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if not self._finalizer.alive:
+            raise RandtError(f"the store at {self._root} is closed")
+
+    def _remove_temp_files(self) -> int:
+        """Delete leftover ``.<name>.<random>.tmp`` files under ``maps/`` and ``sessions/``."""
+        removed = 0
+        for top in (self._maps, self._sessions):
+            for dirpath, _, filenames in os.walk(top):  # does not follow symlinks
+                for name in filenames:
+                    path = Path(dirpath) / name
+                    if not _TEMP_FILE_RE.match(name) or path.is_symlink() or not path.is_file():
+                        continue
+                    try:
+                        path.unlink()
+                    except OSError as exc:
+                        logger.warning("cannot remove leftover temporary file %s: %s", path, exc)
+                        continue
+                    logger.debug("removed leftover temporary file %s", path)
+                    removed += 1
+        if removed:
+            logger.warning("removed %d temporary files left by interrupted writes in %s", removed, self._root)
+        else:
+            logger.info("no temporary files left by interrupted writes in %s", self._root)
+        return removed
+
+    def _map_lock(self, map_name: str) -> threading.Lock:
+        with self._guard:
+            return self._map_locks.setdefault(map_name, threading.Lock())
+
+    def _session_lock(self, vehicle: str, session: str) -> threading.RLock:
+        with self._guard:
+            return self._session_locks.setdefault((vehicle, session), threading.RLock())
+
+    # ------------------------------------------------------------------------------ paths
+
+    def map_dir(self, map_name: str) -> Path:
+        """``DATA/maps/<map_name>`` (not created).
+
+        Raises
+        ------
+        ValueError
+            ``map_name`` is not a valid name (:func:`validate_name`).
+        """
+        return self._maps / validate_name(map_name, "map")
+
+    def session_dir(self, vehicle: str, session: str) -> Path:
+        """``DATA/sessions/<vehicle>/<session>`` (not created).
+
+        Raises
+        ------
+        ValueError
+            ``vehicle`` or ``session`` is not a valid name (:func:`validate_name`).
+        """
+        return self._sessions / validate_name(vehicle, "vehicle") / validate_name(session, "session")
+
+    # ------------------------------------------------------------------------------ maps
+
+    def save_tiles(self, map_name: str, grid: TileGrid, changed_ids: Iterable[str]) -> list[str]:
+        """Persist a map after an update, rewriting only the tiles that changed.
+
+        Uses :meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`: sidecar, the changed
+        tiles (and any tile whose file is missing), metadata last, each file atomically. An empty
+        grid writes nothing.
+
+        Parameters
+        ----------
+        map_name:
+            The map's name (:data:`NAME_PATTERN`).
+        grid:
+            The map.
+        changed_ids:
+            Ids of the tiles changed since the last save (what :meth:`TileGrid.insert` returned).
+
+        Returns
+        -------
+        list[str]
+            Ids of the tiles whose files were written.
+
+        Raises
+        ------
+        ValueError
+            Invalid ``map_name``.
+        NotFoundError
+            A changed id is not a tile of ``grid``.
+        FormatError
+            A file could not be written.
+        """
+        self._check_open()
+        directory = self.map_dir(map_name)
+        if len(grid) == 0:
+            logger.debug("map %s is empty: nothing to save", map_name)
+            return []
+        with self._map_lock(map_name):
+            written = grid.write_tiles(directory, changed_ids)
+        logger.debug("saved map %s: %d tiles written, %d in the map", map_name, len(written), len(grid))
+        return written
+
+    def load_map(self, map_name: str) -> TileGrid | None:
+        """Restore a map saved by :meth:`save_tiles`, or ``None`` if there is none.
+
+        Raises
+        ------
+        ValueError
+            Invalid ``map_name``.
+        FormatError
+            The map's files are damaged (unreadable metadata or sidecar, a listed tile file that is
+            missing or unreadable).
+        """
+        self._check_open()
+        directory = self.map_dir(map_name)
+        if not (directory / AUTOWARE_METADATA_NAME).is_file():
+            return None
+        with self._map_lock(map_name):
+            try:
+                return load_autoware(directory)
+            except NotFoundError as exc:  # the metadata exists, so a missing tile is damage
+                raise FormatError(f"map {map_name} is incomplete: {exc}") from exc
+
+    def list_maps(self) -> list[str]:
+        """Names of the saved maps (those with a metadata file), sorted."""
+        self._check_open()
+        names = []
+        for entry in sorted(self._maps.iterdir()):
+            if not entry.is_dir():
+                continue
+            try:
+                validate_name(entry.name, "map")
+            except ValueError:
+                logger.warning("ignoring %s: not a valid map directory name", entry)
+                continue
+            if (entry / AUTOWARE_METADATA_NAME).is_file():
+                names.append(entry.name)
+            else:
+                logger.debug("ignoring %s: no %s (no save completed)", entry, AUTOWARE_METADATA_NAME)
+        return names
+
+    # ------------------------------------------------------------------------------ sessions
+
+    def save_session(
+        self,
+        meta: SessionRecord,
+        poses: np.ndarray,
+        stamps: np.ndarray,
+        matcher_state: dict[str, np.ndarray],
+    ) -> SessionRecord:
+        """Persist a session: its matcher state (with the commit record), trajectory and record.
+
+        Writes ``matcher.npz`` (the commit), then ``trajectory.tum`` and ``session.json``, each
+        atomically. A session without scans yet (N = 0) has no ``trajectory.tum``.
+
+        Parameters
+        ----------
+        meta:
+            The session's record; ``n_scans`` must equal ``N``. ``created`` is kept from the
+            session's first save (``meta.created`` is used only then); ``updated`` is set to now.
+        poses:
+            (N, 4, 4) ``T_frame_sensor`` of every scan so far.
+        stamps:
+            (N,) scan times, seconds.
+        matcher_state:
+            :meth:`IncrementalMatcher.state_dict <core.odometry.IncrementalMatcher.state_dict>`
+            (any name -> numeric array; names must not start with ``_store_``).
+
+        Returns
+        -------
+        SessionRecord
+            The record as written.
+
+        Raises
+        ------
+        ValueError
+            Invalid names.
+        InvalidCloudError
+            ``meta.n_scans != N``, wrong shapes, non-finite values, or poses that are not
+            homogeneous transforms (a ``ValueError`` too).
+        FormatError
+            An unusable matcher state (reserved or malformed key, object array; a ``ValueError``
+            too), or a file could not be written.
+        """
+        self._check_open()
+        key = meta.key
+        directory = self.session_dir(*key)
+        what = f"session {key[0]}/{key[1]}"
+        poses, stamps = _checked_trajectory(poses, stamps, what)
+        if meta.n_scans != poses.shape[0]:
+            raise InvalidCloudError(
+                f"{what}: the record says n_scans={meta.n_scans} but {poses.shape[0]} poses were given"
+            )
+        arrays = _checked_state(matcher_state)
+        with self._session_lock(*key):
+            record = meta.model_copy(update={"created": self._created_time(meta), "updated": _utcnow()})
+            arrays[_KEY_RECORD] = np.array(record.model_dump_json())
+            arrays[_KEY_STAMPS] = stamps
+            arrays[_KEY_POSES] = poses
+            buffer = io.BytesIO()
+            np.savez(buffer, **arrays)
+            try:
+                directory.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise FormatError(f"cannot create {directory}: {exc}") from exc
+            atomic_write_bytes(directory / MATCHER_FILENAME, buffer.getvalue())
+            _write_trajectory(directory / TRAJECTORY_FILENAME, stamps, poses)
+            atomic_write_bytes(directory / SESSION_FILENAME, _record_json(record))
+            self._created[key] = record.created
+        logger.debug(
+            "saved session %s/%s: %d scans, last_seq %d",
+            record.vehicle,
+            record.session,
+            record.n_scans,
+            record.last_seq,
+        )
+        return record
+
+    def _created_time(self, meta: SessionRecord) -> datetime:
+        """``created`` of the session's first save (from memory, else from its commit, else ``meta``)."""
+        created = self._created.get(meta.key)
+        if created is not None:
+            return created
+        try:
+            return _read_record(self.session_dir(*meta.key) / MATCHER_FILENAME, *meta.key).created
+        except NotFoundError:
+            return meta.created
+        except (RandtError, OSError) as exc:
+            logger.warning("session %s/%s: overwriting an unreadable commit (%s)", *meta.key, exc)
+            return meta.created
+
+    def load_session(self, vehicle: str, session: str) -> LoadedSession:
+        """Restore a session saved by :meth:`save_session`.
+
+        The commit record in ``matcher.npz`` is the truth; ``session.json`` and ``trajectory.tum``
+        are rewritten from it when they are missing, unreadable or lag behind (a crash between
+        the writes of one save), with a warning.
+
+        Returns
+        -------
+        LoadedSession
+            ``(record, stamps, poses, state)``: stamps (N,), poses (N, 4, 4), the matcher state.
+
+        Raises
+        ------
+        ValueError
+            Invalid names.
+        NotFoundError
+            No such session.
+        FormatError
+            ``matcher.npz`` is damaged, or its record names another session.
+        """
+        self._check_open()
+        directory = self.session_dir(vehicle, session)
+        with self._session_lock(vehicle, session):
+            loaded = _read_commit(directory / MATCHER_FILENAME, vehicle, session)
+            self._repair_views(directory, loaded)
+        return loaded
+
+    def list_sessions(self) -> list[SessionRecord]:
+        """The records of every saved session, sorted by ``(vehicle, session)``.
+
+        Records are read from each session's commit (``matcher.npz``). A session that cannot be
+        read is skipped with a logged error and reported in :attr:`problems`.
+        """
+        self._check_open()
+        records, problems = self._scan_sessions()
+        self._problems = problems
+        return records
+
+    def mark_session(self, vehicle: str, session: str, state: SessionState) -> SessionRecord:
+        """Set a session's state (``"active"``, ``"closed"`` or ``"expired"``) and save it.
+
+        Returns
+        -------
+        SessionRecord
+            The record as written.
+
+        Raises
+        ------
+        ValueError
+            Invalid names or state.
+        NotFoundError
+            No such session.
+        FormatError
+            The session's files are damaged or cannot be written.
+        """
+        self._check_open()
+        if state not in ("active", "closed", "expired"):
+            raise ValueError(f"session state must be 'active', 'closed' or 'expired', got {state!r}")
+        self.session_dir(vehicle, session)  # validates the names before they key a lock
+        with self._session_lock(vehicle, session):  # re-entrant: no save slips in between
+            record, stamps, poses, arrays = self.load_session(vehicle, session)
+            saved = self.save_session(record.model_copy(update={"state": state}), poses, stamps, arrays)
+        logger.info("session %s/%s is now %s", vehicle, session, state)
+        return saved
+
+    # ------------------------------------------------------------------------------ everything
+
+    def load_all(self) -> StoreContents:
+        """Restore every map and session; skip (and report) what cannot be read.
+
+        Returns
+        -------
+        StoreContents
+            The maps, the sessions and the problems (also kept in :attr:`problems`).
+        """
+        self._check_open()
+        contents = StoreContents()
+        for name in self.list_maps():
+            try:
+                grid = self.load_map(name)
+            except (RandtError, OSError) as exc:
+                self._report(contents.problems, "map", name, self.map_dir(name), str(exc))
+                continue
+            if grid is not None:
+                contents.maps[name] = grid
+        records, problems = self._scan_sessions()
+        contents.problems.extend(problems)
+        for record in records:
+            key = (record.vehicle, record.session)
+            try:
+                contents.sessions[key] = self.load_session(*key)
+            except (RandtError, OSError) as exc:
+                path = self.session_dir(*key)
+                self._report(contents.problems, "session", f"{key[0]}/{key[1]}", path, str(exc))
+        self._problems = list(contents.problems)
+        logger.info(
+            "restored %d maps and %d sessions from %s (%d skipped)",
+            len(contents.maps),
+            len(contents.sessions),
+            self._root,
+            len(contents.problems),
+        )
+        return contents
+
+    # ------------------------------------------------------------------------------ internals
+
+    @staticmethod
+    def _report(problems: list[StoreProblem], kind: ProblemKind, name: str, path: Path, msg: str) -> None:
+        logger.error("skipping %s %s: %s", kind, name, msg)
+        problems.append(StoreProblem(kind=kind, name=name, path=path, message=msg))
+
+    def _scan_sessions(self) -> tuple[list[SessionRecord], list[StoreProblem]]:
+        records: list[SessionRecord] = []
+        problems: list[StoreProblem] = []
+        for vehicle_dir in sorted(self._sessions.iterdir()):
+            if not self._valid_entry(vehicle_dir, "vehicle", problems):
+                continue
+            for session_dir in sorted(vehicle_dir.iterdir()):
+                if not self._valid_entry(session_dir, "session", problems):
+                    continue
+                name = f"{vehicle_dir.name}/{session_dir.name}"
+                commit = session_dir / MATCHER_FILENAME
+                if not commit.is_file():
+                    if (session_dir / SESSION_FILENAME).exists():
+                        self._report(problems, "session", name, commit, f"{MATCHER_FILENAME} is missing")
+                    else:  # an empty directory: the first save never completed
+                        logger.debug("ignoring %s: no save completed", session_dir)
+                    continue
+                try:
+                    records.append(_read_record(commit, vehicle_dir.name, session_dir.name))
+                except (RandtError, OSError) as exc:
+                    self._report(problems, "session", name, commit, str(exc))
+        return records, problems
+
+    def _valid_entry(self, path: Path, what: str, problems: list[StoreProblem]) -> bool:
+        rel = str(path.relative_to(self._root))
+        if not path.is_dir() or path.is_symlink():
+            self._report(problems, "entry", rel, path, f"not a {what} directory")
+            return False
+        try:
+            validate_name(path.name, what)
+        except ValueError as exc:
+            self._report(problems, "entry", rel, path, str(exc))
+            return False
+        return True
+
+    def _repair_views(self, directory: Path, loaded: LoadedSession) -> None:
+        """Rewrite ``session.json`` / ``trajectory.tum`` where they disagree with the commit."""
+        name = f"{loaded.record.vehicle}/{loaded.record.session}"
+        json_path = directory / SESSION_FILENAME
+        try:
+            current: SessionRecord | None = SessionRecord.model_validate_json(json_path.read_bytes())
+        except (OSError, ValueError) as exc:
+            logger.warning("session %s: %s unreadable (%s)", name, SESSION_FILENAME, exc)
+            current = None
+        if current != loaded.record:
+            logger.warning("session %s: rewriting %s from %s", name, SESSION_FILENAME, MATCHER_FILENAME)
+            atomic_write_bytes(json_path, _record_json(loaded.record))
+
+        tum_path = directory / TRAJECTORY_FILENAME
+        if loaded.stamps.size == 0:
+            agrees = not tum_path.exists()
+        else:
+            try:
+                stamps, poses = read_tum(tum_path)
+                agrees = (
+                    stamps.shape == loaded.stamps.shape
+                    and np.allclose(stamps, loaded.stamps, rtol=0.0, atol=_VIEW_TOLERANCE)
+                    and np.allclose(poses, loaded.poses, rtol=0.0, atol=_VIEW_TOLERANCE)
+                )
+            except RandtError as exc:
+                logger.warning("session %s: %s unreadable (%s)", name, TRAJECTORY_FILENAME, exc)
+                agrees = False
+        if not agrees:
+            logger.warning("session %s: rewriting %s from %s", name, TRAJECTORY_FILENAME, MATCHER_FILENAME)
+            _write_trajectory(tum_path, loaded.stamps, loaded.poses)
+
+
+# ---------------------------------------------------------------------------------- helpers
+
+
+def _record_json(record: SessionRecord) -> bytes:
+    return (record.model_dump_json(indent=2) + "\n").encode("utf-8")
+
+
+def _write_trajectory(path: Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """``write_tum``, or no file at all for an empty trajectory (a TUM file needs a row)."""
+    if stamps.size:
+        write_tum(path, stamps, poses)
+    elif path.exists():
+        try:
+            path.unlink()
+        except OSError as exc:
+            raise FormatError(f"cannot remove {path}: {exc}") from exc
+
+
+def _checked_trajectory(poses: np.ndarray, stamps: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) and (N,) float64 copies, finite, homogeneous (N may be 0)."""
+    poses = np.array(poses, dtype=np.float64)
+    stamps = np.array(stamps, dtype=np.float64)
+    if poses.size == 0 and poses.ndim < 3:
+        poses = poses.reshape(0, 4, 4)  # np.array([]) for "no poses yet"
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise InvalidCloudError(f"{what}: poses must be (N, 4, 4), got {poses.shape}")
+    if stamps.shape != (poses.shape[0],):
+        raise InvalidCloudError(
+            f"{what}: stamps must be ({poses.shape[0]},) to match poses, got {stamps.shape}"
+        )
+    if not (np.isfinite(poses).all() and np.isfinite(stamps).all()):
+        raise InvalidCloudError(f"{what}: poses and stamps must be finite")
+    if poses.size and np.abs(poses[:, 3, :] - _BOTTOM_ROW).max() > 1e-9:
+        raise InvalidCloudError(f"{what}: poses are not homogeneous (bottom row != [0 0 0 1])")
+    return poses, stamps
+
+
+def _checked_state(matcher_state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The matcher state as arrays that ``np.load(allow_pickle=False)`` can read back."""
+    arrays: dict[str, np.ndarray] = {}
+    for key, value in matcher_state.items():
+        if not isinstance(key, str) or not _STATE_KEY_RE.fullmatch(key) or key.startswith(_RESERVED_PREFIX):
+            raise FormatError(
+                f"matcher state key {key!r} is not usable: keys are names from A-Z a-z 0-9 _ . - and "
+                f"must not start with {_RESERVED_PREFIX!r}"
+            )
+        array = np.asarray(value)
+        if array.dtype.hasobject:
+            raise FormatError(f"matcher state {key!r} is an object array; only plain arrays can be saved")
+        arrays[key] = array
+    return arrays
+
+
+def _read_record(path: Path, vehicle: str, session: str) -> SessionRecord:
+    """Only the commit record of ``matcher.npz`` (the archive's other members are not read)."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            text = str(npz[_KEY_RECORD][()])
+    except FileNotFoundError as exc:
+        raise NotFoundError(f"session {vehicle}/{session} does not exist") from exc
+    except _NPZ_ERRORS as exc:
+        raise FormatError(f"{path}: cannot read the session's commit: {exc}") from exc
+    return _parse_record(text, path, vehicle, session)
+
+
+def _parse_record(text: str, path: Path, vehicle: str, session: str) -> SessionRecord:
+    try:
+        record = SessionRecord.model_validate_json(text)
+    except ValueError as exc:
+        raise FormatError(f"{path}: invalid session record: {exc}") from exc
+    if (record.vehicle, record.session) != (vehicle, session):
+        raise FormatError(f"{path}: holds session {record.vehicle}/{record.session}, not {vehicle}/{session}")
+    return record
+
+
+def _read_commit(path: Path, vehicle: str, session: str) -> LoadedSession:
+    """Everything in ``matcher.npz``, checked for consistency."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {key: npz[key] for key in npz.files}
+    except FileNotFoundError as exc:
+        raise NotFoundError(f"session {vehicle}/{session} does not exist") from exc
+    except _NPZ_ERRORS as exc:
+        raise FormatError(f"{path}: cannot read the session's commit: {exc}") from exc
+    missing = [k for k in (_KEY_RECORD, _KEY_STAMPS, _KEY_POSES) if k not in arrays]
+    if missing:
+        raise FormatError(f"{path}: not a session commit (missing {', '.join(missing)})")
+    record = _parse_record(str(arrays.pop(_KEY_RECORD)[()]), path, vehicle, session)
+    try:
+        poses, stamps = _checked_trajectory(arrays.pop(_KEY_POSES), arrays.pop(_KEY_STAMPS), str(path))
+    except (InvalidCloudError, ValueError) as exc:
+        raise FormatError(f"{path}: invalid trajectory: {exc}") from exc
+    if record.n_scans != poses.shape[0]:
+        raise FormatError(f"{path}: record says {record.n_scans} scans, trajectory has {poses.shape[0]}")
+    state = {k: v for k, v in arrays.items() if not k.startswith(_RESERVED_PREFIX)}
+    return LoadedSession(record=record, stamps=stamps, poses=poses, state=state)

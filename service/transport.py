@@ -1,0 +1,144 @@
+"""Zenoh transport: the only module that talks to Zenoh.
+
+- a subscriber on ``randt/fleet/*/scan`` whose callback only hands the payload to the session
+  manager (decode, validate, enqueue: no blocking, no Zenoh calls inside the callback);
+- one sender thread that publishes everything outbound (poses, errors, tile updates) from a
+  bounded queue, so neither callbacks nor session workers ever wait on the network;
+- a liveliness token ``randt/service/<instance>`` while the instance runs;
+- a queryable on ``randt/map/*/tile/*`` answering with the tile's current update message.
+
+Peer mode listening on 127.0.0.1 is the embedded default (no router). Multicast scouting is off:
+peers and routers are reached through explicit endpoints only.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from core.wire import ErrorMessage, PoseMessage, TileUpdateMessage, encode
+from service.settings import ServiceSettings
+
+__all__ = ["ZenohTransport", "zenoh_config"]
+
+log = logging.getLogger(__name__)
+
+SCAN_KEY = "randt/fleet/*/scan"
+
+
+def zenoh_config(mode: str, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
+    """A Zenoh config with explicit endpoints and multicast scouting off."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    if listen:
+        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return cfg
+
+
+def key_for(message: object) -> str:
+    """The key expression a message is published on (docs/wire-format.md)."""
+    if isinstance(message, PoseMessage):
+        return f"randt/fleet/{message.vehicle}/pose"
+    if isinstance(message, ErrorMessage):
+        return f"randt/fleet/{message.vehicle}/error"
+    if isinstance(message, TileUpdateMessage):
+        return f"randt/map/{message.map}/tile/{message.tile}"
+    raise TypeError(f"no key expression for {type(message).__name__}")
+
+
+class ZenohTransport:
+    """Zenoh session, scan subscriber, outbound sender, liveliness token and tile queryable."""
+
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        on_scan: Callable[[str, bytes, int], None],
+        tile_provider: Callable[[str, str], bytes | None],
+        *,
+        max_outbound: int = 10_000,
+    ) -> None:
+        self.settings = settings
+        self._on_scan = on_scan
+        self._tile_provider = tile_provider
+        self._out: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_outbound)
+        self._session: zenoh.Session | None = None
+        self._sender: threading.Thread | None = None
+        self._handles: list[object] = []
+        self.dropped_outbound = 0
+
+    @property
+    def is_open(self) -> bool:
+        return self._session is not None
+
+    def open(self) -> None:
+        s = self.settings
+        self._session = zenoh.open(zenoh_config(s.zenoh_mode, s.listen, s.connect))
+        self._sender = threading.Thread(target=self._send_loop, name="zenoh-sender", daemon=True)
+        self._sender.start()
+        sess = self._session
+        self._handles = [
+            sess.declare_subscriber(SCAN_KEY, self._scan_callback),
+            sess.liveliness().declare_token(f"randt/service/{s.instance}"),
+            sess.declare_queryable("randt/map/*/tile/*", self._tile_query),
+        ]
+        log.info("zenoh %s session open (listen %s, connect %s)", s.zenoh_mode, s.listen, s.connect)
+
+    def _scan_callback(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        try:
+            self._on_scan(parts[2], sample.payload.to_bytes(), time.time_ns())
+        except Exception:  # never let an exception escape into Zenoh's thread
+            log.exception("scan callback failed")
+
+    def _tile_query(self, query: zenoh.Query) -> None:
+        parts = str(query.key_expr).split("/")
+        try:
+            payload = self._tile_provider(parts[2], parts[4]) if len(parts) == 5 else None
+            if payload is not None:
+                query.reply(query.key_expr, payload)
+        except Exception:
+            log.exception("tile query %s failed", query.key_expr)
+
+    def send(self, message: object) -> None:
+        """Queue a message for publication (drops it, counted, if the outbound queue is full)."""
+        try:
+            self._out.put_nowait((key_for(message), encode(message)))
+        except queue.Full:
+            self.dropped_outbound += 1
+
+    def _send_loop(self) -> None:
+        while True:
+            item = self._out.get()
+            if item is None:
+                return
+            key, payload = item
+            try:
+                if self._session is not None:
+                    self._session.put(key, payload)
+            except Exception:
+                log.exception("publishing on %s failed", key)
+
+    def close(self) -> None:
+        """Publish what is queued, then close the Zenoh session."""
+        if self._sender is not None:
+            self._out.put(None)
+            self._sender.join(10)
+        for h in self._handles:
+            undeclare = getattr(h, "undeclare", None)
+            if undeclare is not None:
+                try:
+                    undeclare()
+                except Exception:
+                    log.debug("undeclare failed", exc_info=True)
+        if self._session is not None:
+            self._session.close()
+            self._session = None

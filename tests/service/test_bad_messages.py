@@ -1,0 +1,144 @@
+"""Every kind of bad message gets a specific error on its vehicle's key and a counter, and a good
+session running at the same time is untouched (no Zenoh here: the transport is a list)."""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from core.protocol import synthetic_room
+from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
+from service.metrics import ServiceMetrics
+from service.sessions import SessionManager
+from service.settings import ServiceSettings
+from service.store import Store
+from service.transport import key_for
+
+ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
+
+
+def good(vehicle: str, seq: int, session: str = "s1") -> bytes:
+    return encode(scan_from_arrays(vehicle, session, seq, seq * 100_000_000, ROOM))
+
+
+def fields(**override: object) -> bytes:
+    doc = msgpack.unpackb(good("bad", 0), raw=False)
+    doc.update(override)
+    for k, v in list(doc.items()):
+        if v is _DELETE:
+            del doc[k]
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+_DELETE = object()
+
+BAD = {
+    "truncated": (lambda: good("bad", 0)[:-100], "malformed"),
+    "not_msgpack": (lambda: b"\xc1\xc1 definitely not msgpack", "malformed"),
+    "wrong_type": (lambda: fields(seq="twelve"), "invalid_field"),
+    "missing_field": (lambda: fields(points=_DELETE), "missing_field"),
+    "unknown_version": (lambda: fields(v=7), "unsupported_version"),
+    "nan_points": (lambda: fields(points=np.full((10, 3), np.nan, "<f4").tobytes()), "nonfinite_points"),
+    "inf_points": (
+        lambda: fields(points=np.r_[ROOM[:10], [[np.inf, 0, 0]]].astype("<f4").tobytes()),
+        "nonfinite_points",
+    ),
+    "empty": (lambda: fields(points=b""), "empty_scan"),
+    "too_many_points": (lambda: fields(points=np.zeros((20_001, 3), "<f4").tobytes()), "too_many_points"),
+    "payload_too_large": (lambda: b"\x00" * 400_001, "payload_too_large"),
+    "ragged_points": (lambda: fields(points=b"\x00" * 13), "invalid_points"),
+    "illegal_session_id": (lambda: fields(session="../../etc"), "invalid_id"),
+    "vehicle_not_its_key": (lambda: fields(vehicle="someone-else"), "invalid_field"),
+}
+
+
+@pytest.fixture
+def manager(tmp_path):
+    out: list[object] = []
+    settings = ServiceSettings(
+        data_dir=tmp_path, max_points=20_000, max_payload_bytes=400_000, flush_interval_s=0.2
+    )
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    yield mgr, out
+    mgr.stop()
+
+
+def _wait(out: list[object], n: int, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while (
+        len([m for m in out if isinstance(m, PoseMessage | ErrorMessage)]) < n and time.monotonic() < deadline
+    ):
+        time.sleep(0.05)
+
+
+def _rejected(mgr: SessionManager, code: str) -> float:
+    return mgr.metrics.registry.get_sample_value("randt_scans_rejected_total", {"reason": code}) or 0.0
+
+
+@pytest.mark.parametrize("kind", list(BAD))
+def test_bad_message_gets_its_error_and_spares_the_good_session(manager, kind: str) -> None:
+    mgr, out = manager
+    make, code = BAD[kind]
+    mgr.submit("good", good("good", 0))
+    mgr.submit("bad", make())
+    mgr.submit("good", good("good", 1))
+    _wait(out, 3)
+    errors = [m for m in out if isinstance(m, ErrorMessage)]
+    poses = [m for m in out if isinstance(m, PoseMessage)]
+    assert len(errors) == 1, errors
+    err = errors[0]
+    assert err.code == code, err
+    assert err.vehicle == "bad" and key_for(err) == "randt/fleet/bad/error"
+    assert err.reason, "the reason says what was wrong"
+    assert _rejected(mgr, code) == 1
+    assert [p.seq for p in poses if p.vehicle == "good"] == [0, 1], "the good session is untouched"
+
+
+def test_duplicate_and_out_of_order_sequence_numbers(manager) -> None:
+    mgr, out = manager
+    for seq in (0, 1, 1, 3, 2, 4):
+        mgr.submit("v1", good("v1", seq))
+    _wait(out, 6)
+    by_seq = [
+        (m.seq, type(m).__name__, getattr(m, "code", None))
+        for m in out
+        if isinstance(m, PoseMessage | ErrorMessage)
+    ]
+    assert sorted(by_seq, key=lambda x: (x[0], x[1])) == sorted(
+        [
+            (0, "PoseMessage", None),
+            (1, "PoseMessage", None),
+            (1, "ErrorMessage", "duplicate_seq"),
+            (3, "PoseMessage", None),
+            (2, "ErrorMessage", "out_of_order"),
+            (4, "PoseMessage", None),
+        ],
+        key=lambda x: (x[0], x[1]),
+    )
+    assert _rejected(mgr, "duplicate_seq") == 1 and _rejected(mgr, "out_of_order") == 1
+
+
+def test_unaddressable_vehicle_key_is_counted_not_answered(manager) -> None:
+    mgr, out = manager
+    mgr.submit("bad vehicle/*", b"garbage")
+    assert out == [] and _rejected(mgr, "malformed") == 1
+
+
+def test_overload_drops_the_oldest_and_answers_it(tmp_path) -> None:
+    out: list[object] = []
+    settings = ServiceSettings(data_dir=tmp_path, queue_size=2, flush_interval_s=0.2)
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        for seq in range(8):  # far faster than one worker registers
+            mgr.submit("v1", good("v1", seq))
+        _wait(out, 8)
+        answers = {m.seq: m for m in out if isinstance(m, PoseMessage | ErrorMessage)}
+        assert sorted(answers) == list(range(8)), "every scan got exactly one answer"
+        dropped = sorted(s for s, m in answers.items() if isinstance(m, ErrorMessage) and m.code == "dropped")
+        assert dropped and 7 not in dropped, "the newest scan is never the one dropped"
+        assert mgr.metrics.registry.get_sample_value("randt_scans_dropped_total") == len(dropped)
+    finally:
+        mgr.stop()

@@ -1,0 +1,137 @@
+"""End to end on loopback: a Zenoh router, the service as a client, three simulated vehicles."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from clients.sim.drive import simulate_fleet
+from clients.sim.town import Town
+from core.transforms import transform_error
+from core.wire import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
+from service.runtime import Service
+from service.settings import ServiceSettings
+from service.transport import zenoh_config
+
+N_VEHICLES = 3
+N_SCANS = 10
+
+
+@pytest.fixture(scope="module")
+def fleet_scans():
+    town = Town.generate(2)
+    scans: dict[str, list] = {}
+    for vehicle, scan in simulate_fleet(town, N_VEHICLES, n_scans=N_SCANS, seed=5, speed_mps=8.0):
+        scans.setdefault(vehicle, []).append(scan)
+    return scans
+
+
+def _payload(vehicle: str, scan, *, prior: bool) -> bytes:
+    rng = np.random.default_rng(scan.index)
+    prior_pose = None
+    if prior:  # GNSS-like: 5 cm, 0.2 deg of noise, and its covariance
+        prior_pose = scan.T_world_sensor.copy()
+        prior_pose[:3, 3] += rng.normal(0, 0.05, 3)
+    return encode(
+        scan_from_arrays(
+            vehicle,
+            "drive1",
+            scan.index,
+            scan.stamp_ns,
+            scan.points_xyz,
+            intensity=scan.intensity,
+            prior_pose=prior_pose,
+            prior_covariance=np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3) if prior else None,
+        )
+    )
+
+
+def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_path, fleet_scans) -> None:
+    settings = ServiceSettings(
+        data_dir=tmp_path / "data",
+        zenoh_mode="client",
+        listen=(),
+        connect=(router,),
+        queue_size=64,
+        flush_interval_s=0.5,
+    )
+    service = Service(settings)
+    service.start()
+    answers: dict[str, dict[int, list]] = {v: {} for v in fleet_scans}
+    tiles: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_pose(sample: zenoh.Sample) -> None:
+        msg = decode_pose(sample.payload.to_bytes())
+        with lock:
+            answers[msg.vehicle].setdefault(msg.seq, []).append(msg)
+
+    def on_error(sample: zenoh.Sample) -> None:
+        msg = decode_error(sample.payload.to_bytes())
+        with lock:
+            answers[msg.vehicle].setdefault(msg.seq, []).append(msg)
+
+    def on_tile(sample: zenoh.Sample) -> None:
+        msg = decode_tile_update(sample.payload.to_bytes())
+        with lock:
+            tiles[msg.tile] = max(tiles.get(msg.tile, 0), msg.version)
+
+    listener = zenoh.open(zenoh_config("client", connect=(router,)))
+    subs = [
+        listener.declare_subscriber("randt/fleet/*/pose", on_pose),
+        listener.declare_subscriber("randt/fleet/*/error", on_error),
+        listener.declare_subscriber("randt/map/default/tile/*", on_tile),
+    ]
+    time.sleep(1.0)
+
+    def drive(vehicle: str) -> None:
+        session = zenoh.open(zenoh_config("client", connect=(router,)))
+        pub = session.declare_publisher(f"randt/fleet/{vehicle}/scan")
+        for scan in fleet_scans[vehicle]:
+            pub.put(_payload(vehicle, scan, prior=scan.index == 0))
+            time.sleep(0.2)
+        time.sleep(0.5)
+        session.close()
+
+    threads = [threading.Thread(target=drive, args=(v,)) for v in fleet_scans]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        with lock:
+            done = sum(len(a) for a in answers.values())
+        if done >= N_VEHICLES * N_SCANS:
+            break
+        time.sleep(0.5)
+    time.sleep(2 * settings.flush_interval_s + 0.5)
+    try:
+        for vehicle, by_seq in answers.items():
+            assert sorted(by_seq) == list(range(N_SCANS)), f"{vehicle}: answers for {sorted(by_seq)}"
+            assert all(len(v) == 1 for v in by_seq.values()), f"{vehicle}: a scan got two answers"
+            for seq, (msg,) in by_seq.items():
+                assert msg.__class__.__name__ == "PoseMessage", f"{vehicle} seq {seq}: {msg}"
+                assert msg.map == "default", "sessions with a prior pose fold into the shared map"
+                truth = fleet_scans[vehicle][seq].T_world_sensor
+                err_m, err_deg = transform_error(np.array(msg.pose).reshape(4, 4), truth)
+                # the first pose is the prior (5 cm noise); registration keeps within that
+                assert err_m < 0.15 and err_deg < 0.5, f"{vehicle} seq {seq}: {err_m:.3f} m {err_deg:.3f} deg"
+        assert len(tiles) > 10, "tile updates were published"
+        grid = service.sessions.maps["default"]
+        assert set(tiles) <= set(grid.tile_ids())
+        # a tile can be fetched through the queryable
+        tid = sorted(tiles)[0]
+        replies = list(listener.get(f"randt/map/default/tile/{tid}"))
+        got = decode_tile_update(replies[0].ok.payload.to_bytes())
+        assert got.tile == tid and got.n_points == grid.get(tid).n_points
+        assert (tmp_path / "data/maps/default/pointcloud_map_metadata.yaml").is_file()
+    finally:
+        for s in subs:
+            s.undeclare()
+        listener.close()
+        service.stop()
