@@ -69,6 +69,8 @@ class Service:
         if self.transport is not None:
             self.transport.close()
             self.transport = None
+        if self.store is not None and self.store.is_open:
+            self.store.close()
         log.info("service %s stopped", self.settings.instance)
 
     @property

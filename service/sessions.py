@@ -232,7 +232,9 @@ class SessionManager:
         contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
         for problem in contents.problems:
             log.error("store: skipped %s %s: %s", problem.kind, problem.name, problem.message)
-        self._records: dict[tuple[str, str], SessionRecord] = {r.key: r for r in contents.sessions}
+        self._records: dict[tuple[str, str], SessionRecord] = {
+            key: loaded.record for key, loaded in contents.sessions.items()
+        }
         self.maps: dict[str, TileGrid] = dict(contents.maps)
         self._dirty_tiles: dict[str, set[str]] = {}
         self._stop = threading.Event()
