@@ -6,13 +6,14 @@ Both use a scipy ``cKDTree`` on the target for nearest neighbours, reject pairs 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from core.svd import kabsch
-from core.transforms import apply_update, transform_points
+from core.transforms import apply_update, rotation_angle_deg, transform_points
 
 __all__ = ["IcpOutcome", "estimate_normals", "icp_point_to_plane", "icp_point_to_point"]
 
@@ -39,8 +40,40 @@ def estimate_normals(points_xyz: np.ndarray, tree: cKDTree | None = None, k: int
     return evecs[:, :, 0]
 
 
-def _small(delta_t: float, delta_r: float, eps_t: float, eps_r: float) -> bool:
-    return delta_t < eps_t and delta_r < eps_r
+def _icp_loop(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    T_init: np.ndarray,
+    step: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, float]],
+    *,
+    max_correspondence_m: float,
+    max_iterations: int,
+    translation_eps_m: float,
+    rotation_eps_rad: float,
+    tree: cKDTree,
+) -> IcpOutcome:
+    """Shared ICP iteration: nearest neighbours within range, one ``step``, convergence test.
+
+    ``step(q, target_points, target_index)`` returns the left update ``D`` (4x4) for the matched
+    moving points ``q`` and the RMSE of the residual it minimises.
+    """
+    T = T_init.copy()
+    converged, it, n_corr, rmse = False, 0, 0, np.inf
+    for it in range(1, max_iterations + 1):  # noqa: B007 - iterations count is returned
+        q = transform_points(T, source_xyz)
+        dist, idx = tree.query(q, distance_upper_bound=max_correspondence_m)
+        ok = np.isfinite(dist)
+        n_corr = int(ok.sum())
+        if n_corr < 6:
+            break
+        D, rmse = step(q[ok], target_xyz[idx[ok]], idx[ok])
+        T = D @ T
+        if np.linalg.norm(D[:3, 3]) < translation_eps_m and rotation_angle_deg(D[:3, :3]) < np.degrees(
+            rotation_eps_rad
+        ):
+            converged = True
+            break
+    return IcpOutcome(T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=float(rmse))
 
 
 def icp_point_to_point(
@@ -55,24 +88,21 @@ def icp_point_to_point(
     tree: cKDTree | None = None,
 ) -> IcpOutcome:
     """Point-to-point ICP: nearest neighbours, then the closed-form SVD step (Besl & McKay 1992)."""
-    tree = cKDTree(target_xyz) if tree is None else tree
-    T = T_init.copy()
-    converged, it, n_corr, rmse = False, 0, 0, np.inf
-    for it in range(1, max_iterations + 1):  # noqa: B007
-        q = transform_points(T, source_xyz)
-        dist, idx = tree.query(q, distance_upper_bound=max_correspondence_m)
-        ok = np.isfinite(dist)
-        n_corr = int(ok.sum())
-        if n_corr < 6:
-            break
-        rmse = float(np.sqrt(np.mean(dist[ok] ** 2)))
-        D = kabsch(q[ok], target_xyz[idx[ok]])
-        T = D @ T
-        dr = np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-        if _small(np.linalg.norm(D[:3, 3]), dr, translation_eps_m, rotation_eps_rad):
-            converged = True
-            break
-    return IcpOutcome(T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse)
+
+    def step(q: np.ndarray, t: np.ndarray, _: np.ndarray) -> tuple[np.ndarray, float]:
+        return kabsch(q, t), float(np.sqrt(np.mean(np.sum((q - t) ** 2, axis=1))))
+
+    return _icp_loop(
+        source_xyz,
+        target_xyz,
+        T_init,
+        step,
+        max_correspondence_m=max_correspondence_m,
+        max_iterations=max_iterations,
+        translation_eps_m=translation_eps_m,
+        rotation_eps_rad=rotation_eps_rad,
+        tree=cKDTree(target_xyz) if tree is None else tree,
+    )
 
 
 def icp_point_to_plane(
@@ -94,27 +124,22 @@ def icp_point_to_plane(
     """
     tree = cKDTree(target_xyz) if tree is None else tree
     normals = estimate_normals(target_xyz, tree) if target_normals is None else target_normals
-    T = T_init.copy()
-    converged, it, n_corr, rmse = False, 0, 0, np.inf
-    for it in range(1, max_iterations + 1):  # noqa: B007
-        q = transform_points(T, source_xyz)
-        dist, idx = tree.query(q, distance_upper_bound=max_correspondence_m)
-        ok = np.isfinite(dist)
-        n_corr = int(ok.sum())
-        if n_corr < 6:
-            break
-        qo, n = q[ok], normals[idx[ok]]
-        r = np.einsum("ij,ij->i", qo - target_xyz[idx[ok]], n)
-        rmse = float(np.sqrt(np.mean(r**2)))
-        J = np.concatenate([n, np.cross(qo, n)], axis=1)
+
+    def step(q: np.ndarray, t: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, float]:
+        n = normals[idx]
+        r = np.einsum("ij,ij->i", q - t, n)
+        J = np.concatenate([n, np.cross(q, n)], axis=1)
         delta = np.linalg.lstsq(J.T @ J, -J.T @ r, rcond=None)[0]
-        T = apply_update(delta, T)
-        if _small(
-            np.linalg.norm(delta[:3]),
-            np.linalg.norm(delta[3:]),
-            translation_eps_m,
-            rotation_eps_rad,
-        ):
-            converged = True
-            break
-    return IcpOutcome(T=T, iterations=it, converged=converged, n_correspondences=n_corr, rmse_m=rmse)
+        return apply_update(delta, np.eye(4)), float(np.sqrt(np.mean(r**2)))
+
+    return _icp_loop(
+        source_xyz,
+        target_xyz,
+        T_init,
+        step,
+        max_correspondence_m=max_correspondence_m,
+        max_iterations=max_iterations,
+        translation_eps_m=translation_eps_m,
+        rotation_eps_rad=rotation_eps_rad,
+        tree=tree,
+    )
