@@ -55,7 +55,7 @@ def version(dist: str) -> str:
         return "?"
 
 
-def machine_line(peers: dict[str, str]) -> str:
+def machine_line(peers: dict[str, str], *, single_threaded: bool = True) -> str:
     """One line naming CPU, cores, OS, Python, numpy, scipy and the given peer versions."""
     model = platform.processor() or platform.machine()
     try:
@@ -65,12 +65,15 @@ def machine_line(peers: dict[str, str]) -> str:
         )
     except OSError:
         pass
-    return (
-        f"machine: {model}, {os.cpu_count()} logical cores ({platform.system()} {platform.release()}); "
-        f"python {platform.python_version()}, numpy {np.__version__}, scipy {version('scipy')}, "
-        + ", ".join(f"{k} {v}" for k, v in peers.items())
-        + "; single-threaded (OMP/OPENBLAS/MKL_NUM_THREADS=1)"
+    libs = ", ".join(
+        [f"python {platform.python_version()}", f"numpy {np.__version__}", f"scipy {version('scipy')}"]
+        + [f"{k} {v}" for k, v in peers.items()]
     )
+    threads = (
+        "single-threaded (OMP/OPENBLAS/MKL_NUM_THREADS=1)" if single_threaded else "BLAS single-threaded"
+    )
+    system = f"{platform.system()} {platform.release()}"
+    return f"machine: {model}, {os.cpu_count()} logical cores ({system}); {libs}; {threads}"
 
 
 def git_line() -> str:

@@ -1,0 +1,209 @@
+"""Service benchmark: simulated vehicles at 10 Hz with KITTI-sized sweeps against a real service.
+
+Run from the repository root::
+
+    python bench/service.py [--vehicles 1 2 4 8] [--seconds 6] [--markdown]
+
+For each vehicle count, a fresh subprocess starts a :class:`service.runtime.Service` (Zenoh peer
+on loopback, data in a temporary directory), pre-simulates every vehicle's sweeps (HDL-64E-like,
+about 120k points each), then publishes them at 10 Hz per vehicle from one Zenoh session per
+vehicle, for ``--seconds``. It reports sustained scans per second (poses received per second of
+wall time), publish-to-pose latency p50/p99 (publish time to the pose's arrival at a subscriber),
+scans dropped by the overload policy, other errors, and the subprocess's peak RSS.
+
+The target of issue 4 is 8 vehicles at 10 Hz with p99 under 200 ms and no drops on this 2-core
+machine. Every figure comes from this run: see docs/benchmarks.md for the reading.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import resource
+import shlex
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import common
+import numpy as np
+from common import git_line, heading, machine_line, progress, table
+
+del common
+
+
+def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
+    """One configuration, in this process (called in a fresh subprocess by :func:`main`)."""
+    import zenoh
+
+    from clients.sim.drive import simulate_fleet
+    from clients.sim.town import Town
+    from core.wire import decode_error, decode_pose, encode, scan_from_arrays
+    from service.runtime import Service
+    from service.settings import ServiceSettings
+    from service.transport import zenoh_config
+    from tests.service.conftest import free_port
+
+    n_scans = int(seconds * 10)
+    town = Town.generate(1)
+    scans: dict[str, list[bytes]] = {}
+    truth_first = {}
+    for vehicle, scan in simulate_fleet(town, n_vehicles, n_scans=n_scans, seed=3, speed_mps=10.0):
+        prior = {}
+        if scan.index == 0:
+            truth_first[vehicle] = scan.T_world_sensor
+            prior = dict(prior_pose=scan.T_world_sensor, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
+        scans.setdefault(vehicle, []).append(
+            encode(
+                scan_from_arrays(
+                    vehicle,
+                    "bench",
+                    scan.index,
+                    scan.stamp_ns,
+                    scan.points_xyz,
+                    intensity=scan.intensity,
+                    **prior,
+                )
+            )
+        )
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with tempfile.TemporaryDirectory() as data:
+        service = Service(ServiceSettings(data_dir=data, listen=(endpoint,), http_port=0))
+        service.start()
+        sent: dict[tuple[str, int], float] = {}
+        got: dict[tuple[str, int], float] = {}
+        errors: dict[str, int] = {}
+        lock = threading.Lock()
+
+        def on_pose(sample: zenoh.Sample) -> None:
+            t = time.monotonic()
+            m = decode_pose(sample.payload.to_bytes())
+            with lock:
+                got[(m.vehicle, m.seq)] = t
+
+        def on_error(sample: zenoh.Sample) -> None:
+            m = decode_error(sample.payload.to_bytes())
+            with lock:
+                errors[m.code] = errors.get(m.code, 0) + 1
+
+        listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
+        subs = [
+            listener.declare_subscriber("randt/fleet/*/pose", on_pose),
+            listener.declare_subscriber("randt/fleet/*/error", on_error),
+        ]
+        time.sleep(1.0)
+
+        def drive(vehicle: str) -> None:
+            session = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
+            pub = session.declare_publisher(f"randt/fleet/{vehicle}/scan")
+            start = time.monotonic()
+            for k, payload in enumerate(scans[vehicle]):
+                delay = start + 0.1 * k - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                with lock:
+                    sent[(vehicle, k)] = time.monotonic()
+                pub.put(payload)
+            time.sleep(0.2)
+            session.close()
+
+        t0 = time.monotonic()
+        threads = [threading.Thread(target=drive, args=(v,)) for v in scans]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            with lock:
+                answered = len(got) + sum(errors.values())
+            if answered >= len(sent):
+                break
+            time.sleep(0.1)
+        wall = time.monotonic() - t0
+        for s in subs:
+            s.undeclare()
+        listener.close()
+        service.stop()
+    lat = np.array([got[k] - sent[k] for k in got if k in sent])
+    return {
+        "vehicles": n_vehicles,
+        "sent": len(sent),
+        "poses": len(got),
+        "dropped": errors.get("dropped", 0),
+        "other_errors": sum(v for k, v in errors.items() if k != "dropped"),
+        "scans_per_s": len(got) / wall,
+        "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else float("nan"),
+        "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else float("nan"),
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument("--seconds", type=float, default=6.0)
+    parser.add_argument("--markdown", action="store_true")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_one(args.one, args.seconds)))
+        return
+    print(f"Command: python bench/service.py {shlex.join(sys.argv[1:])}")
+    print(machine_line({}, single_threaded=False))
+    print(f"{git_line()}; run on {datetime.date.today().isoformat()}")
+    print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
+    rows = []
+    for n in args.vehicles:
+        progress(f"{n} vehicle(s)")
+        out = (
+            subprocess.run(
+                [sys.executable, __file__, "--one", str(n), "--seconds", str(args.seconds)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            .stdout.strip()
+            .splitlines()[-1]
+        )
+        r = json.loads(out)
+        rows.append(
+            [
+                str(r["vehicles"]),
+                str(r["sent"]),
+                str(r["poses"]),
+                str(r["dropped"]),
+                str(r["other_errors"]),
+                f"{r['scans_per_s']:.2f}",
+                f"{r['p50_ms']:.0f}",
+                f"{r['p99_ms']:.0f}",
+                f"{r['peak_rss_mib']:.0f}",
+            ]
+        )
+    print(heading(f"{args.seconds:g} s of 10 Hz sweeps per vehicle (about 120k points each)", args.markdown))
+    print(
+        table(
+            [
+                "vehicles",
+                "scans sent",
+                "poses",
+                "dropped",
+                "other errors",
+                "poses/s",
+                "p50 ms",
+                "p99 ms",
+                "peak RSS MiB",
+            ],
+            rows,
+            args.markdown,
+        )
+    )
+    print(f"\n1-min load average at end: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
