@@ -179,6 +179,7 @@ class IncrementalMatcher:
         self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.settings.max_keyframes)
         self._model: PreparedReference | None = None
         self._last_keyframe_pose: np.ndarray | None = None
+        self._recent_inliers: deque[float] = deque(maxlen=20)
         # The first sweep cannot be deskewed (no velocity yet): kept raw until the second gives one.
         self._first_raw: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -319,10 +320,11 @@ class IncrementalMatcher:
                         res.inlier_ratio,
                     )
                 message = message or (why or "")
-                if best is not None and best[0] == 0:
-                    break  # the prediction's match passed: no retries
+                if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
+                    break  # the prediction's match passed and looks like the recent ones: no retries
             if best is not None:
                 attempt, res = best
+                self._recent_inliers.append(res.inlier_ratio)
                 T, status, message = res.T_target_source, "ok", ""
                 converged, fitness, cov, inliers = (
                     res.converged,
@@ -420,6 +422,13 @@ class IncrementalMatcher:
         self._model = None
         if self._keyframes:
             self._rebuild_model(self._keyframes[-1][0])
+
+    def _weak(self, inlier_ratio: float) -> bool:
+        """A match whose inlier ratio is below 70 % of the session's recent median is suspect: at a
+        corner's onset a wrong match can pass the absolute gate (0.32 where this drive sees 0.8)."""
+        if len(self._recent_inliers) < 3:
+            return False
+        return inlier_ratio < 0.7 * float(np.median(self._recent_inliers))
 
     def _hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """The prediction, then the prediction yawed by each of ``retry_yaw_deg`` both ways."""
