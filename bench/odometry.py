@@ -136,7 +136,9 @@ def kitti_section(markdown: bool) -> list[str]:
     return out
 
 
-def sim_section(n_scans: int, speed_mps: float, markdown: bool) -> list[str]:
+def sim_section(
+    n_scans: int, speed_mps: float, markdown: bool, modes: tuple[bool, ...] = (False, True)
+) -> list[str]:
     """Simulated drive: RANDT (perfect and raw sweeps) and KISS-ICP, scored on exact ground truth."""
     from clients.sim.drive import Motion, Route, simulate
     from clients.sim.town import Town
@@ -151,7 +153,7 @@ def sim_section(n_scans: int, speed_mps: float, markdown: bool) -> list[str]:
         )
     ]
     rows, memory = [], []
-    for raw in (False, True):
+    for raw in modes:
         progress(f"simulated drive, raw sweeps={raw}")
         builder = MapBuilder()
         kiss = None if raw else KissICP(_kiss_config(1.0, deskew=False))
@@ -225,6 +227,7 @@ def main() -> None:
     parser.add_argument("--sim-scans", type=int, default=850)
     parser.add_argument("--sim-speed", type=float, default=12.0, help="m/s (850 x 1.2 m = 1.02 km)")
     parser.add_argument("--no-sim", action="store_true")
+    parser.add_argument("--no-raw", action="store_true", help="skip the raw (distorted, deskewed) drive")
     args = parser.parse_args()
     print(f"Command: python bench/odometry.py {shlex.join(sys.argv[1:])}")
     print(machine_line({"kiss-icp": version("kiss-icp")}))
@@ -234,7 +237,8 @@ def main() -> None:
         print(line)
     if not args.no_sim:
         n = 60 if args.quick else args.sim_scans
-        for line in sim_section(n, args.sim_speed, args.markdown):
+        modes = (False,) if args.no_raw else (False, True)
+        for line in sim_section(n, args.sim_speed, args.markdown, modes):
             print(line)
     print(
         f"\npeak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB; "
