@@ -71,7 +71,7 @@ def create_app(settings: ServiceSettings | None = None, *, with_zenoh: bool = Tr
                 for s in sessions
             ],
             "queue_depths": mgr.queue_depths() if mgr else {},
-            "scans_dropped": svc.metrics.scans_dropped._value.get(),
+            "scans_dropped": int(svc.metrics.registry.get_sample_value("randt_scans_dropped_total") or 0),
             "maps": {
                 name: {"tiles": len(grid), "points": grid.n_points}
                 for name, grid in (mgr.maps.items() if mgr else [])
