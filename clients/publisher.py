@@ -1,0 +1,498 @@
+"""The vehicle publisher: what a vehicle computer imports to stream its LiDAR scans to the service.
+
+::
+
+    from clients.publisher import VehiclePublisher
+
+    with VehiclePublisher("car-07", connect=["tcp/10.0.0.5:7447"], on_pose=print) as pub:
+        for xyz, stamp_ns in lidar:                  # (N,3) or (N,4) arrays, sensor frame
+            pub.publish(xyz, stamp_ns)               # never blocks: queued, sent by a thread
+        pub.flush(timeout=30)                        # optional: wait for the last answers
+
+How it works
+------------
+- **One Zenoh session per publisher** (client of a router by default, or a peer), endpoints from
+  the arguments or the environment (:class:`PublisherSettings`, prefix ``RANDT_VEHICLE_``).
+- **publish() never blocks** longer than building the message (a few ms for 120k points). The
+  message is validated with the wire format's own checks (``core/wire.py``: a bad array raises
+  ``BadMessageError`` at once, with the code the service would answer), then put into a bounded
+  send queue. A full queue drops its **oldest** scan and counts it (``stats.dropped``): the newest
+  data matter most to a mapping service.
+- **A sender thread** publishes the queue in order, only while a service is subscribed to the
+  vehicle's scan key (Zenoh's matching status). While nobody listens (router down, service not yet
+  started) scans wait in the queue, so a short outage costs only the scans that overflow it.
+- **Reconnection** is Zenoh's: a client session re-dials its router every few seconds and
+  re-declares its publisher and subscribers; if opening the session fails at the start, the sender
+  thread retries with back-off. No exception reaches the caller for any of this.
+- **Answers.** Every scan the service receives is answered by exactly one pose or one error
+  (``docs/wire-format.md``). A dispatcher thread matches them to the scans in flight, updates the
+  counters and calls ``on_pose`` / ``on_error`` (never on a Zenoh thread, so callbacks may block).
+  A scan that was sent but not answered within ``answer_timeout_s`` (lost on a dying connection)
+  is counted in ``stats.lost``.
+
+Counting: every published scan ends in exactly one of ``acknowledged`` (pose), ``rejected`` (error,
+by code in ``rejected_codes``; the service's own overload drop is the code ``dropped``), ``dropped``
+(local queue overflow) or ``lost`` (no answer in time); until then it is ``queued`` or
+``in_flight``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+import numpy as np
+import zenoh
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from clients.zenoh_config import check_endpoints, zenoh_config
+from core.errors import BadMessageError
+from core.wire import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
+
+__all__ = ["PublisherSettings", "PublisherStats", "VehiclePublisher", "default_session_id"]
+
+log = logging.getLogger(__name__)
+
+#: What the service's embedded default listens on (``randt serve`` and ``randt demo``).
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+class PublisherSettings(BaseSettings):
+    """How a publisher reaches the service; every field is also ``RANDT_VEHICLE_<NAME>``.
+
+    Lists take JSON in the environment: ``RANDT_VEHICLE_CONNECT='["tcp/10.0.0.5:7447"]'``.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="RANDT_VEHICLE_", extra="forbid", frozen=True)
+
+    mode: Literal["client", "peer"] = Field(default="client", description="Zenoh mode of the vehicle")
+    connect: tuple[str, ...] = Field(default=(DEFAULT_ENDPOINT,), description="routers or peers")
+    listen: tuple[str, ...] = Field(default=(), description="endpoints to listen on (peer mode)")
+    queue_size: int = Field(default=8, ge=1, description="scans waiting to be sent; oldest dropped")
+    answer_timeout_s: float = Field(default=120.0, gt=0, description="a sent scan unanswered is lost")
+    retry_s: float = Field(default=1.0, gt=0, description="first wait before re-opening the session")
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return check_endpoints(value)
+
+
+@dataclass
+class PublisherStats:
+    """Counters of one publisher (module docstring: every scan ends in exactly one final state)."""
+
+    published: int = 0
+    sent: int = 0
+    acknowledged: int = 0
+    rejected: int = 0
+    dropped: int = 0
+    lost: int = 0
+    late: int = 0
+    queued: int = 0
+    in_flight: int = 0
+    outages: int = 0
+    rejected_codes: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def settled(self) -> int:
+        """Scans in a final state: acknowledged + rejected + dropped + lost."""
+        return self.acknowledged + self.rejected + self.dropped + self.lost
+
+
+def default_session_id(now: datetime | None = None) -> str:
+    """A session id from the UTC time, e.g. ``20260501-142233`` (a valid wire id)."""
+    return (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
+
+
+@dataclass
+class _Outgoing:
+    seq: int
+    payload: bytes
+
+
+class VehiclePublisher:
+    """Publish one vehicle's scans for one session and receive their poses (module docstring).
+
+    Parameters
+    ----------
+    vehicle:
+        The vehicle id (``^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$``).
+    session:
+        The drive's session id; default :func:`default_session_id`.
+    mode, connect, listen, queue_size, answer_timeout_s:
+        Override :class:`PublisherSettings` (itself read from ``RANDT_VEHICLE_*``).
+    settings:
+        A complete settings object instead of the environment.
+    on_pose, on_error:
+        Called with each :class:`~core.wire.PoseMessage` / :class:`~core.wire.ErrorMessage` of this
+        session, from the publisher's dispatcher thread (exceptions are logged, not raised).
+    first_seq:
+        Sequence number of the first scan (the service requires strictly increasing ``seq`` per
+        session; resume a session with the next number).
+    """
+
+    def __init__(
+        self,
+        vehicle: str,
+        session: str | None = None,
+        *,
+        mode: Literal["client", "peer"] | None = None,
+        connect: list[str] | tuple[str, ...] | None = None,
+        listen: list[str] | tuple[str, ...] | None = None,
+        queue_size: int | None = None,
+        answer_timeout_s: float | None = None,
+        settings: PublisherSettings | None = None,
+        on_pose: Callable[[PoseMessage], Any] | None = None,
+        on_error: Callable[[ErrorMessage], Any] | None = None,
+        first_seq: int = 0,
+    ) -> None:
+        overrides = {
+            "mode": mode,
+            "connect": tuple(connect) if connect is not None else None,
+            "listen": tuple(listen) if listen is not None else None,
+            "queue_size": queue_size,
+            "answer_timeout_s": answer_timeout_s,
+        }
+        overrides = {k: v for k, v in overrides.items() if v is not None}
+        if settings is None:  # arguments first, then RANDT_VEHICLE_*, then the defaults
+            self.settings = PublisherSettings(**overrides)
+        else:
+            self.settings = PublisherSettings.model_validate({**settings.model_dump(), **overrides})
+        self.vehicle = vehicle
+        self.session = session or default_session_id()
+        # fail early on ids the service would reject (raises BadMessageError with code invalid_id)
+        scan_from_arrays(vehicle, self.session, 0, 0, np.zeros((1, 3), np.float32))
+        self.on_pose = on_pose
+        self.on_error = on_error
+        self.scan_key = f"randt/fleet/{vehicle}/scan"
+        self._next_seq = first_seq
+        self._cond = threading.Condition()
+        self._queue: deque[_Outgoing] = deque()
+        self._in_flight: dict[int, float] = {}  # seq -> monotonic send time
+        self._answers: deque[PoseMessage | ErrorMessage] = deque()
+        self._stats = PublisherStats()
+        self._closing = False
+        self._stopped = False
+        self._zsession: zenoh.Session | None = None
+        self._publisher: zenoh.Publisher | None = None
+        self._subs: list[Any] = []
+        self._was_matching = False
+        self._sender = threading.Thread(target=self._send_loop, name=f"pub-{vehicle}-send", daemon=True)
+        self._dispatcher = threading.Thread(
+            target=self._dispatch_loop, name=f"pub-{vehicle}-recv", daemon=True
+        )
+        self._try_open()
+        self._sender.start()
+        self._dispatcher.start()
+
+    # ------------------------------------------------------------------ public API
+    def publish(
+        self,
+        points: np.ndarray,
+        stamp_ns: int | None = None,
+        *,
+        intensity: np.ndarray | None = None,
+        time_offset_s: np.ndarray | None = None,
+        prior_pose: np.ndarray | None = None,
+        prior_covariance: np.ndarray | None = None,
+    ) -> int:
+        """Queue one sweep for sending and return its ``seq``; never waits for the network.
+
+        Parameters
+        ----------
+        points:
+            (N, 3) x, y, z or (N, 4) x, y, z, intensity, metres, sensor frame (any float dtype;
+            sent as float32). Drop "no return" points first: NaN or Inf are rejected.
+        stamp_ns:
+            Time of the sweep's first point, ns since the Unix epoch (default: now).
+        intensity:
+            (N,) intensities, instead of a fourth column.
+        time_offset_s:
+            (N,) seconds after ``stamp_ns`` at which each point was measured (lets the service
+            deskew); within [0, 1].
+        prior_pose, prior_covariance:
+            (4, 4) ``T_map_sensor`` from GNSS/INS and its (6, 6) covariance (tx ty tz rx ry rz),
+            both or neither. A session whose first scan has a prior joins the shared map.
+
+        Raises
+        ------
+        BadMessageError
+            The arrays would be rejected by the service (shape, NaN, too many points...).
+        RuntimeError
+            The publisher is closed.
+        """
+        pts = np.asarray(points)
+        if pts.ndim == 2 and pts.shape[1] == 4 and intensity is None:
+            pts, intensity = pts[:, :3], pts[:, 3]
+        elif pts.ndim != 2 or pts.shape[1] != 3:
+            raise BadMessageError(
+                f"points: expected shape (N, 3) or (N, 4), got {pts.shape}", code="invalid_points"
+            )
+        with self._cond:
+            if self._closing:
+                raise RuntimeError("the publisher is closed")
+            seq = self._next_seq
+            self._next_seq += 1
+        msg = scan_from_arrays(
+            self.vehicle,
+            self.session,
+            seq,
+            time.time_ns() if stamp_ns is None else int(stamp_ns),
+            pts,
+            intensity=intensity,
+            time_offset_s=time_offset_s,
+            prior_pose=prior_pose,
+            prior_covariance=prior_covariance,
+        )
+        payload = encode(msg)
+        with self._cond:
+            self._stats.published += 1
+            if len(self._queue) >= self.settings.queue_size:
+                old = self._queue.popleft()
+                self._stats.dropped += 1
+                log.debug("%s: send queue full, dropped scan %d", self.vehicle, old.seq)
+            self._queue.append(_Outgoing(seq, payload))
+            self._cond.notify_all()
+        return seq
+
+    def stats(self) -> PublisherStats:
+        """A snapshot of the counters."""
+        with self._cond:
+            s = self._stats
+            return PublisherStats(
+                published=s.published,
+                sent=s.sent,
+                acknowledged=s.acknowledged,
+                rejected=s.rejected,
+                dropped=s.dropped,
+                lost=s.lost,
+                late=s.late,
+                queued=len(self._queue),
+                in_flight=len(self._in_flight),
+                outages=s.outages,
+                rejected_codes=dict(s.rejected_codes),
+            )
+
+    @property
+    def connected(self) -> bool:
+        """Whether a service is subscribed to this vehicle's scans right now."""
+        pub = self._publisher
+        try:
+            return pub is not None and bool(pub.matching_status.matching)
+        except Exception:  # the session is closing
+            return False
+
+    def wait_connected(self, timeout: float | None = None) -> bool:
+        """Wait until a service subscribes to this vehicle's scans; False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self.connected:
+            if self._stopped or (deadline is not None and time.monotonic() >= deadline):
+                return False
+            time.sleep(0.05)
+        return True
+
+    def wait_pending(self, max_pending: int = 0, timeout: float | None = None) -> bool:
+        """Wait until at most ``max_pending`` scans are queued or unanswered; False on timeout.
+
+        Flow control for callers that want every scan processed: publish, then
+        ``wait_pending(window - 1)`` keeps at most ``window`` scans between the caller and the
+        service's answer (the service drops the oldest scan of a full session queue).
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while len(self._queue) + len(self._in_flight) > max_pending:
+                if self._stopped:
+                    return False
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                self._cond.wait(0.1 if left is None else min(left, 0.1))
+        return True
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every published scan is answered, dropped or lost; False on timeout."""
+        return self.wait_pending(0, timeout)
+
+    def close(self, timeout: float = 2.0) -> PublisherStats:
+        """Send what is queued and wait for answers (up to ``timeout`` s), then close the session.
+
+        Scans still queued or in flight afterwards are counted as lost. Idempotent.
+        """
+        with self._cond:
+            already = self._closing
+            self._closing = True
+        if not already:
+            self.flush(timeout)
+        with self._cond:
+            self._stopped = True
+            self._stats.lost += len(self._queue) + len(self._in_flight)
+            self._queue.clear()
+            self._in_flight.clear()
+            self._cond.notify_all()
+        for t in (self._sender, self._dispatcher):
+            if t.is_alive() and t is not threading.current_thread():
+                t.join(5.0)
+        self._close_session()
+        return self.stats()
+
+    def __enter__(self) -> VehiclePublisher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ Zenoh session
+    def _try_open(self) -> bool:
+        """Open the Zenoh session, publisher and answer subscribers; False (logged) on failure."""
+        s = self.settings
+        try:
+            zs = zenoh.open(zenoh_config(s.mode, listen=s.listen, connect=s.connect))
+        except Exception as exc:  # zenoh raises ZError when no endpoint answers
+            log.warning("%s: cannot open a Zenoh %s session (%s); retrying", self.vehicle, s.mode, exc)
+            return False
+        base = f"randt/fleet/{self.vehicle}"
+        self._publisher = zs.declare_publisher(
+            self.scan_key,
+            congestion_control=zenoh.CongestionControl.BLOCK,  # the sender thread may wait, never drop
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._subs = [
+            zs.declare_subscriber(f"{base}/pose", self._on_pose_sample),
+            zs.declare_subscriber(f"{base}/error", self._on_error_sample),
+        ]
+        self._zsession = zs
+        log.info("%s: Zenoh %s session open (connect %s)", self.vehicle, s.mode, list(s.connect))
+        return True
+
+    def _close_session(self) -> None:
+        zs, self._zsession = self._zsession, None
+        if zs is None:
+            return
+        for h in [*self._subs, self._publisher]:
+            try:
+                if h is not None:
+                    h.undeclare()
+            except Exception:
+                log.debug("undeclare failed", exc_info=True)
+        self._subs, self._publisher = [], None
+        try:
+            zs.close()
+        except Exception:
+            log.debug("closing the Zenoh session failed", exc_info=True)
+
+    def _on_pose_sample(self, sample: zenoh.Sample) -> None:
+        # Zenoh thread: decode and hand over, nothing else
+        try:
+            msg: PoseMessage | ErrorMessage = decode_pose(sample.payload.to_bytes())
+        except BadMessageError:
+            log.warning("%s: undecodable pose message ignored", self.vehicle)
+            return
+        self._push_answer(msg)
+
+    def _on_error_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            msg: PoseMessage | ErrorMessage = decode_error(sample.payload.to_bytes())
+        except BadMessageError:
+            log.warning("%s: undecodable error message ignored", self.vehicle)
+            return
+        self._push_answer(msg)
+
+    def _push_answer(self, msg: PoseMessage | ErrorMessage) -> None:
+        if msg.session != self.session:
+            return  # another session of the same vehicle
+        with self._cond:
+            self._answers.append(msg)
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ threads
+    def _send_loop(self) -> None:
+        """Open the session if needed, then publish the queue while a service listens."""
+        backoff = self.settings.retry_s
+        while True:
+            with self._cond:
+                while not self._queue and not self._stopped:
+                    self._cond.wait(0.2)
+                if self._stopped:
+                    return
+            if self._zsession is None:
+                if not self._try_open():
+                    with self._cond:
+                        self._cond.wait(backoff)
+                    backoff = min(2 * backoff, 10.0)
+                    continue
+                backoff = self.settings.retry_s
+            matching = self.connected
+            if matching != self._was_matching:
+                if matching:
+                    log.info("%s: service reachable", self.vehicle)
+                else:
+                    with self._cond:
+                        self._stats.outages += 1
+                    log.warning("%s: no service subscribed (router or service down?)", self.vehicle)
+                self._was_matching = matching
+            if not matching:
+                with self._cond:
+                    self._cond.wait(0.05)
+                continue
+            with self._cond:
+                if not self._queue:
+                    continue
+                item = self._queue.popleft()
+                self._in_flight[item.seq] = time.monotonic()
+                self._stats.sent += 1
+            try:
+                assert self._publisher is not None
+                self._publisher.put(item.payload)
+            except Exception:
+                log.exception("%s: publishing scan %d failed; re-opening the session", self.vehicle, item.seq)
+                self._close_session()
+
+    def _dispatch_loop(self) -> None:
+        """Match answers to scans in flight, expire unanswered scans, call the user's callbacks."""
+        timeout = self.settings.answer_timeout_s
+        while True:
+            with self._cond:
+                while not self._answers and not self._stopped:
+                    self._expire(timeout)
+                    self._cond.wait(0.2)
+                if self._stopped and not self._answers:
+                    return
+                msg = self._answers.popleft()
+                known = self._in_flight.pop(msg.seq, None) if msg.seq is not None else None
+                if known is None:
+                    self._stats.late += 1
+                elif isinstance(msg, PoseMessage):
+                    self._stats.acknowledged += 1
+                else:
+                    self._stats.rejected += 1
+                    self._stats.rejected_codes[msg.code] = self._stats.rejected_codes.get(msg.code, 0) + 1
+                self._cond.notify_all()
+            if known is None:
+                continue
+            callback = self.on_pose if isinstance(msg, PoseMessage) else self.on_error
+            if callback is not None:
+                try:
+                    callback(msg)
+                except Exception:
+                    log.exception("%s: the %s callback raised", self.vehicle, type(msg).__name__)
+
+    def _expire(self, timeout: float) -> None:
+        """Count scans in flight for longer than ``timeout`` as lost (caller holds the lock)."""
+        if not self._in_flight:
+            return
+        now = time.monotonic()
+        old = [seq for seq, t in self._in_flight.items() if now - t > timeout]
+        for seq in old:
+            del self._in_flight[seq]
+            self._stats.lost += 1
+            log.warning("%s: scan %d got no answer in %.0f s, counted as lost", self.vehicle, seq, timeout)
+        if old:
+            self._cond.notify_all()
