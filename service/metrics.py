@@ -1,22 +1,77 @@
 """Prometheus metrics of one service instance (prometheus_client, one registry per instance).
 
 A registry per :class:`service.runtime.Service` (not the global default) keeps instances, and
-tests, independent. ``GET /metrics`` renders :attr:`ServiceMetrics.registry`.
+tests, independent. ``GET /metrics`` renders :attr:`ServiceMetrics.registry` with
+prometheus_client's own exposition code (never a hand-written text format).
+
+Two kinds of series live here:
+
+* **events**, counted where they happen (``service/sessions.py``): scans received, processed (by
+  status), rejected (by reason, the wire error code), dropped; registration time and
+  receive-to-pose latency histograms; per-session queue depth; tiles written; store errors;
+* **state**, read when Prometheus scrapes (:meth:`ServiceMetrics.watch`): points and tiles per map,
+  so the numbers are always those of the live maps and nothing has to remember to update them.
+
+Names follow Prometheus conventions: counters end in ``_total`` in the exposition (the client
+adds it), durations are in seconds.
 """
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from collections.abc import Callable, Iterator, Mapping
 
-__all__ = ["ServiceMetrics"]
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info
+from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+__all__ = ["MapStats", "ServiceMetrics"]
+
+#: What :meth:`ServiceMetrics.watch` reads at scrape time: map name -> (tiles, points).
+MapStats = Callable[[], Mapping[str, tuple[int, int]]]
+
+
+class _MapCollector(Collector):
+    """Per-map tile and point counts, read from the live maps at every scrape."""
+
+    def __init__(self, read: MapStats) -> None:
+        self._read = read
+
+    def collect(self) -> Iterator[Metric]:
+        tiles = GaugeMetricFamily("randt_map_tiles", "Non-empty tiles per map", labels=["map"])
+        points = GaugeMetricFamily("randt_map_points", "Points per map (after equalization)", labels=["map"])
+        for name, (n_tiles, n_points) in sorted(self._read().items()):
+            tiles.add_metric([name], n_tiles)
+            points.add_metric([name], n_points)
+        yield tiles
+        yield points
 
 
 class ServiceMetrics:
-    """The service's counters, gauges and histograms."""
+    """The service's counters, gauges and histograms (module docstring).
+
+    Attributes
+    ----------
+    registry:
+        This instance's registry; render it with ``prometheus_client.generate_latest``.
+    scans_received, scans_processed, scans_rejected, scans_dropped:
+        Counters. ``scans_processed`` is labelled by the pose ``status`` (``first``, ``ok``,
+        ``fallback``), ``scans_rejected`` by ``reason`` (the error code sent to the vehicle).
+    registration_seconds:
+        Histogram of the matcher's time per scan.
+    latency_seconds:
+        Histogram of the time from receiving a scan to publishing its pose (the service's share
+        of a vehicle's publish-to-pose time; the wire carries no publish time to measure the rest).
+    queue_depth:
+        Gauge of scans waiting per session, labelled ``session="<vehicle>/<session>"``; updated on
+        every enqueue and dequeue, removed when the session closes.
+    sessions_active, tiles_written, store_errors:
+        Running session workers; tile files written; failed writes to the store.
+    """
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
+        self.info = Info("randt_service", "The service instance", registry=r)
         self.scans_received = Counter("randt_scans_received", "Scan messages received", registry=r)
         self.scans_processed = Counter(
             "randt_scans_processed", "Scans registered (pose published)", ["status"], registry=r
@@ -45,3 +100,22 @@ class ServiceMetrics:
         self.sessions_active = Gauge("randt_sessions_active", "Sessions with a running worker", registry=r)
         self.tiles_written = Counter("randt_tiles_written", "Tile files written to the store", registry=r)
         self.store_errors = Counter("randt_store_errors", "Failed writes to the store", registry=r)
+        self._map_collector: _MapCollector | None = None
+
+    def watch(self, maps: MapStats, *, instance: str) -> None:
+        """Report the live maps at every scrape (``randt_map_tiles``, ``randt_map_points``).
+
+        Parameters
+        ----------
+        maps:
+            Returns ``{map name: (tiles, points)}``; called on every scrape, so keep it cheap.
+        instance:
+            The instance name, exported as ``randt_service_info{instance=...}``.
+
+        Calling it again replaces the previous source (a restarted service in one process).
+        """
+        self.info.info({"instance": instance})
+        if self._map_collector is not None:
+            self.registry.unregister(self._map_collector)
+        self._map_collector = _MapCollector(maps)
+        self.registry.register(self._map_collector)

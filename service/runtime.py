@@ -45,6 +45,7 @@ class Service:
         else:
             outbox = self._sent.append
         self.sessions = SessionManager(s, self.store, outbox, self.metrics)
+        self.metrics.watch(self.map_stats, instance=s.instance)
         if self.transport is not None:
             self.transport.open()
         log.info("service %s started, data in %s", s.instance, s.data_dir)
@@ -62,6 +63,11 @@ class Service:
             return None
         return encode(tile_message(map_name, grid, tile_id))
 
+    def map_stats(self) -> dict[str, tuple[int, int]]:
+        """``{map name: (tiles, points)}`` of the live maps (read by ``/metrics`` at each scrape)."""
+        maps = dict(self.sessions.maps) if self.sessions is not None else {}
+        return {name: (len(grid), grid.n_points) for name, grid in maps.items()}
+
     def stop(self) -> None:
         """Stop intake, drain and save everything, close Zenoh (idempotent)."""
         if self.sessions is not None:
@@ -72,6 +78,11 @@ class Service:
         if self.store is not None and self.store.is_open:
             self.store.close()
         log.info("service %s stopped", self.settings.instance)
+
+    @property
+    def with_zenoh(self) -> bool:
+        """Whether this instance runs the Zenoh transport (False in tests that feed scans directly)."""
+        return self._with_zenoh
 
     @property
     def ready(self) -> bool:

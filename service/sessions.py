@@ -24,6 +24,7 @@ which (``frame``: ``"map"`` or ``"session"``).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -85,6 +86,9 @@ class SessionState:
     last_latency_ms: float = float("nan")
     dirty: bool = False
     state: str = "active"
+    #: Variance (m^2) of the position accumulated since the last prior pose: the prior's own
+    #: variance, plus the trace of each registration's translational covariance (a random walk).
+    drift_var_m2: float = 0.0
 
 
 class SessionWorker:
@@ -144,6 +148,7 @@ class SessionWorker:
                 if not self._queue and self._stopping:
                     return
                 job = self._queue.popleft()
+                self._manager.metrics.queue_depth.labels(queue_label(*self.key)).set(len(self._queue))
             try:
                 self._process(job)
             except Exception:  # a bug in one scan must not kill the session or the service
@@ -185,6 +190,10 @@ class SessionWorker:
             info.last_status = result.status
             info.last_activity = time.monotonic()
             info.dirty = True
+            if prior is not None:
+                info.drift_var_m2 = float(np.trace(np.asarray(prior.covariance)[:3, :3]))
+            elif np.all(np.isfinite(result.covariance[:3, :3])):
+                info.drift_var_m2 += float(np.trace(result.covariance[:3, :3]))
         if changed:
             m.mark_tiles_dirty(info.map_name, changed)
         latency_ms = (time.time_ns() - job.received_ns) * 1e-6
@@ -289,7 +298,7 @@ class SessionManager:
             info.last_seq = scan.seq
             info.last_activity = time.monotonic()
             dropped = worker.submit(_Job(scan, received_ns))
-            self.metrics.queue_depth.labels(f"{scan.vehicle}/{scan.session}").set(worker.depth())
+            self.metrics.queue_depth.labels(queue_label(scan.vehicle, scan.session)).set(worker.depth())
         if dropped is not None:
             self.metrics.scans_dropped.inc()
             self.reject(
@@ -418,6 +427,8 @@ class SessionManager:
             return False
         w.stop(drain=True)
         self._save_session(w, state=state)
+        with contextlib.suppress(KeyError):  # a closed session's queue is no longer a time series
+            self.metrics.queue_depth.remove(queue_label(vehicle, session))
         return True
 
     def _flush_loop(self) -> None:
@@ -440,6 +451,11 @@ class SessionManager:
             self._save_session(w)
 
     # -- status ---------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        """Whether the manager accepts scans and its flusher thread is alive (a readiness check)."""
+        return not self._stop.is_set() and self._flusher.is_alive()
+
     def sessions(self) -> list[SessionState]:
         with self._lock:
             return [w.info for w in self._workers.values()]
@@ -451,6 +467,43 @@ class SessionManager:
     def queue_depths(self) -> dict[str, int]:
         with self._lock:
             return {f"{k[0]}/{k[1]}": w.depth() for k, w in self._workers.items()}
+
+    def records(self) -> dict[tuple[str, str], SessionRecord]:
+        """The stored record of every session known to the store (a copy; running ones as last saved)."""
+        with self._lock:
+            return dict(self._records)
+
+    def trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(stamps_s (N,), poses (N, 4, 4))`` of a running session, or ``None`` if it is not running.
+
+        Taken under the worker's lock, so stamps and poses belong to the same scans.
+        """
+        w = self.worker(vehicle, session)
+        if w is None:
+            return None
+        with w.lock:
+            poses = np.array(w.matcher.poses, dtype=np.float64).reshape(-1, 4, 4)
+            stamps = np.array(w.info.stamps_s[: len(poses)], dtype=np.float64)
+        return stamps, poses[: len(stamps)]
+
+    def close_stored(self, vehicle: str, session: str) -> SessionRecord | None:
+        """Mark a stored session that has no running worker ``closed``; ``None`` if it is not stored.
+
+        A session restored as ``active`` after a restart has no worker until its next scan; this
+        closes it without loading its matcher.
+        """
+        with self._lock:
+            if (vehicle, session) in self._workers or (vehicle, session) not in self._records:
+                return None
+        record = self.store.mark_session(vehicle, session, "closed")  # file I/O: outside the lock
+        with self._lock:
+            self._records[(vehicle, session)] = record
+        return record
+
+
+def queue_label(vehicle: str, session: str) -> str:
+    """The ``session`` label of a session's queue-depth gauge: ``<vehicle>/<session>``."""
+    return f"{vehicle}/{session}"
 
 
 def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> object:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 __all__ = ["ServiceSettings"]
@@ -30,7 +30,12 @@ class ServiceSettings(BaseSettings):
     # HTTP
     http_host: str = "127.0.0.1"
     http_port: int = Field(default=8080, ge=0, le=65535)
-    api_token: str | None = Field(default=None, description="bearer token for mutating endpoints")
+    api_token: str | None = Field(
+        default=None, min_length=16, description="bearer token of mutating endpoints; none: they are refused"
+    )
+    protect_reads: bool = Field(
+        default=False, description="read endpoints (not /healthz, /readyz) require the token too"
+    )
     # sessions
     queue_size: int = Field(default=8, ge=1, description="scans waiting per session; oldest dropped")
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
@@ -52,3 +57,9 @@ class ServiceSettings(BaseSettings):
             if proto not in ("tcp", "udp", "quic", "tls", "ws", "unixsock-stream") or not addr:
                 raise ValueError(f"not a Zenoh endpoint (expected e.g. tcp/127.0.0.1:7447): {ep!r}")
         return value
+
+    @model_validator(mode="after")
+    def _reads_need_a_token(self) -> ServiceSettings:
+        if self.protect_reads and not self.api_token:
+            raise ValueError("protect_reads needs api_token (RANDT_API_TOKEN): reads would be closed to all")
+        return self

@@ -1,0 +1,69 @@
+"""``/healthz``, ``/readyz`` and ``/status``: is the process alive, can it work, what is it doing."""
+
+from __future__ import annotations
+
+import time
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+from prometheus_client import Metric
+
+from service.api.deps import ServiceDep, require_reader
+from service.api.models import Health, MapSummary, Ready, Status
+from service.api.views import map_summary, session_summary
+from service.runtime import Service
+
+__all__ = ["router"]
+
+router = APIRouter(tags=["health"])
+
+
+def _total(metric_collect: list[Metric]) -> int:
+    """Sum of a counter's ``*_total`` samples over all its labels."""
+    return int(sum(s.value for m in metric_collect for s in m.samples if s.name.endswith("_total")))
+
+
+def readiness(svc: Service) -> Ready:
+    """Each readiness condition (``/readyz``) on its own."""
+    zenoh = not svc.with_zenoh or (svc.transport is not None and svc.transport.is_open)
+    store = svc.store is not None and svc.store.writable()
+    workers = svc.sessions is not None and svc.sessions.running
+    return Ready(ready=zenoh and store and workers, zenoh=zenoh, store_writable=store, workers=workers)
+
+
+@router.get("/healthz", response_model=Health)
+def healthz() -> Health:
+    """The process is alive (a liveness probe: no checks, always open)."""
+    return Health()
+
+
+@router.get("/readyz", response_model=Ready, responses={503: {"model": Ready}})
+def readyz(svc: ServiceDep) -> JSONResponse:
+    """Zenoh session open, store writable, session workers running: 200, else 503 (always open)."""
+    ready = readiness(svc)
+    return JSONResponse(ready.model_dump(), status_code=200 if ready.ready else 503)
+
+
+@router.get("/status", response_model=Status, dependencies=[Depends(require_reader)])
+def status(svc: ServiceDep) -> Status:
+    """Instance, uptime, running sessions, scan counts, queue depths, drops, maps (extent, tiles)."""
+    mgr = svc.sessions
+    m = svc.metrics
+    workers = mgr.sessions() if mgr else []
+    depths = mgr.queue_depths() if mgr else {}
+    maps: dict[str, MapSummary] = {}
+    if mgr is not None:
+        for name, grid in sorted(dict(mgr.maps).items()):
+            maps[name] = map_summary(name, grid, workers)
+    return Status(
+        instance=svc.settings.instance,
+        uptime_s=time.time() - svc.started_at,
+        ready=readiness(svc).ready,
+        sessions=[session_summary(info, None, depths) for info in workers],
+        scans_received=_total(list(m.scans_received.collect())),
+        scans_processed=_total(list(m.scans_processed.collect())),
+        scans_rejected=_total(list(m.scans_rejected.collect())),
+        scans_dropped=_total(list(m.scans_dropped.collect())),
+        queue_depths=depths,
+        maps=maps,
+    )

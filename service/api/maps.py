@@ -1,0 +1,319 @@
+"""``/maps``: the tiled maps, their tile index, tile downloads, Autoware metadata and merged exports.
+
+Everything is served from the live :class:`~core.tiles.TileGrid` (immutable tile snapshots), not
+from files: the map in memory is at least as new as the store's copy, which trails it by up to
+``flush_interval_s``; tile versions are the same in both.
+
+Tile downloads carry ``ETag: W/"<version>-<format>"`` and ``Cache-Control: no-cache``; a request
+with a matching ``If-None-Match`` gets **304 Not Modified** without a body, so a client (or the
+viewer, through the browser's cache) refetches only the tiles that changed.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Iterator
+from typing import Annotated
+
+import numpy as np
+import yaml
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
+from fastapi.responses import StreamingResponse
+
+from core.errors import NotFoundError
+from core.metrics import pdu
+from core.tiles import AUTOWARE_METADATA_NAME, Tile, TileGrid, tile_id
+from service.api.deps import (
+    MapName,
+    NotFoundHTTPError,
+    TileIx,
+    get_grid,
+    get_manager,
+    require_reader,
+)
+from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, las_file, stream_cloud
+from service.api.models import ErrorBody, MapIndex, MapSummary, TileBoundsModel, TileIndex, TileInfo
+from service.api.views import map_summary
+from service.sessions import SessionManager
+
+__all__ = ["PduCache", "parse_bbox", "router"]
+
+router = APIRouter(prefix="/maps", tags=["maps"], dependencies=[Depends(require_reader)])
+ManagerDep = Annotated[SessionManager, Depends(get_manager)]
+FormatQuery = Annotated[CloudFormat, Query(description="pcd (binary), ply (binary) or las (1.4)")]
+BboxQuery = Annotated[
+    str | None,
+    Query(
+        description="x_min,y_min,x_max,y_max in map metres: only tiles (points) in this box",
+        examples=["-40,-40,40,40"],
+    ),
+]
+_404 = {404: {"model": ErrorBody, "description": "no such map or tile"}}
+_422 = {422: {"model": ErrorBody, "description": "malformed coordinates"}}
+
+
+class PduCache:
+    """Per-tile PDU by ``(grid, tile id, version, voxel)``: a tile's PDU changes only with its version.
+
+    Held by the app (``app.state.pdu_cache``) so that separate apps in one process never share
+    entries. Bounded: cleared when it exceeds ``max_entries``.
+    """
+
+    def __init__(self, max_entries: int = 100_000) -> None:
+        self._values: dict[tuple[int, str, int, float], float] = {}
+        self._lock = threading.Lock()
+        self._max = max_entries
+
+    def get(self, grid: TileGrid, tile: Tile, voxel_m: float) -> float:
+        key = (id(grid), tile.id, tile.version, voxel_m)
+        with self._lock:
+            value = self._values.get(key)
+        if value is None:
+            value = _tile_pdu(tile, voxel_m)
+            with self._lock:
+                if len(self._values) >= self._max:
+                    self._values.clear()
+                self._values[key] = value
+        return value
+
+
+def _tile_pdu(tile: Tile, voxel_m: float) -> float:
+    """PDU of one tile at ``voxel_m``, voxels aligned to the tile's corner (as ``TileGrid.tile_pdu``)."""
+    local = tile.points.astype(np.float64)
+    local[:, :2] -= np.array(tile.bounds.cell_min_xy, dtype=np.float64)
+    value = float(pdu(local, voxel_m))
+    return value if math.isfinite(value) else 0.0
+
+
+def _unprocessable(detail: str) -> HTTPException:
+    return HTTPException(422, detail)
+
+
+def parse_bbox(text: str) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``"x0,y0,x1,y1"`` -> ``((x0, y0), (x1, y1))``; 422 unless four finite numbers with x0<=x1, y0<=y1."""
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise _unprocessable(f"bbox must be four finite numbers x_min,y_min,x_max,y_max; got {text!r}")
+    x0, y0, x1, y1 = values
+    if x0 > x1 or y0 > y1:
+        raise _unprocessable(f"bbox is inverted: ({x0:g}, {y0:g}) is not below ({x1:g}, {y1:g})")
+    return (x0, y0), (x1, y1)
+
+
+def _etag(tile: Tile, fmt: str) -> str:
+    return f'W/"{tile.version}-{fmt}"'
+
+
+def _matches(if_none_match: str | None, etag: str) -> bool:
+    """Weak comparison of ``etag`` with an ``If-None-Match`` header (a list, or ``*``)."""
+    if not if_none_match:
+        return False
+    bare = etag.removeprefix("W/")
+    for candidate in if_none_match.split(","):
+        c = candidate.strip()
+        if c == "*" or c.removeprefix("W/") == bare:
+            return True
+    return False
+
+
+@router.get("", response_model=MapIndex)
+def list_maps(mgr: ManagerDep) -> MapIndex:
+    """Every map: ``default`` (sessions with prior poses) and ``<vehicle>.<session>`` ones."""
+    running = mgr.sessions()
+    return MapIndex(maps=[map_summary(n, g, running) for n, g in sorted(dict(mgr.maps).items())])
+
+
+@router.get("/{map}", response_model=MapSummary, responses=_404)
+def get_map(map: MapName, mgr: ManagerDep) -> MapSummary:
+    """One map: tiles, points, tile and voxel size, extent, the sessions feeding it."""
+    return map_summary(map, get_grid(mgr, map), mgr.sessions())
+
+
+@router.get("/{map}/tiles", response_model=TileIndex, responses={**_404, **_422})
+def tile_index(
+    map: MapName,
+    mgr: ManagerDep,
+    request: Request,
+    bbox: BboxQuery = None,
+    x: Annotated[float | None, Query(description="radius query: centre x, map metres")] = None,
+    y: Annotated[float | None, Query(description="radius query: centre y, map metres")] = None,
+    radius: Annotated[float | None, Query(ge=0, description="radius query: metres (XY)")] = None,
+    pdu_voxel_m: Annotated[float, Query(gt=0.05, le=20.0, description="voxel of the PDU")] = 0.5,
+) -> TileIndex:
+    """The map's tiles (ids, bounds, point counts, versions, PDU), optionally those a box or a circle touches.
+
+    ``bbox=x_min,y_min,x_max,y_max`` selects the tiles whose cell meets the closed box;
+    ``x=..&y=..&radius=..`` those whose cell comes within ``radius`` of ``(x, y)`` (Autoware's
+    partial map loading). PDU is computed at ``pdu_voxel_m`` (0.5 m as ``randt map``; at the
+    map's own voxel every tile would score 1 by construction).
+    """
+    grid = get_grid(mgr, map)
+    query: dict[str, float] | None = None
+    wanted: set[str] | None = None
+    circle = (x, y, radius)
+    if bbox is not None and any(v is not None for v in circle):
+        raise _unprocessable("give either bbox or x, y and radius, not both")
+    if bbox is not None:
+        lo, hi = parse_bbox(bbox)
+        wanted = set(grid.tiles_in_bbox(lo, hi))
+        query = {"x_min": lo[0], "y_min": lo[1], "x_max": hi[0], "y_max": hi[1]}
+    elif any(v is not None for v in circle):
+        if x is None or y is None or radius is None:
+            raise _unprocessable("a radius query needs x, y and radius")
+        if not all(math.isfinite(v) for v in (x, y, radius)):
+            raise _unprocessable("x, y and radius must be finite")
+        wanted = set(grid.tiles_within_radius((x, y), radius))
+        query = {"x": x, "y": y, "radius": radius}
+    cache: PduCache = request.app.state.pdu_cache
+    tiles = [t for t in grid.tiles() if wanted is None or t.id in wanted]
+    return TileIndex(
+        map=map,
+        tile_size_m=grid.tile_size_m,
+        voxel_size_m=grid.voxel_size_m,
+        pdu_voxel_m=pdu_voxel_m,
+        query=query,
+        tiles=[
+            TileInfo(
+                id=t.id,
+                ix=t.ix,
+                iy=t.iy,
+                version=t.version,
+                points=t.n_points,
+                bounds=TileBoundsModel(
+                    cell_min_xy=t.bounds.cell_min_xy,
+                    cell_max_xy=t.bounds.cell_max_xy,
+                    min_xyz=t.bounds.min_xyz,
+                    max_xyz=t.bounds.max_xyz,
+                ),
+                pdu=cache.get(grid, t, pdu_voxel_m),
+                url=f"/maps/{map}/tiles/{t.ix}/{t.iy}",
+            )
+            for t in tiles
+        ],
+    )
+
+
+@router.get(
+    "/{map}/tiles/{ix}/{iy}",
+    response_class=Response,
+    responses={
+        **_404,
+        **_422,
+        200: {"content": {t: {} for t in CLOUD_MEDIA_TYPES.values()}, "description": "the tile's points"},
+        304: {"description": "If-None-Match matched the tile's current ETag"},
+    },
+)
+def get_tile(
+    map: MapName,
+    ix: TileIx,
+    iy: TileIx,
+    mgr: ManagerDep,
+    format: FormatQuery = "pcd",
+    if_none_match: Annotated[str | None, Header(description="ETag(s) the client holds")] = None,
+) -> Response:
+    """One tile's points (float32 x y z intensity, map frame) as PCD, PLY or LAS, with its ETag."""
+    grid = get_grid(mgr, map)
+    try:
+        tile = grid.tile(ix, iy)
+    except NotFoundError as exc:
+        tid = tile_id(ix, iy)
+        raise NotFoundHTTPError(
+            "tile", tid, f"tile {tid!r} of map {map!r} not found (holds no points)"
+        ) from exc
+    etag = _etag(tile, format)
+    headers = {"ETag": etag, "Cache-Control": "no-cache", "X-Randt-Tile-Version": str(tile.version)}
+    if _matches(if_none_match, etag):
+        return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers=headers)
+    headers["Content-Disposition"] = f'attachment; filename="{tile.id}.{format}"'
+    body = cloud_bytes(format, tile.points, tile.intensity)
+    return Response(body, media_type=CLOUD_MEDIA_TYPES[format], headers=headers)
+
+
+@router.get(
+    "/{map}/metadata.yaml",
+    response_class=Response,
+    responses={**_404, 200: {"content": {"application/yaml": {}}, "description": AUTOWARE_METADATA_NAME}},
+)
+def get_metadata(map: MapName, mgr: ManagerDep) -> Response:
+    """Autoware's ``pointcloud_map_metadata.yaml``: resolutions, then ``<ix>_<iy>.pcd: [x_min, y_min]``.
+
+    Download the tiles as ``<ix>_<iy>.pcd`` next to it and Autoware's ``pointcloud_map_loader``
+    loads the map (the store holds exactly this layout under ``DATA/maps/<map>/``).
+    """
+    grid = get_grid(mgr, map)
+    size = grid.tile_size_m
+    document: dict[str, object] = {"x_resolution": float(size), "y_resolution": float(size)}
+    for t in grid.tiles():
+        document[f"{t.id}.pcd"] = [int(t.ix) * size, int(t.iy) * size]
+    text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
+    return Response(
+        text,
+        media_type="application/yaml",
+        headers={"Content-Disposition": f'attachment; filename="{AUTOWARE_METADATA_NAME}"'},
+    )
+
+
+def _chunks(tiles: list[Tile], box: tuple[tuple[float, float], tuple[float, float]] | None) -> list[tuple]:
+    """Per tile ``(xyz, intensity)``, cut to ``box`` when given (views of the snapshots otherwise)."""
+    if box is None:
+        return [(t.points, t.intensity) for t in tiles]
+    lo, hi = np.asarray(box[0]), np.asarray(box[1])
+    out = []
+    for t in tiles:
+        xy = t.points[:, :2].astype(np.float64)
+        inside = np.all((xy >= lo) & (xy <= hi), axis=1)
+        if inside.any():
+            out.append((t.points[inside], t.intensity[inside]))
+    return out
+
+
+def _file_chunks(fh: object, size: int = 1 << 20) -> Iterator[bytes]:
+    try:
+        while block := fh.read(size):  # type: ignore[attr-defined]
+            yield block
+    finally:
+        fh.close()  # type: ignore[attr-defined]
+
+
+@router.get(
+    "/{map}/export",
+    response_class=StreamingResponse,
+    responses={
+        **_404,
+        **_422,
+        200: {"content": {t: {} for t in CLOUD_MEDIA_TYPES.values()}, "description": "the merged cloud"},
+    },
+)
+def export_map(
+    map: MapName, mgr: ManagerDep, format: FormatQuery = "pcd", bbox: BboxQuery = None
+) -> Response:
+    """The whole map (or the points in ``bbox``) as one cloud, streamed tile by tile.
+
+    One consistent snapshot of the tiles is taken when the request arrives; later inserts are
+    not in this download. LAS is assembled in a temporary file first (its header holds bounds).
+    """
+    grid = get_grid(mgr, map)
+    box = parse_bbox(bbox) if bbox is not None else None
+    tiles = grid.tiles()
+    if box is not None:
+        keep = set(grid.tiles_in_bbox(*box))
+        tiles = [t for t in tiles if t.id in keep]
+    chunks = _chunks(tiles, box)
+    n_points = sum(xyz.shape[0] for xyz, _ in chunks)
+    headers = {
+        "Content-Disposition": f'attachment; filename="{map}.{format}"',
+        "X-Randt-Points": str(n_points),
+        "X-Randt-Tiles": str(len(tiles)),
+    }
+    if format == "las":
+        lo = np.min([xyz.min(axis=0) for xyz, _ in chunks], axis=0) if n_points else np.zeros(3)
+        fh = las_file(chunks, lo)
+        return StreamingResponse(_file_chunks(fh), media_type=CLOUD_MEDIA_TYPES["las"], headers=headers)
+    return StreamingResponse(
+        stream_cloud(format, n_points, chunks), media_type=CLOUD_MEDIA_TYPES[format], headers=headers
+    )

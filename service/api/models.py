@@ -1,0 +1,170 @@
+"""Response models of the HTTP API: the public contract (OpenAPI at ``/docs`` and ``/openapi.json``).
+
+Units and frames follow the rest of the project: metres, seconds, map-frame coordinates; a pose is
+the row-major 4x4 ``T_frame_sensor`` where ``frame`` is the session's (``"map"`` or ``"session"``).
+Adding a field is compatible; renaming or removing one is not (bump the API then).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+__all__ = [
+    "ClosedSession",
+    "ErrorBody",
+    "Health",
+    "Lag",
+    "MapExtent",
+    "MapIndex",
+    "MapSummary",
+    "Ready",
+    "SessionDetail",
+    "SessionSummary",
+    "Status",
+    "TileBoundsModel",
+    "TileIndex",
+    "TileInfo",
+    "TrajectoryJson",
+    "TrajectoryPose",
+]
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx/5xx answer of the API (FastAPI's ``detail``, plus what was not found on a 404)."""
+
+    detail: str = Field(description="what went wrong, for a person")
+    resource: str | None = Field(default=None, description="on a 404: session, map or tile")
+    id: str | None = Field(default=None, description="on a 404: the id that was asked for")
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class Ready(BaseModel):
+    ready: bool
+    zenoh: bool = Field(description="the Zenoh session is open (always true when run without Zenoh)")
+    store_writable: bool
+    workers: bool = Field(description="the session manager and its flusher are running")
+
+
+class MapExtent(BaseModel):
+    min_xyz: tuple[float, float, float]
+    max_xyz: tuple[float, float, float]
+
+
+class MapSummary(BaseModel):
+    name: str
+    tiles: int
+    points: int
+    tile_size_m: int
+    voxel_size_m: float
+    extent: MapExtent | None = Field(description="box around every point; null for an empty map")
+    sessions: list[str] = Field(description="ids of the running sessions that insert into this map")
+
+
+class Lag(BaseModel):
+    """How far behind a session is."""
+
+    queue_depth: int = Field(description="scans waiting for the matcher")
+    last_latency_ms: float | None = Field(description="receive-to-pose time of the last scan")
+    idle_s: float | None = Field(description="seconds since the last scan arrived (running sessions)")
+
+
+class SessionSummary(BaseModel):
+    id: str = Field(description="'<vehicle>/<session>'; the URL is /sessions/<vehicle>/<session>")
+    vehicle: str
+    session: str
+    map: str | None
+    frame: Literal["map", "session"]
+    state: Literal["active", "idle", "closed", "expired"] = Field(
+        description="active: a worker is running; idle: stored as active, resumes with its next "
+        "scan (after a restart); closed / expired: finished"
+    )
+    scans: int
+    fallbacks: int
+    errors: int | None = Field(description="scans answered with an error (running sessions only)")
+    last_seq: int
+    last_status: str | None
+    queue_depth: int
+
+
+class SessionDetail(SessionSummary):
+    last_pose: list[list[float]] | None = Field(description="4x4 T_frame_sensor of the last scan")
+    position: tuple[float, float, float] | None = Field(description="translation of last_pose, metres")
+    yaw_deg: float | None = Field(description="heading of the sensor's x axis in the frame's xy plane")
+    fitness: float | None = Field(description="the matcher's fitness (NVTL) of the last scan")
+    distance_m: float = Field(description="path length of the trajectory")
+    drift_m: float | None = Field(
+        description="1-sigma position uncertainty since the last prior pose: the prior's, plus each "
+        "registration's covariance as a random walk (Hessian covariances are optimistic: a lower "
+        "bound). Running sessions only; null after a restart"
+    )
+    lag: Lag
+    created: str | None = Field(description="ISO 8601 time of the first save (stored sessions)")
+    updated: str | None = Field(description="ISO 8601 time of the last save (stored sessions)")
+
+
+class ClosedSession(BaseModel):
+    id: str
+    state: Literal["closed", "expired"]
+    scans: int
+    changed: bool = Field(description="false when the session was already finished")
+
+
+class TrajectoryPose(BaseModel):
+    stamp_s: float
+    pose: list[list[float]] = Field(description="4x4 T_frame_sensor, row-major")
+
+
+class TrajectoryJson(BaseModel):
+    id: str
+    frame: Literal["map", "session"]
+    map: str | None
+    poses: list[TrajectoryPose]
+
+
+class TileBoundsModel(BaseModel):
+    cell_min_xy: tuple[int, int] = Field(description="lower cell corner, integer metres (Autoware's)")
+    cell_max_xy: tuple[int, int]
+    min_xyz: tuple[float, float, float] = Field(description="box around the tile's points")
+    max_xyz: tuple[float, float, float]
+
+
+class TileInfo(BaseModel):
+    id: str = Field(description="'<ix>_<iy>'")
+    ix: int
+    iy: int
+    version: int = Field(description="incremented on every change; the ETag of a download")
+    points: int
+    bounds: TileBoundsModel
+    pdu: float = Field(description="Point Density Uniformity at pdu_voxel_m (1 = uniform)")
+    url: str = Field(description="download path (add ?format=pcd|ply|las)")
+
+
+class TileIndex(BaseModel):
+    map: str
+    tile_size_m: int
+    voxel_size_m: float
+    pdu_voxel_m: float
+    query: dict[str, float] | None = Field(description="the bbox or radius filter applied, if any")
+    tiles: list[TileInfo]
+
+
+class MapIndex(BaseModel):
+    maps: list[MapSummary]
+
+
+class Status(BaseModel):
+    instance: str
+    uptime_s: float
+    ready: bool
+    sessions: list[SessionSummary] = Field(description="running sessions")
+    scans_received: int
+    scans_processed: int
+    scans_rejected: int
+    scans_dropped: int
+    queue_depths: dict[str, int] = Field(description="'<vehicle>/<session>' -> scans waiting")
+    maps: dict[str, MapSummary]
