@@ -296,7 +296,15 @@ async function pollVehicles() {
     if (!v) {
       const color = VEHICLE_COLORS[state.vehicles.size % VEHICLE_COLORS.length];
       const line = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color }));
-      const marker = new THREE.Mesh(new THREE.SphereGeometry(1.6, 16, 12), new THREE.MeshBasicMaterial({ color }));
+      // The vehicle: a ball on a 12 m pin, visible from afar above the cloud.
+      const marker = new THREE.Group();
+      const ball = new THREE.Mesh(new THREE.SphereGeometry(3, 16, 12), new THREE.MeshBasicMaterial({ color }));
+      ball.position.z = 12;
+      const pin = new THREE.Line(
+        new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(0, 0, 0), new THREE.Vector3(0, 0, 12)]),
+        new THREE.LineBasicMaterial({ color }),
+      );
+      marker.add(ball, pin);
       fleetGroup.add(line, marker);
       v = { line, marker, color };
       state.vehicles.set(s.id, v);
