@@ -52,6 +52,14 @@ class RegistrationSettings(BaseModel):
         default=True, description="drop low-probability moving points before matching (Alg. 1)"
     )
     svd_refinement: bool = Field(default=True, description="the paper's Algorithm 3 step")
+    svd_correspondences: Literal["nearest", "voxel"] = Field(
+        default="nearest",
+        description="Algorithm 3's partners: the nearest reference point's local plane (KD-tree), "
+        "or the most probable finest-level voxel's plane (faster, less accurate: docs/registration.md)",
+    )
+    svd_normal_neighbors: int = Field(
+        default=16, ge=3, description="reference points per local plane of the SVD step's partners"
+    )
     svd_iterations: int = Field(default=30, ge=1)
     svd_translation_eps_m: float = Field(default=1e-4, gt=0, description="SVD step stops below this")
     svd_rotation_eps_rad: float = Field(default=1e-5, gt=0)

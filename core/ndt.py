@@ -26,17 +26,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core import kernels
 from core.transforms import apply_update, transform_points
-from core.voxel import VoxelGaussianMap
+from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap
 
 __all__ = [
     "NdtConstants",
     "NdtEvaluation",
     "ndt_constants",
     "ndt_cost",
+    "ndt_cost_numpy",
     "ndt_derivatives",
+    "ndt_derivatives_numpy",
     "ndt_newton",
     "ndt_point_scores",
+    "ndt_point_scores_numpy",
 ]
 
 
@@ -97,27 +101,27 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-def ndt_cost(
+def ndt_cost_numpy(
     points_xyz: np.ndarray,
     T: np.ndarray,
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
 ) -> float:
-    """The NDT cost ``f(T)`` (module docstring) of ``points_xyz`` moved by ``T``."""
+    """The NDT cost ``f(T)`` (module docstring), vectorized numpy reference of :func:`ndt_cost`."""
     q = transform_points(T, points_xyz)
     _, _, _, m = _pairs(q, gmap, n_neighbors, consts.d2)
     return float(consts.d1 * np.exp(-0.5 * consts.d2 * m).sum())
 
 
-def ndt_derivatives(
+def ndt_derivatives_numpy(
     points_xyz: np.ndarray,
     T: np.ndarray,
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
 ) -> NdtEvaluation:
-    """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13)."""
+    """Vectorized numpy reference of :func:`ndt_derivatives` (one row per point-voxel pair)."""
     q_all = transform_points(T, points_xyz)
     pidx, W, y, m = _pairs(q_all, gmap, n_neighbors, consts.d2)
     q = q_all[pidx]
@@ -145,14 +149,14 @@ def ndt_derivatives(
     )
 
 
-def ndt_point_scores(
+def ndt_point_scores_numpy(
     points_xyz: np.ndarray,
     T: np.ndarray,
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-point scores as Autoware reports them.
+    """Vectorized numpy reference of :func:`ndt_point_scores`.
 
     Returns
     -------
@@ -169,6 +173,98 @@ def ndt_point_scores(
     np.maximum.at(score_max, pidx, s)
     best_m = np.full(n, np.inf)
     np.minimum.at(best_m, pidx, m)
+    return score_sum, score_max, best_m
+
+
+def _kernel_args(points_xyz: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int):
+    return (
+        np.ascontiguousarray(points_xyz, dtype=np.float64),
+        np.ascontiguousarray(T[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(T[:3, 3], dtype=np.float64),
+        *gmap.hash_table,
+        gmap.means,
+        gmap.inv_covariances,
+        float(gmap.voxel_size_m),
+        NEIGHBOR_OFFSETS[n_neighbors],
+    )
+
+
+def ndt_cost(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> float:
+    """The NDT cost ``f(T)`` (module docstring) of ``points_xyz`` moved by ``T`` (compiled kernel)."""
+    g, h = np.empty(6), np.empty((6, 6))
+    cost, _ = kernels.ndt_accumulate(
+        *_kernel_args(points_xyz, T, gmap, n_neighbors),
+        consts.d1,
+        consts.d2,
+        2.0 * _PRUNE / consts.d2,
+        False,
+        g,
+        h,
+        h,
+    )
+    return float(cost)
+
+
+def ndt_derivatives(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> NdtEvaluation:
+    """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13).
+
+    One fused pass of :func:`core.kernels.ndt_accumulate`; :func:`ndt_derivatives_numpy` is the
+    vectorized reference it is tested against.
+    """
+    grad, hess, gn = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+    cost, n_pairs = kernels.ndt_accumulate(
+        *_kernel_args(points_xyz, T, gmap, n_neighbors),
+        consts.d1,
+        consts.d2,
+        2.0 * _PRUNE / consts.d2,
+        True,
+        grad,
+        hess,
+        gn,
+    )
+    return NdtEvaluation(
+        cost=float(cost), gradient=grad, hessian=hess, gauss_newton_hessian=gn, n_pairs=int(n_pairs)
+    )
+
+
+def ndt_point_scores(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-point scores as Autoware reports them (compiled kernel).
+
+    Returns
+    -------
+    score_sum : (N,) sum over neighbour voxels of ``-d1 exp(-d2 m / 2)`` (>= 0)
+    score_max : (N,) the largest single-voxel term (0 where no voxel is near)
+    best_m : (N,) squared Mahalanobis distance to the best voxel (``inf`` where none)
+    """
+    n = points_xyz.shape[0]
+    score_sum, score_max, best_m = np.empty(n), np.empty(n), np.empty(n)
+    kernels.ndt_scores(
+        *_kernel_args(points_xyz, T, gmap, n_neighbors),
+        consts.d1,
+        consts.d2,
+        2.0 * _PRUNE / consts.d2,
+        score_sum,
+        score_max,
+        best_m,
+    )
     return score_sum, score_max, best_m
 
 

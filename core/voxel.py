@@ -9,6 +9,7 @@ the sorted key array. There is no Python loop over points or voxels.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -110,6 +111,13 @@ class VoxelGaussianMap:
     @property
     def n_voxels(self) -> int:
         return int(self.keys.size)
+
+    @cached_property
+    def hash_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """Open-addressing table over :attr:`keys` for the compiled kernels (built on first use)."""
+        from core.kernels import build_hash
+
+        return build_hash(self.keys)
 
     @classmethod
     def build(
