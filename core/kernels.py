@@ -4,10 +4,10 @@ Why a compiled kernel here (the standards allow one when justified): the NDT sco
 Hessian are sums over (point, neighbour voxel) pairs. In numpy every pair becomes a row of several
 (P,3), (P,3,3) and (P,6) temporaries: about 15 ms per evaluation for a KITTI sweep's 7k points and
 7 neighbours, 20-40 evaluations per registration, which made RANDT 3-5x slower than small_gicp.
-Fused into one pass over the points with no temporaries, the same sums take about 1 ms. The same
-holds for voxel downsampling: a sort (``np.unique``) per call costs more than one hash pass.
+Fused into one pass over the points with no temporaries, the same sums take 1-3 ms. Voxel
+downsampling stays numpy: ``np.unique`` already hashes, and a compiled hash pass measured no faster.
 
-Every kernel has a numpy twin that stays the reference: ``core.ndt`` keeps the vectorized
+The NDT kernels have numpy twins that stay the reference: ``core.ndt`` keeps the vectorized
 formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
 kernels against it to round-off on real scans. Kernels are compiled on first use and cached on
 disk (numba ``cache=True``), so a process pays the compile time (a few seconds) once per machine.
