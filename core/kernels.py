@@ -136,10 +136,9 @@ def ndt_accumulate(
             x0 = q0 - means[v, 0]
             x1 = q1 - means[v, 1]
             x2 = q2 - means[v, 2]
-            M = inv_cov[v]
-            a0 = M[0, 0] * x0 + M[0, 1] * x1 + M[0, 2] * x2
-            a1 = M[1, 0] * x0 + M[1, 1] * x1 + M[1, 2] * x2
-            a2 = M[2, 0] * x0 + M[2, 1] * x1 + M[2, 2] * x2
+            a0 = inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2
+            a1 = inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2
+            a2 = inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2
             m = x0 * a0 + x1 * a1 + x2 * a2
             if m >= m_max:
                 continue
@@ -162,7 +161,11 @@ def ndt_accumulate(
             Jr[2, 0], Jr[2, 1], Jr[2, 2] = q1, -q0, 0.0
             for r in range(3):
                 for c in range(3):
-                    MJ[r, c] = M[r, 0] * Jr[0, c] + M[r, 1] * Jr[1, c] + M[r, 2] * Jr[2, c]
+                    MJ[r, c] = (
+                        inv_cov[v, r, 0] * Jr[0, c]
+                        + inv_cov[v, r, 1] * Jr[1, c]
+                        + inv_cov[v, r, 2] * Jr[2, c]
+                    )
             wd2 = w * d2
             aq = a0 * q0 + a1 * q1 + a2 * q2
             aa = (a0, a1, a2)
@@ -170,7 +173,7 @@ def ndt_accumulate(
             for r in range(3):
                 for c in range(r, 3):
                     # translation-translation: Sigma^-1
-                    s = w * M[r, c]
+                    s = w * inv_cov[v, r, c]
                     G[r, c] += s
                     H[r, c] += s - wd2 * ja[r] * ja[c]
                     # rotation-rotation: Jr^T Sigma^-1 Jr + S(a, q)
@@ -234,11 +237,10 @@ def ndt_scores(
             x0 = q0 - means[v, 0]
             x1 = q1 - means[v, 1]
             x2 = q2 - means[v, 2]
-            M = inv_cov[v]
             m = (
-                x0 * (M[0, 0] * x0 + M[0, 1] * x1 + M[0, 2] * x2)
-                + x1 * (M[1, 0] * x0 + M[1, 1] * x1 + M[1, 2] * x2)
-                + x2 * (M[2, 0] * x0 + M[2, 1] * x1 + M[2, 2] * x2)
+                x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
+                + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
+                + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
             )
             if m >= m_max:
                 continue
@@ -284,11 +286,10 @@ def best_voxel(
             x0 = q0 - means[v, 0]
             x1 = q1 - means[v, 1]
             x2 = q2 - means[v, 2]
-            M = inv_cov[v]
             m = (
-                x0 * (M[0, 0] * x0 + M[0, 1] * x1 + M[0, 2] * x2)
-                + x1 * (M[1, 0] * x0 + M[1, 1] * x1 + M[1, 2] * x2)
-                + x2 * (M[2, 0] * x0 + M[2, 1] * x1 + M[2, 2] * x2)
+                x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
+                + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
+                + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
             )
             if m < best_m:
                 best, best_m = v, m
