@@ -97,3 +97,21 @@ def git_line() -> str:
 
 def heading(text: str, markdown: bool) -> str:
     return f"\n### {text}\n" if markdown else f"\n== {text} =="
+
+
+def warm_up() -> float:
+    """Compile our numba kernels (core/kernels.py) before anything is timed; returns seconds taken.
+
+    The peers ship compiled code, so their first call costs nothing extra; ours compiles on first
+    use (or loads numba's on-disk cache). One registration of a small synthetic room runs every
+    kernel once.
+    """
+    import time
+
+    from core.protocol import synthetic_room
+    from core.registration import register
+
+    t0 = time.perf_counter()
+    room = synthetic_room(np.random.default_rng(0))
+    register(room + [0.2, 0.1, 0.0], room)
+    return time.perf_counter() - t0

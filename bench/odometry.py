@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import common
 import numpy as np
-from common import git_line, heading, machine_line, progress, table, version
+from common import git_line, heading, machine_line, progress, table, version, warm_up
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 
@@ -233,6 +233,7 @@ def main() -> None:
     print(machine_line({"kiss-icp": version("kiss-icp")}))
     print(f"{git_line()}; run on {datetime.date.today().isoformat()}; data: {data_root()}")
     print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
+    print(f"kernel warm-up (numba compile or cache load, not timed): {warm_up():.1f} s")
     for line in kitti_section(args.markdown):
         print(line)
     if not args.no_sim:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import small_gicp
-from common import git_line, heading, machine_line, progress, table, version
+from common import git_line, heading, machine_line, progress, table, version, warm_up
 
 from core.config import RegistrationSettings
 from core.errors import DegenerateProblemError, RegistrationFailedError
@@ -341,6 +341,7 @@ def main() -> None:
     print(machine_line({"small_gicp": version("small_gicp"), "open3d": o3d.__version__}))
     print(f"{git_line()}; run on {datetime.date.today().isoformat()}; data: {data_root()}")
     print(f"1-min load average at start: {os.getloadavg()[0]:.2f} (other processes share the cores)")
+    print(f"kernel warm-up (numba compile or cache load, not timed): {warm_up():.1f} s")
 
     pairs, skipped = load_pairs()
     kitti, skipped_kitti = load_kitti()
