@@ -2,8 +2,8 @@
 
 Every format carries float32 ``x y z intensity`` in the map frame, as the store's tiles do:
 
-* **PCD** v0.7 binary, the header :func:`core.io.write_pcd` writes (PCL, Open3D, Autoware,
-  CloudCompare);
+* **PCD** v0.7 binary, the same bytes :func:`core.io.write_pcd` writes for the store's tiles
+  (PCL, Open3D, Autoware, CloudCompare);
 * **PLY** binary little-endian with ``float x, y, z, intensity`` (Open3D, CloudCompare, MeshLab);
 * **LAS** 1.4, point format 6 (QGIS, PDAL, CloudCompare, LAStools), written by laspy. LAS stores
   integer coordinates with a scale: 0.1 mm here, far below float32's resolution at map
@@ -48,8 +48,9 @@ Chunk = tuple[np.ndarray, np.ndarray]  # (N, 3) float32 xyz, (N,) float32 intens
 
 
 def _pcd_header(n_points: int) -> bytes:
+    # Byte for byte the header pypcd4 writes for the store's tiles (core.io.write_pcd), so a
+    # downloaded tile equals the store's file.
     return (
-        "# .PCD v0.7 - Point Cloud Data file format\n"
         "VERSION 0.7\n"
         "FIELDS x y z intensity\n"
         "SIZE 4 4 4 4\n"
@@ -57,7 +58,7 @@ def _pcd_header(n_points: int) -> bytes:
         "COUNT 1 1 1 1\n"
         f"WIDTH {n_points}\n"
         "HEIGHT 1\n"
-        "VIEWPOINT 0 0 0 1 0 0 0\n"
+        "VIEWPOINT 0.0 0.0 0.0 1.0 0.0 0.0 0.0\n"
         f"POINTS {n_points}\n"
         "DATA binary\n"
     ).encode("ascii")

@@ -291,6 +291,7 @@ def test_tile_pcd_matches_the_store_and_opens_in_open3d(served, tmp_path) -> Non
     stored = _open3d_points(stored_file)
     assert got.shape == (tile.n_points, 3)
     np.testing.assert_array_equal(got, stored)  # the same points, in the same order
+    assert r.content == stored_file.read_bytes()  # indeed the same file
     ours = read_cloud(downloaded)
     np.testing.assert_array_equal(ours.intensity, read_cloud(stored_file).intensity)
 
