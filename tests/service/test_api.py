@@ -182,6 +182,11 @@ def test_unknown_session_and_invalid_ids(served) -> None:
     # an encoded slash or dot-dot cannot name a file: no route matches, or the name is refused
     for path in ("/sessions/..%2F..%2Fetc/passwd", "/maps/..%2F..%2Fetc/tiles", "/maps/../tiles"):
         assert client.get(path).status_code in (404, 422), path
+    # the viewer's static files stay inside service/static
+    for path in ("/static/%2e%2e/app.py", "/static/..%2Fapp.py", "/static/%2e%2e/%2e%2e/pyproject.toml"):
+        r = client.get(path)
+        assert r.status_code == 404 and "create_app" not in r.text and "[project]" not in r.text, path
+    assert client.get("/static/viewer.js").status_code == 200
 
 
 # ------------------------------------------------------------------------------ metrics
