@@ -85,11 +85,11 @@ def test_config_dumps_defaults() -> None:
     assert doc["method"] == "randt" and doc["iqr_k"] == 1.5 and doc["n_neighbors"] == 7
 
 
-def test_demo_main_job_reports_small_errors(tmp_path) -> None:
-    """The README's first command: every method recovers the synthetic room's known transform."""
+def test_demo_register_reports_small_errors(tmp_path) -> None:
+    """The offline registration demo: every method recovers the synthetic room's known transform."""
     import re
 
-    proc = _randt("demo", "--data-dir", str(tmp_path / "no-data-here"))
+    proc = _randt("demo-register", "--data-dir", str(tmp_path / "no-data-here"))
     assert proc.returncode == 0, proc.stderr
     rows = re.findall(r"^\s+(\S+)\s+error\s+([\d.]+) cm\s+([\d.]+) deg", proc.stdout, flags=re.M)
     assert [r[0] for r in rows] == ["randt", "ndt", "icp-point", "icp-plane"]
