@@ -475,3 +475,31 @@ def test_settings_refuse_protected_reads_without_a_token(tmp_path) -> None:
         ServiceSettings(data_dir=tmp_path, protect_reads=True)
     with pytest.raises(ValidationError):
         ServiceSettings(data_dir=tmp_path, api_token="short")
+
+
+def test_after_a_restart_stored_sessions_are_idle_and_can_be_closed(tmp_path) -> None:
+    room = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
+    with live_server(tmp_path / "data", api_token=TOKEN) as first:
+        for seq in (0, 1):
+            first.service.sessions.submit(
+                "car7", encode(scan_from_arrays("car7", "d1", seq, seq * 10**8, room))
+            )
+        wait_answers(first.service, 2)
+        poses_before = first.service.sessions.trajectory("car7", "d1")[1]
+    with (
+        live_server(tmp_path / "data", api_token=TOKEN) as second,
+        httpx.Client(base_url=second.url) as client,
+    ):
+        (listed,) = client.get("/sessions").json()
+        assert listed["id"] == "car7/d1" and listed["state"] == "idle" and listed["scans"] == 2
+        detail = client.get("/sessions/car7/d1").json()
+        np.testing.assert_allclose(detail["last_pose"], poses_before[-1], atol=1e-12)
+        assert detail["drift_m"] is None and detail["lag"]["idle_s"] is None
+        traj = client.get("/sessions/car7/d1/trajectory").json()
+        np.testing.assert_allclose([p["stamp_s"] for p in traj["poses"]], [0.0, 0.1])
+        assert [m["name"] for m in client.get("/maps").json()["maps"]] == ["car7.d1"]
+        closed = client.post("/sessions/car7/d1/close", headers=AUTH).json()
+        assert closed == {"id": "car7/d1", "state": "closed", "scans": 2, "changed": True}
+        assert client.get("/sessions/car7/d1").json()["state"] == "closed"
+        stored = json.loads((tmp_path / "data/sessions/car7/d1/session.json").read_text())
+        assert stored["state"] == "closed"
