@@ -9,8 +9,10 @@ downsampling stays numpy: ``np.unique`` already hashes, and a compiled hash pass
 
 The NDT kernels have numpy twins that stay the reference: ``core.ndt`` keeps the vectorized
 formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
-kernels against it to round-off on real scans. Kernels are compiled on first use and cached on
-disk (numba ``cache=True``), so a process pays the compile time (a few seconds) once per machine.
+kernels against it to round-off on real scans. The kernels release the GIL (``nogil``), so the
+service's per-session worker threads run them on several cores at once. Kernels are compiled on
+first use and cached on disk (numba ``cache=True``), so a process pays the compile time (a few
+seconds) once per machine.
 
 Voxel keys are packed exactly as :func:`core.voxel.pack_keys` packs them (21 bits per axis); a map's
 keys go into an open-addressing hash table (:func:`build_hash`, built once per map), so a lookup
@@ -50,7 +52,7 @@ def _slot(key: int, mask: int) -> int:
     return k & mask
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def build_hash(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Open-addressing table (keys, indices) over ``keys``, at most half full; empty slots hold -1."""
     cap = 16
@@ -84,7 +86,7 @@ def _find(table_key: np.ndarray, table_idx: np.ndarray, key: int) -> int:
         h = (h + 1) & mask
 
 
-@nb.njit(cache=True, fastmath=False)
+@nb.njit(cache=True, nogil=True)
 def ndt_accumulate(
     points: np.ndarray,
     R: np.ndarray,
@@ -201,7 +203,7 @@ def ndt_accumulate(
     return cost, n_pairs
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def ndt_scores(
     points: np.ndarray,
     R: np.ndarray,
@@ -253,7 +255,7 @@ def ndt_scores(
         best_m[i] = b_m
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def best_voxel(
     points: np.ndarray,
     R: np.ndarray,
