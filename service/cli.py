@@ -534,14 +534,14 @@ def simulate(
     vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles, each its own session.")] = 3,
     duration: Annotated[
         float, typer.Option(min=0.1, help="Simulated seconds of driving per vehicle.")
-    ] = 15.0,
+    ] = 10.0,
     connect: ConnectOption = None,
     mode: ModeOption = None,
     speed: Annotated[float, typer.Option(min=0.0, help="Mean speed, m/s.")] = 6.0,
     rate: Annotated[float, typer.Option(min=0.1, help="LiDAR sweeps per simulated second.")] = 10.0,
     azimuth: Annotated[
         int, typer.Option(min=100, help="Firings per revolution (2000: a real HDL-64E, ~120k points).")
-    ] = 1000,
+    ] = 2000,
     window: Annotated[
         int, typer.Option(min=0, help="Unanswered scans per vehicle at most; 0 = real time, no flow control.")
     ] = 2,
@@ -796,7 +796,7 @@ def demo(
     vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles.")] = 3,
     duration: Annotated[
         float, typer.Option(min=0.5, help="Simulated seconds of driving per vehicle.")
-    ] = 15.0,
+    ] = 10.0,
     exit_: Annotated[
         bool, typer.Option("--exit", help="Stop after the summary instead of serving on.")
     ] = False,
@@ -806,7 +806,7 @@ def demo(
     http_port: Annotated[int, typer.Option(help="HTTP port (a free one if taken; 0 = any).")] = 8080,
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port (a free one if taken; 0 = any).")] = 7447,
     speed: Annotated[float, typer.Option(min=0.0, help="Mean speed of the vehicles, m/s.")] = 6.0,
-    azimuth: Annotated[int, typer.Option(min=100, help="LiDAR firings per revolution.")] = 1000,
+    azimuth: Annotated[int, typer.Option(min=100, help="LiDAR firings per revolution.")] = 2000,
     progress: Annotated[bool, typer.Option(help="Show the fleet's progress bar.")] = True,
 ) -> None:
     """The fleet demo: the service, a simulated fleet, errors against ground truth, then the map.
@@ -831,6 +831,7 @@ def demo(
     from service.settings import ServiceSettings
 
     data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
+    logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
     zport, z_ok = _usable_port(zenoh_port)
     hport, h_ok = _usable_port(http_port)
     for name, wanted, got, ok in (("Zenoh", zenoh_port, zport, z_ok), ("HTTP", http_port, hport, h_ok)):
@@ -873,9 +874,10 @@ def demo(
         n_scans = max(1, round(duration * 10.0))
         typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}")
         typer.echo(
-            f"simulating {vehicles} vehicles for {duration:g} s each ({n_scans} sweeps of a {azimuth}-firing "
-            f"64-beam LiDAR at 10 Hz, {speed:g} m/s; at most 2 scans in flight per vehicle, so none is "
-            "dropped)..."
+            f"simulating {vehicles} vehicles for {duration:g} s each: {n_scans} sweeps of a 64-beam LiDAR "
+            f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s; each vehicle waits for its answers "
+            "(at most 2 scans in flight), so no scan is dropped and simulated time runs slower than real "
+            "time..."
         )
         cmd = [
             sys.executable, "-m", "service.cli", "simulate",
