@@ -101,6 +101,7 @@ def ndt_accumulate(
     d2: float,
     m_max: float,
     derivatives: bool,
+    pivot: np.ndarray,
     out_grad: np.ndarray,
     out_hess: np.ndarray,
     out_gn: np.ndarray,
@@ -108,9 +109,10 @@ def ndt_accumulate(
     """NDT cost (and, with ``derivatives``, gradient and Hessians) of ``R p + t`` in one pass.
 
     The formulas are those of :mod:`core.ndt` (Magnusson eq. 6.12-6.13 with the left
-    perturbation): per pair, ``x = q - mu``, ``a = Sigma^-1 x``, ``m = x.a`` (pairs with
-    ``m >= m_max`` pruned), ``e = exp(-d2 m / 2)``, cost ``d1 e``, weight ``w = -d1 d2 e``,
-    ``J = [I, -[q]x]``; gradient ``w J^T a``; Hessian ``w (J^T Sigma^-1 J - d2 (J^T a)(J^T a)^T + S)``.
+    perturbation about ``pivot``): per pair, ``x = q - mu``, ``a = Sigma^-1 x``, ``m = x.a``
+    (pairs with ``m >= m_max`` pruned), ``e = exp(-d2 m / 2)``, cost ``d1 e``, weight
+    ``w = -d1 d2 e``, ``J = [I, -[q - pivot]x]``; gradient ``w J^T a``; Hessian
+    ``w (J^T Sigma^-1 J - d2 (J^T a)(J^T a)^T + S)``.
     ``out_grad`` (6,), ``out_hess`` and ``out_gn`` (6,6) are overwritten. Returns (cost, pairs).
     """
     inv_v = 1.0 / voxel_size
@@ -152,15 +154,17 @@ def ndt_accumulate(
             w = -d1 * d2 * e
             # J^T a = (a, q x a)
             ja[0], ja[1], ja[2] = a0, a1, a2
-            ja[3] = q1 * a2 - q2 * a1
-            ja[4] = q2 * a0 - q0 * a2
-            ja[5] = q0 * a1 - q1 * a0
+            # Rotation about the pivot: the lever arm is q - pivot.
+            r0, r1, r2 = q0 - pivot[0], q1 - pivot[1], q2 - pivot[2]
+            ja[3] = r1 * a2 - r2 * a1
+            ja[4] = r2 * a0 - r0 * a2
+            ja[5] = r0 * a1 - r1 * a0
             for r in range(6):
                 g[r] += w * ja[r]
             # Rotation columns of J: e_k x q, i.e. Jr = -[q]x.
-            Jr[0, 0], Jr[0, 1], Jr[0, 2] = 0.0, q2, -q1
-            Jr[1, 0], Jr[1, 1], Jr[1, 2] = -q2, 0.0, q0
-            Jr[2, 0], Jr[2, 1], Jr[2, 2] = q1, -q0, 0.0
+            Jr[0, 0], Jr[0, 1], Jr[0, 2] = 0.0, r2, -r1
+            Jr[1, 0], Jr[1, 1], Jr[1, 2] = -r2, 0.0, r0
+            Jr[2, 0], Jr[2, 1], Jr[2, 2] = r1, -r0, 0.0
             for r in range(3):
                 for c in range(3):
                     MJ[r, c] = (
@@ -169,9 +173,9 @@ def ndt_accumulate(
                         + inv_cov[v, r, 2] * Jr[2, c]
                     )
             wd2 = w * d2
-            aq = a0 * q0 + a1 * q1 + a2 * q2
+            aq = a0 * r0 + a1 * r1 + a2 * r2
             aa = (a0, a1, a2)
-            qq = (q0, q1, q2)
+            qq = (r0, r1, r2)
             for r in range(3):
                 for c in range(r, 3):
                     # translation-translation: Sigma^-1

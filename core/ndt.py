@@ -33,6 +33,7 @@ from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap
 __all__ = [
     "NdtConstants",
     "NdtEvaluation",
+    "apply_update_about",
     "ndt_constants",
     "ndt_cost",
     "ndt_cost_numpy",
@@ -120,11 +121,12 @@ def ndt_derivatives_numpy(
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
+    pivot: np.ndarray | None = None,
 ) -> NdtEvaluation:
     """Vectorized numpy reference of :func:`ndt_derivatives` (one row per point-voxel pair)."""
     q_all = transform_points(T, points_xyz)
     pidx, W, y, m = _pairs(q_all, gmap, n_neighbors, consts.d2)
-    q = q_all[pidx]
+    q = q_all[pidx] - (0.0 if pivot is None else pivot)  # lever arms of the rotation
     e = np.exp(-0.5 * consts.d2 * m)
     cost = float(consts.d1 * e.sum())
     w = -consts.d1 * consts.d2 * e
@@ -176,6 +178,16 @@ def ndt_point_scores_numpy(
     return score_sum, score_max, best_m
 
 
+_ORIGIN = np.zeros(3)
+
+
+def apply_update_about(delta: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """Left-update ``T`` by ``delta = (t, r)`` rotating about ``pivot``: ``q -> R(r)(q - c) + c + t``."""
+    U = apply_update(delta, np.eye(4))
+    U[:3, 3] += pivot - U[:3, :3] @ pivot
+    return U @ T
+
+
 def _kernel_args(points_xyz: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int):
     return (
         np.ascontiguousarray(points_xyz, dtype=np.float64),
@@ -204,6 +216,7 @@ def ndt_cost(
         consts.d2,
         2.0 * _PRUNE / consts.d2,
         False,
+        _ORIGIN,
         g,
         h,
         h,
@@ -217,8 +230,12 @@ def ndt_derivatives(
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
+    pivot: np.ndarray | None = None,
 ) -> NdtEvaluation:
     """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13).
+
+    Derivatives are w.r.t. the left perturbation about ``pivot`` (target frame; the origin when
+    ``None``): ``x(delta) = R(r) (q - pivot) + pivot + t - mu`` (:func:`apply_update_about`).
 
     One fused pass of :func:`core.kernels.ndt_accumulate`; :func:`ndt_derivatives_numpy` is the
     vectorized reference it is tested against.
@@ -230,6 +247,7 @@ def ndt_derivatives(
         consts.d2,
         2.0 * _PRUNE / consts.d2,
         True,
+        _ORIGIN if pivot is None else np.ascontiguousarray(pivot, dtype=np.float64),
         grad,
         hess,
         gn,
@@ -309,7 +327,11 @@ def ndt_newton(
     if max_step_m is None:
         max_step_m = gmap.voxel_size_m
     T = T_init.copy()
-    ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors)
+    # Rotate about the moving points' centroid, not the target frame's origin: hundreds of metres
+    # from the origin (a long drive, georeferenced maps) a rotation about the origin is mostly a
+    # translation, and the clamped, eigenvalue-floored Newton step then stalls in yaw.
+    pivot = transform_points(T, points_xyz.mean(axis=0, keepdims=True))[0]
+    ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors, pivot)
     converged = False
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 - iterations count is returned
@@ -326,16 +348,16 @@ def ndt_newton(
         # Full step first, evaluated with derivatives (reused when accepted, the common case);
         # then Armijo backtracking on the cheaper cost alone.
         alpha = 1.0
-        T_try = apply_update(step, T)
-        ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors)
+        T_try = apply_update_about(step, T, pivot)
+        ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot)
         accepted = ev_try.cost <= ev.cost + 1e-4 * slope
         if not accepted:
             for _ in range(8):
                 alpha *= 0.5
-                T_try = apply_update(alpha * step, T)
+                T_try = apply_update_about(alpha * step, T, pivot)
                 if ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors) <= ev.cost + 1e-4 * alpha * slope:
                     accepted = True
-                    ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors)
+                    ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot)
                     break
         if not accepted:
             # No decrease along a descent direction: we sit at a (numerical) minimum.

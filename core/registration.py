@@ -30,11 +30,10 @@ from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from core.icp import icp_point_to_plane, icp_point_to_point
 from core.kernels import best_voxel
-from core.ndt import ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
+from core.ndt import apply_update_about, ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
 from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
 from core.svd import kabsch
 from core.transforms import (
-    apply_update,
     as_transform,
     invert,
     orthonormalize,
@@ -325,14 +324,17 @@ def _svd_refine(
     for it in range(1, settings.svd_iterations + 1):
         D = kabsch(q, proj)
         T = D @ T
-        step = np.concatenate([D[:3, 3], Rotation.from_matrix(D[:3, :3]).as_rotvec()])
+        # The step as a rotation about the matched points' centroid (not the frame's origin,
+        # which may be far away) and the centroid's translation.
+        c = q.mean(axis=0)
+        step = np.concatenate([D[:3, :3] @ c + D[:3, 3] - c, Rotation.from_matrix(D[:3, :3]).as_rotvec()])
         if (
             np.linalg.norm(step[:3]) < settings.svd_translation_eps_m
             and np.linalg.norm(step[3:]) < settings.svd_rotation_eps_rad
         ):
             q, proj, r = pairs(T)
             break
-        T, previous = _extrapolate(T, step, previous, radius)
+        T, previous = _extrapolate(T, step, previous, radius, c)
         q, proj, r = pairs(T)
         if q.shape[0] < 10:
             return T, it, rmse_before, np.inf
@@ -344,7 +346,7 @@ _MAX_EXTRAPOLATION = 8.0
 
 
 def _extrapolate(
-    T: np.ndarray, step: np.ndarray, previous: np.ndarray | None, radius: float
+    T: np.ndarray, step: np.ndarray, previous: np.ndarray | None, radius: float, pivot: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Besl & McKay's accelerated ICP, applied to the SVD step's fixed-point iteration.
 
@@ -363,7 +365,7 @@ def _extrapolate(
     if nu == 0.0 or nv == 0.0 or float(u @ previous) < 0.985 * nu * nv or nu >= nv:
         return T, u
     rho = nu / nv
-    return apply_update(min(rho / (1.0 - rho), _MAX_EXTRAPOLATION) * step, T), None
+    return apply_update_about(min(rho / (1.0 - rho), _MAX_EXTRAPOLATION) * step, T, pivot), None
 
 
 def _svd_refine_voxel(
