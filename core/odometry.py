@@ -246,7 +246,38 @@ class IncrementalMatcher:
         time_offset_s: np.ndarray | None = None,
         prior: PosePrior | None = None,
     ) -> ScanResult:
-        """Register one sweep (sensor frame) and return its :class:`ScanResult`."""
+        """Register one sweep (sensor frame) and return its :class:`ScanResult`.
+
+        All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model), the
+        matcher is left exactly as it was, so the session's poses and stamps stay in step.
+        """
+        saved = (
+            len(self.poses),
+            self._delta.copy(),
+            list(self._keyframes),
+            self._model,
+            self._last_keyframe_pose,
+            list(self._recent_inliers),
+            self._first_raw,
+        )
+        try:
+            return self._register_scan(points_xyz, time_offset_s=time_offset_s, prior=prior)
+        except BaseException:
+            n, self._delta, keyframes, self._model, self._last_keyframe_pose, recent, self._first_raw = saved
+            del self.poses[n:]
+            self._keyframes.clear()
+            self._keyframes.extend(keyframes)
+            self._recent_inliers.clear()
+            self._recent_inliers.extend(recent)
+            raise
+
+    def _register_scan(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None,
+        prior: PosePrior | None,
+    ) -> ScanResult:
         t_start = time.perf_counter()
         times: dict[str, float] = {}
         s = self.settings

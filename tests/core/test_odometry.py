@@ -144,3 +144,27 @@ def test_state_dict_resumes_the_same_trajectory(kitti00) -> None:
         ra, rb = a.register_scan(s), b.register_scan(s)
         np.testing.assert_allclose(rb.T_world_sensor, ra.T_world_sensor, atol=1e-9)
     assert len(b.poses) == 9
+
+
+def test_a_failing_scan_leaves_the_matcher_unchanged() -> None:
+    """A first sweep too sparse to model raises and leaves no pose behind (poses and the caller's
+    stamps stay in step); a later failure leaves poses, velocity and model as they were."""
+    rng = np.random.default_rng(4)
+    matcher = IncrementalMatcher(MatcherSettings(voxel_sizes_m=(2.0, 1.0, 0.5)))
+    sparse = rng.uniform(-50, 50, size=(40, 3))  # no voxel holds enough points for a Gaussian
+    with pytest.raises(InvalidCloudError):
+        matcher.register_scan(sparse)
+    assert matcher.poses == [] and matcher.model_size == 0
+    room = synthetic_room(rng)
+    step = make_transform(translation=(0.3, 0.0, 0.0))
+    for T in (np.eye(4), step):
+        assert matcher.register_scan(transform_points(invert(T), room)).status in ("first", "ok")
+    before = matcher.state_dict()
+    with pytest.raises(InvalidCloudError):
+        matcher.register_scan(np.full((50, 3), np.nan))
+    after = matcher.state_dict()
+    assert before.keys() == after.keys()
+    for key in before:
+        np.testing.assert_array_equal(before[key], after[key], err_msg=key)
+    r = matcher.register_scan(transform_points(invert(step @ step), room))
+    assert r.index == 2 and r.status == "ok"
