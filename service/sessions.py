@@ -273,6 +273,9 @@ class SessionManager:
             if worker is None:
                 try:
                     worker = self._open_session(scan)
+                except BadMessageError as exc:
+                    self.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
+                    return
                 except RandtError as exc:
                     self.reject(scan.vehicle, scan.session, scan.seq, "session_error", str(exc))
                     return
@@ -334,7 +337,16 @@ class SessionManager:
         key = (scan.vehicle, scan.session)
         matcher = IncrementalMatcher()
         record = self._records.get(key)
-        if record is not None and record.state == "active":
+        if record is not None and record.state == "closed":
+            # Its trajectory and state are on disk; reopening would overwrite them.
+            raise BadMessageError(
+                f"session {scan.session!r} of vehicle {scan.vehicle!r} was closed: "
+                "publish under a new session id",
+                code="session_closed",
+            )
+        if record is not None and record.state in ("active", "expired"):
+            # Active: the service restarted. Expired: the vehicle paused longer than the idle
+            # expiry and came back. Either way the session resumes where it stopped.
             _, stamps, poses, state = self.store.load_session(*key)
             matcher.load_state_dict(state)
             info = SessionState(

@@ -142,3 +142,44 @@ def test_overload_drops_the_oldest_and_answers_it(tmp_path) -> None:
         assert mgr.metrics.registry.get_sample_value("randt_scans_dropped_total") == len(dropped)
     finally:
         mgr.stop()
+
+
+def test_a_closed_session_is_not_reopened_and_an_expired_one_resumes(tmp_path) -> None:
+    """Scans for a closed session are refused (reopening would overwrite its saved trajectory);
+    a session that expired while its vehicle paused resumes where it stopped."""
+    out: list[object] = []
+    settings = ServiceSettings(data_dir=tmp_path, idle_expiry_s=2.0, flush_interval_s=0.1)
+    store = Store(tmp_path)
+    mgr = SessionManager(settings, store, out.append, ServiceMetrics())
+    try:
+        for seq in (0, 1):
+            mgr.submit("v1", good("v1", seq, "drive"))
+            mgr.submit("v2", good("v2", seq, "drive"))
+        assert mgr.close("v1", "drive")  # drains v1's queue first
+        mgr.submit("v1", good("v1", 2, "drive"))
+        _wait(out, 5)
+        deadline = time.monotonic() + 30
+        while mgr.worker("v2", "drive") is not None and time.monotonic() < deadline:
+            time.sleep(0.05)  # v2 idles past the expiry
+        assert mgr.worker("v2", "drive") is None
+        states = {r.session: r.state for r in store.list_sessions() if r.vehicle == "v2"}
+        assert states == {"drive": "expired"}
+        mgr.submit("v2", good("v2", 1, "drive"))  # a repeat: the resumed session knows its last seq
+        mgr.submit("v2", good("v2", 2, "drive"))
+        _wait(out, 7)
+        answers = sorted(
+            (m.vehicle, m.seq, getattr(m, "code", "pose"))
+            for m in out
+            if isinstance(m, PoseMessage | ErrorMessage)
+        )
+        assert answers == sorted(
+            [("v1", s, "pose") for s in (0, 1)]
+            + [("v2", s, "pose") for s in (0, 1, 2)]
+            + [("v1", 2, "session_closed"), ("v2", 1, "duplicate_seq")]
+        )
+        assert _rejected(mgr, "session_closed") == 1
+        assert len(mgr.worker("v2", "drive").matcher.poses) == 3, "the trajectory continued"
+        v1 = store.load_session("v1", "drive")
+        assert v1.record.state == "closed" and len(v1.poses) == 2, "the closed session is intact"
+    finally:
+        mgr.stop()
