@@ -155,7 +155,33 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
     assert missing.returncode == 2 and "404" in missing.stderr
 
 
+def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from core.io import read_kitti_poses
+    from service.cli import app
+
+    _, _, data, base = demo
+    run = CliRunner().invoke
+    sessions = run(app, ["tiles", "sessions", "--url", base])
+    assert sessions.exit_code == 0, sessions.output
+    rows = [line.split() for line in sessions.output.splitlines()[1:]]
+    assert [r[0].split("/")[0] for r in rows] == ["sim000", "sim001", "sim002"]
+    assert all(r[2] == "default" and int(r[3]) == round(DURATION_S * 10) for r in rows)
+    vehicle, session = rows[0][0].split("/")
+    out = tmp_path / "sim000.txt"
+    traj = run(app, ["tiles", "trajectory", vehicle, session, "--out", str(out), "--url", base])
+    assert traj.exit_code == 0, traj.output
+    assert read_kitti_poses(out).shape == (round(DURATION_S * 10), 4, 4)
+    maps = run(app, ["tiles", "maps", "--url", base])
+    n_pcd = len(list((data / "maps/default").glob("*.pcd")))
+    assert re.search(rf"^default\s+{n_pcd}\s+\d+$", maps.output, flags=re.M), maps.output
+    listing = run(app, ["tiles", "list", "default", "--url", base])
+    assert len(listing.output.splitlines()) == 1 + n_pcd
+
+
 def test_demo_stops_cleanly_on_ctrl_c(demo) -> None:
+    """Last in this module: the other tests use the running demo."""
     proc, _, data, _ = demo
     proc.send_signal(signal.SIGINT)
     assert proc.wait(60) == 0
