@@ -18,13 +18,17 @@ def _cloud(n: int = 500, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).normal(0, 10, (n, 4)).astype(np.float32)
 
 
-def test_every_scan_is_answered_and_counted(restartable_router: Router, fake_service: FakeService) -> None:
+@pytest.mark.parametrize("mode", ["client", "peer"])
+def test_every_scan_is_answered_and_counted(
+    restartable_router: Router, fake_service: FakeService, mode: str
+) -> None:
     poses: list[PoseMessage] = []
     errors: list[ErrorMessage] = []
     done = threading.Event()
     with VehiclePublisher(
         "car-1",
         "drive-a",
+        mode=mode,  # type: ignore[arg-type]
         connect=[restartable_router.endpoint],
         on_pose=poses.append,
         on_error=lambda e: (errors.append(e), done.set()),
