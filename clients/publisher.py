@@ -87,7 +87,25 @@ class PublisherSettings(BaseSettings):
 
 @dataclass
 class PublisherStats:
-    """Counters of one publisher (module docstring: every scan ends in exactly one final state)."""
+    """Counters of one publisher (module docstring: every scan ends in exactly one final state).
+
+    Attributes
+    ----------
+    published:
+        Scans accepted by :meth:`VehiclePublisher.publish`.
+    sent:
+        Scans handed to Zenoh.
+    acknowledged, rejected, dropped, lost:
+        The final states: a pose came back; an error came back (``rejected_codes`` counts them by
+        code, the service's overload drop is ``dropped``); dropped from the full local queue; sent
+        but not answered within ``answer_timeout_s`` (or still pending at :meth:`close`).
+    late:
+        Answers that arrived after their scan was counted as lost (not counted twice).
+    queued, in_flight:
+        Scans waiting to be sent, and sent but not answered yet.
+    outages:
+        Times the service stopped being reachable (no subscriber matched the scan key).
+    """
 
     published: int = 0
     sent: int = 0
@@ -221,6 +239,12 @@ class VehiclePublisher:
         prior_pose, prior_covariance:
             (4, 4) ``T_map_sensor`` from GNSS/INS and its (6, 6) covariance (tx ty tz rx ry rz),
             both or neither. A session whose first scan has a prior joins the shared map.
+
+        Returns
+        -------
+        int
+            The scan's ``seq``. A scan that raises still uses up its number, so ``seq`` stays equal
+            to the number of ``publish`` calls before it.
 
         Raises
         ------
