@@ -253,6 +253,11 @@ class VehiclePublisher:
         RuntimeError
             The publisher is closed.
         """
+        with self._cond:
+            if self._closing:
+                raise RuntimeError("the publisher is closed")
+            seq = self._next_seq
+            self._next_seq += 1
         pts = np.asarray(points)
         if pts.ndim == 2 and pts.shape[1] == 4 and intensity is None:
             pts, intensity = pts[:, :3], pts[:, 3]
@@ -260,11 +265,6 @@ class VehiclePublisher:
             raise BadMessageError(
                 f"points: expected shape (N, 3) or (N, 4), got {pts.shape}", code="invalid_points"
             )
-        with self._cond:
-            if self._closing:
-                raise RuntimeError("the publisher is closed")
-            seq = self._next_seq
-            self._next_seq += 1
         msg = scan_from_arrays(
             self.vehicle,
             self.session,

@@ -57,6 +57,7 @@ def test_bad_arrays_raise_at_once_with_the_service_code(restartable_router: Rout
         assert info.value.code == "nonfinite_points"
         with pytest.raises(BadMessageError):
             pub.publish(np.zeros((10, 2)))
+        assert pub.publish(_cloud()) == 2, "a scan that raised used up its seq"
     with pytest.raises(BadMessageError) as info:
         VehiclePublisher("car/1", connect=[restartable_router.endpoint])
     assert info.value.code == "invalid_id"
