@@ -74,7 +74,7 @@ def make_trial(
 def synthetic_room(rng: np.random.Generator, n: int = 6000) -> np.ndarray:
     """Floor, two walls and a pillar (about 3.5 n points): a scene that constrains all 6 DoF.
 
-    Used where no real data may be assumed (``randt demo`` on a bare machine, unit tests).
+    Used where no real data may be assumed (``randt demo-register`` on a bare machine, unit tests).
     """
     floor = np.c_[rng.uniform(-10, 10, (n, 2)), np.zeros(n)]
     wall_x = np.c_[np.full(n, 10.0), rng.uniform(-10, 10, n), rng.uniform(0, 3, n)]
