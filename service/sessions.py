@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.errors import BadMessageError, RandtError
+from core.errors import BadMessageError, NotFoundError, RandtError
 from core.odometry import IncrementalMatcher, PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
@@ -52,12 +52,16 @@ from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
 from service.store import SessionRecord, Store
 
-__all__ = ["Outbox", "SessionManager", "SessionWorker", "tile_message"]
+__all__ = ["MapInUseError", "Outbox", "SessionManager", "SessionWorker", "tile_message"]
 
 log = logging.getLogger(__name__)
 
 #: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
 Outbox = Callable[[object], None]
+
+
+class MapInUseError(RandtError):
+    """A map cannot be deleted while running sessions fold scans into it."""
 
 
 @dataclass
@@ -237,6 +241,7 @@ class SessionManager:
         self.metrics = metrics or ServiceMetrics()
         self.limits = WireLimits(max_points=settings.max_points, max_payload_bytes=settings.max_payload_bytes)
         self._lock = threading.RLock()
+        self._flush_lock = threading.Lock()  # one flush at a time; map deletion waits for it
         self._workers: dict[tuple[str, str], SessionWorker] = {}
         contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
         for problem in contents.problems:
@@ -381,11 +386,17 @@ class SessionManager:
 
     def flush(self) -> None:
         """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions."""
+        with self._flush_lock:
+            self._flush()
+
+    def _flush(self) -> None:
         with self._lock:
             dirty, self._dirty_tiles = self._dirty_tiles, {}
             workers = list(self._workers.values())
         for map_name, ids in dirty.items():
-            grid = self.maps[map_name]
+            grid = self.maps.get(map_name)
+            if grid is None:  # deleted since its tiles changed
+                continue
             try:
                 self.store.save_tiles(map_name, grid, sorted(ids))
                 self.metrics.tiles_written.inc(len(ids))
@@ -429,6 +440,36 @@ class SessionManager:
             self.metrics.store_errors.inc()
             log.exception("saving session %s/%s failed", *w.key)
             info.dirty = True
+
+    def delete_map(self, map_name: str) -> int:
+        """Delete a map from memory and the store; returns how many tiles it held.
+
+        Raises
+        ------
+        NotFoundError
+            No map of that name is loaded.
+        MapInUseError
+            A running session folds its scans into the map (close those sessions first).
+        """
+        with self._flush_lock, self._lock:
+            users = sorted(
+                f"{w.info.vehicle}/{w.info.session}"
+                for w in self._workers.values()
+                if w.info.map_name == map_name
+            )
+            if users:
+                raise MapInUseError(
+                    f"map {map_name!r} is in use by {len(users)} running session(s) "
+                    f"({', '.join(users[:5])}): close them first"
+                )
+            grid = self.maps.pop(map_name, None)
+            if grid is None:
+                raise NotFoundError(f"map {map_name!r} not found")
+            self._dirty_tiles.pop(map_name, None)
+            n_tiles = len(grid)
+            self.store.delete_map(map_name)
+        log.info("map %s deleted (%d tiles)", map_name, n_tiles)
+        return n_tiles
 
     def close(self, vehicle: str, session: str, *, state: str = "closed") -> bool:
         """Finish a session: process what is queued, save it, stop its worker. False if unknown."""

@@ -56,7 +56,9 @@ import io
 import logging
 import os
 import re
+import shutil
 import threading
+import time
 import weakref
 import zipfile
 from collections.abc import Iterable
@@ -78,6 +80,7 @@ from pydantic import (
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
+from core.io.atomic import fsync_directory
 from core.tiles import AUTOWARE_METADATA_NAME, TileGrid, load_autoware
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
@@ -120,6 +123,7 @@ ProblemKind = Literal["map", "session", "entry"]
 # core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
 # in the target's directory. No name the store writes starts with a dot (NAME_PATTERN, fixed names).
 _TEMP_FILE_RE = re.compile(r"^\..+\.tmp$")
+_DELETED_PREFIX = ".deleted-"  # maps/.deleted-<name>-...: a delete_map that did not finish
 # Keys of matcher.npz that belong to the store, not to the matcher state.
 _RESERVED_PREFIX = "_store_"
 _KEY_RECORD = "_store_record"
@@ -445,8 +449,13 @@ class Store:
             raise RandtError(f"the store at {self._root} is closed")
 
     def _remove_temp_files(self) -> int:
-        """Delete leftover ``.<name>.<random>.tmp`` files under ``maps/`` and ``sessions/``."""
+        """Delete leftover ``.<name>.<random>.tmp`` files under ``maps/`` and ``sessions/``, and
+        the ``maps/.deleted-*`` directories of an interrupted :meth:`delete_map`."""
         removed = 0
+        for entry in self._maps.iterdir():
+            if entry.name.startswith(_DELETED_PREFIX) and entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+                removed += 1
         for top in (self._maps, self._sessions):
             for dirpath, _, filenames in os.walk(top):  # does not follow symlinks
                 for name in filenames:
@@ -558,6 +567,30 @@ class Store:
                 return load_autoware(directory)
             except NotFoundError as exc:  # the metadata exists, so a missing tile is damage
                 raise FormatError(f"map {map_name} is incomplete: {exc}") from exc
+
+    def delete_map(self, map_name: str) -> bool:
+        """Remove a saved map's directory; False if there was none.
+
+        The directory is first renamed to ``maps/.deleted-<name>-<pid>-<ns>`` (one atomic step, so
+        after a crash the map is either whole or gone) and then removed; a leftover ``.deleted-*``
+        directory is removed when the store next opens.
+
+        Raises
+        ------
+        ValueError
+            Invalid ``map_name``.
+        """
+        self._check_open()
+        directory = self.map_dir(map_name)
+        with self._map_lock(map_name):
+            if not directory.is_dir():
+                return False
+            trash = self._maps / f"{_DELETED_PREFIX}{map_name}-{os.getpid()}-{time.time_ns()}"
+            os.replace(directory, trash)
+            fsync_directory(self._maps)
+        shutil.rmtree(trash, ignore_errors=True)
+        logger.info("deleted map %s", map_name)
+        return True
 
     def list_maps(self) -> list[str]:
         """Names of the saved maps (those with a metadata file), sorted."""

@@ -23,7 +23,7 @@ from typing import IO, Any
 
 from core.errors import FormatError
 
-__all__ = ["atomic_open", "atomic_write_bytes"]
+__all__ = ["atomic_open", "atomic_write_bytes", "fsync_directory"]
 
 logger = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ def _default_file_mode() -> int:
 _NEW_FILE_MODE = _default_file_mode()
 
 
-def _fsync_directory(directory: Path) -> None:
+def fsync_directory(directory: Path) -> None:
     """``fsync`` a directory so a rename inside it is durable (best effort, POSIX only)."""
     if not hasattr(os, "O_DIRECTORY"):
         return
@@ -133,7 +133,7 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[A
         if not committed:
             with contextlib.suppress(OSError):
                 tmp.unlink()
-    _fsync_directory(directory)
+    fsync_directory(directory)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:

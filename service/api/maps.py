@@ -31,11 +31,20 @@ from service.api.deps import (
     get_grid,
     get_manager,
     require_reader,
+    require_writer,
 )
 from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, las_file, stream_cloud
-from service.api.models import ErrorBody, MapIndex, MapSummary, TileBoundsModel, TileIndex, TileInfo
+from service.api.models import (
+    DeletedMap,
+    ErrorBody,
+    MapIndex,
+    MapSummary,
+    TileBoundsModel,
+    TileIndex,
+    TileInfo,
+)
 from service.api.views import map_summary
-from service.sessions import SessionManager
+from service.sessions import MapInUseError, SessionManager
 
 __all__ = ["PduCache", "parse_bbox", "router"]
 
@@ -132,6 +141,33 @@ def list_maps(mgr: ManagerDep) -> MapIndex:
 def get_map(map: MapName, mgr: ManagerDep) -> MapSummary:
     """One map: tiles, points, tile and voxel size, extent, the sessions feeding it."""
     return map_summary(map, get_grid(mgr, map), mgr.sessions())
+
+
+@router.delete(
+    "/{map}",
+    response_model=DeletedMap,
+    dependencies=[Depends(require_writer)],
+    responses={
+        **_404,
+        401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
+        403: {"model": ErrorBody, "description": "no RANDT_API_TOKEN configured: mutations are disabled"},
+        409: {"model": ErrorBody, "description": "running sessions fold scans into the map"},
+    },
+)
+def delete_map(map: MapName, mgr: ManagerDep) -> DeletedMap:
+    """Delete a map and its tiles from the store (needs the token).
+
+    Refused with 409 while a running session folds scans into it: close those sessions first.
+    The sessions' trajectories are kept. A later session with a prior pose starts a new
+    ``default`` map.
+    """
+    try:
+        n_tiles = mgr.delete_map(map)
+    except NotFoundError:
+        raise NotFoundHTTPError("map", map) from None
+    except MapInUseError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return DeletedMap(map=map, tiles=n_tiles)
 
 
 @router.get("/{map}/tiles", response_model=TileIndex, responses={**_404, **_422})

@@ -39,6 +39,14 @@ class ErrorBody(BaseModel):
     id: str | None = Field(default=None, description="on a 404: the id that was asked for")
 
 
+class DeletedMap(BaseModel):
+    """The answer to ``DELETE /maps/{map}``."""
+
+    map: str
+    tiles: int = Field(description="tiles the map held")
+    deleted: bool = True
+
+
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
 

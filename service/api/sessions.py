@@ -131,7 +131,7 @@ def close_session(vehicle: VehicleName, session: SessionName, mgr: ManagerDep) -
     """Finish a session: process its queued scans, save it, stop its worker (needs the token).
 
     Closing a finished session changes nothing (``changed: false``). A later scan with the same
-    ids starts a new session.
+    ids is refused (error ``session_closed``): its saved trajectory is never reopened.
     """
     found = find_session(mgr, vehicle, session)
     key = (vehicle, session)

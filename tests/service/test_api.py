@@ -12,6 +12,7 @@ import io
 import itertools
 import json
 import math
+import time
 
 import httpx
 import laspy
@@ -503,3 +504,41 @@ def test_after_a_restart_stored_sessions_are_idle_and_can_be_closed(tmp_path) ->
         assert client.get("/sessions/car7/d1").json()["state"] == "closed"
         stored = json.loads((tmp_path / "data/sessions/car7/d1/session.json").read_text())
         assert stored["state"] == "closed"
+
+
+def test_delete_map_needs_the_token_refuses_a_map_in_use_and_survives_a_restart(tmp_path) -> None:
+    data = tmp_path / "data"
+    room = synthetic_room(np.random.default_rng(5), 3000).astype(np.float32)
+    auth = {"Authorization": f"Bearer {TOKEN}"}
+    metadata = data / "maps/van.d1/pointcloud_map_metadata.yaml"
+    with live_server(data, api_token=TOKEN) as server, httpx.Client(base_url=server.url) as client:
+        mgr = server.service.sessions
+        for seq in range(2):  # no prior: the session's own map, "van.d1"
+            mgr.submit("van", encode(scan_from_arrays("van", "d1", seq, seq * 100_000_000, room)))
+        wait_answers(server.service, 2)
+        deadline = time.monotonic() + 20
+        while not metadata.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        n_tiles = len(mgr.maps["van.d1"])
+        assert n_tiles > 0
+
+        assert client.delete("/maps/van.d1").status_code == 401
+        r = client.delete("/maps/van.d1", headers=auth)
+        assert r.status_code == 409 and "van/d1" in r.json()["detail"], "a running session writes into it"
+        assert client.delete("/maps/nowhere", headers=auth).json() == {
+            "detail": "map 'nowhere' not found",
+            "resource": "map",
+            "id": "nowhere",
+        }
+        assert client.delete("/maps/.deleted-van.d1-1-2", headers=auth).status_code == 422  # not a name
+
+        assert client.post("/sessions/van/d1/close", headers=auth).status_code == 200
+        r = client.delete("/maps/van.d1", headers=auth)
+        assert r.status_code == 200 and r.json() == {"map": "van.d1", "tiles": n_tiles, "deleted": True}
+        assert client.get("/maps/van.d1").status_code == 404
+        assert "van.d1" not in [m["name"] for m in client.get("/maps").json()["maps"]]
+        assert not (data / "maps/van.d1").exists()
+        assert len(client.get("/sessions/van/d1/trajectory").json()["poses"]) == 2, "trajectories stay"
+    with live_server(data, api_token=TOKEN) as server, httpx.Client(base_url=server.url) as client:
+        assert client.get("/maps/van.d1").status_code == 404, "a deleted map does not come back"
+        assert not list((data / "maps").iterdir())

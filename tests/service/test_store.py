@@ -704,3 +704,23 @@ def _main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _main(sys.argv[1:])
+
+
+def test_delete_map_is_atomic_and_an_interrupted_one_is_finished_on_open(tmp_path: Path) -> None:
+    with Store(tmp_path) as store:
+        grid = small_grid()
+        store.save_tiles("keep", grid, grid.tile_ids())
+        store.save_tiles("drop", grid, grid.tile_ids())
+        assert store.delete_map("drop") is True
+        assert store.delete_map("drop") is False  # already gone
+        assert store.list_maps() == ["keep"]
+        assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == ["keep"]
+        with pytest.raises(ValueError):
+            store.delete_map("../sessions")
+    # A crash between the rename and the removal leaves a .deleted-* directory: never listed as a
+    # map, removed when the store opens next.
+    trash = tmp_path / "maps" / ".deleted-keep-1-2"
+    (tmp_path / "maps" / "keep").rename(trash)
+    with Store(tmp_path) as store:
+        assert not trash.exists()
+        assert store.list_maps() == []
