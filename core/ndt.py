@@ -320,12 +320,13 @@ def ndt_newton(
     """Minimise the NDT cost by Newton steps with step-length control.
 
     Each step is the Newton direction of the (positive-definite-ified) analytic Hessian, clamped to
-    ``max_step_m`` (default: the voxel size) and ``max_step_rad``, then halved until the cost
-    decreases (Armijo backtracking, up to 8 halvings). Converged when a step moves less than
+    ``max_step_m`` (default: a quarter voxel, a trust region where the voxel Gaussians still
+    describe the cost; PCL and Autoware clamp to 0.1 m) and ``max_step_rad``, then halved until
+    the cost decreases (Armijo backtracking, up to 8 halvings). Converged when a step moves less than
     ``translation_eps_m`` and ``rotation_eps_rad``.
     """
     if max_step_m is None:
-        max_step_m = gmap.voxel_size_m
+        max_step_m = 0.25 * gmap.voxel_size_m
     T = T_init.copy()
     # Rotate about the moving points' centroid, not the target frame's origin: hundreds of metres
     # from the origin (a long drive, georeferenced maps) a rotation about the origin is mostly a
