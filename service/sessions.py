@@ -4,7 +4,8 @@ Flow of a scan::
 
     transport callback --decode+validate--> SessionManager.submit --seq check--> SessionWorker queue
           (never blocks)                        (errors go to the outbox)         (bounded, drop oldest)
-    SessionWorker thread --> IncrementalMatcher --> map tiles (shared TileGrid) --> pose to the outbox
+    SessionWorker thread --> matcher (a worker process, service/matchers.py) --> map tiles
+        (shared TileGrid) --> pose to the outbox
     flusher thread (every flush_interval_s) --> dirty tiles and session state to the store,
                                                 tile updates to the outbox, idle sessions expired
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -35,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import BadMessageError, NotFoundError, RandtError
-from core.odometry import IncrementalMatcher, PosePrior
+from core.odometry import PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
 from core.wire import (
@@ -48,6 +50,7 @@ from core.wire import (
     peek_seq,
     tile_update_from_arrays,
 )
+from service.matchers import LocalMatcher, MatcherPool, MatcherProcessDiedError, RemoteMatcher
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
 from service.store import SessionRecord, Store
@@ -101,7 +104,7 @@ class SessionWorker:
     def __init__(
         self,
         info: SessionState,
-        matcher: IncrementalMatcher,
+        matcher: LocalMatcher | RemoteMatcher,
         grid: TileGrid,
         manager: SessionManager,
     ) -> None:
@@ -112,6 +115,7 @@ class SessionWorker:
         self._queue: deque[_Job] = deque()
         self._cond = threading.Condition()
         self._stopping = False
+        self.broken = False  # its matcher process died: abandon (not save) and resume from the store
         self.lock = threading.Lock()  # held while the matcher runs; the flusher takes it to save
         self._thread = threading.Thread(
             target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
@@ -155,6 +159,9 @@ class SessionWorker:
                 self._manager.metrics.queue_depth.labels(queue_label(*self.key)).set(len(self._queue))
             try:
                 self._process(job)
+                if self.broken:
+                    self._abandon()
+                    return
             except Exception:  # a bug in one scan must not kill the session or the service
                 log.exception("session %s/%s: scan %d failed", *self.key, job.scan.seq)
                 self._manager.reject(
@@ -164,6 +171,29 @@ class SessionWorker:
                     "internal_error",
                     "internal error while registering this scan (logged by the service)",
                 )
+
+    def _abandon(self) -> None:
+        """Leave the manager after the matcher process died: queued scans are answered with
+        ``internal_error``, nothing is saved (the store's last state stays the truth), and the
+        session's next scan resumes it from the store on a live process."""
+        m = self._manager
+        with m._lock:
+            if m._workers.get(self.key) is self:
+                del m._workers[self.key]
+                m.metrics.sessions_active.set(len(m._workers))
+        with self._cond:
+            pending = list(self._queue)
+            self._queue.clear()
+            self._stopping = True
+        for job in pending:
+            m.reject(
+                job.scan.vehicle,
+                job.scan.session,
+                job.scan.seq,
+                "internal_error",
+                "the matcher process died; the session resumes from its last saved state",
+            )
+        self.matcher.close()
 
     def _process(self, job: _Job) -> None:
         scan = job.scan
@@ -180,6 +210,17 @@ class SessionWorker:
                 )
             except RandtError as exc:
                 m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
+                return
+            except MatcherProcessDiedError as exc:
+                log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
+                m.reject(
+                    scan.vehicle,
+                    scan.session,
+                    scan.seq,
+                    "internal_error",
+                    "the matcher process died; the session resumes from its last saved state",
+                )
+                self.broken = True
                 return
             changed: list[str] = []
             if result.status != "fallback":
@@ -243,6 +284,11 @@ class SessionManager:
         self._lock = threading.RLock()
         self._flush_lock = threading.Lock()  # one flush at a time; map deletion waits for it
         self._workers: dict[tuple[str, str], SessionWorker] = {}
+        n_procs = settings.matcher_processes
+        if n_procs < 0:
+            cores = os.cpu_count() or 1
+            n_procs = cores if cores > 1 else 0
+        self.pool: MatcherPool | None = MatcherPool(n_procs) if n_procs > 0 else None
         contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
         for problem in contents.problems:
             log.error("store: skipped %s %s: %s", problem.kind, problem.name, problem.message)
@@ -340,7 +386,7 @@ class SessionManager:
 
     def _open_session(self, scan: ScanMessage) -> SessionWorker:
         key = (scan.vehicle, scan.session)
-        matcher = IncrementalMatcher()
+        state: dict[str, np.ndarray] | None = None
         record = self._records.get(key)
         if record is not None and record.state == "closed":
             # Its trajectory and state are on disk; reopening would overwrite them.
@@ -353,7 +399,6 @@ class SessionManager:
             # Active: the service restarted. Expired: the vehicle paused longer than the idle
             # expiry and came back. Either way the session resumes where it stopped.
             _, stamps, poses, state = self.store.load_session(*key)
-            matcher.load_state_dict(state)
             info = SessionState(
                 scan.vehicle,
                 scan.session,
@@ -374,6 +419,13 @@ class SessionManager:
             grid = self.maps[info.map_name] = TileGrid(
                 tile_size_m=self.settings.tile_size_m, voxel_size_m=self.settings.map_voxel_m
             )
+        matcher: LocalMatcher | RemoteMatcher
+        if self.pool is not None:
+            matcher = self.pool.open(key, state or None)
+        else:
+            matcher = LocalMatcher()
+            if state:
+                matcher.load_state_dict(state)
         worker = SessionWorker(info, matcher, grid, self)
         self._workers[key] = worker
         self.metrics.sessions_active.set(len(self._workers))
@@ -429,9 +481,16 @@ class SessionManager:
                 n_fallbacks=info.n_fallbacks,
                 frame=info.frame,
             )
+            if w.broken:
+                return  # its matcher died with the process: the store keeps its last good state
             poses = np.array(w.matcher.poses).reshape(-1, 4, 4)
             stamps = np.array(info.stamps_s[: len(poses)], dtype=float)
-            matcher_state = w.matcher.state_dict()
+            try:
+                matcher_state = w.matcher.state_dict()
+            except MatcherProcessDiedError as exc:
+                log.error("session %s/%s: %s; not saved", *w.key, exc)
+                w.broken = True
+                return
             info.dirty = False
         try:
             self.store.save_session(record, poses, stamps, matcher_state)
@@ -480,6 +539,7 @@ class SessionManager:
             return False
         w.stop(drain=True)
         self._save_session(w, state=state)
+        w.matcher.close()
         with contextlib.suppress(KeyError):  # a closed session's queue is no longer a time series
             self.metrics.queue_depth.remove(queue_label(vehicle, session))
         return True
@@ -502,6 +562,8 @@ class SessionManager:
         self.flush()
         for w in workers:
             self._save_session(w)
+        if self.pool is not None:
+            self.pool.close()
 
     # -- status ---------------------------------------------------------------------------------
     @property

@@ -39,7 +39,12 @@ class ServiceSettings(BaseSettings):
     # sessions
     queue_size: int = Field(default=8, ge=1, description="scans waiting per session; oldest dropped")
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
-    workers: int = Field(default=0, ge=0, description="session worker threads; 0 = one per session")
+    matcher_processes: int = Field(
+        default=-1,
+        ge=-1,
+        description="worker processes running the matchers: -1 = one per core (none on one core), "
+        "0 = run them in the session threads (service/matchers.py)",
+    )
     # map
     default_map: str = Field(default="default", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
     tile_size_m: int = Field(default=20, ge=1)

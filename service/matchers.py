@@ -1,0 +1,223 @@
+"""Where the sessions' matchers run: worker processes, so the numeric work uses every core.
+
+Measured (``bench/workers.py``, KITTI 00 sessions on this 2-core machine): two sessions on two
+threads ran 1.18x the sequential rate, on two processes 1.64x; four sessions 1.35x against 1.66x.
+Our kernels and numpy release the GIL, but the matcher's Python glue between them does not, so
+threads serialize a third of the work. The service therefore runs the matchers in a pool of
+worker processes (``matcher_processes`` in the settings: one per core by default, 0 keeps them in
+the session threads).
+
+Each session thread still owns its queue and its order; it hands one sweep at a time to its
+:class:`RemoteMatcher`, which forwards it to the process the session was assigned to (the one
+with fewest sessions) and waits for the result. A process serves its sessions one request at a
+time. Requests and results are pickled through a pipe (a 120k-point sweep and its result are a
+few MB: about 5 ms against 100-300 ms of matching).
+
+If a worker process dies, the calls on it raise :class:`MatcherProcessDiedError`; the session manager
+then drops the affected sessions without saving them (their last saved state, at most one flush
+interval old, is the truth) and the next scan resumes each from the store on a fresh process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import threading
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from core.errors import RandtError
+from core.odometry import IncrementalMatcher, PosePrior, ScanResult
+
+__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "RemoteMatcher"]
+
+log = logging.getLogger(__name__)
+
+Key = tuple[str, str]
+
+
+class MatcherProcessDiedError(RuntimeError):
+    """The worker process holding a session's matcher is gone (the session must be resumed)."""
+
+
+class _RemoteRandtError(RandtError):
+    """A :class:`~core.errors.RandtError` raised in a worker process (its message kept)."""
+
+
+def _serve(conn: Connection) -> None:
+    """A worker process's loop: one matcher per session key, one request at a time."""
+    matchers: dict[Key, IncrementalMatcher] = {}
+    while True:
+        try:
+            op, key, args = conn.recv()
+        except (EOFError, OSError):  # the service is gone (even a kill -9 closes the pipe)
+            return
+        if op == "quit":
+            conn.send((True, None))
+            return
+        try:
+            if op == "open":
+                matcher = IncrementalMatcher()
+                if args[0]:
+                    matcher.load_state_dict(args[0])
+                matchers[key] = matcher
+                value: Any = None
+            elif op == "register":
+                xyz, offsets, prior = args
+                value = matchers[key].register_scan(xyz, time_offset_s=offsets, prior=prior)
+            elif op == "state":
+                value = matchers[key].state_dict()
+            elif op == "drop":
+                value = matchers.pop(key, None) is not None
+            else:
+                raise ValueError(f"unknown request {op!r}")
+        except RandtError as exc:
+            conn.send((False, ("randt", str(exc))))
+        except Exception as exc:  # reported to the session thread, logged there
+            conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
+        else:
+            conn.send((True, value))
+
+
+class _WorkerProcess:
+    """One child process and the pipe to it; calls are serialized by a lock."""
+
+    def __init__(self, ctx: multiprocessing.context.BaseContext, index: int) -> None:
+        self.index = index
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)
+        self._proc.start()
+        child.close()
+        self._lock = threading.Lock()
+        self.sessions: set[Key] = set()
+        self.dead = False
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    def call(self, op: str, key: Key | None, *args: object) -> Any:
+        with self._lock:
+            if self.dead:
+                raise MatcherProcessDiedError(f"matcher process {self.index} is gone")
+            try:
+                self._conn.send((op, key, args))
+                ok, value = self._conn.recv()
+            except (EOFError, OSError) as exc:
+                self.dead = True
+                raise MatcherProcessDiedError(
+                    f"matcher process {self.index} (pid {self.pid}) died: {exc or type(exc).__name__}"
+                ) from exc
+        if ok:
+            return value
+        kind, message = value
+        if kind == "randt":
+            raise _RemoteRandtError(message)
+        raise RuntimeError(f"in matcher process {self.index}: {message}")
+
+    def close(self, timeout: float = 10.0) -> None:
+        if not self.dead:
+            with contextlib.suppress(MatcherProcessDiedError):
+                self.call("quit", None)
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout)
+        self._conn.close()
+        self.dead = True
+
+
+class MatcherPool:
+    """``n`` worker processes (started with ``spawn``: the service has threads, so no ``fork``)."""
+
+    def __init__(self, n: int) -> None:
+        if n < 1:
+            raise ValueError(f"a matcher pool needs at least one process, got {n}")
+        self._ctx = multiprocessing.get_context("spawn")
+        self._lock = threading.Lock()
+        self._procs = [_WorkerProcess(self._ctx, i) for i in range(n)]
+        self._next_index = n
+
+    def __len__(self) -> int:
+        return len(self._procs)
+
+    def pids(self) -> list[int | None]:
+        return [p.pid for p in self._procs]
+
+    def open(self, key: Key, state: dict[str, np.ndarray] | None = None) -> RemoteMatcher:
+        """A matcher for session ``key`` (restored from ``state``) on the least busy process."""
+        with self._lock:
+            for i, p in enumerate(self._procs):
+                if p.dead:  # replace a dead process before placing anyone on it
+                    log.warning("matcher process %d died: starting a replacement", p.index)
+                    p.close(timeout=1.0)
+                    self._procs[i] = _WorkerProcess(self._ctx, self._next_index)
+                    self._next_index += 1
+            proc = min(self._procs, key=lambda p: len(p.sessions))
+            proc.sessions.add(key)
+        try:
+            return RemoteMatcher(self, proc, key, state)
+        except BaseException:
+            proc.sessions.discard(key)
+            raise
+
+    def _release(self, proc: _WorkerProcess, key: Key) -> None:
+        proc.sessions.discard(key)
+
+    def close(self) -> None:
+        with self._lock:
+            procs, self._procs = self._procs, []
+        for p in procs:
+            p.close()
+
+
+class RemoteMatcher:
+    """The part of :class:`~core.odometry.IncrementalMatcher` a session worker uses, run remotely.
+
+    ``poses`` is kept here as well (appended from each result), so reading a trajectory needs no
+    round trip; ``state_dict`` asks the process.
+    """
+
+    def __init__(
+        self, pool: MatcherPool, proc: _WorkerProcess, key: Key, state: dict[str, np.ndarray] | None
+    ) -> None:
+        self._pool, self._proc, self._key = pool, proc, key
+        proc.call("open", key, state)
+        self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
+
+    @property
+    def process_index(self) -> int:
+        return self._proc.index
+
+    def register_scan(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+    ) -> ScanResult:
+        result: ScanResult = self._proc.call("register", self._key, points_xyz, time_offset_s, prior)
+        self.poses.append(result.T_world_sensor)
+        return result
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return self._proc.call("state", self._key)
+
+    def close(self) -> None:
+        """Forget the session in its process (its state should have been saved first)."""
+        try:
+            self._proc.call("drop", self._key)
+        except MatcherProcessDiedError:
+            pass
+        finally:
+            self._pool._release(self._proc, self._key)
+
+
+class LocalMatcher(IncrementalMatcher):
+    """An in-process matcher with :class:`RemoteMatcher`'s ``close`` (``matcher_processes=0``)."""
+
+    def close(self) -> None:
+        """Nothing to release."""
