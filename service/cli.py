@@ -159,7 +159,7 @@ def register(
 def demo_register(
     data_dir: Annotated[
         Path | None,
-        typer.Option(help="Shared real data (default: $RANDT_DATA_DIR or ./../shared/data if present)."),
+        typer.Option(help="Shared real data (default: $RANDT_SHARED_DATA or ./../shared/data if present)."),
     ] = None,
 ) -> None:
     """Offline registration demo: every method on a known transform, then on real pairs if present.
@@ -188,9 +188,9 @@ def demo_register(
         e_m, e_deg = transform_error(r.T_target_source, T_true)
         typer.echo(f"  {method:10s} error {e_m * 100:6.2f} cm {e_deg:6.3f} deg  time {r.time_s:6.3f} s")
 
-    root = data_dir or Path(os.environ.get("RANDT_DATA_DIR", Path.cwd().parent / "shared" / "data"))
+    root = data_dir or Path(os.environ.get("RANDT_SHARED_DATA", Path.cwd().parent / "shared" / "data"))
     if not (root / "pairs").is_dir():
-        typer.echo(f"(no real data at {root}: set --data-dir or RANDT_DATA_DIR to try the real pairs)")
+        typer.echo(f"(no real data at {root}: set --data-dir or RANDT_SHARED_DATA to try the real pairs)")
         return
     from core.io import read_cloud
 

@@ -18,5 +18,5 @@ __all__ = ["DATA_DIR_ENV_VAR", "data_dir", "data_root", "require_data"]
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
-    """The shared real-data directory (``$RANDT_DATA_DIR`` or ``<repo>/../shared/data``)."""
+    """The shared real-data directory (``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``)."""
     return require_data()

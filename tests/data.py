@@ -1,6 +1,6 @@
 """Locate the shared real data set for tests, skipping (or, in CI, failing) when it is absent.
 
-The data live outside the repository (never copy them in): ``$RANDT_DATA_DIR`` if set, else
+The data live outside the repository (never copy them in): ``$RANDT_SHARED_DATA`` if set, else
 ``<repo root>/../shared/data``. See ``../shared/data/README.md`` for what each folder holds.
 """
 
@@ -13,12 +13,12 @@ import pytest
 
 __all__ = ["DATA_DIR_ENV_VAR", "data_root", "require_data"]
 
-DATA_DIR_ENV_VAR = "RANDT_DATA_DIR"
+DATA_DIR_ENV_VAR = "RANDT_SHARED_DATA"
 _REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def data_root() -> Path:
-    """Return where the shared data should be: ``$RANDT_DATA_DIR`` or ``<repo>/../shared/data``."""
+    """Return where the shared data should be: ``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``."""
     override = os.environ.get(DATA_DIR_ENV_VAR)
     if override:
         return Path(override).expanduser().resolve()
@@ -41,7 +41,7 @@ def require_data(*relative_paths: str) -> Path:
     Notes
     -----
     When something is missing the calling test is skipped with a reason naming the missing path
-    and ``$RANDT_DATA_DIR``; when ``CI=true`` it fails instead, because CI always has the data.
+    and ``$RANDT_SHARED_DATA``; when ``CI=true`` it fails instead, because CI always has the data.
     """
     root = data_root()
     missing = [p for p in ("", *relative_paths) if not (root / p).exists()]

@@ -596,12 +596,12 @@ def test_missing_file_raises_not_found(tmp_path: Path) -> None:
 
 
 def test_require_data_skips_locally_and_fails_in_ci(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("RANDT_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("RANDT_SHARED_DATA", str(tmp_path))
     (tmp_path / "present.txt").write_text("x")
     assert require_data("present.txt") == tmp_path.resolve()
 
     monkeypatch.delenv("CI", raising=False)
-    with pytest.raises(pytest.skip.Exception, match="RANDT_DATA_DIR") as skipped:
+    with pytest.raises(pytest.skip.Exception, match="RANDT_SHARED_DATA") as skipped:
         require_data("present.txt", "kitti00/poses.txt")
     assert str(tmp_path / "kitti00/poses.txt") in str(skipped.value)
 
