@@ -24,6 +24,7 @@ import contextlib
 import logging
 import multiprocessing
 import threading
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -31,6 +32,8 @@ import numpy as np
 
 from core.errors import RandtError
 from core.odometry import IncrementalMatcher, PosePrior, ScanResult
+from core.tiles import TileGrid
+from core.transforms import transform_points
 
 __all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "RemoteMatcher"]
 
@@ -50,6 +53,7 @@ class _RemoteRandtError(RandtError):
 def _serve(conn: Connection) -> None:
     """A worker process's loop: one matcher per session key, one request at a time."""
     matchers: dict[Key, IncrementalMatcher] = {}
+    grids: dict[Key, TileGrid | None] = {}  # empty grids with the session map's sizes and cap
     while True:
         try:
             op, key, args = conn.recv()
@@ -60,17 +64,29 @@ def _serve(conn: Connection) -> None:
             return
         try:
             if op == "open":
+                state, grid_params = args
                 matcher = IncrementalMatcher()
-                if args[0]:
-                    matcher.load_state_dict(args[0])
+                if state:
+                    matcher.load_state_dict(state)
                 matchers[key] = matcher
+                grids[key] = None if grid_params is None else TileGrid(*grid_params)
                 value: Any = None
             elif op == "register":
                 xyz, offsets, prior = args
                 value = matchers[key].register_scan(xyz, time_offset_s=offsets, prior=prior)
+                grid = grids.get(key)
+                if grid is not None and value.status != "fallback":
+                    # Send back only the points the map can keep (TileGrid.candidate_mask): the
+                    # service process's insert then handles about a quarter of them.
+                    world = transform_points(value.T_world_sensor, value.deskewed_xyz)
+                    keep = grid.candidate_mask(world)
+                    value = replace(
+                        value, deskewed_xyz=value.deskewed_xyz[keep], map_index=value.map_index[keep]
+                    )
             elif op == "state":
                 value = matchers[key].state_dict()
             elif op == "drop":
+                grids.pop(key, None)
                 value = matchers.pop(key, None) is not None
             else:
                 raise ValueError(f"unknown request {op!r}")
@@ -147,8 +163,17 @@ class MatcherPool:
     def pids(self) -> list[int | None]:
         return [p.pid for p in self._procs]
 
-    def open(self, key: Key, state: dict[str, np.ndarray] | None = None) -> RemoteMatcher:
-        """A matcher for session ``key`` (restored from ``state``) on the least busy process."""
+    def open(
+        self,
+        key: Key,
+        state: dict[str, np.ndarray] | None = None,
+        grid: TileGrid | None = None,
+    ) -> RemoteMatcher:
+        """A matcher for session ``key`` (restored from ``state``) on the least busy process.
+
+        With ``grid`` (the session's map), results carry only the points ``grid.insert`` could
+        keep (:meth:`~core.tiles.TileGrid.candidate_mask`, computed in the worker process).
+        """
         with self._lock:
             for i, p in enumerate(self._procs):
                 if p.dead:  # replace a dead process before placing anyone on it
@@ -158,8 +183,9 @@ class MatcherPool:
                     self._next_index += 1
             proc = min(self._procs, key=lambda p: len(p.sessions))
             proc.sessions.add(key)
+        params = None if grid is None else (grid.tile_size_m, grid.voxel_size_m, grid.max_points_per_voxel)
         try:
-            return RemoteMatcher(self, proc, key, state)
+            return RemoteMatcher(self, proc, key, state, params)
         except BaseException:
             proc.sessions.discard(key)
             raise
@@ -182,10 +208,15 @@ class RemoteMatcher:
     """
 
     def __init__(
-        self, pool: MatcherPool, proc: _WorkerProcess, key: Key, state: dict[str, np.ndarray] | None
+        self,
+        pool: MatcherPool,
+        proc: _WorkerProcess,
+        key: Key,
+        state: dict[str, np.ndarray] | None,
+        grid_params: tuple[int, float, int] | None = None,
     ) -> None:
         self._pool, self._proc, self._key = pool, proc, key
-        proc.call("open", key, state)
+        proc.call("open", key, state, grid_params)
         self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
 
     @property

@@ -421,7 +421,7 @@ class SessionManager:
             )
         matcher: LocalMatcher | RemoteMatcher
         if self.pool is not None:
-            matcher = self.pool.open(key, state or None)
+            matcher = self.pool.open(key, state or None, grid)
         else:
             matcher = LocalMatcher()
             if state:

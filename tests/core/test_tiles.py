@@ -565,3 +565,25 @@ def test_export_merged(tmp_path: Path, mapped: TileGrid, suffix: str) -> None:
     np.testing.assert_array_equal(cloud.intensity, want.intensity)
     with pytest.raises(FormatError):
         mapped.export_merged(tmp_path / "map.las")
+
+
+@pytest.mark.parametrize("cap", [1, 2, 3])
+def test_candidate_mask_keeps_exactly_what_insert_would(cap: int) -> None:
+    """Inserting only the candidate points gives the same tiles, versions and changed ids as
+    inserting every point, into an empty map and into one that already holds points; exact
+    duplicates and non-finite rows included."""
+    rng = np.random.default_rng(cap)
+    first, _ = dense_cloud(seed=cap)
+    full, reduced = TileGrid(20, 0.2, cap), TileGrid(20, 0.2, cap)
+    for shift in ((0.0, 0.0, 0.0), (0.07, -0.03, 0.0), (0.0, 0.0, 0.0)):
+        pts = np.vstack([first + shift, first[:300] + shift, [[np.nan, 0.0, 0.0]]])
+        inten = rng.uniform(0, 1, len(pts))
+        keep = reduced.candidate_mask(pts)
+        assert not keep[-1] and keep.sum() < len(pts) - 300  # the duplicates never count
+        assert full.insert(pts, inten) == reduced.insert(pts[keep], inten[keep])
+    assert full.tile_ids() == reduced.tile_ids() and full.n_points == reduced.n_points > 1000
+    for tid in full.tile_ids():
+        a, b = full.get(tid), reduced.get(tid)
+        assert a.version == b.version
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.intensity, b.intensity)

@@ -11,6 +11,7 @@ import numpy as np
 
 from core.odometry import IncrementalMatcher, MatcherSettings
 from core.protocol import synthetic_room
+from core.tiles import TileGrid
 from core.transforms import invert, make_transform, transform_points
 from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from service.matchers import MatcherPool
@@ -101,3 +102,25 @@ def test_a_killed_matcher_process_costs_its_sessions_only_unsaved_scans(tmp_path
         )
     finally:
         mgr.stop()
+
+
+def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
+    """With the session's map given, the worker process sends back the candidate points only, and
+    the map built from them equals the map built from the full in-process result."""
+    sweeps = [s.astype(np.float64) for s in _sweeps(3)]
+    local = IncrementalMatcher(MatcherSettings())
+    full, reduced = TileGrid(20, 0.2), TileGrid(20, 0.2)
+    pool = MatcherPool(1)
+    try:
+        remote = pool.open(("v", "s"), None, reduced)
+        for xyz in sweeps:
+            a, b = local.register_scan(xyz), remote.register_scan(xyz)
+            assert b.deskewed_xyz.shape[0] < a.deskewed_xyz.shape[0]
+            assert full.insert(transform_points(a.T_world_sensor, a.deskewed_xyz)) == reduced.insert(
+                transform_points(b.T_world_sensor, b.deskewed_xyz)
+            )
+    finally:
+        pool.close()
+    assert full.tile_ids() == reduced.tile_ids() and full.n_points == reduced.n_points > 1000
+    for tid in full.tile_ids():
+        np.testing.assert_array_equal(full.get(tid).points, reduced.get(tid).points)
