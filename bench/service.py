@@ -85,10 +85,13 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             with lock:
                 got[(m.vehicle, m.seq)] = t
 
+        last_answer = [0.0]
+
         def on_error(sample: zenoh.Sample) -> None:
             m = decode_error(sample.payload.to_bytes())
             with lock:
                 errors[m.code] = errors.get(m.code, 0) + 1
+                last_answer[0] = time.monotonic()
 
         listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
         subs = [
@@ -108,7 +111,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
                 with lock:
                     sent[(vehicle, k)] = time.monotonic()
                 pub.put(payload)
-            time.sleep(0.2)
+            time.sleep(1.0)  # puts are asynchronous: let the last ones leave before closing
             session.close()
 
         t0 = time.monotonic()
@@ -124,7 +127,10 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             if answered >= len(sent):
                 break
             time.sleep(0.1)
-        wall = time.monotonic() - t0
+        with lock:
+            end = max([*got.values(), last_answer[0], t0])
+        wall = end - t0  # first publication to last answer
+        received = int(service.metrics.registry.get_sample_value("randt_scans_received_total") or 0)
         for s in subs:
             s.undeclare()
         listener.close()
@@ -136,6 +142,8 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         "poses": len(got),
         "dropped": errors.get("dropped", 0),
         "other_errors": sum(v for k, v in errors.items() if k != "dropped"),
+        "received": received,
+        "unanswered": len(sent) - len(got) - sum(errors.values()),
         "scans_per_s": len(got) / wall,
         "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else float("nan"),
@@ -178,6 +186,8 @@ def main() -> None:
                 str(r["poses"]),
                 str(r["dropped"]),
                 str(r["other_errors"]),
+                str(r["received"]),
+                str(r["unanswered"]),
                 f"{r['scans_per_s']:.2f}",
                 f"{r['p50_ms']:.0f}",
                 f"{r['p99_ms']:.0f}",
@@ -193,6 +203,8 @@ def main() -> None:
                 "poses",
                 "dropped",
                 "other errors",
+                "received by service",
+                "unanswered",
                 "poses/s",
                 "p50 ms",
                 "p99 ms",
