@@ -44,6 +44,10 @@ def zenoh_config(mode: str, listen: tuple[str, ...] = (), connect: tuple[str, ..
     return cfg
 
 
+_BLOCK, _DROP = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
+_ANSWER_PRIORITY, _TILE_PRIORITY = zenoh.Priority.INTERACTIVE_HIGH, zenoh.Priority.DATA
+
+
 def key_for(message: object) -> str:
     """The key expression a message is published on (docs/wire-format.md)."""
     if isinstance(message, PoseMessage):
@@ -69,7 +73,7 @@ class ZenohTransport:
         self.settings = settings
         self._on_scan = on_scan
         self._tile_provider = tile_provider
-        self._out: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_outbound)
+        self._out: queue.Queue[tuple[str, bytes, bool] | None] = queue.Queue(max_outbound)
         self._session: zenoh.Session | None = None
         self._sender: threading.Thread | None = None
         self._handles: list[object] = []
@@ -110,8 +114,9 @@ class ZenohTransport:
 
     def send(self, message: object) -> None:
         """Queue a message for publication (drops it, counted, if the outbound queue is full)."""
+        answer = isinstance(message, PoseMessage | ErrorMessage)
         try:
-            self._out.put_nowait((key_for(message), encode(message)))
+            self._out.put_nowait((key_for(message), encode(message), answer))
         except queue.Full:
             self.dropped_outbound += 1
 
@@ -120,10 +125,21 @@ class ZenohTransport:
             item = self._out.get()
             if item is None:
                 return
-            key, payload = item
+            key, payload, answer = item
             try:
                 if self._session is not None:
-                    self._session.put(key, payload)
+                    # Every scan is promised exactly one answer: poses and errors wait out
+                    # congestion (this thread, never a callback or a worker, is the one that
+                    # waits). Tile updates may be dropped under congestion: a subscriber that
+                    # misses one gets the tile by the queryable or with its next version.
+                    self._session.put(
+                        key,
+                        payload,
+                        congestion_control=zenoh.CongestionControl.BLOCK
+                        if answer
+                        else zenoh.CongestionControl.DROP,
+                        priority=zenoh.Priority.INTERACTIVE_HIGH if answer else zenoh.Priority.DATA,
+                    )
             except Exception:
                 log.exception("publishing on %s failed", key)
 
