@@ -86,6 +86,28 @@ def _find(table_key: np.ndarray, table_idx: np.ndarray, key: int) -> int:
         h = (h + 1) & mask
 
 
+@nb.njit(cache=True, inline="always")
+def _moved_and_cell(
+    points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray, inv_v: float
+) -> tuple[float, float, float, int, int, int]:
+    """Point ``i`` moved by ``(R, t)`` and the integer cell it falls in."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    q0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    q1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    q2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    return q0, q1, q2, int(math.floor(q0 * inv_v)), int(math.floor(q1 * inv_v)), int(math.floor(q2 * inv_v))
+
+
+@nb.njit(cache=True, inline="always")
+def _mahalanobis2(inv_cov: np.ndarray, v: int, x0: float, x1: float, x2: float) -> float:
+    """Squared Mahalanobis distance ``x^T Sigma_v^-1 x``."""
+    return (
+        x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
+        + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
+        + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
+    )
+
+
 @nb.njit(cache=True, nogil=True)
 def ndt_accumulate(
     points: np.ndarray,
@@ -126,13 +148,7 @@ def ndt_accumulate(
     MJ = np.zeros((3, 3))
     n_off = offsets.shape[0]
     for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        q0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        q1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        q2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        cx = int(math.floor(q0 * inv_v))
-        cy = int(math.floor(q1 * inv_v))
-        cz = int(math.floor(q2 * inv_v))
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
         for k in range(n_off):
             v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))
             if v < 0:
@@ -228,13 +244,7 @@ def ndt_scores(
     """Per-point Autoware scores (see ``core.ndt.ndt_point_scores``), written into the outputs."""
     inv_v = 1.0 / voxel_size
     for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        q0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        q1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        q2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        cx = int(math.floor(q0 * inv_v))
-        cy = int(math.floor(q1 * inv_v))
-        cz = int(math.floor(q2 * inv_v))
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
         s_sum, s_max, b_m = 0.0, 0.0, np.inf
         for k in range(offsets.shape[0]):
             v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))
@@ -243,11 +253,7 @@ def ndt_scores(
             x0 = q0 - means[v, 0]
             x1 = q1 - means[v, 1]
             x2 = q2 - means[v, 2]
-            m = (
-                x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
-                + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
-                + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
-            )
+            m = _mahalanobis2(inv_cov, v, x0, x1, x2)
             if m >= m_max:
                 continue
             s = -d1 * math.exp(-0.5 * d2 * m)
@@ -277,13 +283,7 @@ def best_voxel(
     distance (``out_voxel``, -1 when none is near) and that distance (``out_m``, inf when none)."""
     inv_v = 1.0 / voxel_size
     for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        q0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-        q1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-        q2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        cx = int(math.floor(q0 * inv_v))
-        cy = int(math.floor(q1 * inv_v))
-        cz = int(math.floor(q2 * inv_v))
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
         best, best_m = -1, np.inf
         for k in range(offsets.shape[0]):
             v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))
@@ -292,11 +292,7 @@ def best_voxel(
             x0 = q0 - means[v, 0]
             x1 = q1 - means[v, 1]
             x2 = q2 - means[v, 2]
-            m = (
-                x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
-                + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
-                + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
-            )
+            m = _mahalanobis2(inv_cov, v, x0, x1, x2)
             if m < best_m:
                 best, best_m = v, m
         out_voxel[i] = best
