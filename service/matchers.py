@@ -50,8 +50,22 @@ class _RemoteRandtError(RandtError):
     """A :class:`~core.errors.RandtError` raised in a worker process (its message kept)."""
 
 
+def _warm_up() -> None:
+    """Load (or compile) the numba kernels before the first sweep arrives: one registration of a
+    small synthetic room, so a vehicle's first scan does not pay for it."""
+    from core.protocol import synthetic_room
+    from core.registration import register
+
+    room = synthetic_room(np.random.default_rng(0))
+    register(room + [0.2, 0.1, 0.0], room)
+
+
 def _serve(conn: Connection) -> None:
     """A worker process's loop: one matcher per session key, one request at a time."""
+    try:
+        _warm_up()
+    except Exception:  # a failed warm-up only costs the first sweep its compile time
+        log.exception("matcher process warm-up failed")
     matchers: dict[Key, IncrementalMatcher] = {}
     grids: dict[Key, TileGrid | None] = {}  # empty grids with the session map's sizes and cap
     while True:
