@@ -195,6 +195,7 @@ class VehiclePublisher:
         self._cond = threading.Condition()
         self._queue: deque[_Outgoing] = deque()
         self._in_flight: dict[int, float] = {}  # seq -> monotonic send time
+        self._in_callback = 0  # answers whose callback is running (flush waits for them too)
         self._answers: deque[PoseMessage | ErrorMessage] = deque()
         self._stats = PublisherStats()
         self._closing = False
@@ -332,7 +333,7 @@ class VehiclePublisher:
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while len(self._queue) + len(self._in_flight) > max_pending:
+            while len(self._queue) + len(self._in_flight) + self._in_callback > max_pending:
                 if self._stopped:
                     return False
                 left = None if deadline is None else deadline - time.monotonic()
@@ -342,7 +343,8 @@ class VehiclePublisher:
         return True
 
     def flush(self, timeout: float | None = None) -> bool:
-        """Wait until every published scan is answered, dropped or lost; False on timeout."""
+        """Wait until every published scan is answered (and its callback has returned), dropped
+        or lost; False on timeout. Not to be called from a callback."""
         return self.wait_pending(0, timeout)
 
     def close(self, timeout: float = 2.0) -> PublisherStats:
@@ -498,15 +500,20 @@ class VehiclePublisher:
                 else:
                     self._stats.rejected += 1
                     self._stats.rejected_codes[msg.code] = self._stats.rejected_codes.get(msg.code, 0) + 1
+                callback = self.on_pose if isinstance(msg, PoseMessage) else self.on_error
+                if known is not None and callback is not None:
+                    self._in_callback += 1
                 self._cond.notify_all()
-            if known is None:
+            if known is None or callback is None:
                 continue
-            callback = self.on_pose if isinstance(msg, PoseMessage) else self.on_error
-            if callback is not None:
-                try:
-                    callback(msg)
-                except Exception:
-                    log.exception("%s: the %s callback raised", self.vehicle, type(msg).__name__)
+            try:
+                callback(msg)
+            except Exception:
+                log.exception("%s: the %s callback raised", self.vehicle, type(msg).__name__)
+            finally:
+                with self._cond:
+                    self._in_callback -= 1
+                    self._cond.notify_all()
 
     def _expire(self, timeout: float) -> None:
         """Count scans in flight for longer than ``timeout`` as lost (caller holds the lock)."""

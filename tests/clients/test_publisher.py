@@ -153,3 +153,20 @@ def test_router_restart_mid_stream(restartable_router: Router, fake_service: Fak
     assert set(range(10)) <= set(acked), "everything before the outage was answered"
     assert set(range(first_after, n)) <= set(acked), "everything after the recovery was answered"
     assert s.acknowledged == len(acked) and s.rejected == 0
+
+
+def test_flush_waits_for_the_callbacks(restartable_router: Router, fake_service: FakeService) -> None:
+    """After flush() every answer's callback has finished (the docs example prints the stats right
+    after flush; a callback still printing interleaved its line with them)."""
+    finished: list[int] = []
+
+    def slow(msg: PoseMessage) -> None:
+        time.sleep(0.2)
+        finished.append(msg.seq)
+
+    with VehiclePublisher("car-5", connect=[restartable_router.endpoint], on_pose=slow) as pub:
+        assert pub.wait_connected(10)
+        for i in range(3):
+            pub.publish(_cloud(300, i), stamp_ns=i)
+        assert pub.flush(20)
+        assert finished == [0, 1, 2]
