@@ -28,6 +28,7 @@ from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from core.tiles import TileGrid
+from service.api.models import ErrorBody
 from service.runtime import Service
 from service.sessions import SessionManager
 from service.store import NAME_PATTERN
@@ -107,6 +108,13 @@ def _check_token(expected: str, credentials: HTTPAuthorizationCredentials | None
             "wrong bearer token",
             headers={"WWW-Authenticate": 'Bearer error="invalid_token"'},
         )
+
+
+#: The answers :func:`require_writer` can give, for a mutating route's ``responses``.
+WRITER_RESPONSES: dict[int | str, dict[str, object]] = {
+    401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
+    403: {"model": ErrorBody, "description": "no RANDT_API_TOKEN configured: mutations are disabled"},
+}
 
 
 def require_writer(svc: ServiceDep, credentials: _Credentials) -> None:

@@ -25,6 +25,7 @@ from core.errors import NotFoundError
 from core.metrics import pdu
 from core.tiles import AUTOWARE_METADATA_NAME, Tile, TileGrid, tile_id
 from service.api.deps import (
+    WRITER_RESPONSES,
     MapName,
     NotFoundHTTPError,
     TileIx,
@@ -149,8 +150,7 @@ def get_map(map: MapName, mgr: ManagerDep) -> MapSummary:
     dependencies=[Depends(require_writer)],
     responses={
         **_404,
-        401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
-        403: {"model": ErrorBody, "description": "no RANDT_API_TOKEN configured: mutations are disabled"},
+        **WRITER_RESPONSES,
         409: {"model": ErrorBody, "description": "running sessions fold scans into the map"},
     },
 )

@@ -18,6 +18,7 @@ from fastapi.responses import PlainTextResponse
 
 from core.io import write_kitti_poses, write_tum
 from service.api.deps import (
+    WRITER_RESPONSES,
     NotFoundHTTPError,
     SessionName,
     VehicleName,
@@ -123,8 +124,7 @@ def get_trajectory(
     dependencies=[Depends(require_writer)],
     responses={
         **_404,
-        401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
-        403: {"model": ErrorBody, "description": "no RANDT_API_TOKEN configured: mutations are disabled"},
+        **WRITER_RESPONSES,
     },
 )
 def close_session(vehicle: VehicleName, session: SessionName, mgr: ManagerDep) -> ClosedSession:
