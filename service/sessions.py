@@ -284,6 +284,9 @@ class SessionManager:
         self._lock = threading.RLock()
         self._flush_lock = threading.Lock()  # one flush at a time; map deletion waits for it
         self._workers: dict[tuple[str, str], SessionWorker] = {}
+        # Sessions between leaving _workers and their final save: a scan for one is refused
+        # (session_busy) rather than reopening it from an older saved state.
+        self._closing: set[tuple[str, str]] = set()
         n_procs = settings.matcher_processes
         if n_procs < 0:
             cores = os.cpu_count() or 1
@@ -321,6 +324,15 @@ class SessionManager:
         key = (scan.vehicle, scan.session)
         with self._lock:
             worker = self._workers.get(key)
+            if worker is None and key in self._closing:
+                self.reject(
+                    scan.vehicle,
+                    scan.session,
+                    scan.seq,
+                    "session_busy",
+                    "the session is being saved (closed or expired a moment ago): send the scan again",
+                )
+                return
             if worker is None:
                 try:
                     worker = self._open_session(scan)
@@ -535,11 +547,17 @@ class SessionManager:
         with self._lock:
             w = self._workers.pop((vehicle, session), None)
             self.metrics.sessions_active.set(len(self._workers))
+            if w is not None:
+                self._closing.add(w.key)
         if w is None:
             return False
-        w.stop(drain=True)
-        self._save_session(w, state=state)
-        w.matcher.close()
+        try:
+            w.stop(drain=True)
+            self._save_session(w, state=state)
+            w.matcher.close()
+        finally:
+            with self._lock:
+                self._closing.discard(w.key)
         with contextlib.suppress(KeyError):  # a closed session's queue is no longer a time series
             self.metrics.queue_depth.remove(queue_label(vehicle, session))
         return True

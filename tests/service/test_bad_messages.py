@@ -159,11 +159,12 @@ def test_a_closed_session_is_not_reopened_and_an_expired_one_resumes(tmp_path) -
         mgr.submit("v1", good("v1", 2, "drive"))
         _wait(out, 5)
         deadline = time.monotonic() + 30
-        while mgr.worker("v2", "drive") is not None and time.monotonic() < deadline:
-            time.sleep(0.05)  # v2 idles past the expiry
-        assert mgr.worker("v2", "drive") is None
-        states = {r.session: r.state for r in store.list_sessions() if r.vehicle == "v2"}
+        states: dict[str, str] = {}
+        while states != {"drive": "expired"} and time.monotonic() < deadline:
+            time.sleep(0.05)  # v2 idles past the expiry; its final save follows
+            states = {r.session: r.state for r in store.list_sessions() if r.vehicle == "v2"}
         assert states == {"drive": "expired"}
+        assert mgr.worker("v2", "drive") is None
         mgr.submit("v2", good("v2", 1, "drive"))  # a repeat: the resumed session knows its last seq
         mgr.submit("v2", good("v2", 2, "drive"))
         _wait(out, 7)
@@ -183,3 +184,17 @@ def test_a_closed_session_is_not_reopened_and_an_expired_one_resumes(tmp_path) -
         assert v1.record.state == "closed" and len(v1.poses) == 2, "the closed session is intact"
     finally:
         mgr.stop()
+
+
+def test_a_scan_for_a_session_being_saved_is_refused_not_reopened(manager) -> None:
+    """Between leaving the running set and its final save, a session must not be reopened from an
+    older saved state (its last scans would be lost): the scan gets session_busy."""
+    mgr, out = manager
+    mgr._closing.add(("v1", "s1"))  # the window close() holds open while it drains and saves
+    mgr.submit("v1", good("v1", 0))
+    mgr._closing.discard(("v1", "s1"))
+    mgr.submit("v1", good("v1", 1))
+    _wait(out, 2)
+    answers = [(m.seq, getattr(m, "code", "pose")) for m in out if isinstance(m, PoseMessage | ErrorMessage)]
+    assert answers == [(0, "session_busy"), (1, "pose")]
+    assert _rejected(mgr, "session_busy") == 1
