@@ -554,10 +554,10 @@ class SessionManager:
         try:
             w.stop(drain=True)
             self._save_session(w, state=state)
-            w.matcher.close()
         finally:
             with self._lock:
                 self._closing.discard(w.key)
+        w.matcher.close()
         with contextlib.suppress(KeyError):  # a closed session's queue is no longer a time series
             self.metrics.queue_depth.remove(queue_label(vehicle, session))
         return True
