@@ -4,8 +4,11 @@ Why a compiled kernel here (the standards allow one when justified): the NDT sco
 Hessian are sums over (point, neighbour voxel) pairs. In numpy every pair becomes a row of several
 (P,3), (P,3,3) and (P,6) temporaries: about 15 ms per evaluation for a KITTI sweep's 7k points and
 7 neighbours, 20-40 evaluations per registration, which made RANDT 3-5x slower than small_gicp.
-Fused into one pass over the points with no temporaries, the same sums take 1-3 ms. Voxel
-downsampling stays numpy: ``np.unique`` already hashes, and a compiled hash pass measured no faster.
+Fused into one pass over the points with no temporaries, the same sums take 1-3 ms. Grouping
+points by voxel (downsampling, Gaussian fits, Algorithm 1) is a hashed pass too: ``np.unique``
+sorts the keys, 8-14 ms for a KITTI sweep against 2-3 ms here. The SVD step's fixed-radius
+searches run on a hashed grid (:mod:`core.grid`), and thousands of 3x3 symmetric eigenproblems
+(voxel covariances, local planes) go through a Jacobi loop instead of LAPACK's per-matrix calls.
 
 The NDT kernels have numpy twins that stay the reference: ``core.ndt`` keeps the vectorized
 formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
@@ -27,7 +30,20 @@ import math
 import numba as nb
 import numpy as np
 
-__all__ = ["best_voxel", "build_hash", "ndt_accumulate", "ndt_scores"]
+__all__ = [
+    "best_voxel",
+    "build_grid",
+    "build_hash",
+    "eigh3",
+    "grid_knn_normals",
+    "grid_nearest",
+    "group_centroids",
+    "group_moments",
+    "group_voxels",
+    "ndt_accumulate",
+    "ndt_scores",
+    "smallest_eigenvector",
+]
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
@@ -297,3 +313,413 @@ def best_voxel(
                 best, best_m = v, m
         out_voxel[i] = best
         out_m[i] = best_m
+
+
+@nb.njit(cache=True, nogil=True)
+def _grow(table_key: np.ndarray, table_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same entries in a table twice as large (rehashed)."""
+    cap = 2 * table_key.shape[0]
+    new_key = np.full(cap, -1, dtype=np.int64)
+    new_idx = np.full(cap, -1, dtype=np.int64)
+    mask = cap - 1
+    for s in range(table_key.shape[0]):
+        key = table_key[s]
+        if key == -1:
+            continue
+        h = _slot(key, mask)
+        while new_key[h] != -1:
+            h = (h + 1) & mask
+        new_key[h] = key
+        new_idx[h] = table_idx[s]
+    return new_key, new_idx
+
+
+@nb.njit(cache=True, nogil=True)
+def _group_run(
+    points: np.ndarray,
+    start: int,
+    inv_v: float,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+    inverse: np.ndarray,
+    keys: np.ndarray,
+    counts: np.ndarray,
+    m: int,
+) -> tuple[int, int]:
+    """:func:`group_voxels`' loop from point ``start`` until the end or until the table is half
+    full. Returns ``(next point, groups so far)``; next point -1 flags an invalid point."""
+    mask = table_key.shape[0] - 1
+    last_key, last_group = -2, -1
+    for i in range(start, points.shape[0]):
+        x, y, z = points[i, 0] * inv_v, points[i, 1] * inv_v, points[i, 2] * inv_v
+        if not (abs(x) < 2.0**40 and abs(y) < 2.0**40 and abs(z) < 2.0**40):  # also catches NaN
+            return -1, m
+        key = _pack(int(math.floor(x)), int(math.floor(y)), int(math.floor(z)))
+        if key < 0:
+            return -1, m
+        if key != last_key:
+            if 2 * (m + 1) > mask:
+                return i, m  # grow the table before inserting more
+            h = _slot(key, mask)
+            while table_key[h] != -1 and table_key[h] != key:
+                h = (h + 1) & mask
+            if table_key[h] == -1:
+                table_key[h] = key
+                table_idx[h] = m
+                keys[m] = key
+                m += 1
+            last_key, last_group = key, table_idx[h]
+        inverse[i] = last_group
+        counts[last_group] += 1
+    return points.shape[0], m
+
+
+@nb.njit(cache=True, nogil=True)
+def group_voxels(
+    points: np.ndarray, voxel_size: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Group points by voxel in one hashed pass (no sort), groups numbered in first-seen order.
+
+    Returns ``(inverse, keys, counts, table_key, table_idx, ok)``: the group of each point, each
+    group's packed key and size, the open-addressing table from key to group (as
+    :func:`build_hash` makes it), and ``ok`` false when a point is non-finite or its cell lies
+    outside the 21-bit key range (the outputs are then meaningless). The table starts small and
+    doubles at half full, so it stays in cache; a point in the same voxel as the one before it (the
+    common case in a scan's ring order) skips the probe. (Growing happens outside the hot loop:
+    numba reference-counts arrays reassigned inside a loop, which made that loop 4x slower.)
+    """
+    n = points.shape[0]
+    inv_v = 1.0 / voxel_size
+    table_key = np.full(1024, -1, dtype=np.int64)
+    table_idx = np.full(1024, -1, dtype=np.int64)
+    inverse = np.empty(n, dtype=np.int64)
+    keys = np.empty(n, dtype=np.int64)
+    counts = np.zeros(n, dtype=np.int64)
+    i, m = 0, 0
+    while True:
+        i, m = _group_run(points, i, inv_v, table_key, table_idx, inverse, keys, counts, m)
+        if i < 0:
+            return inverse, keys[:0].copy(), counts[:0].copy(), table_key, table_idx, False
+        if i >= n:
+            return inverse, keys[:m].copy(), counts[:m].copy(), table_key, table_idx, True
+        table_key, table_idx = _grow(table_key, table_idx)
+
+
+@nb.njit(cache=True, nogil=True)
+def group_moments(
+    points: np.ndarray, inverse: np.ndarray, n_groups: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per group: point count, mean and scatter matrix (sum of outer products of the deviations
+    from the mean, two passes for accuracy). Returns ``(counts, means (m,3), scatter (m,3,3))``."""
+    counts = np.zeros(n_groups, dtype=np.int64)
+    means = np.zeros((n_groups, 3))
+    scatter = np.zeros((n_groups, 3, 3))
+    for i in range(points.shape[0]):
+        g = inverse[i]
+        counts[g] += 1
+        means[g, 0] += points[i, 0]
+        means[g, 1] += points[i, 1]
+        means[g, 2] += points[i, 2]
+    for g in range(n_groups):
+        c = max(counts[g], 1)
+        means[g, 0] /= c
+        means[g, 1] /= c
+        means[g, 2] /= c
+    for i in range(points.shape[0]):
+        g = inverse[i]
+        d0, d1, d2 = points[i, 0] - means[g, 0], points[i, 1] - means[g, 1], points[i, 2] - means[g, 2]
+        scatter[g, 0, 0] += d0 * d0
+        scatter[g, 0, 1] += d0 * d1
+        scatter[g, 0, 2] += d0 * d2
+        scatter[g, 1, 1] += d1 * d1
+        scatter[g, 1, 2] += d1 * d2
+        scatter[g, 2, 2] += d2 * d2
+    for g in range(n_groups):
+        scatter[g, 1, 0] = scatter[g, 0, 1]
+        scatter[g, 2, 0] = scatter[g, 0, 2]
+        scatter[g, 2, 1] = scatter[g, 1, 2]
+    return counts, means, scatter
+
+
+@nb.njit(cache=True, nogil=True)
+def group_centroids(points: np.ndarray, inverse: np.ndarray, n_groups: int) -> np.ndarray:
+    """Mean of each group's points, (m,3)."""
+    sums = np.zeros((n_groups, 3))
+    counts = np.zeros(n_groups)
+    for i in range(points.shape[0]):
+        g = inverse[i]
+        counts[g] += 1.0
+        sums[g, 0] += points[i, 0]
+        sums[g, 1] += points[i, 1]
+        sums[g, 2] += points[i, 2]
+    for g in range(n_groups):
+        sums[g, 0] /= counts[g]
+        sums[g, 1] /= counts[g]
+        sums[g, 2] /= counts[g]
+    return sums
+
+
+#: The 3x3x3 cell block, own cell first, then by distance (faces, edges, corners), so the best
+#: candidates are met early and the rest are pruned by their box distance.
+_BLOCK = np.array(
+    sorted(
+        [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)],
+        key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2]),
+    ),
+    dtype=np.int64,
+)
+
+
+@nb.njit(cache=True, inline="always")
+def _face_d2(d: int, low: float, cell: float) -> float:
+    """Squared gap along one axis from a point ``low`` above its cell's lower face to the
+    neighbour cell at offset ``d`` (-1, 0, 1)."""
+    if d < 0:
+        return low * low
+    if d > 0:
+        g = cell - low
+        return g * g
+    return 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def build_grid(
+    points: np.ndarray, cell_size: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """A hashed uniform grid over ``points`` for fixed-radius searches (cell = search radius).
+
+    Returns ``(table_key, table_idx, starts, order, ok)``: cell ``c`` (found through the table)
+    holds the points ``order[starts[c]:starts[c + 1]]``; ``ok`` as in :func:`group_voxels`.
+    """
+    inverse, keys, counts, table_key, table_idx, ok = group_voxels(points, cell_size)
+    m = keys.shape[0]
+    starts = np.zeros(m + 1, dtype=np.int64)
+    order = np.empty(points.shape[0], dtype=np.int64)
+    if not ok:
+        return table_key, table_idx, starts, order, False
+    for c in range(m):
+        starts[c + 1] = starts[c] + counts[c]
+    fill = starts[:m].copy()
+    for i in range(points.shape[0]):
+        g = inverse[i]
+        order[fill[g]] = i
+        fill[g] += 1
+    return table_key, table_idx, starts, order, True
+
+
+@nb.njit(cache=True, nogil=True)
+def grid_nearest(
+    queries: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    ref: np.ndarray,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+    starts: np.ndarray,
+    order: np.ndarray,
+    cell_size: float,
+    max_dist: float,
+    out_idx: np.ndarray,
+    out_d2: np.ndarray,
+) -> None:
+    """Nearest reference point of each query moved by ``(R, t)``, within ``max_dist``.
+
+    Exact when ``max_dist <= cell_size`` (every point that close lies in the query's 3x3x3 cell
+    block). Writes the index (-1 when none is that close) and the squared distance (inf then).
+    """
+    inv_c = 1.0 / cell_size
+    max_d2 = max_dist * max_dist
+    for i in range(queries.shape[0]):
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(queries, i, R, t, inv_c)
+        # Offsets of the query inside its cell, per axis: to the lower and the upper face.
+        lx, ly, lz = q0 - cx * cell_size, q1 - cy * cell_size, q2 - cz * cell_size
+        best, best_d2 = -1, max_d2
+        for n_off in range(27):
+            # The own cell first (n_off 0 maps to offset 0,0,0), then the others.
+            dx, dy, dz = _BLOCK[n_off, 0], _BLOCK[n_off, 1], _BLOCK[n_off, 2]
+            box = _face_d2(dx, lx, cell_size) + _face_d2(dy, ly, cell_size) + _face_d2(dz, lz, cell_size)
+            if box > best_d2:
+                continue  # nothing in that cell can beat the best so far
+            c = _find(table_key, table_idx, _pack(cx + dx, cy + dy, cz + dz))
+            if c < 0:
+                continue
+            for s in range(starts[c], starts[c + 1]):
+                j = order[s]
+                e0, e1, e2 = ref[j, 0] - q0, ref[j, 1] - q1, ref[j, 2] - q2
+                d2 = e0 * e0 + e1 * e1 + e2 * e2
+                if d2 <= best_d2:
+                    best, best_d2 = j, d2
+        out_idx[i] = best
+        out_d2[i] = best_d2 if best >= 0 else np.inf
+
+
+@nb.njit(cache=True, inline="always")
+def _jacobi_rotate(A: np.ndarray, V: np.ndarray, p: int, q: int) -> None:
+    """One Jacobi rotation zeroing ``A[p, q]`` of a symmetric 3x3 ``A`` (accumulated into ``V``)."""
+    apq = A[p, q]
+    if apq == 0.0:
+        return
+    theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+    tt = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    if theta < 0.0:
+        tt = -tt
+    c = 1.0 / math.sqrt(tt * tt + 1.0)
+    s = tt * c
+    for k in range(3):
+        akp, akq = A[k, p], A[k, q]
+        A[k, p] = c * akp - s * akq
+        A[k, q] = s * akp + c * akq
+    for k in range(3):
+        apk, aqk = A[p, k], A[q, k]
+        A[p, k] = c * apk - s * aqk
+        A[q, k] = s * apk + c * aqk
+    for k in range(3):
+        vkp, vkq = V[k, p], V[k, q]
+        V[k, p] = c * vkp - s * vkq
+        V[k, q] = s * vkp + c * vkq
+
+
+@nb.njit(cache=True, nogil=True)
+def smallest_eigenvector(A: np.ndarray, V: np.ndarray) -> int:
+    """Cyclic Jacobi on a symmetric 3x3 ``A`` (overwritten with its eigenvalues on the diagonal,
+    ``V`` with the eigenvectors as columns); returns the column of the smallest eigenvalue."""
+    for r in range(3):
+        for c in range(3):
+            V[r, c] = 1.0 if r == c else 0.0
+    scale = A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]
+    for _ in range(20):
+        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+        if off <= 1e-30 * scale or off == 0.0:
+            break
+        _jacobi_rotate(A, V, 0, 1)
+        _jacobi_rotate(A, V, 0, 2)
+        _jacobi_rotate(A, V, 1, 2)
+    best = 0
+    if A[1, 1] < A[best, best]:
+        best = 1
+    if A[2, 2] < A[best, best]:
+        best = 2
+    return best
+
+
+@nb.njit(cache=True, nogil=True)
+def grid_knn_normals(
+    ref: np.ndarray,
+    which: np.ndarray,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+    starts: np.ndarray,
+    order: np.ndarray,
+    cell_size: float,
+    radius: float,
+    k: int,
+    min_points: int,
+    out_normals: np.ndarray,
+    out_valid: np.ndarray,
+) -> None:
+    """Surface normals at ``ref[which]`` from their ``k`` nearest neighbours within one cell size.
+
+    The hybrid search of Open3D's ``KDTreeSearchParamHybrid(radius=cell_size, max_nn=k)``: up to
+    ``k`` nearest reference points (the point itself included) no farther than ``cell_size``;
+    the normal is the eigenvector of the smallest eigenvalue of their covariance. Fewer than
+    ``min_points`` neighbours give no normal (``out_valid`` false, normal zero).
+    """
+    inv_c = 1.0 / cell_size
+    r2 = min(radius, cell_size) ** 2
+    bd2 = np.empty(k)
+    bi = np.empty(k, dtype=np.int64)
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    identity = np.eye(3)
+    zero = np.zeros(3)
+    for w in range(which.shape[0]):
+        p = which[w]
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(ref, p, identity, zero, inv_c)
+        lx, ly, lz = q0 - cx * cell_size, q1 - cy * cell_size, q2 - cz * cell_size
+        n_found = 0
+        for n_off in range(27):
+            dx, dy, dz = _BLOCK[n_off, 0], _BLOCK[n_off, 1], _BLOCK[n_off, 2]
+            box = _face_d2(dx, lx, cell_size) + _face_d2(dy, ly, cell_size) + _face_d2(dz, lz, cell_size)
+            if box > r2 or (n_found == k and box >= bd2[k - 1]):
+                continue
+            c = _find(table_key, table_idx, _pack(cx + dx, cy + dy, cz + dz))
+            if c < 0:
+                continue
+            for s in range(starts[c], starts[c + 1]):
+                j = order[s]
+                e0, e1, e2 = ref[j, 0] - q0, ref[j, 1] - q1, ref[j, 2] - q2
+                d2 = e0 * e0 + e1 * e1 + e2 * e2
+                if d2 > r2 or (n_found == k and d2 >= bd2[k - 1]):
+                    continue
+                # Insertion into the sorted buffer of the k best so far.
+                pos = n_found if n_found < k else k - 1
+                while pos > 0 and bd2[pos - 1] > d2:
+                    bd2[pos] = bd2[pos - 1]
+                    bi[pos] = bi[pos - 1]
+                    pos -= 1
+                bd2[pos] = d2
+                bi[pos] = j
+                if n_found < k:
+                    n_found += 1
+        if n_found < min_points:
+            out_valid[w] = False
+            out_normals[w, 0] = out_normals[w, 1] = out_normals[w, 2] = 0.0
+            continue
+        m0 = m1 = m2 = 0.0
+        for s in range(n_found):
+            j = bi[s]
+            m0 += ref[j, 0]
+            m1 += ref[j, 1]
+            m2 += ref[j, 2]
+        m0 /= n_found
+        m1 /= n_found
+        m2 /= n_found
+        for r in range(3):
+            for c in range(3):
+                A[r, c] = 0.0
+        for s in range(n_found):
+            j = bi[s]
+            e0, e1, e2 = ref[j, 0] - m0, ref[j, 1] - m1, ref[j, 2] - m2
+            A[0, 0] += e0 * e0
+            A[0, 1] += e0 * e1
+            A[0, 2] += e0 * e2
+            A[1, 1] += e1 * e1
+            A[1, 2] += e1 * e2
+            A[2, 2] += e2 * e2
+        A[1, 0], A[2, 0], A[2, 1] = A[0, 1], A[0, 2], A[1, 2]
+        col = smallest_eigenvector(A, V)
+        out_valid[w] = True
+        out_normals[w, 0], out_normals[w, 1], out_normals[w, 2] = V[0, col], V[1, col], V[2, col]
+
+
+@nb.njit(cache=True, nogil=True)
+def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigen-decomposition of symmetric 3x3 matrices (Jacobi), like ``np.linalg.eigh``: eigenvalues
+    ascending (m,3) and eigenvectors as columns (m,3,3). About 5x faster than LAPACK's per-matrix
+    calls for thousands of 3x3 voxel covariances."""
+    m = matrices.shape[0]
+    evals = np.empty((m, 3))
+    evecs = np.empty((m, 3, 3))
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    for g in range(m):
+        for r in range(3):
+            for c in range(3):
+                A[r, c] = matrices[g, r, c]
+        smallest_eigenvector(A, V)
+        d0, d1, d2 = A[0, 0], A[1, 1], A[2, 2]
+        # Sort the three eigenpairs ascending.
+        i0, i1, i2 = 0, 1, 2
+        if d1 < d0:
+            i0, i1 = i1, i0
+        if d2 < A[i1, i1]:
+            i1, i2 = i2, i1
+        if A[i1, i1] < A[i0, i0]:
+            i0, i1 = i1, i0
+        order = (i0, i1, i2)
+        for c in range(3):
+            src_c = order[c]
+            evals[g, c] = A[src_c, src_c]
+            for r in range(3):
+                evecs[g, r, c] = V[r, src_c]
+    return evals, evecs

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.voxel import VoxelGaussianMap, pack_keys, voxel_coords
+from core.voxel import VoxelGaussianMap, voxel_coords, voxel_groups
 
 __all__ = [
     "iqr_inlier_mask",
@@ -49,11 +49,16 @@ def mahalanobis_to_own_voxel(points_xyz: np.ndarray, gmap: VoxelGaussianMap) -> 
     d2 : (N,) float64, ``inf`` where ``voxel_index`` is -1
     """
     vidx = gmap.lookup(voxel_coords(points_xyz, gmap.voxel_size_m))
+    return vidx, _mahalanobis_to_voxel(points_xyz, gmap, vidx)
+
+
+def _mahalanobis_to_voxel(points_xyz: np.ndarray, gmap: VoxelGaussianMap, vidx: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance of each point to voxel ``vidx`` (inf where it is -1)."""
     d2 = np.full(points_xyz.shape[0], np.inf)
     hit = vidx >= 0
     diff = points_xyz[hit] - gmap.means[vidx[hit]]
     d2[hit] = np.einsum("ni,nij,nj->n", diff, gmap.inv_covariances[vidx[hit]], diff)
-    return vidx, d2
+    return d2
 
 
 def _grouped_quantile(
@@ -90,13 +95,13 @@ def iqr_inlier_mask(
     -------
     (N,) bool inlier mask.
     """
-    gmap = VoxelGaussianMap.build(
+    gmap, vidx = VoxelGaussianMap.build_with_assignment(
         points_xyz,
         voxel_size_m,
         min_points_per_voxel=min_points_per_voxel,
         eigenvalue_ratio=eigenvalue_ratio,
     )
-    vidx, d2 = mahalanobis_to_own_voxel(points_xyz, gmap)
+    d2 = _mahalanobis_to_voxel(points_xyz, gmap, vidx)
     d = np.sqrt(d2)
     has = vidx >= 0
     inlier = np.zeros(points_xyz.shape[0], dtype=bool)
@@ -135,6 +140,5 @@ def statistical_outlier_mask(
 
 def isolated_point_mask(points_xyz: np.ndarray, voxel_size_m: float, min_points: int) -> np.ndarray:
     """True for points whose voxel holds at least ``min_points`` points (cheap density test)."""
-    keys = pack_keys(voxel_coords(points_xyz, voxel_size_m))
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse, _, counts = voxel_groups(points_xyz, voxel_size_m)
     return counts[inverse] >= min_points

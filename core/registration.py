@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
+from core.grid import PointGrid
 from core.icp import icp_point_to_plane, icp_point_to_point
 from core.kernels import best_voxel
 from core.ndt import apply_update_about, ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
@@ -149,12 +150,22 @@ def sanitize_points(points: np.ndarray, *, name: str, min_points: int) -> tuple[
     return xyz, n_bad
 
 
+#: Points :func:`auto_voxel_sizes` measures a large cloud's scale on.
+_SCALE_SAMPLE = 20_000
+
+
 def auto_voxel_sizes(points_xyz: np.ndarray) -> tuple[float, ...]:
     """Four NDT levels (8r, 4r, 2r, r) from the cloud's scale.
 
     ``r`` is the median distance of the points from their median point divided by 12, rounded to
     one significant digit: about 1 m for a KITTI sweep, 0.5 m indoors, 4 mm for a bunny scan.
+    Clouds of more than :data:`_SCALE_SAMPLE` points are measured on that many points drawn with
+    a fixed seed (0.1 % off on KITTI sweeps, a sixth of the time; a stride would be biased on
+    organized clouds).
     """
+    if points_xyz.shape[0] > _SCALE_SAMPLE:
+        pick = np.random.default_rng(0).integers(0, points_xyz.shape[0], _SCALE_SAMPLE)
+        points_xyz = points_xyz[pick]
     centre = np.median(points_xyz, axis=0)
     spread = float(np.median(np.linalg.norm(points_xyz - centre, axis=1)))
     if spread <= 0:
@@ -163,6 +174,12 @@ def auto_voxel_sizes(points_xyz: np.ndarray) -> tuple[float, ...]:
     exp = np.floor(np.log10(r))
     r = float(np.round(r / 10**exp) * 10**exp)
     return (8 * r, 4 * r, 2 * r, r)
+
+
+#: Local planes of the SVD step come from neighbours at most this many finest voxels away. One
+#: voxel leaves sparse scans (the car pair) short of neighbours: its SVD step then fails the
+#: acceptance test (4.6 cm instead of 1.8 cm); two voxels match the unbounded k-NN normals.
+NORMAL_RADIUS_VOXELS = 2.0
 
 
 @dataclass(frozen=True)
@@ -188,20 +205,35 @@ class PreparedReference:
         return cKDTree(self.points_xyz)
 
     @cached_property
-    def _normal_cache(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def grid(self) -> PointGrid:
+        """Hashed grid over :attr:`points_xyz`, cells one finest voxel wide (built on first use)."""
+        return PointGrid.build(self.points_xyz, self.maps[-1].voxel_size_m)
+
+    @cached_property
+    def normal_grid(self) -> PointGrid:
+        """Hashed grid with cells :data:`NORMAL_RADIUS_VOXELS` finest voxels wide (local planes)."""
+        return PointGrid.build(self.points_xyz, NORMAL_RADIUS_VOXELS * self.maps[-1].voxel_size_m)
+
+    @cached_property
+    def _normal_cache(self) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         return {}
 
-    def normals_at(self, index: np.ndarray, k: int = 16) -> np.ndarray:
-        """Unit surface normals at ``points_xyz[index]`` from ``k`` nearest neighbours, computed once each."""
+    def normals_at(self, index: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        """Unit surface normals at ``points_xyz[index]`` and whether each exists, computed once each.
+
+        A normal comes from up to ``k`` nearest reference points within
+        :data:`NORMAL_RADIUS_VOXELS` finest voxels (:meth:`PointGrid.normals`, Open3D's hybrid
+        search); fewer than 5 such points leave none.
+        """
         if k not in self._normal_cache:
             n = self.points_xyz.shape[0]
-            self._normal_cache[k] = np.zeros_like(self.points_xyz), np.zeros(n, dtype=bool)
-        normals, known = self._normal_cache[k]
+            self._normal_cache[k] = (np.zeros((n, 3)), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool))
+        normals, valid, known = self._normal_cache[k]
         need = np.unique(index[~known[index]])
         if need.size:
-            normals[need] = _local_normals(self.points_xyz, need, self.kdtree, k)
+            normals[need], valid[need] = self.normal_grid.normals(need, k, self.normal_grid.cell_size_m)
             known[need] = True
-        return normals[index]
+        return normals[index], valid[index]
 
 
 def prepare_reference(
@@ -259,7 +291,7 @@ def _select_moving_points(
 
 
 #: Coarse NDT levels use at least this many moving points (or all of them).
-MIN_COARSE_POINTS = 3000
+MIN_COARSE_POINTS = 1500
 
 
 def _coarse_points(moving: np.ndarray, voxel_size_m: float, settings: RegistrationSettings) -> np.ndarray:
@@ -281,14 +313,14 @@ def _svd_refine(
     ref: PreparedReference,
     T: np.ndarray,
     settings: RegistrationSettings,
-    tree: cKDTree,
 ) -> tuple[np.ndarray, int, float, float]:
     """Algorithm 3: iterate Kabsch on high-probability correspondences.
 
-    A moving point takes part when its squared Mahalanobis distance to its best reference voxel is
-    under the chi-square(3) 99 % quantile and its nearest-neighbour distance is inside the Tukey
-    fence of all such distances. Its partner is the nearest reference point projected onto that
-    point's local plane (normal from the ``svd_normal_neighbors`` nearest reference points): the
+    The moving points are Algorithm 1's high-probability selection. One takes part when its
+    nearest reference point is within one finest voxel (a :class:`~core.grid.PointGrid` search)
+    and that distance is inside the Tukey fence of all such distances. Its partner is the nearest
+    reference point projected onto that point's local plane (normal from the
+    ``svd_normal_neighbors`` nearest reference points, :meth:`PreparedReference.normals_at`): the
     SVD of these pairs has the point-to-plane optimum as its fixed point, so the step refines
     NDT's voxel-level fit with the surface itself instead of pulling points onto sampled positions.
     The iteration converges linearly; :func:`_extrapolate` (Besl & McKay's acceleration) cuts the
@@ -301,18 +333,21 @@ def _svd_refine(
     Returns the refined transform, iterations, and the trimmed point-to-plane RMSE before and after.
     """
     finest = ref.maps[-1]
+    grid = ref.grid
 
     def search(T_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Correspondences at ``T_cur``: (moving points, reference points, their normals)."""
-        q = transform_points(T_cur, moving)
-        dist, idx = tree.query(q, distance_upper_bound=finest.voxel_size_m)
-        ok = np.isfinite(dist)
+        idx, dist = grid.nearest(moving, T_cur, finest.voxel_size_m)
+        ok = idx >= 0
         if ok.sum() < 10:
             return None
         _, hi = tukey_fences(dist[ok], settings.svd_fence_k)
         ok &= dist <= hi
-        idx_ok = idx[ok]
-        return moving[ok], ref.points_xyz[idx_ok], ref.normals_at(idx_ok, settings.svd_normal_neighbors)
+        normals, has_normal = ref.normals_at(idx[ok], settings.svd_normal_neighbors)
+        sel = np.flatnonzero(ok)[has_normal]
+        if sel.size < 10:
+            return None
+        return moving[sel], ref.points_xyz[idx[sel]], normals[has_normal]
 
     def residuals(T_cur: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]):
         q = transform_points(T_cur, corr[0])
@@ -442,15 +477,6 @@ def _svd_refine_voxel(
     return T, it, rmse_before, float(np.sqrt(np.mean(r**2)))
 
 
-def _local_normals(points_xyz: np.ndarray, which: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
-    """Unit normals at ``points_xyz[which]`` from their k nearest neighbours' covariance."""
-    _, idx = tree.query(points_xyz[which], k=k)
-    nb = points_xyz[idx]
-    d = nb - nb.mean(axis=1, keepdims=True)
-    _, evecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
-    return evecs[:, :, 0]
-
-
 def _plane_information(
     moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int
 ) -> np.ndarray:
@@ -572,7 +598,7 @@ def register(
         if settings.svd_correspondences == "voxel":
             T_svd, n_svd, rmse_before, rmse_after = _svd_refine_voxel(moving, ref, T, settings)
         else:
-            T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings, ref.kdtree)
+            T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings)
         iterations += n_svd
         step_t = float(np.linalg.norm((invert(T) @ T_svd)[:3, 3]))
         # Accept when the surface residual improves and the step stays within one finest voxel.

@@ -129,3 +129,115 @@ def test_registration_far_from_the_origin_recovers_yaw() -> None:
         err_m, err_deg = transform_error(result.T_target_source, Tb)
         assert err_m < 0.01 and err_deg < 0.02, f"yaw {yaw}: {err_m:.3f} m {err_deg:.3f} deg off"
         assert result.inlier_ratio > 0.7
+
+
+@pytest.fixture(scope="module")
+def kitti_clouds():
+    d = require_data("kitti00/velodyne/000000.bin") / "kitti00/velodyne"
+    return (
+        read_cloud(d / "000000.bin").xyz.astype(np.float64),
+        read_cloud(d / "000001.bin").xyz.astype(np.float64),
+    )
+
+
+@pytest.mark.parametrize("voxel", [0.05, 0.225, 1.0, 8.0])
+def test_group_voxels_matches_np_unique(kitti_clouds, voxel: float) -> None:
+    """The hashed grouping finds exactly np.unique's groups (the table grows several times at
+    5 cm: 100k groups from a 1024-slot start)."""
+    points = kitti_clouds[0]
+    inverse, keys, counts, *_, ok = kernels.group_voxels(points, voxel)
+    assert ok
+    ref_keys = pack_keys(voxel_coords(points, voxel))
+    uniq, ref_counts = np.unique(ref_keys, return_counts=True)
+    np.testing.assert_array_equal(np.sort(keys), uniq)
+    np.testing.assert_array_equal(keys[inverse], ref_keys)
+    np.testing.assert_array_equal(counts[np.argsort(keys)], ref_counts)
+    # First-seen order: group g first appears before group g + 1.
+    first = np.full(keys.size, points.shape[0])
+    np.minimum.at(first, inverse, np.arange(points.shape[0]))
+    assert np.all(np.diff(first) > 0)
+
+
+def test_group_voxels_flags_non_finite_and_out_of_range_points() -> None:
+    for bad in (np.nan, np.inf, 1e9):
+        pts = np.zeros((5, 3))
+        pts[3, 1] = bad
+        assert not kernels.group_voxels(pts, 0.1)[-1]
+
+
+def test_voxel_gaussians_match_a_per_voxel_numpy_fit(kitti_clouds) -> None:
+    """Means and conditioned covariances of the compiled build against np.mean/np.cov per voxel."""
+    points = voxel_downsample(kitti_clouds[0], 0.25)
+    gmap, assignment = VoxelGaussianMap.build_with_assignment(points, 2.0, min_points_per_voxel=6)
+    assert np.all(np.diff(gmap.keys) > 0)
+    keys = pack_keys(voxel_coords(points, 2.0))
+    for v in np.linspace(0, gmap.n_voxels - 1, 25).astype(int):
+        members = points[keys == gmap.keys[v]]
+        np.testing.assert_array_equal(np.flatnonzero(assignment == v), np.flatnonzero(keys == gmap.keys[v]))
+        np.testing.assert_allclose(gmap.means[v], members.mean(axis=0), rtol=1e-12, atol=1e-9)
+        evals, evecs = np.linalg.eigh(np.cov(members.T))
+        evals = np.maximum(evals, max(evals[2] * 0.01, 1e-12))
+        np.testing.assert_allclose(gmap.covariances[v], (evecs * evals) @ evecs.T, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(gmap.inv_covariances[v] @ gmap.covariances[v], np.eye(3), atol=1e-8)
+    dropped = np.isin(keys, gmap.keys, invert=True)
+    assert np.all(assignment[dropped] == -1) and dropped.any()
+
+
+def test_eigh3_matches_lapack() -> None:
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(4000, 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(4000, 1, 1))
+    M = X @ np.swapaxes(X, 1, 2)
+    M[:500, 2] = M[:500, :, 2] = 0.0  # rank-deficient (flat) matrices too
+    evals, evecs = kernels.eigh3(M)
+    ref_vals = np.linalg.eigvalsh(M)
+    scale = np.abs(ref_vals).max(axis=1, keepdims=True)
+    np.testing.assert_allclose(evals, ref_vals, atol=1e-12 * scale.max(), rtol=1e-12)
+    assert np.all(np.diff(evals, axis=1) >= 0)
+    eye = np.broadcast_to(np.eye(3), M.shape)
+    np.testing.assert_allclose(evecs @ np.swapaxes(evecs, 1, 2), eye, atol=1e-12)
+    rebuilt = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
+    np.testing.assert_allclose(rebuilt, M, atol=1e-11 * scale.max())
+
+
+def test_point_grid_nearest_matches_kdtree(kitti_clouds) -> None:
+    from scipy.spatial import cKDTree
+
+    from core.grid import PointGrid
+
+    ref = voxel_downsample(kitti_clouds[0], 0.2)
+    queries = voxel_downsample(kitti_clouds[1], 0.4)
+    T = make_transform(euler_deg=(0.5, -0.3, 2.0), translation=(0.6, -0.2, 0.05))
+    grid = PointGrid.build(ref, 0.8)
+    idx, dist = grid.nearest(queries, T, 0.8)
+    ref_dist, ref_idx = cKDTree(ref).query(transform_points(T, queries), distance_upper_bound=0.8)
+    found = np.isfinite(ref_dist)
+    assert found.sum() > 5000 and (~found).sum() > 100
+    np.testing.assert_array_equal(idx >= 0, found)
+    np.testing.assert_allclose(dist[found], ref_dist[found], rtol=1e-12, atol=1e-12)
+    assert np.mean(idx[found] == ref_idx[found]) > 0.999  # ties aside, the same points
+    with pytest.raises(ValueError, match="exceeds the cell size"):
+        grid.nearest(queries, T, 1.0)
+
+
+def test_point_grid_normals_match_hybrid_knn(kitti_clouds) -> None:
+    """Normals from up to k neighbours within the radius equal an exact k-NN/radius fit."""
+    from scipy.spatial import cKDTree
+
+    from core.grid import PointGrid
+
+    ref = voxel_downsample(kitti_clouds[0], 0.2)
+    which = np.arange(0, ref.shape[0], 7)
+    grid = PointGrid.build(ref, 1.6)
+    normals, valid = grid.normals(which, 16, 1.6, min_points=5)
+    dist, idx = cKDTree(ref).query(ref[which], k=16, distance_upper_bound=1.6)
+    n_within = np.isfinite(dist).sum(axis=1)
+    np.testing.assert_array_equal(valid, n_within >= 5)
+    assert valid.mean() > 0.8
+    for w in np.flatnonzero(valid)[::10]:
+        nb = ref[idx[w, : n_within[w]]]
+        evals, evecs = np.linalg.eigh(np.cov(nb.T))
+        if evals[1] - evals[0] < 1e-3 * evals[2]:
+            continue  # no unique normal (a line or a blob)
+        assert abs(evecs[:, 0] @ normals[w]) > 1 - 1e-9
+    np.testing.assert_allclose(np.linalg.norm(normals[valid], axis=1), 1.0, atol=1e-12)
+    assert np.all(normals[~valid] == 0)
