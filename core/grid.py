@@ -11,14 +11,18 @@ the compiled loops live in :mod:`core.kernels` (:func:`~core.kernels.build_grid`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from core.errors import InvalidCloudError
-from core.kernels import build_grid, grid_knn_normals, grid_nearest
+from core.kernels import build_grid, cell_block, grid_knn_normals, grid_nearest
 
 __all__ = ["PointGrid"]
+
+#: Cell blocks of reach 1-3, nearest cells first (:func:`core.kernels.cell_block`).
+_BLOCKS = {reach: cell_block(reach) for reach in (1, 2, 3)}
 
 
 @dataclass(frozen=True)
@@ -71,16 +75,19 @@ class PointGrid:
         self, which: np.ndarray, k: int, radius_m: float, min_points: int = 5
     ) -> tuple[np.ndarray, np.ndarray]:
         """Unit normals at ``points_xyz[which]`` from up to ``k`` nearest grid points within
-        ``radius_m`` (at most the cell size; the point itself counts), Open3D's hybrid search.
+        ``radius_m`` (at most three cells; the point itself counts), Open3D's hybrid search.
 
         Returns ``(normals (n,3), valid (n,))``: fewer than ``min_points`` neighbours leave no
         normal (valid false, normal zero).
         """
+        reach = math.ceil(radius_m / self.cell_size_m - 1e-9)
+        if not 1 <= reach <= 3:
+            raise ValueError(f"normal radius {radius_m:g} m must be within 3 cells of {self.cell_size_m:g} m")
         w = np.ascontiguousarray(which, dtype=np.int64)
         normals = np.empty((w.size, 3))
         valid = np.empty(w.size, dtype=bool)
         grid_knn_normals(
             self.points_xyz, w, self.table_key, self.table_idx, self.starts, self.order,
-            self.cell_size_m, float(radius_m), int(k), int(min_points), normals, valid,
+            self.cell_size_m, _BLOCKS[reach], float(radius_m), int(k), int(min_points), normals, valid,
         )  # fmt: skip
         return normals, valid

@@ -152,16 +152,21 @@ def ndt_accumulate(
     ``w = -d1 d2 e``, ``J = [I, -[q - pivot]x]``; gradient ``w J^T a``; Hessian
     ``w (J^T Sigma^-1 J - d2 (J^T a)(J^T a)^T + S)``.
     ``out_grad`` (6,), ``out_hess`` and ``out_gn`` (6,6) are overwritten. Returns (cost, pairs).
+
+    The 48 sums live in scalar locals, not arrays: LLVM keeps them in registers, where sums into
+    heap arrays (which might alias the inputs) cost a load and a store per pair and term; that
+    made this loop twice as slow. The per-pair code is written out term by term for that reason.
     """
     inv_v = 1.0 / voxel_size
     cost = 0.0
     n_pairs = 0
-    g = np.zeros(6)
-    H = np.zeros((6, 6))
-    G = np.zeros((6, 6))
-    ja = np.zeros(6)
-    Jr = np.zeros((3, 3))
-    MJ = np.zeros((3, 3))
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    G00 = G01 = G02 = G03 = G04 = G05 = G11 = 0.0
+    G12 = G13 = G14 = G15 = G22 = G23 = G24 = 0.0
+    G25 = G33 = G34 = G35 = G44 = G45 = G55 = 0.0
+    K00 = K01 = K02 = K03 = K04 = K05 = K11 = 0.0
+    K12 = K13 = K14 = K15 = K22 = K23 = K24 = 0.0
+    K25 = K33 = K34 = K35 = K44 = K45 = K55 = 0.0
     n_off = offsets.shape[0]
     for i in range(points.shape[0]):
         q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
@@ -184,58 +189,124 @@ def ndt_accumulate(
             if not derivatives:
                 continue
             w = -d1 * d2 * e
-            # J^T a = (a, q x a)
-            ja[0], ja[1], ja[2] = a0, a1, a2
-            # Rotation about the pivot: the lever arm is q - pivot.
-            r0, r1, r2 = q0 - pivot[0], q1 - pivot[1], q2 - pivot[2]
-            ja[3] = r1 * a2 - r2 * a1
-            ja[4] = r2 * a0 - r0 * a2
-            ja[5] = r0 * a1 - r1 * a0
-            for r in range(6):
-                g[r] += w * ja[r]
-            # Rotation columns of J: e_k x q, i.e. Jr = -[q]x.
-            Jr[0, 0], Jr[0, 1], Jr[0, 2] = 0.0, r2, -r1
-            Jr[1, 0], Jr[1, 1], Jr[1, 2] = -r2, 0.0, r0
-            Jr[2, 0], Jr[2, 1], Jr[2, 2] = r1, -r0, 0.0
-            for r in range(3):
-                for c in range(3):
-                    MJ[r, c] = (
-                        inv_cov[v, r, 0] * Jr[0, c]
-                        + inv_cov[v, r, 1] * Jr[1, c]
-                        + inv_cov[v, r, 2] * Jr[2, c]
-                    )
             wd2 = w * d2
+            # J^T a = (a, (q - pivot) x a); rotation about the pivot.
+            r0, r1, r2 = q0 - pivot[0], q1 - pivot[1], q2 - pivot[2]
+            j0, j1, j2 = a0, a1, a2
+            j3 = r1 * a2 - r2 * a1
+            j4 = r2 * a0 - r0 * a2
+            j5 = r0 * a1 - r1 * a0
+            g0 += w * j0
+            g1 += w * j1
+            g2 += w * j2
+            g3 += w * j3
+            g4 += w * j4
+            g5 += w * j5
+            i00, i01, i02 = inv_cov[v, 0, 0], inv_cov[v, 0, 1], inv_cov[v, 0, 2]
+            i11, i12, i22 = inv_cov[v, 1, 1], inv_cov[v, 1, 2], inv_cov[v, 2, 2]
+            # M = Sigma^-1 Jr with Jr = -[q - pivot]x (columns e_k x (q - pivot)).
+            m00 = i02 * r1 - i01 * r2
+            m01 = i00 * r2 - i02 * r0
+            m02 = i01 * r0 - i00 * r1
+            m10 = i12 * r1 - i11 * r2
+            m11 = i01 * r2 - i12 * r0
+            m12 = i11 * r0 - i01 * r1
+            m20 = i22 * r1 - i12 * r2
+            m21 = i02 * r2 - i22 * r0
+            m22 = i12 * r0 - i02 * r1
+            G00 += w * i00
+            G01 += w * i01
+            G02 += w * i02
+            G11 += w * i11
+            G12 += w * i12
+            G22 += w * i22
+            G03 += w * m00
+            G04 += w * m01
+            G05 += w * m02
+            G13 += w * m10
+            G14 += w * m11
+            G15 += w * m12
+            G23 += w * m20
+            G24 += w * m21
+            G25 += w * m22
+            G33 += w * (-r2 * m10 + r1 * m20)
+            G34 += w * (-r2 * m11 + r1 * m21)
+            G35 += w * (-r2 * m12 + r1 * m22)
+            G44 += w * (r2 * m01 - r0 * m21)
+            G45 += w * (r2 * m02 - r0 * m22)
+            G55 += w * (r0 * m12 - r1 * m02)
             aq = a0 * r0 + a1 * r1 + a2 * r2
-            aa = (a0, a1, a2)
-            qq = (r0, r1, r2)
-            for r in range(3):
-                for c in range(r, 3):
-                    # translation-translation: Sigma^-1
-                    s = w * inv_cov[v, r, c]
-                    G[r, c] += s
-                    H[r, c] += s - wd2 * ja[r] * ja[c]
-                    # rotation-rotation: Jr^T Sigma^-1 Jr + S(a, q)
-                    jsj = Jr[0, r] * MJ[0, c] + Jr[1, r] * MJ[1, c] + Jr[2, r] * MJ[2, c]
-                    s_rr = 0.5 * (aa[r] * qq[c] + aa[c] * qq[r])
-                    if r == c:
-                        s_rr -= aq
-                    G[3 + r, 3 + c] += w * jsj
-                    H[3 + r, 3 + c] += w * (jsj + s_rr) - wd2 * ja[3 + r] * ja[3 + c]
-                for c in range(3):
-                    # translation-rotation: Sigma^-1 Jr
-                    s = w * MJ[r, c]
-                    G[r, 3 + c] += s
-                    H[r, 3 + c] += s - wd2 * ja[r] * ja[3 + c]
+            K00 -= wd2 * j0 * j0
+            K01 -= wd2 * j0 * j1
+            K02 -= wd2 * j0 * j2
+            K03 -= wd2 * j0 * j3
+            K04 -= wd2 * j0 * j4
+            K05 -= wd2 * j0 * j5
+            K11 -= wd2 * j1 * j1
+            K12 -= wd2 * j1 * j2
+            K13 -= wd2 * j1 * j3
+            K14 -= wd2 * j1 * j4
+            K15 -= wd2 * j1 * j5
+            K22 -= wd2 * j2 * j2
+            K23 -= wd2 * j2 * j3
+            K24 -= wd2 * j2 * j4
+            K25 -= wd2 * j2 * j5
+            K33 += w * (a0 * r0 - aq) - wd2 * j3 * j3
+            K34 += w * (0.5 * (a0 * r1 + a1 * r0)) - wd2 * j3 * j4
+            K35 += w * (0.5 * (a0 * r2 + a2 * r0)) - wd2 * j3 * j5
+            K44 += w * (a1 * r1 - aq) - wd2 * j4 * j4
+            K45 += w * (0.5 * (a1 * r2 + a2 * r1)) - wd2 * j4 * j5
+            K55 += w * (a2 * r2 - aq) - wd2 * j5 * j5
+    # Only upper triangles were accumulated (G: Gauss-Newton part, K: the rest of H): mirror.
     if derivatives:
-        # Only the upper triangle was accumulated (the 3x3 diagonal blocks from their diagonal
-        # up, the translation-rotation block whole): mirror it.
-        for r in range(6):
-            out_grad[r] = g[r]
-            for c in range(r, 6):
-                out_hess[r, c] = H[r, c]
-                out_hess[c, r] = H[r, c]
-                out_gn[r, c] = G[r, c]
-                out_gn[c, r] = G[r, c]
+        out_grad[0] = g0
+        out_grad[1] = g1
+        out_grad[2] = g2
+        out_grad[3] = g3
+        out_grad[4] = g4
+        out_grad[5] = g5
+        out_gn[0, 0] = out_gn[0, 0] = G00
+        out_hess[0, 0] = out_hess[0, 0] = G00 + K00
+        out_gn[0, 1] = out_gn[1, 0] = G01
+        out_hess[0, 1] = out_hess[1, 0] = G01 + K01
+        out_gn[0, 2] = out_gn[2, 0] = G02
+        out_hess[0, 2] = out_hess[2, 0] = G02 + K02
+        out_gn[0, 3] = out_gn[3, 0] = G03
+        out_hess[0, 3] = out_hess[3, 0] = G03 + K03
+        out_gn[0, 4] = out_gn[4, 0] = G04
+        out_hess[0, 4] = out_hess[4, 0] = G04 + K04
+        out_gn[0, 5] = out_gn[5, 0] = G05
+        out_hess[0, 5] = out_hess[5, 0] = G05 + K05
+        out_gn[1, 1] = out_gn[1, 1] = G11
+        out_hess[1, 1] = out_hess[1, 1] = G11 + K11
+        out_gn[1, 2] = out_gn[2, 1] = G12
+        out_hess[1, 2] = out_hess[2, 1] = G12 + K12
+        out_gn[1, 3] = out_gn[3, 1] = G13
+        out_hess[1, 3] = out_hess[3, 1] = G13 + K13
+        out_gn[1, 4] = out_gn[4, 1] = G14
+        out_hess[1, 4] = out_hess[4, 1] = G14 + K14
+        out_gn[1, 5] = out_gn[5, 1] = G15
+        out_hess[1, 5] = out_hess[5, 1] = G15 + K15
+        out_gn[2, 2] = out_gn[2, 2] = G22
+        out_hess[2, 2] = out_hess[2, 2] = G22 + K22
+        out_gn[2, 3] = out_gn[3, 2] = G23
+        out_hess[2, 3] = out_hess[3, 2] = G23 + K23
+        out_gn[2, 4] = out_gn[4, 2] = G24
+        out_hess[2, 4] = out_hess[4, 2] = G24 + K24
+        out_gn[2, 5] = out_gn[5, 2] = G25
+        out_hess[2, 5] = out_hess[5, 2] = G25 + K25
+        out_gn[3, 3] = out_gn[3, 3] = G33
+        out_hess[3, 3] = out_hess[3, 3] = G33 + K33
+        out_gn[3, 4] = out_gn[4, 3] = G34
+        out_hess[3, 4] = out_hess[4, 3] = G34 + K34
+        out_gn[3, 5] = out_gn[5, 3] = G35
+        out_hess[3, 5] = out_hess[5, 3] = G35 + K35
+        out_gn[4, 4] = out_gn[4, 4] = G44
+        out_hess[4, 4] = out_hess[4, 4] = G44 + K44
+        out_gn[4, 5] = out_gn[5, 4] = G45
+        out_hess[4, 5] = out_hess[5, 4] = G45 + K45
+        out_gn[5, 5] = out_gn[5, 5] = G55
+        out_hess[5, 5] = out_hess[5, 5] = G55 + K55
     return cost, n_pairs
 
 
@@ -459,25 +530,31 @@ def group_centroids(points: np.ndarray, inverse: np.ndarray, n_groups: int) -> n
     return sums
 
 
-#: The 3x3x3 cell block, own cell first, then by distance (faces, edges, corners), so the best
-#: candidates are met early and the rest are pruned by their box distance.
-_BLOCK = np.array(
-    sorted(
-        [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)],
-        key=lambda o: abs(o[0]) + abs(o[1]) + abs(o[2]),
-    ),
-    dtype=np.int64,
-)
+def cell_block(reach: int) -> np.ndarray:
+    """Offsets of the ``(2 reach + 1)^3`` cell block, own cell first, then by their least possible
+    distance (faces, edges, corners, then the next shell), so the best candidates are met early and
+    the rest are pruned by their box distance."""
+    r = range(-reach, reach + 1)
+    offsets = [(dx, dy, dz) for dx in r for dy in r for dz in r]
+
+    def rank(o: tuple[int, int, int]) -> tuple[int, int]:
+        return sum(max(abs(d) - 1, 0) ** 2 for d in o), sum(abs(d) for d in o)
+
+    return np.array(sorted(offsets, key=rank), dtype=np.int64)
+
+
+_BLOCK = cell_block(1)
 
 
 @nb.njit(cache=True, inline="always")
 def _face_d2(d: int, low: float, cell: float) -> float:
-    """Squared gap along one axis from a point ``low`` above its cell's lower face to the
-    neighbour cell at offset ``d`` (-1, 0, 1)."""
+    """Squared gap along one axis from a point ``low`` above its cell's lower face to the cell at
+    offset ``d``."""
     if d < 0:
-        return low * low
+        g = low + (-d - 1) * cell
+        return g * g
     if d > 0:
-        g = cell - low
+        g = (cell - low) + (d - 1) * cell
         return g * g
     return 0.0
 
@@ -611,21 +688,23 @@ def grid_knn_normals(
     starts: np.ndarray,
     order: np.ndarray,
     cell_size: float,
+    offsets: np.ndarray,
     radius: float,
     k: int,
     min_points: int,
     out_normals: np.ndarray,
     out_valid: np.ndarray,
 ) -> None:
-    """Surface normals at ``ref[which]`` from their ``k`` nearest neighbours within one cell size.
+    """Surface normals at ``ref[which]`` from their ``k`` nearest neighbours within ``radius``.
 
-    The hybrid search of Open3D's ``KDTreeSearchParamHybrid(radius=cell_size, max_nn=k)``: up to
-    ``k`` nearest reference points (the point itself included) no farther than ``cell_size``;
-    the normal is the eigenvector of the smallest eigenvalue of their covariance. Fewer than
-    ``min_points`` neighbours give no normal (``out_valid`` false, normal zero).
+    The hybrid search of Open3D's ``KDTreeSearchParamHybrid(radius, max_nn=k)``: up to ``k``
+    nearest reference points (the point itself included) no farther than ``radius``; the normal is
+    the eigenvector of the smallest eigenvalue of their covariance. Fewer than ``min_points``
+    neighbours give no normal (``out_valid`` false, normal zero). ``offsets`` is the
+    :func:`cell_block` whose reach covers the radius (``reach * cell_size >= radius``).
     """
     inv_c = 1.0 / cell_size
-    r2 = min(radius, cell_size) ** 2
+    r2 = radius * radius
     bd2 = np.empty(k)
     bi = np.empty(k, dtype=np.int64)
     A = np.empty((3, 3))
@@ -637,8 +716,8 @@ def grid_knn_normals(
         q0, q1, q2, cx, cy, cz = _moved_and_cell(ref, p, identity, zero, inv_c)
         lx, ly, lz = q0 - cx * cell_size, q1 - cy * cell_size, q2 - cz * cell_size
         n_found = 0
-        for n_off in range(27):
-            dx, dy, dz = _BLOCK[n_off, 0], _BLOCK[n_off, 1], _BLOCK[n_off, 2]
+        for n_off in range(offsets.shape[0]):
+            dx, dy, dz = offsets[n_off, 0], offsets[n_off, 1], offsets[n_off, 2]
             box = _face_d2(dx, lx, cell_size) + _face_d2(dy, ly, cell_size) + _face_d2(dz, lz, cell_size)
             if box > r2 or (n_found == k and box >= bd2[k - 1]):
                 continue

@@ -138,10 +138,14 @@ def sanitize_points(points: np.ndarray, *, name: str, min_points: int) -> tuple[
     if not np.issubdtype(arr.dtype, np.number):
         raise InvalidCloudError(f"{name}: points must be numeric, got dtype {arr.dtype}")
     xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
-    finite = np.isfinite(xyz).all(axis=1)
-    n_bad = int(xyz.shape[0] - finite.sum())
-    if n_bad:
-        xyz = xyz[finite]
+    n_bad = 0
+    # Any NaN or inf makes the sum non-finite (a finite sum proves every point finite); only then,
+    # or when a huge finite sum overflows, check point by point.
+    if not np.isfinite(np.add.reduce(xyz, axis=None)):
+        finite = np.isfinite(xyz).all(axis=1)
+        n_bad = int(xyz.shape[0] - finite.sum())
+        if n_bad:
+            xyz = xyz[finite]
     if xyz.shape[0] < min_points:
         raise InvalidCloudError(
             f"{name}: {xyz.shape[0]} finite points (after dropping {n_bad} non-finite), "
@@ -210,11 +214,6 @@ class PreparedReference:
         return PointGrid.build(self.points_xyz, self.maps[-1].voxel_size_m)
 
     @cached_property
-    def normal_grid(self) -> PointGrid:
-        """Hashed grid with cells :data:`NORMAL_RADIUS_VOXELS` finest voxels wide (local planes)."""
-        return PointGrid.build(self.points_xyz, NORMAL_RADIUS_VOXELS * self.maps[-1].voxel_size_m)
-
-    @cached_property
     def _normal_cache(self) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         return {}
 
@@ -231,7 +230,7 @@ class PreparedReference:
         normals, valid, known = self._normal_cache[k]
         need = np.unique(index[~known[index]])
         if need.size:
-            normals[need], valid[need] = self.normal_grid.normals(need, k, self.normal_grid.cell_size_m)
+            normals[need], valid[need] = self.grid.normals(need, k, NORMAL_RADIUS_VOXELS * self.grid.cell_size_m)
             known[need] = True
         return normals[index], valid[index]
 
