@@ -40,6 +40,8 @@ __all__ = [
     "group_centroids",
     "group_moments",
     "group_voxels",
+    "grouped_fence_mask",
+    "mahalanobis_to_assigned",
     "ndt_accumulate",
     "ndt_scores",
     "smallest_eigenvector",
@@ -802,3 +804,79 @@ def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             for r in range(3):
                 evecs[g, r, c] = V[r, src_c]
     return evals, evecs
+
+
+@nb.njit(cache=True, nogil=True)
+def mahalanobis_to_assigned(
+    points: np.ndarray, assignment: np.ndarray, means: np.ndarray, inv_cov: np.ndarray
+) -> np.ndarray:
+    """Squared Mahalanobis distance of each point to its assigned voxel (inf where -1)."""
+    out = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        v = assignment[i]
+        if v < 0:
+            out[i] = np.inf
+            continue
+        out[i] = _mahalanobis2(
+            inv_cov, v, points[i, 0] - means[v, 0], points[i, 1] - means[v, 1], points[i, 2] - means[v, 2]
+        )
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def grouped_fence_mask(
+    values: np.ndarray,
+    group: np.ndarray,
+    n_groups: int,
+    k: float,
+    min_count: int,
+    pooled_lo: float,
+    pooled_hi: float,
+) -> np.ndarray:
+    """True where a value lies inside its group's Tukey fences ``[Q1 - k IQR, Q3 + k IQR]``.
+
+    Quartiles are linear-interpolated order statistics (NumPy's default: the q-quantile of n sorted
+    values sits at position ``q (n - 1)``). Groups of fewer than ``min_count`` values use the
+    pooled fences; values of group -1 are outside. One counting sort by group, then a sort of each
+    group's few values: no global ``lexsort``.
+    """
+    n = values.shape[0]
+    counts = np.zeros(n_groups + 1, dtype=np.int64)
+    for i in range(n):
+        if group[i] >= 0:
+            counts[group[i] + 1] += 1
+    for g in range(n_groups):
+        counts[g + 1] += counts[g]
+    fill = counts[:n_groups].copy()
+    order = np.empty(counts[n_groups], dtype=np.int64)
+    for i in range(n):
+        g = group[i]
+        if g >= 0:
+            order[fill[g]] = i
+            fill[g] += 1
+    inside = np.zeros(n, dtype=np.bool_)
+    for g in range(n_groups):
+        s, e = counts[g], counts[g + 1]
+        m = e - s
+        if m == 0:
+            continue
+        if m < min_count:
+            lo, hi = pooled_lo, pooled_hi
+        else:
+            vals = np.empty(m)
+            for t in range(m):
+                vals[t] = values[order[s + t]]
+            vals.sort()
+            qs = np.empty(2)
+            for qi in range(2):
+                pos = (0.25 if qi == 0 else 0.75) * (m - 1)
+                lo_i = int(math.floor(pos))
+                hi_i = min(lo_i + 1, m - 1)
+                frac = pos - lo_i
+                qs[qi] = vals[lo_i] * (1.0 - frac) + vals[hi_i] * frac
+            iqr = qs[1] - qs[0]
+            lo, hi = qs[0] - k * iqr, qs[1] + k * iqr
+        for t in range(s, e):
+            v = values[order[t]]
+            inside[order[t]] = v >= lo and v <= hi
+    return inside

@@ -230,7 +230,9 @@ class PreparedReference:
         normals, valid, known = self._normal_cache[k]
         need = np.unique(index[~known[index]])
         if need.size:
-            normals[need], valid[need] = self.grid.normals(need, k, NORMAL_RADIUS_VOXELS * self.grid.cell_size_m)
+            normals[need], valid[need] = self.grid.normals(
+                need, k, NORMAL_RADIUS_VOXELS * self.grid.cell_size_m
+            )
             known[need] = True
         return normals[index], valid[index]
 

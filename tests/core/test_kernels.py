@@ -241,3 +241,14 @@ def test_point_grid_normals_match_hybrid_knn(kitti_clouds) -> None:
         assert abs(evecs[:, 0] @ normals[w]) > 1 - 1e-9
     np.testing.assert_allclose(np.linalg.norm(normals[valid], axis=1), 1.0, atol=1e-12)
     assert np.all(normals[~valid] == 0)
+
+
+@pytest.mark.parametrize("voxel", [0.5, 1.0, 3.0])
+def test_algorithm1_kernel_matches_the_lexsort_formulation(kitti_clouds, voxel: float) -> None:
+    from core.outliers import iqr_inlier_mask, iqr_inlier_mask_numpy
+
+    points = voxel_downsample(kitti_clouds[0], 0.2)
+    fast = iqr_inlier_mask(points, voxel)
+    ref = iqr_inlier_mask_numpy(points, voxel)
+    np.testing.assert_array_equal(fast, ref)
+    assert fast.sum() > 5000 and (~fast).sum() > 500  # both outcomes occur
