@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.voxel import NEIGHBOR_OFFSETS, pack_keys, voxel_coords, voxel_downsample
+from core.kernels import group_min, group_voxels, isolated_points
+from core.voxel import NEIGHBOR_OFFSETS, pack_keys, voxel_coords, voxel_downsample, voxel_groups
 
 __all__ = ["Features", "extract_features"]
 
@@ -40,6 +41,15 @@ class Features:
 
 def _isolated(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """True for points alone in their voxel with all 26 neighbour voxels empty."""
+    pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
+    inverse, _, counts, table_key, table_idx, ok = group_voxels(pts, float(voxel_size_m))
+    if not ok:
+        voxel_groups(pts, voxel_size_m)  # raises the range error
+    return isolated_points(pts, float(voxel_size_m), inverse, counts, table_key, table_idx)
+
+
+def _isolated_numpy(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Vectorized numpy reference of :func:`_isolated` (``np.unique`` and sorted-key lookups)."""
     coords = voxel_coords(points_xyz, voxel_size_m)
     keys = pack_keys(coords)
     uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
@@ -76,15 +86,13 @@ def extract_features(
     min_ground_depth_m : a column's minimum must be this far below the sensor to be ground.
     ground_voxel_factor : ground is downsampled this many times coarser than objects.
     """
+    points_xyz = np.ascontiguousarray(points_xyz, dtype=np.float64)
     noise = _isolated(points_xyz, voxel_size_m)
-    col = pack_keys(
-        np.c_[
-            np.floor(points_xyz[:, :2] / ground_cell_m).astype(np.int64), np.zeros(len(points_xyz), np.int64)
-        ]
-    )
-    uniq, inverse = np.unique(col, return_inverse=True)
-    zmin = np.full(uniq.size, np.inf)
-    np.minimum.at(zmin, inverse, np.where(noise, np.inf, points_xyz[:, 2]))
+    # XY columns: group the points with z flattened to 0.
+    flat = points_xyz.copy()
+    flat[:, 2] = 0.0
+    inverse, keys, _ = voxel_groups(flat, ground_cell_m)
+    zmin = group_min(points_xyz[:, 2], inverse, keys.size, noise)
     ground = (
         ~noise
         & (points_xyz[:, 2] <= zmin[inverse] + ground_tolerance_m)

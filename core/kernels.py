@@ -38,9 +38,11 @@ __all__ = [
     "grid_knn_normals",
     "grid_nearest",
     "group_centroids",
+    "group_min",
     "group_moments",
     "group_voxels",
     "grouped_fence_mask",
+    "isolated_points",
     "mahalanobis_to_assigned",
     "ndt_accumulate",
     "ndt_scores",
@@ -880,3 +882,49 @@ def grouped_fence_mask(
             v = values[order[t]]
             inside[order[t]] = v >= lo and v <= hi
     return inside
+
+
+@nb.njit(cache=True, nogil=True)
+def isolated_points(
+    points: np.ndarray,
+    voxel_size: float,
+    inverse: np.ndarray,
+    counts: np.ndarray,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+) -> np.ndarray:
+    """True for points alone in their voxel whose 26 neighbour voxels are all empty (the voxel
+    grouping of :func:`group_voxels` passed in)."""
+    inv_v = 1.0 / voxel_size
+    out = np.zeros(points.shape[0], dtype=np.bool_)
+    for i in range(points.shape[0]):
+        if counts[inverse[i]] != 1:
+            continue
+        cx = int(math.floor(points[i, 0] * inv_v))
+        cy = int(math.floor(points[i, 1] * inv_v))
+        cz = int(math.floor(points[i, 2] * inv_v))
+        alone = True
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    if (dx or dy or dz) and _find(
+                        table_key, table_idx, _pack(cx + dx, cy + dy, cz + dz)
+                    ) >= 0:
+                        alone = False
+                        break
+                if not alone:
+                    break
+            if not alone:
+                break
+        out[i] = alone
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def group_min(values: np.ndarray, inverse: np.ndarray, n_groups: int, skip: np.ndarray) -> np.ndarray:
+    """Least value of each group over the entries not flagged in ``skip`` (inf for none)."""
+    out = np.full(n_groups, np.inf)
+    for i in range(values.shape[0]):
+        if not skip[i] and values[i] < out[inverse[i]]:
+            out[inverse[i]] = values[i]
+    return out

@@ -252,3 +252,20 @@ def test_algorithm1_kernel_matches_the_lexsort_formulation(kitti_clouds, voxel: 
     ref = iqr_inlier_mask_numpy(points, voxel)
     np.testing.assert_array_equal(fast, ref)
     assert fast.sum() > 5000 and (~fast).sum() > 500  # both outcomes occur
+
+
+@pytest.mark.parametrize("voxel", [0.25, 0.5, 1.0])
+def test_isolated_point_kernel_matches_numpy(kitti_clouds, voxel: float) -> None:
+    from core.features import _isolated, _isolated_numpy
+
+    for cloud in kitti_clouds:
+        fast = _isolated(cloud, voxel)
+        np.testing.assert_array_equal(fast, _isolated_numpy(cloud, voxel))
+        assert fast.any()
+
+
+def test_group_min_skips_flagged_entries() -> None:
+    values = np.array([5.0, 1.0, 3.0, -2.0, 7.0])
+    groups = np.array([0, 0, 1, 1, 2])
+    skip = np.array([False, True, False, False, True])
+    np.testing.assert_array_equal(kernels.group_min(values, groups, 3, skip), [5.0, -2.0, np.inf])
