@@ -51,6 +51,8 @@ __all__ = [
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
+#: ``cache_cell`` value no real cell has (cells are within 21 bits of the origin).
+CACHE_EMPTY = -(1 << 62)
 _MASK = (1 << _BITS) - 1
 
 
@@ -147,6 +149,8 @@ def ndt_accumulate(
     out_grad: np.ndarray,
     out_hess: np.ndarray,
     out_gn: np.ndarray,
+    cache_cell: np.ndarray,
+    cache_vox: np.ndarray,
 ) -> tuple[float, int]:
     """NDT cost (and, with ``derivatives``, gradient and Hessians) of ``R p + t`` in one pass.
 
@@ -160,6 +164,12 @@ def ndt_accumulate(
     The 48 sums live in scalar locals, not arrays: LLVM keeps them in registers, where sums into
     heap arrays (which might alias the inputs) cost a load and a store per pair and term; that
     made this loop twice as slow. The per-pair code is written out term by term for that reason.
+
+    ``cache_cell`` (N,3) and ``cache_vox`` (N, neighbours) memoize each point's cell and its
+    neighbour voxels across calls on the same points and map (pass (0,3) and (0,0) arrays for
+    none; fill ``cache_cell`` with ``CACHE_EMPTY`` to start): Newton steps move points by
+    millimetres, so after the first evaluation almost no point changes cell, and the hash lookups,
+    half of this loop's time, are skipped.
     """
     inv_v = 1.0 / voxel_size
     cost = 0.0
@@ -172,10 +182,24 @@ def ndt_accumulate(
     K12 = K13 = K14 = K15 = K22 = K23 = K24 = 0.0
     K25 = K33 = K34 = K35 = K44 = K45 = K55 = 0.0
     n_off = offsets.shape[0]
+    use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
+    vk = np.empty(n_off, dtype=np.int64)
     for i in range(points.shape[0]):
         q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
+        if use_cache and cache_cell[i, 0] == cx and cache_cell[i, 1] == cy and cache_cell[i, 2] == cz:
+            for k in range(n_off):
+                vk[k] = cache_vox[i, k]
+        else:
+            for k in range(n_off):
+                vk[k] = _find(
+                    table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2])
+                )
+            if use_cache:
+                cache_cell[i, 0], cache_cell[i, 1], cache_cell[i, 2] = cx, cy, cz
+                for k in range(n_off):
+                    cache_vox[i, k] = vk[k]
         for k in range(n_off):
-            v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))
+            v = vk[k]
             if v < 0:
                 continue
             x0 = q0 - means[v, 0]

@@ -122,6 +122,7 @@ def ndt_derivatives_numpy(
     consts: NdtConstants,
     n_neighbors: int = 7,
     pivot: np.ndarray | None = None,
+    cache: NeighborCache | None = None,
 ) -> NdtEvaluation:
     """Vectorized numpy reference of :func:`ndt_derivatives` (one row per point-voxel pair)."""
     q_all = transform_points(T, points_xyz)
@@ -201,14 +202,35 @@ def _kernel_args(points_xyz: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, 
     )
 
 
+@dataclass(frozen=True)
+class NeighborCache:
+    """Each point's cell and neighbour voxels, kept across evaluations on the same points and map
+    (see :func:`core.kernels.ndt_accumulate`). Make one per (points, map, neighbourhood)."""
+
+    cells: np.ndarray
+    voxels: np.ndarray
+
+    @classmethod
+    def empty(cls, n_points: int = 0, n_neighbors: int = 0) -> NeighborCache:
+        return cls(
+            np.full((n_points, 3), kernels.CACHE_EMPTY, dtype=np.int64),
+            np.empty((n_points, n_neighbors), dtype=np.int64),
+        )
+
+
+_NO_CACHE = NeighborCache.empty()
+
+
 def ndt_cost(
     points_xyz: np.ndarray,
     T: np.ndarray,
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
+    cache: NeighborCache | None = None,
 ) -> float:
     """The NDT cost ``f(T)`` (module docstring) of ``points_xyz`` moved by ``T`` (compiled kernel)."""
+    cache = cache or _NO_CACHE
     g, h = np.empty(6), np.empty((6, 6))
     cost, _ = kernels.ndt_accumulate(
         *_kernel_args(points_xyz, T, gmap, n_neighbors),
@@ -220,6 +242,8 @@ def ndt_cost(
         g,
         h,
         h,
+        cache.cells,
+        cache.voxels,
     )
     return float(cost)
 
@@ -231,6 +255,7 @@ def ndt_derivatives(
     consts: NdtConstants,
     n_neighbors: int = 7,
     pivot: np.ndarray | None = None,
+    cache: NeighborCache | None = None,
 ) -> NdtEvaluation:
     """Cost, analytic gradient and Hessian of the NDT cost at ``T`` (Magnusson eq. 6.12-6.13).
 
@@ -240,6 +265,7 @@ def ndt_derivatives(
     One fused pass of :func:`core.kernels.ndt_accumulate`; :func:`ndt_derivatives_numpy` is the
     vectorized reference it is tested against.
     """
+    cache = cache or _NO_CACHE
     grad, hess, gn = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
     cost, n_pairs = kernels.ndt_accumulate(
         *_kernel_args(points_xyz, T, gmap, n_neighbors),
@@ -251,6 +277,8 @@ def ndt_derivatives(
         grad,
         hess,
         gn,
+        cache.cells,
+        cache.voxels,
     )
     return NdtEvaluation(
         cost=float(cost), gradient=grad, hessian=hess, gauss_newton_hessian=gn, n_pairs=int(n_pairs)
@@ -332,7 +360,8 @@ def ndt_newton(
     # from the origin (a long drive, georeferenced maps) a rotation about the origin is mostly a
     # translation, and the clamped, eigenvalue-floored Newton step then stalls in yaw.
     pivot = transform_points(T, points_xyz.mean(axis=0, keepdims=True))[0]
-    ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors, pivot)
+    cache = NeighborCache.empty(points_xyz.shape[0], n_neighbors)
+    ev = ndt_derivatives(points_xyz, T, gmap, consts, n_neighbors, pivot, cache)
     converged = False
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 - iterations count is returned
@@ -350,15 +379,16 @@ def ndt_newton(
         # then Armijo backtracking on the cheaper cost alone.
         alpha = 1.0
         T_try = apply_update_about(step, T, pivot)
-        ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot)
+        ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot, cache)
         accepted = ev_try.cost <= ev.cost + 1e-4 * slope
         if not accepted:
             for _ in range(8):
                 alpha *= 0.5
                 T_try = apply_update_about(alpha * step, T, pivot)
-                if ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors) <= ev.cost + 1e-4 * alpha * slope:
+                cost = ndt_cost(points_xyz, T_try, gmap, consts, n_neighbors, cache)
+                if cost <= ev.cost + 1e-4 * alpha * slope:
                     accepted = True
-                    ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot)
+                    ev_try = ndt_derivatives(points_xyz, T_try, gmap, consts, n_neighbors, pivot, cache)
                     break
         if not accepted:
             # No decrease along a descent direction: we sit at a (numerical) minimum.

@@ -269,3 +269,20 @@ def test_group_min_skips_flagged_entries() -> None:
     groups = np.array([0, 0, 1, 1, 2])
     skip = np.array([False, True, False, False, True])
     np.testing.assert_array_equal(kernels.group_min(values, groups, 3, skip), [5.0, -2.0, np.inf])
+
+
+def test_neighbor_cache_gives_the_uncached_derivatives(kitti_problem) -> None:
+    """A cache warmed at one pose serves the next poses exactly, also where points change cells."""
+    from core.ndt import NeighborCache
+
+    source, gmap, consts, T = kitti_problem
+    cache = NeighborCache.empty(source.shape[0], 7)
+    ndt_derivatives(source, T, gmap, consts, 7, cache=cache)
+    for step in (1e-4, 0.02, 0.3):  # small steps reuse the cells, a 0.3 m one moves many points
+        T2 = make_transform(translation=(step, -step, 0.5 * step), euler_deg=(0, 0, 10 * step)) @ T
+        cached = ndt_derivatives(source, T2, gmap, consts, 7, cache=cache)
+        fresh = ndt_derivatives(source, T2, gmap, consts, 7)
+        assert cached.cost == fresh.cost and cached.n_pairs == fresh.n_pairs
+        np.testing.assert_array_equal(cached.gradient, fresh.gradient)
+        np.testing.assert_array_equal(cached.hessian, fresh.hessian)
+        assert ndt_cost(source, T2, gmap, consts, 7, cache) == fresh.cost
