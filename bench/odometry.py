@@ -217,6 +217,8 @@ def _kiss_config(voxel_m: float, *, deskew: bool) -> KISSConfig:
     cfg.data.min_range = 2.0
     cfg.data.deskew = deskew
     cfg.mapping.voxel_size = voxel_m
+    # One thread, as ours: KISS-ICP's default (0) runs its TBB registration on every core.
+    cfg.registration.max_num_threads = 1
     return cfg
 
 

@@ -355,14 +355,28 @@ def ndt_scores(
     score_sum: np.ndarray,
     score_max: np.ndarray,
     best_m: np.ndarray,
+    cache_cell: np.ndarray,
+    cache_vox: np.ndarray,
 ) -> None:
-    """Per-point Autoware scores (see ``core.ndt.ndt_point_scores``), written into the outputs."""
+    """Per-point Autoware scores (see ``core.ndt.ndt_point_scores``), written into the outputs
+    (``cache_cell``/``cache_vox`` as in :func:`ndt_accumulate`)."""
     inv_v = 1.0 / voxel_size
+    n_off = offsets.shape[0]
+    use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
+    vk = np.empty(n_off, dtype=np.int64)
     for i in range(points.shape[0]):
         q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
         s_sum, s_max, b_m = 0.0, 0.0, np.inf
-        for k in range(offsets.shape[0]):
-            v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))
+        if use_cache and cache_cell[i, 0] == cx and cache_cell[i, 1] == cy and cache_cell[i, 2] == cz:
+            for k in range(n_off):
+                vk[k] = cache_vox[i, k]
+        else:
+            for k in range(n_off):
+                vk[k] = _find(
+                    table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2])
+                )
+        for k in range(n_off):
+            v = vk[k]
             if v < 0:
                 continue
             x0 = q0 - means[v, 0]

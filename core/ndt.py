@@ -291,6 +291,7 @@ def ndt_point_scores(
     gmap: VoxelGaussianMap,
     consts: NdtConstants,
     n_neighbors: int = 7,
+    cache: NeighborCache | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-point scores as Autoware reports them (compiled kernel).
 
@@ -310,6 +311,8 @@ def ndt_point_scores(
         score_sum,
         score_max,
         best_m,
+        (cache or _NO_CACHE).cells,
+        (cache or _NO_CACHE).voxels,
     )
     return score_sum, score_max, best_m
 
@@ -322,6 +325,7 @@ class NewtonOutcome:
     iterations: int
     converged: bool
     evaluation: NdtEvaluation
+    cache: NeighborCache  # the points' cells and neighbour voxels, valid for further evaluations
 
 
 def _descent_direction(ev: NdtEvaluation) -> np.ndarray:
@@ -401,4 +405,4 @@ def ndt_newton(
         ):
             converged = True
             break
-    return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev)
+    return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev, cache=cache)

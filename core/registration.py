@@ -554,6 +554,7 @@ def register(
     T = T0
     iterations = 0
     converged = True
+    final_cache = None  # the finest NDT level's neighbour cache, reused by the judge
     t0 = time.perf_counter()
     if settings.method in ("randt", "ndt"):
         for level, gmap in enumerate(ref.maps):
@@ -573,6 +574,7 @@ def register(
             )
             T, iterations = out.T, iterations + out.iterations
             converged = converged and out.converged
+            final_cache = out.cache if final else None
     else:
         tree = ref.kdtree
         icp = icp_point_to_point if settings.method == "icp-point" else icp_point_to_plane
@@ -611,7 +613,9 @@ def register(
     if not np.all(np.isfinite(T)):
         raise RegistrationFailedError("registration produced a non-finite transform")
     T = orthonormalize(T)
-    score_sum, score_max, best_m = ndt_point_scores(moving, T, finest_map, consts, settings.n_neighbors)
+    score_sum, score_max, best_m = ndt_point_scores(
+        moving, T, finest_map, consts, settings.n_neighbors, final_cache
+    )
     has = score_max > 0
     if not np.any(has):
         raise RegistrationFailedError(
@@ -621,7 +625,7 @@ def register(
     tp = float(score_sum.sum() / moving.shape[0])
     nvtl = float(score_max[has].mean())
     inlier_ratio = float(np.mean(best_m < CHI2_3DOF_99))
-    ev = ndt_derivatives(moving, T, finest_map, consts, settings.n_neighbors)
+    ev = ndt_derivatives(moving, T, finest_map, consts, settings.n_neighbors, cache=final_cache)
     H = ev.hessian
     if np.linalg.eigvalsh(H).min() <= 0:
         H = ev.gauss_newton_hessian
