@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.kernels import group_min, group_voxels, isolated_points
+from core.kernels import group_min, group_voxels, isolated_points, masked_group_centroids
 from core.voxel import NEIGHBOR_OFFSETS, pack_keys, voxel_coords, voxel_downsample, voxel_groups
 
 __all__ = ["Features", "extract_features"]
@@ -41,11 +41,20 @@ class Features:
 
 def _isolated(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """True for points alone in their voxel with all 26 neighbour voxels empty."""
+    return _isolated_and_groups(points_xyz, voxel_size_m)[0]
+
+
+def _isolated_and_groups(points_xyz: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`_isolated`, plus the voxel grouping it made (each point's group, group count)."""
     pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
-    inverse, _, counts, table_key, table_idx, ok = group_voxels(pts, float(voxel_size_m))
+    inverse, keys, counts, table_key, table_idx, ok = group_voxels(pts, float(voxel_size_m))
     if not ok:
         voxel_groups(pts, voxel_size_m)  # raises the range error
-    return isolated_points(pts, float(voxel_size_m), inverse, counts, table_key, table_idx)
+    return (
+        isolated_points(pts, float(voxel_size_m), inverse, counts, table_key, table_idx),
+        inverse,
+        keys.size,
+    )
 
 
 def _isolated_numpy(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -87,7 +96,7 @@ def extract_features(
     ground_voxel_factor : ground is downsampled this many times coarser than objects.
     """
     points_xyz = np.ascontiguousarray(points_xyz, dtype=np.float64)
-    noise = _isolated(points_xyz, voxel_size_m)
+    noise, groups, n_groups = _isolated_and_groups(points_xyz, voxel_size_m)
     # XY columns: group the points with z flattened to 0.
     flat = points_xyz.copy()
     flat[:, 2] = 0.0
@@ -101,7 +110,8 @@ def extract_features(
     objects = ~(ground | noise)
     matching = np.vstack(
         [
-            voxel_downsample(points_xyz[objects], voxel_size_m) if objects.any() else np.zeros((0, 3)),
+            # Objects reuse the isolation test's voxels: a downsampling without a second grouping.
+            masked_group_centroids(points_xyz, groups, n_groups, objects),
             voxel_downsample(points_xyz[ground], voxel_size_m * ground_voxel_factor)
             if ground.any()
             else np.zeros((0, 3)),

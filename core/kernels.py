@@ -44,6 +44,7 @@ __all__ = [
     "grouped_fence_mask",
     "isolated_points",
     "mahalanobis_to_assigned",
+    "masked_group_centroids",
     "ndt_accumulate",
     "ndt_scores",
     "smallest_eigenvector",
@@ -966,3 +967,28 @@ def group_min(values: np.ndarray, inverse: np.ndarray, n_groups: int, skip: np.n
         if not skip[i] and values[i] < out[inverse[i]]:
             out[inverse[i]] = values[i]
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def masked_group_centroids(
+    points: np.ndarray, inverse: np.ndarray, n_groups: int, mask: np.ndarray
+) -> np.ndarray:
+    """Mean of the masked points of each group, for the groups holding at least one masked point
+    (in group order): voxel downsampling of a subset, reusing a grouping of the whole cloud."""
+    sums = np.zeros((n_groups, 3))
+    counts = np.zeros(n_groups)
+    for i in range(points.shape[0]):
+        if mask[i]:
+            g = inverse[i]
+            counts[g] += 1.0
+            sums[g, 0] += points[i, 0]
+            sums[g, 1] += points[i, 1]
+            sums[g, 2] += points[i, 2]
+    m = 0
+    for g in range(n_groups):
+        if counts[g] > 0:
+            sums[m, 0] = sums[g, 0] / counts[g]
+            sums[m, 1] = sums[g, 1] / counts[g]
+            sums[m, 2] = sums[g, 2] / counts[g]
+            m += 1
+    return sums[:m].copy()

@@ -290,14 +290,16 @@ class IncrementalMatcher:
                     f"scan: {time_offset_s.shape[0]} time offsets for "
                     f"{np.asarray(points_xyz).shape[0]} points"
                 )
-            time_offset_s = time_offset_s[
+        if n_bad:
+            source_index = np.flatnonzero(
                 np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
-            ]
-        source_index = np.flatnonzero(
-            np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
-        )
-        rng = np.linalg.norm(xyz, axis=1)
-        keep = (rng >= s.min_range_m) & (rng <= s.max_range_m)
+            )
+        else:
+            source_index = np.arange(xyz.shape[0])
+        if time_offset_s is not None:
+            time_offset_s = time_offset_s[source_index]
+        rng2 = np.einsum("ij,ij->i", xyz, xyz)
+        keep = (rng2 >= s.min_range_m**2) & (rng2 <= s.max_range_m**2)
         xyz = xyz[keep]
         source_index = source_index[keep]
         if time_offset_s is not None:
