@@ -24,6 +24,7 @@ import contextlib
 import logging
 import multiprocessing
 import threading
+import time
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -51,13 +52,22 @@ class _RemoteRandtError(RandtError):
 
 
 def _warm_up() -> None:
-    """Load (or compile) the numba kernels before the first sweep arrives: one registration of a
-    small synthetic room, so a vehicle's first scan does not pay for it."""
+    """Load (or compile) the numba kernels before the first sweep arrives: an incremental matcher
+    fed three sweeps of a small synthetic room (registration, Algorithm 1, feature extraction and
+    the map's candidate mask), so a vehicle's first scan does not pay for it. With a cold numba
+    cache this compiles for about 10 s; from the cache it takes about 1 s."""
     from core.protocol import synthetic_room
-    from core.registration import register
 
-    room = synthetic_room(np.random.default_rng(0))
-    register(room + [0.2, 0.1, 0.0], room)
+    room = synthetic_room(np.random.default_rng(0), 5000)
+    matcher = IncrementalMatcher()
+    grid = TileGrid()
+    for i in range(3):
+        result = matcher.register_scan(room - [0.1 * i, 0.0, 0.0])
+        grid.candidate_mask(transform_points(result.T_world_sensor, result.deskewed_xyz))
+
+
+#: The first message a worker process sends, once warmed up (:meth:`MatcherPool.wait_ready`).
+_READY = (True, "ready")
 
 
 def _serve(conn: Connection) -> None:
@@ -66,6 +76,10 @@ def _serve(conn: Connection) -> None:
         _warm_up()
     except Exception:  # a failed warm-up only costs the first sweep its compile time
         log.exception("matcher process warm-up failed")
+    try:
+        conn.send(_READY)
+    except (BrokenPipeError, OSError):  # the service is gone already
+        return
     matchers: dict[Key, IncrementalMatcher] = {}
     grids: dict[Key, TileGrid | None] = {}  # empty grids with the session map's sizes and cap
     while True:
@@ -124,16 +138,55 @@ class _WorkerProcess:
         self._lock = threading.Lock()
         self.sessions: set[Key] = set()
         self.dead = False
+        self.ready = False  # set once the process has sent its ready message (warm-up done)
 
     @property
     def pid(self) -> int | None:
         return self._proc.pid
+
+    def _take_ready(self, timeout: float | None) -> bool:
+        """Consume the ready message if it has come within ``timeout`` (call with the lock held)."""
+        if self.ready:
+            return True
+        if timeout is not None and not self._conn.poll(timeout):
+            return False
+        message = self._conn.recv()
+        if message != _READY:
+            raise RuntimeError(f"matcher process {self.index} sent {message!r} before being ready")
+        self.ready = True
+        return True
+
+    def wait_ready(self, timeout: float | None) -> bool:
+        """Whether the process finished its warm-up within ``timeout`` s (None: wait for it)."""
+        with self._lock:
+            if self.dead:
+                return False
+            try:
+                return self._take_ready(timeout)
+            except (EOFError, OSError):
+                self.dead = True
+                return False
+
+    def poll_ready(self) -> bool:
+        """Whether the warm-up is done, without waiting (False while a first call waits for it)."""
+        if self.ready:
+            return True
+        if not self._lock.acquire(blocking=False):
+            return False
+        try:
+            return not self.dead and self._take_ready(0.0)
+        except (EOFError, OSError):
+            self.dead = True
+            return False
+        finally:
+            self._lock.release()
 
     def call(self, op: str, key: Key | None, *args: object) -> Any:
         with self._lock:
             if self.dead:
                 raise MatcherProcessDiedError(f"matcher process {self.index} is gone")
             try:
+                self._take_ready(None)
                 self._conn.send((op, key, args))
                 ok, value = self._conn.recv()
             except (EOFError, OSError) as exc:
@@ -176,6 +229,26 @@ class MatcherPool:
 
     def pids(self) -> list[int | None]:
         return [p.pid for p in self._procs]
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Whether every process finished its warm-up (compiled or loaded the kernels) within
+        ``timeout`` s in all (None: wait as long as it takes). Sessions may open before: their
+        first call waits for the warm-up instead."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            procs = list(self._procs)
+        for p in procs:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not p.wait_ready(left):
+                return False
+        return True
+
+    @property
+    def ready(self) -> bool:
+        """Every process has finished its warm-up (a non-blocking check)."""
+        with self._lock:
+            procs = list(self._procs)
+        return all(p.poll_ready() for p in procs)
 
     def open(
         self,

@@ -589,6 +589,16 @@ class SessionManager:
         """Whether the manager accepts scans and its flusher thread is alive (a readiness check)."""
         return not self._stop.is_set() and self._flusher.is_alive()
 
+    @property
+    def matchers_warm(self) -> bool:
+        """Whether the matcher processes have loaded their compiled kernels (always, without a
+        pool). Scans are accepted before: the first ones wait for the warm-up."""
+        return self.pool is None or self.pool.ready
+
+    def wait_matchers(self, timeout: float | None = None) -> bool:
+        """Wait until :attr:`matchers_warm` (None: as long as it takes); whether it became so."""
+        return self.pool is None or self.pool.wait_ready(timeout)
+
     def sessions(self) -> list[SessionState]:
         with self._lock:
             return [w.info for w in self._workers.values()]

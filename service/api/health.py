@@ -28,7 +28,14 @@ def readiness(svc: Service) -> Ready:
     zenoh = not svc.with_zenoh or (svc.transport is not None and svc.transport.is_open)
     store = svc.store is not None and svc.store.writable()
     workers = svc.sessions is not None and svc.sessions.running
-    return Ready(ready=zenoh and store and workers, zenoh=zenoh, store_writable=store, workers=workers)
+    warm = svc.sessions is not None and svc.sessions.matchers_warm
+    return Ready(
+        ready=zenoh and store and workers and warm,
+        zenoh=zenoh,
+        store_writable=store,
+        workers=workers,
+        matchers_warm=warm,
+    )
 
 
 @router.get("/healthz", response_model=Health)
@@ -39,7 +46,7 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Ready, responses={503: {"model": Ready}})
 def readyz(svc: ServiceDep) -> JSONResponse:
-    """Zenoh session open, store writable, session workers running: 200, else 503 (always open)."""
+    """Zenoh open, store writable, session workers running, matchers warm: 200, else 503 (always open)."""
     ready = readiness(svc)
     return JSONResponse(ready.model_dump(), status_code=200 if ready.ready else 503)
 

@@ -56,6 +56,9 @@ class Ready(BaseModel):
     zenoh: bool = Field(description="the Zenoh session is open (always true when run without Zenoh)")
     store_writable: bool
     workers: bool = Field(description="the session manager and its flusher are running")
+    matchers_warm: bool = Field(
+        description="the matcher processes have loaded their compiled kernels (about 10 s on a cold cache)"
+    )
 
 
 class MapExtent(BaseModel):

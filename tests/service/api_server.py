@@ -55,6 +55,8 @@ def live_server(data_dir: Path, **overrides: object) -> Iterator[LiveServer]:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
         time.sleep(0.02)
+    # Ready as a deployment's probe sees it: the matcher processes have loaded their kernels.
+    assert app.state.service.sessions.wait_matchers(300), "matcher processes did not warm up"
     try:
         yield LiveServer(f"http://127.0.0.1:{port}", app.state.service, settings)
     finally:

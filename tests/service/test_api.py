@@ -61,7 +61,13 @@ def test_health_ready_docs_and_openapi(served) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     ready = client.get("/readyz")
     assert ready.status_code == 200
-    assert ready.json() == {"ready": True, "zenoh": True, "store_writable": True, "workers": True}
+    assert ready.json() == {
+        "ready": True,
+        "zenoh": True,
+        "store_writable": True,
+        "workers": True,
+        "matchers_warm": True,
+    }
     schema = client.get("/openapi.json").json()
     paths = set(schema["paths"])
     assert {
