@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -34,9 +35,10 @@ from scipy.spatial.transform import Rotation
 
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
-from core.features import extract_features
+from core.features import Features, extract_features
 from core.registration import (
     PreparedReference,
+    RegistrationResult,
     auto_voxel_sizes,
     prepare_reference,
     register,
@@ -62,6 +64,14 @@ log = logging.getLogger(__name__)
 #: velocity the same way: on simulated 12 m/s drives the rotation error then grew about 20 % per
 #: sweep, while the symmetric mid-sweep warp stays bounded (KISS-ICP deskews the same way).
 MID_SWEEP = 0.5
+
+#: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
+_Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
+
+#: A sweep with point times is deskewed again when its matched motion differs from the one it was
+#: deskewed with by more than this (degrees over one sweep period, metres over one period).
+REDESKEW_DEG = 0.25
+REDESKEW_M = 0.05
 
 
 class MatcherSettings(BaseModel):
@@ -92,6 +102,10 @@ class MatcherSettings(BaseModel):
     )
     retry_yaw_deg: tuple[float, ...] = Field(
         default=(5.0, 10.0), description="yaw hypotheses (both ways) tried when the predicted match fails"
+    )
+    redeskew: bool = Field(
+        default=True,
+        description="with point times: deskew per yaw hypothesis, and again with the matched velocity",
     )
     prior_gate_chi2: float = Field(
         default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
@@ -313,16 +327,24 @@ class IncrementalMatcher:
         prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
         first_pose = np.eye(4) if prior_T is None else prior_T
         T_pred = first_pose if index == 0 else orthonormalize(self.poses[-1] @ self._delta)
-        t0 = time.perf_counter()
-        if time_offset_s is not None and index > 0:
-            xyz = deskew(xyz, time_offset_s, self._delta, self.period_s, reference_fraction=MID_SWEEP)
-        times["deskew"] = time.perf_counter() - t0
+        times["deskew"] = times["features"] = 0.0
+        xyz_raw, tau = xyz, time_offset_s if index > 0 else None
 
+        def prepare(delta: np.ndarray) -> tuple[np.ndarray, Features]:
+            """The sweep deskewed with ``delta`` (when it has point times) and its features."""
+            t0 = time.perf_counter()
+            cloud = xyz_raw
+            if tau is not None:
+                cloud = deskew(xyz_raw, tau, delta, self.period_s, reference_fraction=MID_SWEEP)
+            t1 = time.perf_counter()
+            feats = extract_features(cloud, voxel_size_m=self.feature_voxel_m)
+            times["deskew"] += t1 - t0
+            times["features"] += time.perf_counter() - t1
+            return cloud, feats
+
+        xyz, feats = prepare(self._delta)
         if index == 0 and time_offset_s is not None:
             self._first_raw = (xyz, time_offset_s)
-        t0 = time.perf_counter()
-        feats = extract_features(xyz, voxel_size_m=self.feature_voxel_m)
-        times["features"] = time.perf_counter() - t0
 
         status: Literal["first", "ok", "fallback"]
         message = ""
@@ -336,16 +358,24 @@ class IncrementalMatcher:
             # onset changes the yaw rate faster than a constant-velocity prior can follow).
             best = None
             for attempt, init in enumerate(self._hypotheses(T_pred)):
+                cloud, cloud_feats = xyz, feats
+                if tau is not None and attempt > 0 and s.redeskew:
+                    # A yaw hypothesis implies another velocity: deskew the sweep with it.
+                    cloud, cloud_feats = prepare(invert(self.poses[-1]) @ init)
                 try:
                     res = register(
-                        feats.matching_xyz, None, init, settings=self.registration, reference=self._model
+                        cloud_feats.matching_xyz,
+                        None,
+                        init,
+                        settings=self.registration,
+                        reference=self._model,
                     )
                 except RandtError as exc:
                     message = message or f"registration failed: {exc}"
                     continue
                 why = self._gate(res, T_pred, prior_T, prior)
                 if why is None and (best is None or res.inlier_ratio > best[1].inlier_ratio):
-                    best = (attempt, res)
+                    best = (attempt, res, cloud, cloud_feats, init)
                 if attempt == 0 and best is None:
                     converged, fitness, cov, inliers = (
                         res.converged,
@@ -356,8 +386,10 @@ class IncrementalMatcher:
                 message = message or (why or "")
                 if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
                     break  # the prediction's match passed and looks like the recent ones: no retries
+            if best is not None and tau is not None and s.redeskew:
+                best = self._redeskew(best, prepare, T_pred, prior_T, prior)
             if best is not None:
-                attempt, res = best
+                attempt, res, xyz, feats, _ = best
                 self._recent_inliers.append(res.inlier_ratio)
                 T, status, message = res.T_target_source, "ok", ""
                 converged, fitness, cov, inliers = (
@@ -463,6 +495,43 @@ class IncrementalMatcher:
         if len(self._recent_inliers) < 3:
             return False
         return inlier_ratio < 0.7 * float(np.median(self._recent_inliers))
+
+    def _redeskew(
+        self,
+        best: _Match,
+        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
+        T_pred: np.ndarray,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+    ) -> _Match:
+        """Deskew once more with the velocity the match found, when it differs from the one used.
+
+        Deskewing needs the sweep's motion, which only the match gives: at a corner's onset the
+        yaw rate jumps and the previous sweep's velocity warps the points the wrong way. When the
+        matched motion differs from the one used by more than :data:`REDESKEW_DEG` or
+        :data:`REDESKEW_M`, the sweep is deskewed with it and matched again from the first result
+        (one pass; kept only if it passes the same gate).
+        """
+        attempt, res, _, _, init = best
+        used = invert(self.poses[-1]) @ init
+        found = invert(self.poses[-1]) @ res.T_target_source
+        change = invert(used) @ found
+        if rotation_angle_deg(change[:3, :3]) < REDESKEW_DEG and np.linalg.norm(change[:3, 3]) < REDESKEW_M:
+            return best
+        cloud, feats = prepare(found)
+        try:
+            again = register(
+                feats.matching_xyz,
+                None,
+                res.T_target_source,
+                settings=self.registration,
+                reference=self._model,
+            )
+        except RandtError:
+            return best
+        if self._gate(again, T_pred, prior_T, prior) is not None:
+            return best
+        return (attempt, again, cloud, feats, res.T_target_source)
 
     def _hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """The prediction, then the prediction yawed by each of ``retry_yaw_deg`` both ways."""
