@@ -74,6 +74,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as data:
         service = Service(ServiceSettings(data_dir=data, listen=(endpoint,), http_port=0))
         service.start()
+        assert service.sessions is not None and service.sessions.wait_matchers(600), "matchers not warm"
         sent: dict[tuple[str, int], float] = {}
         got: dict[tuple[str, int], float] = {}
         errors: dict[str, int] = {}
