@@ -62,10 +62,15 @@ def kitti00_velodyne(frame: int) -> np.ndarray:
     return read_cloud(d / f"{frame:06d}.bin").xyz
 
 
-#: name -> (loader, translation tolerance m, rotation tolerance deg, perturbation scale m)
+#: name -> (loader, translation tolerance m, rotation tolerance deg, perturbation scale m).
+#: Issue 2's bounds are the best peer's accuracy (small_gicp pair 2 cm / 0.3 deg, Argoverse 2 cm /
+#: 0.1 deg, bunny 5 mm / 1 deg, car 10 cm / 0.3 deg); where RANDT does better the bound is tightened
+#: to about twice what it reaches (measured 2026-11-23 from the identity and 9 perturbed starts
+#: each, all landing on the same fixed point: small_gicp 0.60 cm / 0.254 deg, Argoverse 0.32 cm /
+#: 0.041 deg, bunny 0.10 mm / 0.099 deg, car 1.84 cm / 0.220 deg).
 PAIRS = {
-    "small_gicp": (small_gicp, 0.02, 0.3, 1.0),
-    "argoverse2": (argoverse2, 0.02, 0.1, 1.0),
-    "bunny": (bunny, 0.005, 1.0, 0.02),
-    "car": (car, 0.10, 0.3, 1.0),
+    "small_gicp": (small_gicp, 0.012, 0.3, 1.0),
+    "argoverse2": (argoverse2, 0.006, 0.08, 1.0),
+    "bunny": (bunny, 0.0005, 0.2, 0.02),
+    "car": (car, 0.04, 0.3, 1.0),
 }
