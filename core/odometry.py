@@ -242,11 +242,17 @@ class IncrementalMatcher:
 
     def _rebuild_model(self, T_world_sensor: np.ndarray) -> None:
         """Fuse the keyframes near ``T_world_sensor`` into the density-equalized matching model."""
-        centre = T_world_sensor[:3, 3]
+        cx, cy = T_world_sensor[0, 3], T_world_sensor[1, 3]
         fused = np.vstack([pts for _, pts in self._keyframes])
-        fused = fused[np.linalg.norm(fused[:, :2] - centre[:2], axis=1) <= self.settings.model_radius_m]
+        dx, dy = fused[:, 0] - cx, fused[:, 1] - cy
+        fused = fused[dx * dx + dy * dy <= self.settings.model_radius_m**2]
         fused = voxel_downsample(fused, self.model_voxel_m)
-        self._model = prepare_reference(fused, self.registration, self.registration.voxel_sizes_m or ())
+        self._model = prepare_reference(
+            fused,
+            self.registration,
+            self.registration.voxel_sizes_m or (),
+            downsampled_at_m=self.model_voxel_m,
+        )
 
     @property
     def model_size(self) -> int:

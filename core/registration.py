@@ -238,11 +238,25 @@ class PreparedReference:
 
 
 def prepare_reference(
-    target_xyz: np.ndarray, settings: RegistrationSettings, voxel_sizes_m: tuple[float, ...]
+    target_xyz: np.ndarray,
+    settings: RegistrationSettings,
+    voxel_sizes_m: tuple[float, ...],
+    *,
+    downsampled_at_m: float | None = None,
 ) -> PreparedReference:
-    """Downsample the reference, remove outliers (IQR, SOR or none) and build the NDT pyramid."""
+    """Downsample the reference, remove outliers (IQR, SOR or none) and build the NDT pyramid.
+
+    ``downsampled_at_m``: the voxel size ``target_xyz`` was already downsampled at (by
+    :func:`~core.voxel.voxel_downsample`). When it equals this reference's downsampling voxel,
+    downsampling again would return the same points (one centroid per voxel, first-seen order),
+    so it is skipped: the incremental matcher's fused model is built that way.
+    """
     finest = voxel_sizes_m[-1]
-    pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
+    voxel = finest * settings.target_voxel_fraction
+    if downsampled_at_m is not None and abs(downsampled_at_m - voxel) <= 1e-9 * voxel:
+        pts = np.ascontiguousarray(target_xyz, dtype=np.float64)
+    else:
+        pts = voxel_downsample(target_xyz, voxel)
     n_in = pts.shape[0]
     if settings.outlier_removal == "iqr":
         pts = pts[_algorithm1_mask(pts, finest, settings)]
