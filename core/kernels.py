@@ -35,6 +35,7 @@ __all__ = [
     "build_grid",
     "build_hash",
     "eigh3",
+    "first_per_voxel_pair",
     "grid_knn_normals",
     "grid_nearest",
     "group_centroids",
@@ -48,6 +49,7 @@ __all__ = [
     "ndt_accumulate",
     "ndt_scores",
     "smallest_eigenvector",
+    "tile_voxel_keys",
 ]
 
 _BITS = 21
@@ -992,3 +994,80 @@ def masked_group_centroids(
             sums[m, 2] = sums[g, 2] / counts[g]
             m += 1
     return sums[:m].copy()
+
+
+@nb.njit(cache=True, nogil=True)
+def first_per_voxel_pair(
+    tile_keys: np.ndarray, voxel_keys: np.ndarray, xyz32: np.ndarray, cap: int
+) -> np.ndarray:
+    """True for the first ``cap`` distinct points of each (tile key, voxel key) pair, in arrival
+    order: what :meth:`core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
+    twin, two ``np.lexsort`` calls, took 30 ms on a KITTI sweep). A point equal (float32 x, y, z) to
+    one already kept in its voxel is not distinct and is skipped, as the map's insert drops it."""
+    n = tile_keys.shape[0]
+    size = 16
+    while size < 2 * n:
+        size <<= 1
+    mask = size - 1
+    table_t = np.full(size, -1, dtype=np.int64)
+    table_v = np.empty(size, dtype=np.int64)
+    table_g = np.empty(size, dtype=np.int64)
+    counts = np.zeros(n, dtype=np.int64)
+    kept = np.empty((n, cap), dtype=np.int64)
+    out = np.zeros(n, dtype=np.bool_)
+    m = 0
+    for i in range(n):
+        tk, vk = tile_keys[i], voxel_keys[i]
+        h = _slot(vk ^ (tk * 0x27D4EB2F165667C5), mask)
+        while table_t[h] != -1 and (table_t[h] != tk or table_v[h] != vk):
+            h = (h + 1) & mask
+        if table_t[h] == -1:
+            table_t[h], table_v[h], table_g[h] = tk, vk, m
+            m += 1
+        g = table_g[h]
+        c = counts[g]
+        if c >= cap:
+            continue
+        duplicate = False
+        for j in range(c):
+            k = kept[g, j]
+            if xyz32[k, 0] == xyz32[i, 0] and xyz32[k, 1] == xyz32[i, 1] and xyz32[k, 2] == xyz32[i, 2]:
+                duplicate = True
+                break
+        if duplicate:
+            continue
+        kept[g, c] = i
+        counts[g] = c + 1
+        out[i] = True
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def tile_voxel_keys(
+    xyz32: np.ndarray, tile_size: float, voxel_size: float, tile_offset: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Tile indices (n,2), packed tile keys and packed tile-local voxel keys of float32 points,
+    with the same float64 operations as the numpy formulation in :mod:`core.tiles` (``floor(x /
+    tile)``, ``x - ix * tile``, ``floor(local / voxel)``), so the keys are identical. ``ok`` is
+    false when a voxel coordinate leaves the 21-bit key range."""
+    n = xyz32.shape[0]
+    txy = np.empty((n, 2), dtype=np.int64)
+    tkeys = np.empty(n, dtype=np.int64)
+    vkeys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        x, y, z = np.float64(xyz32[i, 0]), np.float64(xyz32[i, 1]), np.float64(xyz32[i, 2])
+        big = 2.0**40
+        if not (abs(x / tile_size) < big and abs(y / tile_size) < big and abs(z / voxel_size) < big):
+            return txy, tkeys, vkeys, False  # also catches NaN
+        tx = int(math.floor(x / tile_size))
+        ty = int(math.floor(y / tile_size))
+        lx = x - tx * tile_size
+        ly = y - ty * tile_size
+        cx, cy = int(math.floor(lx / voxel_size)), int(math.floor(ly / voxel_size))
+        key = _pack(cx, cy, int(math.floor(z / voxel_size)))
+        if key < 0:
+            return txy, tkeys, vkeys, False
+        txy[i, 0], txy[i, 1] = tx, ty
+        tkeys[i] = ((tx + tile_offset) << 31) | (ty + tile_offset)
+        vkeys[i] = key
+    return txy, tkeys, vkeys, True

@@ -81,6 +81,7 @@ import yaml
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io import PointCloud, atomic_open, read_cloud, write_cloud, write_pcd
+from core.kernels import first_per_voxel_pair, tile_voxel_keys
 from core.metrics import pdu
 from core.voxel import pack_keys, voxel_coords
 
@@ -376,23 +377,53 @@ class TileGrid:
         exactly as inserting them all would, because :meth:`insert` keeps first arrivals and never
         more than the cap per voxel. Depends only on the grid's sizes and cap, not its content, so
         it can run elsewhere (the service's matcher processes do it, cutting the points the service
-        process inserts about fourfold on a KITTI sweep with a cap of 1).
+        process inserts about fourfold on a KITTI sweep with a cap of 1). One compiled hashed pass
+        (:func:`core.kernels.first_per_voxel_pair`); :meth:`candidate_mask_numpy` is the tested
+        reference.
         """
+        mask = np.zeros(np.asarray(points_xyz).shape[0], dtype=bool)
+        keys = self._candidate_keys(points_xyz, compiled=True)
+        if keys is None:
+            return mask
+        finite, f32, tkeys, vkeys = keys
+        mask[finite[first_per_voxel_pair(tkeys, vkeys, f32, self._cap)]] = True
+        return mask
+
+    def _candidate_keys(
+        self, points_xyz: np.ndarray, *, compiled: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """(finite row indices, their float32 positions, tile keys, tile-local voxel keys): exactly
+        :meth:`insert`'s keys, by :func:`core.kernels.tile_voxel_keys` or (``compiled=False``) by
+        insert's numpy formulation. None when no row is finite."""
         xyz = np.asarray(points_xyz, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise InvalidCloudError(f"points_xyz must be (N, 3), got shape {xyz.shape}")
-        mask = np.zeros(xyz.shape[0], dtype=bool)
         finite = np.flatnonzero(np.all(np.isfinite(xyz), axis=1))
         if finite.size == 0:
-            return mask
-        # Exactly insert's keys: float32 positions, tile keys, tile-local voxel keys.
-        f32 = xyz[finite].astype(np.float32)
+            return None
+        f32 = np.ascontiguousarray(xyz[finite].astype(np.float32))
+        if compiled:
+            _, tkeys, vkeys, ok = tile_voxel_keys(f32, float(self._tile_size), self._voxel, _TILE_OFFSET)
+            if not ok:
+                raise InvalidCloudError(
+                    f"points span more than {(1 << 21) - 1} voxels along an axis; use a larger voxel size"
+                )
+            return finite, f32, tkeys, vkeys
         t = float(self._tile_size)
         local = f32.astype(np.float64)
         txy = np.floor(local[:, :2] / t).astype(np.int64)
         local[:, :2] -= txy * t
         vkeys = pack_keys(voxel_coords(local, self._voxel))
         tkeys = ((txy[:, 0] + _TILE_OFFSET) << 31) | (txy[:, 1] + _TILE_OFFSET)
+        return finite, f32, tkeys, vkeys
+
+    def candidate_mask_numpy(self, points_xyz: np.ndarray) -> np.ndarray:
+        """Vectorized numpy reference of :meth:`candidate_mask` (two ``np.lexsort`` calls)."""
+        mask = np.zeros(np.asarray(points_xyz).shape[0], dtype=bool)
+        keys = self._candidate_keys(points_xyz, compiled=False)
+        if keys is None:
+            return mask
+        finite, f32, tkeys, vkeys = keys
         arrival = np.arange(finite.size)
         if self._cap > 1:
             # Exact duplicates within a voxel count once (insert drops them): keep first arrivals.

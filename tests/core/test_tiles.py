@@ -19,6 +19,7 @@ from core.tiles import (
     parse_tile_id,
     tile_id,
 )
+from tests.pairs import kitti00_velodyne
 
 
 @pytest.fixture(scope="module")
@@ -587,3 +588,32 @@ def test_candidate_mask_keeps_exactly_what_insert_would(cap: int) -> None:
         assert a.version == b.version
         np.testing.assert_array_equal(a.points, b.points)
         np.testing.assert_array_equal(a.intensity, b.intensity)
+
+
+@pytest.mark.parametrize("cap", [1, 3, 10])
+def test_compiled_candidate_mask_equals_the_numpy_reference(cap: int) -> None:
+    """The hashed pass (core.kernels.first_per_voxel_pair, tile_voxel_keys) picks exactly the
+    points of the two-lexsort reference, and computes exactly its keys, on a real KITTI sweep moved
+    across tile borders, with exact duplicates and a non-finite row shuffled in."""
+    kitti00_scan = kitti00_velodyne(0)
+    rng = np.random.default_rng(cap)
+    pts = np.vstack(
+        [kitti00_scan + [1013.3, -2017.9, 0.4], kitti00_scan[rng.integers(0, len(kitti00_scan), 5000)]]
+    )
+    pts = np.vstack([pts, [[np.nan, 1.0, 2.0]]])[rng.permutation(len(pts) + 1)]
+    for tile, voxel in ((20, 0.2), (7, 0.3)):
+        grid = TileGrid(tile, voxel, cap)
+        compiled = grid._candidate_keys(pts, compiled=True)
+        reference = grid._candidate_keys(pts, compiled=False)
+        assert compiled is not None and reference is not None
+        for a, b in zip(compiled, reference, strict=True):
+            np.testing.assert_array_equal(a, b)
+        keep = grid.candidate_mask(pts)
+        np.testing.assert_array_equal(keep, grid.candidate_mask_numpy(pts))
+        assert 1000 < keep.sum() < len(kitti00_scan)
+
+
+def test_candidate_mask_refuses_coordinates_beyond_the_key_range() -> None:
+    grid = TileGrid(20, 0.2, 1)
+    with pytest.raises(InvalidCloudError, match="voxels along an axis"):
+        grid.candidate_mask(np.array([[0.0, 0.0, 1e6]]))
