@@ -403,7 +403,7 @@ class TileGrid:
             return None
         f32 = np.ascontiguousarray(xyz[finite].astype(np.float32))
         if compiled:
-            _, tkeys, vkeys, ok = tile_voxel_keys(f32, float(self._tile_size), self._voxel, _TILE_OFFSET)
+            tkeys, vkeys, ok = tile_voxel_keys(f32, float(self._tile_size), self._voxel, _TILE_OFFSET)
             if not ok:
                 raise InvalidCloudError(
                     f"points span more than {(1 << 21) - 1} voxels along an axis; use a larger voxel size"
