@@ -78,6 +78,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         sent: dict[tuple[str, int], float] = {}
         got: dict[tuple[str, int], float] = {}
         errors: dict[str, int] = {}
+        statuses: dict[str, int] = {}
         lock = threading.Lock()
 
         def on_pose(sample: zenoh.Sample) -> None:
@@ -85,6 +86,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             m = decode_pose(sample.payload.to_bytes())
             with lock:
                 got[(m.vehicle, m.seq)] = t
+                statuses[m.status] = statuses.get(m.status, 0) + 1
 
         last_answer = [0.0]
 
@@ -137,10 +139,14 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         listener.close()
         service.stop()
     lat = np.array([got[k] - sent[k] for k in got if k in sent])
+    if os.environ.get("RANDT_BENCH_SLOWEST"):
+        slow = sorted(((got[k] - sent[k]) * 1e3, k) for k in got if k in sent)[-12:]
+        print("slowest (ms, scan):", [(round(ms), k) for ms, k in slow], file=sys.stderr)
     return {
         "vehicles": n_vehicles,
         "sent": len(sent),
         "poses": len(got),
+        "fallbacks": statuses.get("fallback", 0),
         "dropped": errors.get("dropped", 0),
         "other_errors": sum(v for k, v in errors.items() if k != "dropped"),
         "other_codes": ", ".join(f"{k} {v}" for k, v in sorted(errors.items()) if k != "dropped"),

@@ -66,9 +66,15 @@ class MapBuilder:
         intensity: np.ndarray | None = None,
         time_offset_s: np.ndarray | None = None,
         prior: PosePrior | None = None,
+        stamp_s: float | None = None,
     ) -> MapUpdate:
-        """Register one sweep and, if its pose is trusted, fold its points into the tiles."""
-        result = self.matcher.register_scan(points_xyz, time_offset_s=time_offset_s, prior=prior)
+        """Register one sweep and, if its pose is trusted, fold its points into the tiles.
+
+        ``stamp_s`` is the sweep's time: with it a gap (skipped sweeps) is predicted as one.
+        """
+        result = self.matcher.register_scan(
+            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s
+        )
         changed: list[str] = []
         if result.status != "fallback":
             world = transform_points(result.T_world_sensor, result.deskewed_xyz)

@@ -50,6 +50,7 @@ from core.transforms import (
     make_transform,
     orthonormalize,
     rotation_angle_deg,
+    scale_motion,
     transform_points,
 )
 from core.voxel import voxel_downsample
@@ -98,7 +99,10 @@ class MatcherSettings(BaseModel):
         default=0.3, ge=0, le=1, description="a match with fewer inliers (chi2 gate) is a failed match"
     )
     max_correction_m: float = Field(
-        default=2.0, gt=0, description="a match moving the prediction farther than this is rejected"
+        default=2.0,
+        gt=0,
+        description="a match moving the prediction farther than this (per sweep period since the last "
+        "sweep, with stamps) is rejected",
     )
     retry_yaw_deg: tuple[float, ...] = Field(
         default=(5.0, 10.0), description="yaw hypotheses (both ways) tried when the predicted match fails"
@@ -106,6 +110,12 @@ class MatcherSettings(BaseModel):
     redeskew: bool = Field(
         default=True,
         description="with point times: deskew per yaw hypothesis, and again with the matched velocity",
+    )
+    max_gap_s: float = Field(
+        default=2.0,
+        gt=0,
+        description="with stamps: the motion prediction extrapolates the velocity over the time since "
+        "the last sweep (scans dropped upstream), at most this long",
     )
     prior_gate_chi2: float = Field(
         default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
@@ -194,6 +204,9 @@ class IncrementalMatcher:
         self._model: PreparedReference | None = None
         self._last_keyframe_pose: np.ndarray | None = None
         self._recent_inliers: deque[float] = deque(maxlen=20)
+        self._last_stamp_s: float | None = None
+        # A keyframe whose model update register_scan(defer_model=True) left for update_model().
+        self._pending_keyframe: tuple[np.ndarray, np.ndarray] | None = None
         # The first sweep cannot be deskewed (no velocity yet): kept raw until the second gives one.
         self._first_raw: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -231,14 +244,43 @@ class IncrementalMatcher:
     # -- the paper's Get and Set of the keyframe model ------------------------------------------
     def get_model(self) -> PreparedReference | None:
         """The fused, density-equalized keyframe model (prepared for matching), if any."""
+        self.update_model()
         return self._model
 
     def set_keyframe(self, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
-        """Add a keyframe and rebuild the fused model around it (bounded in count and radius)."""
+        """Add a keyframe and rebuild the fused model around it (bounded in count and radius).
+
+        All or nothing: if the model cannot be built, the keyframes stay as they were.
+        """
         world = transform_points(T_world_sensor, points_sensor)
+        before = list(self._keyframes)
         self._keyframes.append((T_world_sensor.copy(), voxel_downsample(world, self.model_voxel_m)))
-        self._rebuild_model(T_world_sensor)
+        try:
+            self._rebuild_model(T_world_sensor)
+        except BaseException:
+            self._keyframes.clear()
+            self._keyframes.extend(before)
+            raise
         self._last_keyframe_pose = T_world_sensor.copy()
+
+    def update_model(self) -> float:
+        """Fold in a keyframe that ``register_scan(defer_model=True)`` left pending; seconds spent.
+
+        A no-op without one. The next :meth:`register_scan`, :meth:`get_model` and
+        :meth:`state_dict` call it first, so deferring never lets a sweep match a stale model; it
+        only lets the caller answer the keyframe sweep before the model is rebuilt. A keyframe
+        the model cannot be built from (too sparse) is skipped with a warning: the previous model
+        stays, and the next sweep is a keyframe candidate again.
+        """
+        pending, self._pending_keyframe = self._pending_keyframe, None
+        if pending is None:
+            return 0.0
+        t0 = time.perf_counter()
+        try:
+            self.set_keyframe(*pending)
+        except RandtError as exc:
+            log.warning("keyframe not modelled, the previous model stays: %s", exc)
+        return time.perf_counter() - t0
 
     def _rebuild_model(self, T_world_sensor: np.ndarray) -> None:
         """Fuse the keyframes near ``T_world_sensor`` into the density-equalized matching model."""
@@ -266,12 +308,24 @@ class IncrementalMatcher:
         *,
         time_offset_s: np.ndarray | None = None,
         prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        defer_model: bool = False,
     ) -> ScanResult:
         """Register one sweep (sensor frame) and return its :class:`ScanResult`.
+
+        ``defer_model``: when this sweep becomes a keyframe, leave the model's rebuild (the
+        costliest step, every second or third sweep) to :meth:`update_model`, so the caller can
+        publish the pose first. The first keyframe is always modelled at once.
+
+        ``stamp_s`` (the sweep's time, seconds) lets the motion prediction span a gap: when sweeps
+        were dropped before reaching the matcher (an overloaded service sheds scans), the velocity
+        is extrapolated over the time since the previous sweep instead of one period. Without
+        stamps every sweep is taken to follow the previous one by ``period_s``.
 
         All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model), the
         matcher is left exactly as it was, so the session's poses and stamps stay in step.
         """
+        self.update_model()
         saved = (
             len(self.poses),
             self._delta.copy(),
@@ -280,11 +334,24 @@ class IncrementalMatcher:
             self._last_keyframe_pose,
             list(self._recent_inliers),
             self._first_raw,
+            self._last_stamp_s,
         )
         try:
-            return self._register_scan(points_xyz, time_offset_s=time_offset_s, prior=prior)
+            return self._register_scan(
+                points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
+            )
         except BaseException:
-            n, self._delta, keyframes, self._model, self._last_keyframe_pose, recent, self._first_raw = saved
+            (
+                n,
+                self._delta,
+                keyframes,
+                self._model,
+                self._last_keyframe_pose,
+                recent,
+                self._first_raw,
+                self._last_stamp_s,
+            ) = saved
+            self._pending_keyframe = None
             del self.poses[n:]
             self._keyframes.clear()
             self._keyframes.extend(keyframes)
@@ -298,6 +365,8 @@ class IncrementalMatcher:
         *,
         time_offset_s: np.ndarray | None,
         prior: PosePrior | None,
+        stamp_s: float | None = None,
+        defer_model: bool = False,
     ) -> ScanResult:
         t_start = time.perf_counter()
         times: dict[str, float] = {}
@@ -332,7 +401,11 @@ class IncrementalMatcher:
             self._resolve_scales(xyz)
         prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
         first_pose = np.eye(4) if prior_T is None else prior_T
-        T_pred = first_pose if index == 0 else orthonormalize(self.poses[-1] @ self._delta)
+        # Periods since the previous sweep: 1 without stamps, more after sweeps dropped upstream.
+        periods = self._periods_since_last(stamp_s)
+        T_pred = (
+            first_pose if index == 0 else orthonormalize(self.poses[-1] @ scale_motion(self._delta, periods))
+        )
         times["deskew"] = times["features"] = 0.0
         xyz_raw, tau = xyz, time_offset_s if index > 0 else None
 
@@ -367,7 +440,7 @@ class IncrementalMatcher:
                 cloud, cloud_feats = xyz, feats
                 if tau is not None and attempt > 0 and s.redeskew:
                     # A yaw hypothesis implies another velocity: deskew the sweep with it.
-                    cloud, cloud_feats = prepare(invert(self.poses[-1]) @ init)
+                    cloud, cloud_feats = prepare(self._per_period(invert(self.poses[-1]) @ init, periods))
                 try:
                     res = register(
                         cloud_feats.matching_xyz,
@@ -379,7 +452,7 @@ class IncrementalMatcher:
                 except RandtError as exc:
                     message = message or f"registration failed: {exc}"
                     continue
-                why = self._gate(res, T_pred, prior_T, prior)
+                why = self._gate(res, T_pred, prior_T, prior, periods)
                 if why is None and (best is None or res.inlier_ratio > best[1].inlier_ratio):
                     best = (attempt, res, cloud, cloud_feats, init)
                 if attempt == 0 and best is None:
@@ -393,7 +466,7 @@ class IncrementalMatcher:
                 if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
                     break  # the prediction's match passed and looks like the recent ones: no retries
             if best is not None and tau is not None and s.redeskew:
-                best = self._redeskew(best, prepare, T_pred, prior_T, prior)
+                best = self._redeskew(best, prepare, T_pred, prior_T, prior, periods)
             if best is not None:
                 attempt, res, xyz, feats, _ = best
                 self._recent_inliers.append(res.inlier_ratio)
@@ -419,8 +492,10 @@ class IncrementalMatcher:
 
         T = orthonormalize(T)
         if index > 0:
-            self._delta = orthonormalize(invert(self.poses[-1]) @ T)
+            self._delta = orthonormalize(self._per_period(invert(self.poses[-1]) @ T, periods))
         self.poses.append(T)
+        if stamp_s is not None:
+            self._last_stamp_s = float(stamp_s)
         if index == 1 and self._first_raw is not None and status == "ok":
             # Now that the velocity is known, replace the first keyframe by its deskewed sweep.
             raw, tau = self._first_raw
@@ -434,9 +509,12 @@ class IncrementalMatcher:
                 self._rebuild_model(self.poses[0])
         is_kf = self._model is None or self._needs_keyframe(T)
         if is_kf and status != "fallback":
-            t0 = time.perf_counter()
-            self.set_keyframe(T, xyz[~feats.noise_mask])
-            times["model"] = time.perf_counter() - t0
+            if defer_model and self._model is not None:
+                self._pending_keyframe = (T.copy(), xyz[~feats.noise_mask])
+            else:
+                t0 = time.perf_counter()
+                self.set_keyframe(T, xyz[~feats.noise_mask])
+                times["model"] = time.perf_counter() - t0
         return ScanResult(
             index=index,
             T_world_sensor=T,
@@ -460,9 +538,12 @@ class IncrementalMatcher:
         """Everything needed to resume this session after a restart, as plain numpy arrays.
 
         Keys: ``poses`` (N,4,4), ``delta`` (4,4), ``keyframe_poses`` (K,4,4), ``keyframe_points``
-        (M,3) with ``keyframe_sizes`` (K,), ``scales`` (feature voxel, model voxel), ``levels`` and
-        ``last_keyframe_pose``. Suitable for ``np.savez``; the settings are the caller's to keep.
+        (M,3) with ``keyframe_sizes`` (K,), ``scales`` (feature voxel, model voxel), ``levels``,
+        ``last_keyframe_pose`` and ``last_stamp_s`` (NaN when sweeps came without stamps).
+        Suitable for ``np.savez``; the settings are the caller's to keep. A pending keyframe
+        (``defer_model``) is folded in first.
         """
+        self.update_model()
         kf = list(self._keyframes)
         return {
             "poses": np.array(self.poses).reshape(-1, 4, 4),
@@ -475,6 +556,7 @@ class IncrementalMatcher:
             "last_keyframe_pose": (
                 np.full((4, 4), np.nan) if self._last_keyframe_pose is None else self._last_keyframe_pose
             ),
+            "last_stamp_s": np.array(np.nan if self._last_stamp_s is None else self._last_stamp_s),
         }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
@@ -490,6 +572,9 @@ class IncrementalMatcher:
             self._keyframes.append((np.asarray(pose, dtype=np.float64), pts))
         last = np.asarray(state["last_keyframe_pose"], dtype=np.float64)
         self._last_keyframe_pose = None if np.isnan(last).any() else last
+        # States saved before stamps were kept have none: the next sweep then counts as one period.
+        stamp = float(np.asarray(state.get("last_stamp_s", np.nan)))
+        self._last_stamp_s = None if np.isnan(stamp) else stamp
         self._first_raw = None
         self._model = None
         if self._keyframes:
@@ -509,6 +594,7 @@ class IncrementalMatcher:
         T_pred: np.ndarray,
         prior_T: np.ndarray | None,
         prior: PosePrior | None,
+        periods: float = 1.0,
     ) -> _Match:
         """Deskew once more with the velocity the match found, when it differs from the one used.
 
@@ -519,8 +605,8 @@ class IncrementalMatcher:
         (one pass; kept only if it passes the same gate).
         """
         attempt, res, _, _, init = best
-        used = invert(self.poses[-1]) @ init
-        found = invert(self.poses[-1]) @ res.T_target_source
+        used = self._per_period(invert(self.poses[-1]) @ init, periods)
+        found = self._per_period(invert(self.poses[-1]) @ res.T_target_source, periods)
         change = invert(used) @ found
         if rotation_angle_deg(change[:3, :3]) < REDESKEW_DEG and np.linalg.norm(change[:3, 3]) < REDESKEW_M:
             return best
@@ -535,9 +621,26 @@ class IncrementalMatcher:
             )
         except RandtError:
             return best
-        if self._gate(again, T_pred, prior_T, prior) is not None:
+        if self._gate(again, T_pred, prior_T, prior, periods) is not None:
             return best
         return (attempt, again, cloud, feats, res.T_target_source)
+
+    def _periods_since_last(self, stamp_s: float | None) -> float:
+        """Sweep periods since the previous sweep's stamp (1 when either stamp is unknown).
+
+        A non-increasing stamp counts as one period; a gap longer than ``max_gap_s`` as that long.
+        """
+        if stamp_s is None or self._last_stamp_s is None or not np.isfinite(stamp_s):
+            return 1.0
+        dt = float(stamp_s) - self._last_stamp_s
+        if dt <= 0.0:
+            return 1.0
+        return min(dt, self.settings.max_gap_s) / self.period_s
+
+    @staticmethod
+    def _per_period(motion: np.ndarray, periods: float) -> np.ndarray:
+        """The motion over ``periods`` sweep periods as the motion over one (a velocity)."""
+        return motion if periods == 1.0 else scale_motion(motion, 1.0 / periods)
 
     def _hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """The prediction, then the prediction yawed by each of ``retry_yaw_deg`` both ways."""
@@ -548,15 +651,25 @@ class IncrementalMatcher:
         return out
 
     def _gate(
-        self, res, T_pred: np.ndarray, prior_T: np.ndarray | None, prior: PosePrior | None
+        self,
+        res,
+        T_pred: np.ndarray,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+        periods: float = 1.0,
     ) -> str | None:
-        """Why a registration result is not accepted, or None when it is."""
+        """Why a registration result is not accepted, or None when it is.
+
+        The correction limit grows with the time since the last sweep (``periods``): the
+        prediction's error grows with the gap it extrapolates over.
+        """
         s = self.settings
+        limit = s.max_correction_m * max(1.0, periods)
         correction = float(np.linalg.norm((invert(T_pred) @ res.T_target_source)[:3, 3]))
         if res.inlier_ratio < s.min_inlier_ratio:
             return f"inlier ratio {res.inlier_ratio:.2f} below {s.min_inlier_ratio}"
-        if correction > s.max_correction_m:
-            return f"match moved the prediction {correction:.2f} m (limit {s.max_correction_m} m)"
+        if correction > limit:
+            return f"match moved the prediction {correction:.2f} m (limit {limit:.1f} m)"
         if prior_T is not None and prior is not None and not self._agrees(res.T_target_source, prior):
             return "match disagrees with the prior pose beyond its covariance"
         return None

@@ -21,6 +21,7 @@ __all__ = [
     "make_transform",
     "orthonormalize",
     "rotation_angle_deg",
+    "scale_motion",
     "transform_error",
     "transform_points",
 ]
@@ -87,6 +88,38 @@ def apply_update(delta: np.ndarray, T: np.ndarray) -> np.ndarray:
     U[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
     U[:3, 3] = delta[:3]
     return U @ T
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _se3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """``V(w)`` with ``exp([w, u]) = [[R(w), V(w) u], [0, 1]]`` (series near ``|w| = 0``)."""
+    theta2 = float(w @ w)
+    W = _skew(w)
+    if theta2 < 1e-10:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (1.0 - np.cos(theta)) / theta2 * W + (theta - np.sin(theta)) / (theta2 * theta) * W @ W
+
+
+def scale_motion(T: np.ndarray, k: float) -> np.ndarray:
+    """``T`` to the real power ``k``: the same screw motion, ``k`` times as long.
+
+    ``exp(k log T)`` on SE(3) (rotation and translation move together along the screw, so a car
+    turning at constant speed is extrapolated along its arc): the motion over one sweep period
+    scaled to ``k`` periods. Equal to ``scipy.linalg.fractional_matrix_power(T, k)`` for rotations
+    under 180 degrees (tested), in closed form (about 25 times faster).
+    """
+    if k == 1.0:
+        return T.copy()
+    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    u = np.linalg.solve(_se3_left_jacobian(w), T[:3, 3])
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(k * w).as_matrix()
+    out[:3, 3] = _se3_left_jacobian(k * w) @ (k * u)
+    return out
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

@@ -94,6 +94,7 @@ def _serve(conn: Connection) -> None:
         if op == "quit":
             conn.send((True, None))
             return
+        deferred: IncrementalMatcher | None = None
         try:
             if op == "open":
                 state, grid_params = args
@@ -104,8 +105,12 @@ def _serve(conn: Connection) -> None:
                 grids[key] = None if grid_params is None else TileGrid(*grid_params)
                 value: Any = None
             elif op == "register":
-                xyz, offsets, prior = args
-                value = matchers[key].register_scan(xyz, time_offset_s=offsets, prior=prior)
+                xyz, offsets, prior, stamp_s = args
+                # The keyframe model is rebuilt after the reply (below), while the service publishes.
+                value = matchers[key].register_scan(
+                    xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
+                )
+                deferred = matchers[key]
                 grid = grids.get(key)
                 if grid is not None and value.status != "fallback":
                     # Send back only the points the map can keep (TileGrid.candidate_mask): the
@@ -128,6 +133,11 @@ def _serve(conn: Connection) -> None:
             conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
         else:
             conn.send((True, value))
+        if deferred is not None:
+            try:
+                deferred.update_model()
+            except Exception:  # a bug, not bad input: the next request would meet it too
+                log.exception("matcher process: keyframe model update failed")
 
 
 class _WorkerProcess:
@@ -320,10 +330,20 @@ class RemoteMatcher:
         *,
         time_offset_s: np.ndarray | None = None,
         prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        defer_model: bool = True,
     ) -> ScanResult:
-        result: ScanResult = self._proc.call("register", self._key, points_xyz, time_offset_s, prior)
+        """:meth:`IncrementalMatcher.register_scan` in the session's process. The process always
+        defers a keyframe's model rebuild until it has replied (``defer_model`` is accepted for
+        the same signature): the next request waits for it, so no sweep meets a stale model."""
+        del defer_model
+        result: ScanResult = self._proc.call("register", self._key, points_xyz, time_offset_s, prior, stamp_s)
         self.poses.append(result.T_world_sensor)
         return result
+
+    def update_model(self) -> float:
+        """Nothing to do here: the process rebuilds the model right after replying."""
+        return 0.0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return self._proc.call("state", self._key)

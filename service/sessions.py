@@ -206,7 +206,11 @@ class SessionWorker:
         with self.lock:
             try:
                 result = self.matcher.register_scan(
-                    scan.xyz(), time_offset_s=scan.time_offset_s(), prior=prior
+                    scan.xyz(),
+                    time_offset_s=scan.time_offset_s(),
+                    prior=prior,
+                    stamp_s=scan.stamp_ns * 1e-9,
+                    defer_model=True,  # the keyframe model is rebuilt after the pose is out
                 )
             except RandtError as exc:
                 m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
@@ -264,6 +268,8 @@ class SessionWorker:
                 map=info.map_name,
             )
         )
+        with self.lock:
+            self.matcher.update_model()  # in-process matchers; a matcher process does it by itself
 
 
 class SessionManager:
