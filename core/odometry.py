@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
 from core.features import Features, extract_features
+from core.kernels import within_xy_radius
 from core.registration import (
     PreparedReference,
     RegistrationResult,
@@ -286,8 +287,7 @@ class IncrementalMatcher:
         """Fuse the keyframes near ``T_world_sensor`` into the density-equalized matching model."""
         cx, cy = T_world_sensor[0, 3], T_world_sensor[1, 3]
         fused = np.vstack([pts for _, pts in self._keyframes])
-        dx, dy = fused[:, 0] - cx, fused[:, 1] - cy
-        fused = fused[dx * dx + dy * dy <= self.settings.model_radius_m**2]
+        fused = within_xy_radius(fused, float(cx), float(cy), float(self.settings.model_radius_m) ** 2)
         fused = voxel_downsample(fused, self.model_voxel_m)
         self._model = prepare_reference(
             fused,

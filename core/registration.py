@@ -262,14 +262,11 @@ def prepare_reference(
         pts = pts[_algorithm1_mask(pts, finest, settings)]
     elif settings.outlier_removal == "sor":
         pts = pts[statistical_outlier_mask(pts)]
-    maps = tuple(
-        VoxelGaussianMap.build(
-            pts,
-            v,
-            min_points_per_voxel=settings.min_points_per_voxel,
-            eigenvalue_ratio=settings.eigenvalue_ratio,
-        )
-        for v in voxel_sizes_m
+    maps = VoxelGaussianMap.build_pyramid(
+        pts,
+        voxel_sizes_m,
+        min_points_per_voxel=settings.min_points_per_voxel,
+        eigenvalue_ratio=settings.eigenvalue_ratio,
     )
     return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
 

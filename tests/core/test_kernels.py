@@ -183,6 +183,26 @@ def test_voxel_gaussians_match_a_per_voxel_numpy_fit(kitti_clouds) -> None:
     assert np.all(assignment[dropped] == -1) and dropped.any()
 
 
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (3517.3, -2210.9, 41.7)])
+def test_pyramid_from_moments_matches_building_each_level(kitti_clouds, offset) -> None:
+    """Coarse NDT levels summed from the finest level's moments equal levels fitted from the
+    points (same voxels, counts; means and covariances to rounding), near and far from the origin."""
+    points = voxel_downsample(kitti_clouds[0], 0.25) + np.asarray(offset)
+    sizes = (16.0, 8.0, 4.0, 2.0, 1.0)
+    pyramid = VoxelGaussianMap.build_pyramid(points, sizes)
+    for level, v in zip(pyramid, sizes, strict=True):
+        direct = VoxelGaussianMap.build(points, v)
+        assert level.voxel_size_m == v
+        np.testing.assert_array_equal(level.keys, direct.keys)
+        np.testing.assert_array_equal(level.counts, direct.counts)
+        np.testing.assert_allclose(level.means, direct.means, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(level.covariances, direct.covariances, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(level.inv_covariances, direct.inv_covariances, rtol=1e-7, atol=1e-7)
+    # Sizes that do not nest are built level by level (same result as build).
+    odd = VoxelGaussianMap.build_pyramid(points, (3.0, 1.0))
+    np.testing.assert_array_equal(odd[0].keys, VoxelGaussianMap.build(points, 3.0).keys)
+
+
 def test_eigh3_matches_lapack() -> None:
     rng = np.random.default_rng(3)
     X = rng.normal(size=(4000, 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(4000, 1, 1))
