@@ -79,6 +79,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         got: dict[tuple[str, int], float] = {}
         errors: dict[str, int] = {}
         statuses: dict[str, int] = {}
+        status_of: dict[tuple[str, int], str] = {}
         lock = threading.Lock()
 
         def on_pose(sample: zenoh.Sample) -> None:
@@ -87,6 +88,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             with lock:
                 got[(m.vehicle, m.seq)] = t
                 statuses[m.status] = statuses.get(m.status, 0) + 1
+                status_of[(m.vehicle, m.seq)] = m.status
 
         last_answer = [0.0]
 
@@ -117,6 +119,8 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             time.sleep(1.0)  # puts are asynchronous: let the last ones leave before closing
             session.close()
 
+        matcher_pids = [p for p in service.sessions.pool.pids() if p] if service.sessions.pool else []
+        cpu0 = _cpu_seconds([os.getpid()]), _cpu_seconds(matcher_pids)
         t0 = time.monotonic()
         threads = [threading.Thread(target=drive, args=(v,)) for v in scans]
         for t in threads:
@@ -133,6 +137,8 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         with lock:
             end = max([*got.values(), last_answer[0], t0])
         wall = end - t0  # first publication to last answer
+        cpu_main = _cpu_seconds([os.getpid()]) - cpu0[0]
+        cpu_matchers = _cpu_seconds(matcher_pids) - cpu0[1]
         received = int(service.metrics.registry.get_sample_value("randt_scans_received_total") or 0)
         for s in subs:
             s.undeclare()
@@ -142,6 +148,10 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     if os.environ.get("RANDT_BENCH_SLOWEST"):
         slow = sorted(((got[k] - sent[k]) * 1e3, k) for k in got if k in sent)[-12:]
         print("slowest (ms, scan):", [(round(ms), k) for ms, k in slow], file=sys.stderr)
+        for v in sorted(scans):
+            seqs = sorted(k[1] for k in status_of if k[0] == v)
+            marks = [f"{q}{'F' if status_of[(v, q)] == 'fallback' else ''}" for q in seqs]
+            print(f"{v} answered with poses (F: fallback):", " ".join(marks), file=sys.stderr)
     return {
         "vehicles": n_vehicles,
         "sent": len(sent),
@@ -156,7 +166,22 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else float("nan"),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        # CPU per answered scan: the service process (which also runs the bench's publishers and
+        # subscriber) and the matcher processes, from /proc over the publishing and answering.
+        "cpu_main_ms": 1e3 * cpu_main / max(len(got) + sum(errors.values()), 1),
+        "cpu_matchers_ms": 1e3 * cpu_matchers / max(len(got), 1),
     }
+
+
+def _cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU seconds of these processes (all their threads), from /proc."""
+    total = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    for pid in pids:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime (fields 14, 15)
+    return total
 
 
 def main() -> None:
@@ -192,6 +217,7 @@ def main() -> None:
                 str(r["vehicles"]),
                 str(r["sent"]),
                 str(r["poses"]),
+                str(r["fallbacks"]),
                 str(r["dropped"]),
                 str(r["other_errors"]) + (f" ({r['other_codes']})" if r["other_codes"] else ""),
                 str(r["received"]),
@@ -200,6 +226,7 @@ def main() -> None:
                 f"{r['p50_ms']:.0f}",
                 f"{r['p99_ms']:.0f}",
                 f"{r['peak_rss_mib']:.0f}",
+                f"{r['cpu_main_ms']:.0f} / {r['cpu_matchers_ms']:.0f}",
             ]
         )
     print(heading(f"{args.seconds:g} s of 10 Hz sweeps per vehicle (about 120k points each)", args.markdown))
@@ -209,6 +236,7 @@ def main() -> None:
                 "vehicles",
                 "scans sent",
                 "poses",
+                "of which fallbacks",
                 "dropped",
                 "other errors",
                 "received by service",
@@ -217,6 +245,7 @@ def main() -> None:
                 "p50 ms",
                 "p99 ms",
                 "peak RSS MiB",
+                "CPU ms per scan: service / matchers",
             ],
             rows,
             args.markdown,

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -37,6 +37,7 @@ from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
 from core.features import Features, extract_features
 from core.kernels import within_xy_radius
+from core.ndt import ndt_constants, ndt_cost
 from core.registration import (
     PreparedReference,
     RegistrationResult,
@@ -69,6 +70,11 @@ MID_SWEEP = 0.5
 
 #: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
 _Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
+
+#: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
+#: of the best are matched (``IncrementalMatcher._hypotheses``).
+GAP_TURN_DEG = tuple(float(d) for d in range(-60, 61, 5))
+GAP_TURN_CANDIDATES = 3
 
 #: A sweep with point times is deskewed again when its matched motion differs from the one it was
 #: deskewed with by more than this (degrees over one sweep period, metres over one period).
@@ -436,7 +442,7 @@ class IncrementalMatcher:
             # The prediction first; if its match fails a gate, yaw hypotheses around it (a corner's
             # onset changes the yaw rate faster than a constant-velocity prior can follow).
             best = None
-            for attempt, init in enumerate(self._hypotheses(T_pred)):
+            for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
                 cloud, cloud_feats = xyz, feats
                 if tau is not None and attempt > 0 and s.redeskew:
                     # A yaw hypothesis implies another velocity: deskew the sweep with it.
@@ -642,13 +648,50 @@ class IncrementalMatcher:
         """The motion over ``periods`` sweep periods as the motion over one (a velocity)."""
         return motion if periods == 1.0 else scale_motion(motion, 1.0 / periods)
 
-    def _hypotheses(self, T_pred: np.ndarray) -> list[np.ndarray]:
-        """The prediction, then the prediction yawed by each of ``retry_yaw_deg`` both ways."""
-        out = [T_pred]
+    def _hypotheses(
+        self, T_pred: np.ndarray, periods: float = 1.0, matching_xyz: np.ndarray | None = None
+    ) -> Iterator[np.ndarray]:
+        """The prediction, then alternatives tried in order when its match fails a gate (lazily:
+        nothing is computed for them when the prediction's match passes).
+
+        After a gap (``periods`` > 1.5: sweeps dropped upstream) the turn rate may have changed
+        within it: a corner's end extrapolated at the corner's yaw rate over 8 periods overshoots
+        by 46 degrees on the simulated drives, a corner's onset is missed as much. So first the
+        :data:`GAP_TURN_CANDIDATES` best turns over the gap, at the session's speed, by their NDT
+        cost on the model's coarsest level (:meth:`_turns_over_gap`). Then the prediction yawed by
+        each of ``retry_yaw_deg`` both ways (a corner's onset changes the yaw rate faster than a
+        constant-velocity prior can follow).
+        """
+        yield T_pred
+        if periods > 1.5 and self.poses and matching_xyz is not None and self._model is not None:
+            yield from self._turns_over_gap(T_pred, periods, matching_xyz)
         for deg in self.settings.retry_yaw_deg:
             for sign in (1.0, -1.0):
-                out.append(T_pred @ make_transform(rotvec=(0.0, 0.0, np.radians(sign * deg))))
-        return out
+                yield T_pred @ make_transform(rotvec=(0.0, 0.0, np.radians(sign * deg)))
+
+    def _turns_over_gap(
+        self, T_pred: np.ndarray, periods: float, matching_xyz: np.ndarray
+    ) -> list[np.ndarray]:
+        """Poses after turning by each of :data:`GAP_TURN_DEG` over the gap at the session's speed
+        (the velocity's yaw rate replaced), best first by NDT cost on the coarsest model level;
+        the :data:`GAP_TURN_CANDIDATES` best that are not the prediction itself."""
+        assert self._model is not None
+        gmap = self._model.maps[0]
+        consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
+        pts = voxel_downsample(matching_xyz, 0.5 * gmap.voxel_size_m)
+        rotvec = Rotation.from_matrix(self._delta[:3, :3]).as_rotvec()
+        scored = []
+        for turn in GAP_TURN_DEG:
+            motion = self._delta.copy()
+            motion[:3, :3] = Rotation.from_rotvec(
+                (rotvec[0], rotvec[1], np.radians(turn) / periods)
+            ).as_matrix()
+            T = orthonormalize(self.poses[-1] @ scale_motion(motion, periods))
+            if rotation_angle_deg((invert(T_pred) @ T)[:3, :3]) < 2.5:
+                continue  # the prediction, tried already
+            scored.append((ndt_cost(pts, T, gmap, consts, self.registration.n_neighbors), turn, T))
+        scored.sort(key=lambda c: c[0])
+        return [T for _, _, T in scored[:GAP_TURN_CANDIDATES]]
 
     def _gate(
         self,
