@@ -84,7 +84,7 @@ class ServiceMetrics:
         )
         self.registration_seconds = Histogram(
             "randt_registration_seconds",
-            "Matcher time per scan",
+            "Matcher time per scan until its pose (a keyframe's model rebuild follows the answer)",
             buckets=(0.01, 0.025, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 2.0, 5.0),
             registry=r,
         )
