@@ -51,11 +51,11 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     n_scans = int(seconds * 10)
     town = Town.generate(1)
     scans: dict[str, list[bytes]] = {}
-    truth_first = {}
+    truth: dict[tuple[str, int], np.ndarray] = {}
     for vehicle, scan in simulate_fleet(town, n_vehicles, n_scans=n_scans, seed=3, speed_mps=10.0):
         prior = {}
+        truth[(vehicle, scan.index)] = scan.T_world_sensor
         if scan.index == 0:
-            truth_first[vehicle] = scan.T_world_sensor
             prior = dict(prior_pose=scan.T_world_sensor, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
         scans.setdefault(vehicle, []).append(
             encode(
@@ -80,6 +80,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         errors: dict[str, int] = {}
         statuses: dict[str, int] = {}
         status_of: dict[tuple[str, int], str] = {}
+        pose_of: dict[tuple[str, int], np.ndarray] = {}
         lock = threading.Lock()
 
         def on_pose(sample: zenoh.Sample) -> None:
@@ -89,6 +90,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
                 got[(m.vehicle, m.seq)] = t
                 statuses[m.status] = statuses.get(m.status, 0) + 1
                 status_of[(m.vehicle, m.seq)] = m.status
+                pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
 
         last_answer = [0.0]
 
@@ -145,6 +147,9 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         listener.close()
         service.stop()
     lat = np.array([got[k] - sent[k] for k in got if k in sent])
+    # Each vehicle's first sweep carries its true pose as a prior, so poses are in the simulator's
+    # world frame: their position error against the ground truth, in cm.
+    err_cm = np.array([100 * np.linalg.norm(pose_of[k][:3, 3] - truth[k][:3, 3]) for k in pose_of])
     if os.environ.get("RANDT_BENCH_SLOWEST"):
         slow = sorted(((got[k] - sent[k]) * 1e3, k) for k in got if k in sent)[-12:]
         print("slowest (ms, scan):", [(round(ms), k) for ms, k in slow], file=sys.stderr)
@@ -163,6 +168,8 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         "received": received,
         "unanswered": len(sent) - len(got) - sum(errors.values()),
         "scans_per_s": len(got) / wall,
+        "err_p50_cm": float(np.percentile(err_cm, 50)) if err_cm.size else float("nan"),
+        "err_max_cm": float(err_cm.max()) if err_cm.size else float("nan"),
         "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else float("nan"),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -225,6 +232,7 @@ def main() -> None:
                 f"{r['scans_per_s']:.2f}",
                 f"{r['p50_ms']:.0f}",
                 f"{r['p99_ms']:.0f}",
+                f"{r['err_p50_cm']:.1f} / {r['err_max_cm']:.1f}",
                 f"{r['peak_rss_mib']:.0f}",
                 f"{r['cpu_main_ms']:.0f} / {r['cpu_matchers_ms']:.0f}",
             ]
@@ -244,6 +252,7 @@ def main() -> None:
                 "poses/s",
                 "p50 ms",
                 "p99 ms",
+                "position error p50 / max cm",
                 "peak RSS MiB",
                 "CPU ms per scan: service / matchers",
             ],

@@ -71,6 +71,9 @@ MID_SWEEP = 0.5
 #: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
 _Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
 
+#: Keyframes that may wait for the model (``defer_model``) while a sweep is matched: one.
+MAX_PENDING_KEYFRAMES = 1
+
 #: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
 #: of the best are matched (``IncrementalMatcher._hypotheses``).
 GAP_TURN_DEG = tuple(float(d) for d in range(-60, 61, 5))
@@ -212,8 +215,9 @@ class IncrementalMatcher:
         self._last_keyframe_pose: np.ndarray | None = None
         self._recent_inliers: deque[float] = deque(maxlen=20)
         self._last_stamp_s: float | None = None
-        # A keyframe whose model update register_scan(defer_model=True) left for update_model().
-        self._pending_keyframe: tuple[np.ndarray, np.ndarray] | None = None
+        # Keyframes (pose, sensor points) that register_scan(defer_model=True) left for
+        # update_model(): not in the model yet.
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         # The first sweep cannot be deskewed (no velocity yet): kept raw until the second gives one.
         self._first_raw: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -259,34 +263,42 @@ class IncrementalMatcher:
 
         All or nothing: if the model cannot be built, the keyframes stay as they were.
         """
-        world = transform_points(T_world_sensor, points_sensor)
+        self._add_keyframes([(T_world_sensor, points_sensor)])
+
+    def _add_keyframes(self, keyframes: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Append keyframes (pose, sensor points) and rebuild the model once, around the last."""
         before = list(self._keyframes)
-        self._keyframes.append((T_world_sensor.copy(), voxel_downsample(world, self.model_voxel_m)))
+        for T, points in keyframes:
+            world = transform_points(T, points)
+            self._keyframes.append((T.copy(), voxel_downsample(world, self.model_voxel_m)))
         try:
-            self._rebuild_model(T_world_sensor)
+            self._rebuild_model(keyframes[-1][0])
         except BaseException:
             self._keyframes.clear()
             self._keyframes.extend(before)
             raise
-        self._last_keyframe_pose = T_world_sensor.copy()
+        self._last_keyframe_pose = keyframes[-1][0].copy()
 
     def update_model(self) -> float:
-        """Fold in a keyframe that ``register_scan(defer_model=True)`` left pending; seconds spent.
+        """Fold the keyframes ``register_scan(defer_model=True)`` left pending into the model
+        (one rebuild however many); returns the seconds spent, 0 when none was pending.
 
-        A no-op without one. The next :meth:`register_scan`, :meth:`get_model` and
-        :meth:`state_dict` call it first, so deferring never lets a sweep match a stale model; it
-        only lets the caller answer the keyframe sweep before the model is rebuilt. A keyframe
-        the model cannot be built from (too sparse) is skipped with a warning: the previous model
-        stays, and the next sweep is a keyframe candidate again.
+        :meth:`get_model` and :meth:`state_dict` call it first. :meth:`register_scan` calls it
+        first only when more than :data:`MAX_PENDING_KEYFRAMES` are pending: a caller that is
+        behind (more sweeps waiting) can skip it and match the next sweep against the model
+        without its newest keyframe (2-4 m behind the sensor, in a window of 20), rebuilding once
+        for two keyframes. Keyframes the model cannot be built from (too sparse) are skipped with
+        a warning: the previous model stays, and the next sweep is a keyframe candidate again.
         """
-        pending, self._pending_keyframe = self._pending_keyframe, None
-        if pending is None:
+        pending, self._pending = self._pending, []
+        if not pending:
             return 0.0
         t0 = time.perf_counter()
         try:
-            self.set_keyframe(*pending)
+            self._add_keyframes(pending)
         except RandtError as exc:
-            log.warning("keyframe not modelled, the previous model stays: %s", exc)
+            log.warning("keyframes not modelled, the previous model stays: %s", exc)
+            self._last_keyframe_pose = self._keyframes[-1][0].copy() if self._keyframes else None
         return time.perf_counter() - t0
 
     def _rebuild_model(self, T_world_sensor: np.ndarray) -> None:
@@ -321,7 +333,8 @@ class IncrementalMatcher:
 
         ``defer_model``: when this sweep becomes a keyframe, leave the model's rebuild (the
         costliest step, every second or third sweep) to :meth:`update_model`, so the caller can
-        publish the pose first. The first keyframe is always modelled at once.
+        publish the pose first; a caller that is behind may skip that call (see there). The
+        first keyframe is always modelled at once.
 
         ``stamp_s`` (the sweep's time, seconds) lets the motion prediction span a gap: when sweeps
         were dropped before reaching the matcher (an overloaded service sheds scans), the velocity
@@ -331,7 +344,8 @@ class IncrementalMatcher:
         All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model), the
         matcher is left exactly as it was, so the session's poses and stamps stay in step.
         """
-        self.update_model()
+        if len(self._pending) > MAX_PENDING_KEYFRAMES:
+            self.update_model()
         saved = (
             len(self.poses),
             self._delta.copy(),
@@ -341,6 +355,7 @@ class IncrementalMatcher:
             list(self._recent_inliers),
             self._first_raw,
             self._last_stamp_s,
+            list(self._pending),
         )
         try:
             return self._register_scan(
@@ -356,8 +371,8 @@ class IncrementalMatcher:
                 recent,
                 self._first_raw,
                 self._last_stamp_s,
+                self._pending,
             ) = saved
-            self._pending_keyframe = None
             del self.poses[n:]
             self._keyframes.clear()
             self._keyframes.extend(keyframes)
@@ -516,7 +531,8 @@ class IncrementalMatcher:
         is_kf = self._model is None or self._needs_keyframe(T)
         if is_kf and status != "fallback":
             if defer_model and self._model is not None:
-                self._pending_keyframe = (T.copy(), xyz[~feats.noise_mask])
+                self._pending.append((T.copy(), xyz[~feats.noise_mask]))
+                self._last_keyframe_pose = T.copy()  # keyframe spacing counts pending ones
             else:
                 t0 = time.perf_counter()
                 self.set_keyframe(T, xyz[~feats.noise_mask])

@@ -70,6 +70,10 @@ def _warm_up() -> None:
         grid.candidate_mask(transform_points(result.T_world_sensor, result.deskewed_xyz))
 
 
+#: How long a matcher process waits for another request after replying before it rebuilds a
+#: deferred keyframe model (a request within this time means the process is behind).
+NEXT_REQUEST_WAIT_S = 0.005
+
 #: The first message a worker process sends, once warmed up (:meth:`MatcherPool.wait_ready`).
 _READY = (True, "ready")
 
@@ -133,7 +137,12 @@ def _serve(conn: Connection) -> None:
             conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
         else:
             conn.send((True, value))
-        if deferred is not None:
+        # Rebuild the keyframe model now unless another request follows at once: a process that
+        # is behind lets the next sweep match without the newest keyframe and rebuilds once for
+        # two (IncrementalMatcher.update_model), which at saturation halves the rebuilds. Session
+        # threads take turns on the pipe, so a waiting one sends within a millisecond or two of
+        # the reply; an idle process waits NEXT_REQUEST_WAIT_S, with the pose already out.
+        if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
                 deferred.update_model()
             except Exception:  # a bug, not bad input: the next request would meet it too
@@ -335,7 +344,9 @@ class RemoteMatcher:
     ) -> ScanResult:
         """:meth:`IncrementalMatcher.register_scan` in the session's process. The process always
         defers a keyframe's model rebuild until it has replied (``defer_model`` is accepted for
-        the same signature): the next request waits for it, so no sweep meets a stale model."""
+        the same signature), and does it then unless another request is waiting (the process is
+        behind): then the next sweep matches without the newest keyframe, and the model is
+        rebuilt once for two (:meth:`IncrementalMatcher.update_model`)."""
         del defer_model
         result: ScanResult = self._proc.call("register", self._key, points_xyz, time_offset_s, prior, stamp_s)
         self.poses.append(result.T_world_sensor)
