@@ -1077,12 +1077,19 @@ def tile_voxel_keys(
 def within_xy_radius(points: np.ndarray, cx: float, cy: float, radius2: float) -> np.ndarray:
     """The rows of ``points`` (N,3) within ``sqrt(radius2)`` of ``(cx, cy)`` in XY, in order.
 
-    One pass writing the survivors compactly: the numpy form (a boolean mask from two column
-    differences, then fancy indexing) took 13 ms on the 535k fused keyframe points of a full
-    window, this about 2 ms.
+    A counting pass, then one writing the survivors into an array of exactly their size (no
+    oversized buffer to fill and copy: at 13 MB a rebuild, fresh pages cost more than the loop):
+    the numpy form (a boolean mask from two column differences, then fancy indexing) took 13 ms
+    on the 535k fused keyframe points of a full window, this 1-2 ms.
     """
     n = points.shape[0]
-    out = np.empty((n, 3))
+    m = 0
+    for i in range(n):
+        dx = points[i, 0] - cx
+        dy = points[i, 1] - cy
+        if dx * dx + dy * dy <= radius2:
+            m += 1
+    out = np.empty((m, 3))
     m = 0
     for i in range(n):
         dx = points[i, 0] - cx
@@ -1092,4 +1099,4 @@ def within_xy_radius(points: np.ndarray, cx: float, cy: float, radius2: float) -
             out[m, 1] = points[i, 1]
             out[m, 2] = points[i, 2]
             m += 1
-    return out[:m].copy()
+    return out

@@ -528,14 +528,16 @@ class IncrementalMatcher:
             self._first_raw = None
             if not (self._model is None or self._needs_keyframe(T)):
                 self._rebuild_model(self.poses[0])
+        keep_map = ~feats.noise_mask
+        mapped_xyz = xyz[keep_map]
         is_kf = self._model is None or self._needs_keyframe(T)
         if is_kf and status != "fallback":
             if defer_model and self._model is not None:
-                self._pending.append((T.copy(), xyz[~feats.noise_mask]))
+                self._pending.append((T.copy(), mapped_xyz))
                 self._last_keyframe_pose = T.copy()  # keyframe spacing counts pending ones
             else:
                 t0 = time.perf_counter()
-                self.set_keyframe(T, xyz[~feats.noise_mask])
+                self.set_keyframe(T, mapped_xyz)
                 times["model"] = time.perf_counter() - t0
         return ScanResult(
             index=index,
@@ -547,8 +549,8 @@ class IncrementalMatcher:
             is_keyframe=bool(is_kf and status != "fallback"),
             time_s=time.perf_counter() - t_start,
             covariance=cov,
-            deskewed_xyz=xyz[~feats.noise_mask],
-            map_index=source_index[~feats.noise_mask],
+            deskewed_xyz=mapped_xyz,
+            map_index=source_index[keep_map],
             n_points=int(xyz.shape[0]),
             n_nonfinite_dropped=n_bad,
             message=message,

@@ -306,3 +306,14 @@ def test_neighbor_cache_gives_the_uncached_derivatives(kitti_problem) -> None:
         np.testing.assert_array_equal(cached.gradient, fresh.gradient)
         np.testing.assert_array_equal(cached.hessian, fresh.hessian)
         assert ndt_cost(source, T2, gmap, consts, 7, cache) == fresh.cost
+
+
+def test_within_xy_radius_matches_the_numpy_crop(kitti_clouds) -> None:
+    """The compiled crop keeps exactly the rows (in order) a numpy XY-distance mask keeps, z ignored."""
+    points = np.vstack(kitti_clouds) + np.array([250.0, -40.0, 3.0])
+    for cx, cy, r in ((250.0, -40.0, 20.0), (260.5, -31.0, 7.5), (0.0, 0.0, 1.0)):
+        d = points[:, :2] - (cx, cy)
+        expected = points[(d**2).sum(axis=1) <= r * r]
+        got = kernels.within_xy_radius(points, cx, cy, r * r)
+        np.testing.assert_array_equal(got, expected)
+    assert kernels.within_xy_radius(points, 0.0, 0.0, 1.0).shape == (0, 3)
