@@ -15,12 +15,16 @@ registration). One session's failure never touches another's worker, queue or ma
 
 **Overload policy**: each session queue holds ``queue_size`` scans; when a new scan arrives at a
 full queue, the *oldest* waiting scan is dropped (a newer scan is worth more to a moving vehicle),
-counted in ``randt_scans_dropped`` and answered with error code ``dropped``.
+counted in ``randt_scans_dropped`` and answered with error code ``dropped``. One exception: a
+session's anchor, its first scan while it carries a prior pose and no scan of the session has
+been processed yet, is kept and the next oldest dropped (without it the session could not be
+placed in the map frame). The matcher extrapolates over the gaps from the stamps.
 
-**Frames**: a session whose first scan carries a prior pose (GNSS/INS) lives in the map frame and
-folds into the shared map (``default``). A session without priors has its own frame, starting at
-its first sweep, and its own map ``<vehicle>.<session>`` until it can be placed; status reports
-which (``frame``: ``"map"`` or ``"session"``).
+**Frames**: a session whose first processed scan carries a prior pose (GNSS/INS) lives in the map
+frame and folds into the shared map (``default``). A session without priors has its own frame,
+starting at its first sweep, and its own map ``<vehicle>.<session>`` until it can be placed;
+status reports which (``frame``: ``"map"`` or ``"session"``). The frame is fixed by the first scan
+the matcher *processes* (the first one received may be rejected), never by an earlier one.
 """
 
 from __future__ import annotations
@@ -134,7 +138,9 @@ class SessionWorker:
         with self._cond:
             dropped = None
             if len(self._queue) >= self._manager.settings.queue_size:
-                dropped = self._queue.popleft()
+                k = drop_index(self._queue, anchored=self.info.n_scans > 0)
+                dropped = self._queue[k]
+                del self._queue[k]
             self._queue.append(job)
             self._cond.notify()
             return dropped
@@ -195,6 +201,28 @@ class SessionWorker:
             )
         self.matcher.close()
 
+    def _fix_frame(self, has_prior: bool) -> None:
+        """Set the session's frame from its first processed scan (module docstring, Frames)."""
+        info = self.info
+        frame = "map" if has_prior else "session"
+        if info.frame == frame:
+            return
+        old = info.map_name
+        name = (
+            self._manager.settings.default_map if has_prior else session_map_name(info.vehicle, info.session)
+        )
+        log.info(
+            "session %s/%s: its first processed scan %s a prior pose: %s frame, map %s",
+            info.vehicle,
+            info.session,
+            "carries" if has_prior else "has no",
+            frame,
+            name,
+        )
+        self.grid = self._manager.map_grid(name)
+        info.frame, info.map_name = frame, name
+        self._manager.forget_empty_map(old)
+
     def _process(self, job: _Job) -> None:
         scan = job.scan
         m = self._manager
@@ -204,6 +232,8 @@ class SessionWorker:
             prior = PosePrior(pose, scan.prior_covariance())
         intensity = scan.intensity()
         with self.lock:
+            if self.info.n_scans == 0:
+                self._fix_frame(prior is not None)
             try:
                 result = self.matcher.register_scan(
                     scan.xyz(),
@@ -432,11 +462,7 @@ class SessionManager:
             in_map = scan.prior_pose() is not None
             map_name = self.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
-        grid = self.maps.get(info.map_name)
-        if grid is None:
-            grid = self.maps[info.map_name] = TileGrid(
-                tile_size_m=self.settings.tile_size_m, voxel_size_m=self.settings.map_voxel_m
-            )
+        grid = self.map_grid(info.map_name)
         matcher: LocalMatcher | RemoteMatcher
         if self.pool is not None:
             matcher = self.pool.open(key, state or None, grid)
@@ -450,6 +476,29 @@ class SessionManager:
         return worker
 
     # -- maps and persistence -----------------------------------------------------------------
+    def map_grid(self, map_name: str) -> TileGrid:
+        """The tiles of ``map_name``, an empty map with the settings' sizes if it is new."""
+        with self._lock:
+            grid = self.maps.get(map_name)
+            if grid is None:
+                grid = self.maps[map_name] = TileGrid(
+                    tile_size_m=self.settings.tile_size_m, voxel_size_m=self.settings.map_voxel_m
+                )
+            return grid
+
+    def forget_empty_map(self, map_name: str) -> None:
+        """Drop ``map_name`` if it holds no tile and no session uses it (a frame left unused)."""
+        with self._lock:
+            grid = self.maps.get(map_name)
+            in_use = any(w.info.map_name == map_name for w in self._workers.values())
+            if (
+                grid is not None
+                and not grid.tile_ids()
+                and not in_use
+                and map_name != self.settings.default_map
+            ):
+                del self.maps[map_name]
+
     def mark_tiles_dirty(self, map_name: str, tile_ids: list[str]) -> None:
         with self._lock:
             self._dirty_tiles.setdefault(map_name, set()).update(tile_ids)
@@ -659,6 +708,14 @@ def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> object:
     """The current :class:`~core.wire.TileUpdateMessage` of one tile."""
     tile = grid.get(tile_id)
     return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
+
+
+def drop_index(queue: deque[_Job], *, anchored: bool) -> int:
+    """Which waiting job the overload policy drops: the oldest (0), unless the session is not
+    anchored yet (no scan processed) and the oldest carries a prior pose: then the next oldest."""
+    if not anchored and len(queue) > 1 and queue[0].scan.prior_pose() is not None:
+        return 1
+    return 0
 
 
 def session_map_name(vehicle: str, session: str) -> str:

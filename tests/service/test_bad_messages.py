@@ -200,3 +200,45 @@ def test_a_scan_for_a_session_being_saved_is_refused_not_reopened(manager) -> No
     answers = [(m.seq, getattr(m, "code", "pose")) for m in out if isinstance(m, PoseMessage | ErrorMessage)]
     assert answers == [(0, "session_busy"), (1, "pose")]
     assert _rejected(mgr, "session_busy") == 1
+
+
+def test_the_first_processed_scan_fixes_the_frame(manager) -> None:
+    """A session's first scan carries a prior pose but the matcher rejects it (every point
+    within the 2 m vehicle radius); the next scan has none. The session must not claim the map
+    frame (its poses would start at the identity inside the shared map): it gets its own frame
+    and map. The reverse: a first scan without prior rejected, the next with one: map frame."""
+    mgr, out = manager
+    near = (ROOM / np.abs(ROOM).max(axis=0)).astype(np.float32)  # inside +-1 m: all too near
+    prior = dict(prior_pose=np.eye(4), prior_covariance=np.eye(6) * 1e-4)
+    mgr.submit("v1", encode(scan_from_arrays("v1", "a", 0, 0, near, **prior)))
+    mgr.submit("v1", encode(scan_from_arrays("v1", "a", 1, 100_000_000, ROOM)))
+    mgr.submit("v2", encode(scan_from_arrays("v2", "b", 0, 0, near)))
+    mgr.submit("v2", encode(scan_from_arrays("v2", "b", 1, 100_000_000, ROOM, **prior)))
+    _wait(out, 4)
+    answers = {(m.vehicle, m.seq): m for m in out if isinstance(m, PoseMessage | ErrorMessage)}
+    assert answers[("v1", 0)].code == "registration_failed"
+    assert answers[("v2", 0)].code == "registration_failed"
+    assert answers[("v1", 1)].map == "v1.a" and mgr.worker("v1", "a").info.frame == "session"
+    assert answers[("v2", 1)].map == "default" and mgr.worker("v2", "b").info.frame == "map"
+    assert "v2.b" not in mgr.maps, "the frame left unused is forgotten"
+    assert set(mgr.maps["v1.a"].tile_ids()) and set(mgr.maps["default"].tile_ids())
+
+
+def test_overload_keeps_an_unprocessed_sessions_anchor() -> None:
+    """The drop-oldest policy spares a session's first scan with a prior pose while nothing of
+    the session has been processed (it anchors the session in the map frame); otherwise the
+    oldest goes."""
+    from collections import deque
+
+    from core.wire import decode_scan
+    from service.sessions import _Job, drop_index
+
+    def job(seq: int, with_prior: bool) -> _Job:
+        extra = dict(prior_pose=np.eye(4), prior_covariance=np.eye(6) * 1e-4) if with_prior else {}
+        return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM, **extra))), 0)
+
+    queue = deque([job(0, True), job(1, False), job(2, False)])
+    assert drop_index(queue, anchored=False) == 1
+    assert drop_index(queue, anchored=True) == 0
+    assert drop_index(deque([job(0, False), job(1, True)]), anchored=False) == 0
+    assert drop_index(deque([job(0, True)]), anchored=False) == 0
