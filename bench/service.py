@@ -113,7 +113,13 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
 
         def drive(vehicle: str) -> None:
             session = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
-            pub = session.declare_publisher(f"randt/fleet/{vehicle}/scan")
+            # As the vehicle library publishes (clients/publisher.py): block under congestion
+            # rather than drop, so every scan reaches the service.
+            pub = session.declare_publisher(
+                f"randt/fleet/{vehicle}/scan",
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
             start = time.monotonic()
             for k, payload in enumerate(scans[vehicle]):
                 delay = start + 0.1 * k - time.monotonic()

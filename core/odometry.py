@@ -76,7 +76,7 @@ MAX_PENDING_KEYFRAMES = 1
 
 #: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
 #: of the best are matched (``IncrementalMatcher._hypotheses``).
-GAP_TURN_DEG = tuple(float(d) for d in range(-60, 61, 5))
+GAP_TURN_DEG = tuple(float(d) for d in range(-100, 101, 5))
 GAP_TURN_CANDIDATES = 3
 
 #: A sweep with point times is deskewed again when its matched motion differs from the one it was
@@ -674,7 +674,8 @@ class IncrementalMatcher:
 
         After a gap (``periods`` > 1.5: sweeps dropped upstream) the turn rate may have changed
         within it: a corner's end extrapolated at the corner's yaw rate over 8 periods overshoots
-        by 46 degrees on the simulated drives, a corner's onset is missed as much. So first the
+        by 46 degrees on the simulated drives, a corner's onset is missed as much, and a whole
+        corner inside a 14-sweep gap by 73 degrees. So first the
         :data:`GAP_TURN_CANDIDATES` best turns over the gap, at the session's speed, by their NDT
         cost on the model's coarsest level (:meth:`_turns_over_gap`). Then the prediction yawed by
         each of ``retry_yaw_deg`` both ways (a corner's onset changes the yaw rate faster than a

@@ -99,6 +99,7 @@ def _serve(conn: Connection) -> None:
             conn.send((True, None))
             return
         deferred: IncrementalMatcher | None = None
+        behind = False
         try:
             if op == "open":
                 state, grid_params = args
@@ -109,7 +110,7 @@ def _serve(conn: Connection) -> None:
                 grids[key] = None if grid_params is None else TileGrid(*grid_params)
                 value: Any = None
             elif op == "register":
-                xyz, offsets, prior, stamp_s = args
+                xyz, offsets, prior, stamp_s, behind = args
                 # The keyframe model is rebuilt after the reply (below), while the service publishes.
                 value = matchers[key].register_scan(
                     xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
@@ -137,12 +138,13 @@ def _serve(conn: Connection) -> None:
             conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
         else:
             conn.send((True, value))
-        # Rebuild the keyframe model now unless another request follows at once: a process that
-        # is behind lets the next sweep match without the newest keyframe and rebuilds once for
-        # two (IncrementalMatcher.update_model), which at saturation halves the rebuilds. Session
-        # threads take turns on the pipe, so a waiting one sends within a millisecond or two of
-        # the reply; an idle process waits NEXT_REQUEST_WAIT_S, with the pose already out.
-        if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
+        # Rebuild the keyframe model now unless the session said more of its scans wait (behind)
+        # or another request follows at once: a process that is behind lets the next sweep match
+        # without the newest keyframe and rebuilds once for two (IncrementalMatcher.update_model),
+        # which at saturation halves the rebuilds. Session threads take turns on the pipe, so a
+        # waiting one usually sends within a millisecond or two of the reply; an idle process
+        # waits NEXT_REQUEST_WAIT_S, with the pose already out.
+        if deferred is not None and not behind and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
                 deferred.update_model()
             except Exception:  # a bug, not bad input: the next request would meet it too
@@ -341,14 +343,18 @@ class RemoteMatcher:
         prior: PosePrior | None = None,
         stamp_s: float | None = None,
         defer_model: bool = True,
+        behind: bool = False,
     ) -> ScanResult:
         """:meth:`IncrementalMatcher.register_scan` in the session's process. The process always
         defers a keyframe's model rebuild until it has replied (``defer_model`` is accepted for
-        the same signature), and does it then unless another request is waiting (the process is
-        behind): then the next sweep matches without the newest keyframe, and the model is
-        rebuilt once for two (:meth:`IncrementalMatcher.update_model`)."""
+        the same signature), and does it then unless ``behind`` (more of the session's scans are
+        waiting) or another request arrives within :data:`NEXT_REQUEST_WAIT_S`: then the next
+        sweep matches without the newest keyframe, and the model is rebuilt once for two
+        (:meth:`IncrementalMatcher.update_model`)."""
         del defer_model
-        result: ScanResult = self._proc.call("register", self._key, points_xyz, time_offset_s, prior, stamp_s)
+        result: ScanResult = self._proc.call(
+            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind
+        )
         self.poses.append(result.T_world_sensor)
         return result
 
@@ -371,6 +377,23 @@ class RemoteMatcher:
 
 class LocalMatcher(IncrementalMatcher):
     """An in-process matcher with :class:`RemoteMatcher`'s ``close`` (``matcher_processes=0``)."""
+
+    def register_scan(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        defer_model: bool = False,
+        behind: bool = False,
+    ) -> ScanResult:
+        """:meth:`IncrementalMatcher.register_scan`; ``behind`` is the caller's to act on (it
+        skips :meth:`update_model` then), accepted for :class:`RemoteMatcher`'s signature."""
+        del behind
+        return super().register_scan(
+            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
+        )
 
     def close(self) -> None:
         """Nothing to release."""

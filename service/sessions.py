@@ -231,6 +231,9 @@ class SessionWorker:
         if pose is not None:
             prior = PosePrior(pose, scan.prior_covariance())
         intensity = scan.intensity()
+        # More of this session's scans wait: the keyframe model may lag one keyframe rather than
+        # delay them (IncrementalMatcher.update_model).
+        behind = self.depth() > 0
         with self.lock:
             if self.info.n_scans == 0:
                 self._fix_frame(prior is not None)
@@ -241,6 +244,7 @@ class SessionWorker:
                     prior=prior,
                     stamp_s=scan.stamp_ns * 1e-9,
                     defer_model=True,  # the keyframe model is rebuilt after the pose is out
+                    behind=behind,
                 )
             except RandtError as exc:
                 m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
@@ -298,8 +302,9 @@ class SessionWorker:
                 map=info.map_name,
             )
         )
-        with self.lock:
-            self.matcher.update_model()  # in-process matchers; a matcher process does it by itself
+        if not behind:
+            with self.lock:
+                self.matcher.update_model()  # in-process matchers; a matcher process does it itself
 
 
 class SessionManager:

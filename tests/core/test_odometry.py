@@ -310,3 +310,27 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
         err_m, err_deg = transform_error(r.T_world_sensor, scan.T_world_sensor)
         assert err_m < 0.05 and err_deg < 0.1, (i, err_m, err_deg)
     assert max(misses) > 20.0 and sum(m > 20.0 for m in misses) >= 2, misses
+
+
+def test_a_caller_behind_still_bridges_a_long_gap() -> None:
+    """A caller that never calls ``update_model`` (an overloaded matcher process: the model a
+    keyframe behind) and gaps of up to 14 sweeps (1.4 s, 14 m), one holding a whole corner: the
+    constant-velocity prediction misses the 25 -> 39 gap by 73 degrees. The gap search's turns
+    reach 100 degrees either way; with 60, as first built, this drive lost its track there
+    (found by replaying bench/service.py's drop patterns at 8 vehicles)."""
+    from clients.sim.drive import simulate_fleet
+    from clients.sim.town import Town
+
+    keep = [*range(13), 17, 25, 39, 44, 54, 58]
+    scans = {s.index: s for _, s in simulate_fleet(Town.generate(1), 1, n_scans=59, seed=3, speed_mps=10.0)}
+    matcher = IncrementalMatcher()
+    for i in keep:
+        scan = scans[i]
+        prior = PosePrior(scan.T_world_sensor, np.diag([1e-4] * 3 + [1e-5] * 3)) if i == 0 else None
+        stamp_s = scan.stamp_ns * 1e-9
+        r = matcher.register_scan(
+            scan.points_xyz.astype(np.float64), prior=prior, stamp_s=stamp_s, defer_model=True
+        )
+        assert r.status in ("first", "ok"), (i, r.message)
+        err_m, err_deg = transform_error(r.T_world_sensor, scan.T_world_sensor)
+        assert err_m < 0.05 and err_deg < 0.1, (i, err_m, err_deg)
