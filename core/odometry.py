@@ -71,6 +71,9 @@ MID_SWEEP = 0.5
 #: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
 _Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
 
+#: After this many fallbacks in a row a session counts as lost: only its prediction is matched.
+LOST_AFTER_FALLBACKS = 3
+
 #: Keyframes that may wait for the model (``defer_model``) while a sweep is matched: one.
 MAX_PENDING_KEYFRAMES = 1
 
@@ -122,7 +125,7 @@ class MatcherSettings(BaseModel):
         description="with point times: deskew per yaw hypothesis, and again with the matched velocity",
     )
     max_gap_s: float = Field(
-        default=2.0,
+        default=5.0,
         gt=0,
         description="with stamps: the motion prediction extrapolates the velocity over the time since "
         "the last sweep (scans dropped upstream), at most this long",
@@ -215,6 +218,7 @@ class IncrementalMatcher:
         self._last_keyframe_pose: np.ndarray | None = None
         self._recent_inliers: deque[float] = deque(maxlen=20)
         self._last_stamp_s: float | None = None
+        self._fallback_run = 0  # consecutive fallbacks: from LOST_AFTER_FALLBACKS on, no retries
         # Keyframes (pose, sensor points) that register_scan(defer_model=True) left for
         # update_model(): not in the model yet.
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
@@ -356,6 +360,7 @@ class IncrementalMatcher:
             self._first_raw,
             self._last_stamp_s,
             list(self._pending),
+            self._fallback_run,
         )
         try:
             return self._register_scan(
@@ -372,6 +377,7 @@ class IncrementalMatcher:
                 self._first_raw,
                 self._last_stamp_s,
                 self._pending,
+                self._fallback_run,
             ) = saved
             del self.poses[n:]
             self._keyframes.clear()
@@ -457,7 +463,12 @@ class IncrementalMatcher:
             # The prediction first; if its match fails a gate, yaw hypotheses around it (a corner's
             # onset changes the yaw rate faster than a constant-velocity prior can follow).
             best = None
+            # A session that has lost its track (LOST_AFTER_FALLBACKS in a row) tries the prediction
+            # only: the retries (up to 8 registrations) cannot find it and would starve others.
+            lost = self._fallback_run >= LOST_AFTER_FALLBACKS
             for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
+                if lost and attempt > 0:
+                    break
                 cloud, cloud_feats = xyz, feats
                 if tau is not None and attempt > 0 and s.redeskew:
                     # A yaw hypothesis implies another velocity: deskew the sweep with it.
@@ -510,6 +521,7 @@ class IncrementalMatcher:
                     message,
                 )
             times["match"] = time.perf_counter() - t0
+            self._fallback_run = self._fallback_run + 1 if status == "fallback" else 0
 
         T = orthonormalize(T)
         if index > 0:

@@ -16,9 +16,11 @@ registration). One session's failure never touches another's worker, queue or ma
 **Overload policy**: each session queue holds ``queue_size`` scans; when a new scan arrives at a
 full queue, the *oldest* waiting scan is dropped (a newer scan is worth more to a moving vehicle),
 counted in ``randt_scans_dropped`` and answered with error code ``dropped``. One exception: a
-session's anchor, its first scan while it carries a prior pose and no scan of the session has
-been processed yet, is kept and the next oldest dropped (without it the session could not be
-placed in the map frame). The matcher extrapolates over the gaps from the stamps.
+young session (fewer than ``YOUNG_SESSION_SCANS`` processed) keeps its oldest waiting scans and
+loses the newest waiting one instead: its first scan anchors it (a prior pose places it in the map
+frame) and its first sweeps must be consecutive for the matcher to learn its velocity (with none,
+a 2.4 s gap at 8 vehicles could not be bridged). After that the matcher extrapolates over the
+gaps from the stamps.
 
 **Frames**: a session whose first processed scan carries a prior pose (GNSS/INS) lives in the map
 frame and folds into the shared map (``default``). A session without priors has its own frame,
@@ -138,7 +140,7 @@ class SessionWorker:
         with self._cond:
             dropped = None
             if len(self._queue) >= self._manager.settings.queue_size:
-                k = drop_index(self._queue, anchored=self.info.n_scans > 0)
+                k = drop_index(self._queue, n_processed=self.info.n_scans)
                 dropped = self._queue[k]
                 del self._queue[k]
             self._queue.append(job)
@@ -328,6 +330,10 @@ class SessionManager:
         # Sessions between leaving _workers and their final save: a scan for one is refused
         # (session_busy) rather than reopening it from an older saved state.
         self._closing: set[tuple[str, str]] = set()
+        #: Running sessions at most (0: no limit); see ServiceSettings.max_sessions.
+        self.max_sessions = settings.max_sessions
+        if self.max_sessions < 0:
+            self.max_sessions = 2 * (os.cpu_count() or 1)
         n_procs = settings.matcher_processes
         if n_procs < 0:
             cores = os.cpu_count() or 1
@@ -372,6 +378,16 @@ class SessionManager:
                     scan.seq,
                     "session_busy",
                     "the session is being saved (closed or expired a moment ago): send the scan again",
+                )
+                return
+            if worker is None and 0 < self.max_sessions <= len(self._workers):
+                self.reject(
+                    scan.vehicle,
+                    scan.session,
+                    scan.seq,
+                    "sessions_full",
+                    f"the service runs its maximum of {self.max_sessions} sessions (RANDT_MAX_SESSIONS): "
+                    "send again later, close a session or add capacity",
                 )
                 return
             if worker is None:
@@ -715,12 +731,15 @@ def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> object:
     return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
 
 
-def drop_index(queue: deque[_Job], *, anchored: bool) -> int:
-    """Which waiting job the overload policy drops: the oldest (0), unless the session is not
-    anchored yet (no scan processed) and the oldest carries a prior pose: then the next oldest."""
-    if not anchored and len(queue) > 1 and queue[0].scan.prior_pose() is not None:
-        return 1
-    return 0
+#: Until a session has processed this many scans, overload drops its newest waiting scan rather
+#: than its oldest (module docstring, Overload policy).
+YOUNG_SESSION_SCANS = 3
+
+
+def drop_index(queue: deque[_Job], *, n_processed: int) -> int:
+    """Which waiting job the overload policy drops: the oldest (0), or the newest waiting one
+    while the session has processed fewer than :data:`YOUNG_SESSION_SCANS` scans."""
+    return len(queue) - 1 if n_processed < YOUNG_SESSION_SCANS else 0
 
 
 def session_map_name(vehicle: str, session: str) -> str:

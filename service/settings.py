@@ -38,6 +38,12 @@ class ServiceSettings(BaseSettings):
     )
     # sessions
     queue_size: int = Field(default=8, ge=1, description="scans waiting per session; oldest dropped")
+    max_sessions: int = Field(
+        default=-1,
+        ge=-1,
+        description="running sessions at most; a scan that would open one more is refused "
+        "(sessions_full): -1 = 2 per core (what 2 cores track at 10 Hz, docs/benchmarks.md), 0 = no limit",
+    )
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
     matcher_processes: int = Field(
         default=-1,

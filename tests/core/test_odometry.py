@@ -85,6 +85,35 @@ def test_garbage_scan_falls_back_to_prediction_and_says_so() -> None:
     assert not r.is_keyframe, "a fallback scan must not enter the model"
 
 
+def test_a_lost_session_stops_retrying(monkeypatch) -> None:
+    """Each failing sweep tries the prediction and its yaw retries (5 registrations here); after
+    3 fallbacks in a row the session counts as lost and tries the prediction only, so a lost
+    vehicle cannot take the CPU of the others; one good match ends it."""
+    import core.odometry as odometry
+
+    calls = []
+    real = odometry.register
+    monkeypatch.setattr(odometry, "register", lambda *a, **k: calls.append(1) or real(*a, **k))
+    rng = np.random.default_rng(0)
+    room = synthetic_room(rng)
+    matcher = IncrementalMatcher(MatcherSettings(voxel_sizes_m=(2.0, 1.0, 0.5)))
+    step = make_transform(translation=(0.3, 0.0, 0.0))
+    for T in (np.eye(4), step, step @ step):
+        assert matcher.register_scan(transform_points(invert(T), room)).status in ("first", "ok")
+    per_sweep = []
+    for _ in range(5):
+        calls.clear()
+        assert matcher.register_scan(rng.uniform(-40, 40, size=(20000, 3))).status == "fallback"
+        per_sweep.append(len(calls))
+    assert per_sweep == [5, 5, 5, 1, 1], per_sweep
+    # The prediction keeps moving at the last velocity; a sweep that matches it ends the loss.
+    T = matcher.poses[-1] @ step
+    assert matcher.register_scan(transform_points(invert(T), room)).status == "ok"
+    calls.clear()
+    matcher.register_scan(rng.uniform(-40, 40, size=(20000, 3)))
+    assert len(calls) == 5
+
+
 def test_prior_pose_seeds_the_first_scan_and_gates_jumps() -> None:
     rng = np.random.default_rng(1)
     room = synthetic_room(rng)

@@ -224,21 +224,42 @@ def test_the_first_processed_scan_fixes_the_frame(manager) -> None:
     assert set(mgr.maps["v1.a"].tile_ids()) and set(mgr.maps["default"].tile_ids())
 
 
-def test_overload_keeps_an_unprocessed_sessions_anchor() -> None:
-    """The drop-oldest policy spares a session's first scan with a prior pose while nothing of
-    the session has been processed (it anchors the session in the map frame); otherwise the
-    oldest goes."""
+def test_overload_keeps_a_young_sessions_first_scans() -> None:
+    """Drop-oldest, except that a session with fewer than 3 scans processed loses its newest
+    waiting scan instead: its first scan anchors it, its first sweeps give the velocity."""
     from collections import deque
 
     from core.wire import decode_scan
     from service.sessions import _Job, drop_index
 
-    def job(seq: int, with_prior: bool) -> _Job:
-        extra = dict(prior_pose=np.eye(4), prior_covariance=np.eye(6) * 1e-4) if with_prior else {}
-        return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM, **extra))), 0)
+    def job(seq: int) -> _Job:
+        return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM))), 0)
 
-    queue = deque([job(0, True), job(1, False), job(2, False)])
-    assert drop_index(queue, anchored=False) == 1
-    assert drop_index(queue, anchored=True) == 0
-    assert drop_index(deque([job(0, False), job(1, True)]), anchored=False) == 0
-    assert drop_index(deque([job(0, True)]), anchored=False) == 0
+    queue = deque([job(0), job(1), job(2)])
+    assert [drop_index(queue, n_processed=n) for n in (0, 1, 2, 3, 50)] == [2, 2, 2, 0, 0]
+    assert drop_index(deque([job(5)]), n_processed=0) == 0
+
+
+def test_a_session_beyond_max_sessions_is_refused_and_others_go_on(tmp_path) -> None:
+    """With max_sessions=2, a third vehicle's scans are answered sessions_full (counted), the two
+    running sessions keep getting poses, and a freed slot (a closed session) admits it."""
+    out: list[object] = []
+    settings = ServiceSettings(data_dir=tmp_path, max_sessions=2, matcher_processes=0, flush_interval_s=0.2)
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        for seq in range(2):
+            for v in ("v1", "v2", "v3"):
+                mgr.submit(v, good(v, seq))
+        _wait(out, 6)
+        answers = {(m.vehicle, m.seq): m for m in out if isinstance(m, PoseMessage | ErrorMessage)}
+        assert all(isinstance(answers[(v, s)], PoseMessage) for v in ("v1", "v2") for s in (0, 1))
+        assert [answers[("v3", s)].code for s in (0, 1)] == ["sessions_full", "sessions_full"]
+        assert "maximum of 2 sessions" in answers[("v3", 0)].reason
+        assert _rejected(mgr, "sessions_full") == 2
+        assert mgr.close("v1", "s1")
+        mgr.submit("v3", good("v3", 2))
+        _wait(out, 7)
+        last = [m for m in out if isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == "v3"][-1]
+        assert isinstance(last, PoseMessage) and last.seq == 2
+    finally:
+        mgr.stop()
