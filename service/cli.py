@@ -847,6 +847,9 @@ def demo(
             connect=(),
             http_host="127.0.0.1",
             http_port=hport,
+            # Every requested vehicle is admitted: the demo's vehicles wait for their answers
+            # (clients/fleet.py's window), so they pace themselves instead of overloading.
+            max_sessions=0,
         )
     except ValidationError as exc:
         raise _fail(ValueError(str(exc.errors()[0]["msg"]))) from exc
