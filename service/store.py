@@ -61,7 +61,7 @@ import threading
 import time
 import weakref
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -296,6 +296,24 @@ class _HeldLock:
 
 _HELD_LOCKS: dict[Path, _HeldLock] = {}  # by the data directory's real path
 _HELD_LOCKS_GUARD = threading.Lock()
+# A Store's finalizer may run from the garbage collector at any allocation, also while this very
+# thread is inside the guard (in _acquire_lock, say): taking the guard there again deadlocked a
+# test run. Such a release is queued here and done at the next entry into the guard.
+_PENDING_RELEASES: list[Path] = []
+_GUARD_STATE = threading.local()
+
+
+@contextlib.contextmanager
+def _guarded() -> Iterator[None]:
+    """Hold the guard (releases queued by finalizers are done first)."""
+    with _HELD_LOCKS_GUARD:
+        _GUARD_STATE.inside = True
+        try:
+            while _PENDING_RELEASES:
+                _release_held(_PENDING_RELEASES.pop())
+            yield
+        finally:
+            _GUARD_STATE.inside = False
 
 
 def _acquire_lock(directory: Path) -> tuple[Path, bool]:
@@ -313,7 +331,7 @@ def _acquire_lock(directory: Path) -> tuple[Path, bool]:
     """
     key = directory.resolve()
     path = key / LOCK_FILENAME
-    with _HELD_LOCKS_GUARD:
+    with _guarded():
         held = _HELD_LOCKS.get(key)
         if held is not None:
             held.users += 1
@@ -338,18 +356,30 @@ def _acquire_lock(directory: Path) -> tuple[Path, bool]:
 
 
 def _release_lock(key: Path) -> None:
-    """One Store of this process is done with ``key``; the last one releases the flock."""
-    with _HELD_LOCKS_GUARD:
-        held = _HELD_LOCKS.get(key)
-        if held is None:
-            return
-        held.users -= 1
-        if held.users > 0:
-            return
-        del _HELD_LOCKS[key]
-        if held.fd is not None:
-            with contextlib.suppress(OSError):
-                os.close(held.fd)  # closing the descriptor releases the flock
+    """One Store of this process is done with ``key``; the last one releases the flock.
+
+    Called by a Store's finalizer: when that runs inside the guard on this thread (the garbage
+    collector), the release is queued for the next entry into the guard instead.
+    """
+    if getattr(_GUARD_STATE, "inside", False):
+        _PENDING_RELEASES.append(key)
+        return
+    with _guarded():
+        _release_held(key)
+
+
+def _release_held(key: Path) -> None:
+    """:func:`_release_lock`'s work; the caller holds the guard."""
+    held = _HELD_LOCKS.get(key)
+    if held is None:
+        return
+    held.users -= 1
+    if held.users > 0:
+        return
+    del _HELD_LOCKS[key]
+    if held.fd is not None:
+        with contextlib.suppress(OSError):
+            os.close(held.fd)  # closing the descriptor releases the flock
 
 
 class Store:

@@ -724,3 +724,19 @@ def test_delete_map_is_atomic_and_an_interrupted_one_is_finished_on_open(tmp_pat
     with Store(tmp_path) as store:
         assert not trash.exists()
         assert store.list_maps() == []
+
+
+def test_a_finalizer_inside_the_lock_guard_does_not_deadlock(tmp_path: Path) -> None:
+    """A Store's finalizer can run from the garbage collector while this thread is inside the
+    lock guard (opening another Store): a CI run hung there. The release is queued and done at
+    the next entry into the guard: the flock is free afterwards."""
+    from service import store as store_module
+
+    first = Store(tmp_path / "a")
+    key = (tmp_path / "a").resolve()
+    with store_module._guarded():  # as if the GC ran first's finalizer in _acquire_lock
+        first._finalizer()  # queued, returns at once instead of waiting on the guard
+        assert key in store_module._HELD_LOCKS
+    with Store(tmp_path / "b"):  # the next entry into the guard performs the queued release
+        assert key not in store_module._HELD_LOCKS
+    assert open_in_another_process(tmp_path / "a").returncode == 0
