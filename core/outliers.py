@@ -25,12 +25,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from core.kernels import grouped_fence_mask, mahalanobis_to_assigned
-from core.voxel import VoxelGaussianMap, voxel_coords, voxel_groups
+from core.voxel import VoxelGaussianMap
 
 __all__ = [
     "iqr_inlier_mask",
     "iqr_inlier_mask_numpy",
-    "mahalanobis_to_own_voxel",
     "statistical_outlier_mask",
     "tukey_fences",
 ]
@@ -41,18 +40,6 @@ def tukey_fences(values: np.ndarray, k: float = 1.5) -> tuple[float, float]:
     q1, q3 = np.percentile(values, [25.0, 75.0])
     iqr = q3 - q1
     return float(q1 - k * iqr), float(q3 + k * iqr)
-
-
-def mahalanobis_to_own_voxel(points_xyz: np.ndarray, gmap: VoxelGaussianMap) -> tuple[np.ndarray, np.ndarray]:
-    """Squared Mahalanobis distance of each point to the Gaussian of the voxel it falls in.
-
-    Returns
-    -------
-    voxel_index : (N,) int64, -1 where the point's voxel has no Gaussian
-    d2 : (N,) float64, ``inf`` where ``voxel_index`` is -1
-    """
-    vidx = gmap.lookup(voxel_coords(points_xyz, gmap.voxel_size_m))
-    return vidx, _mahalanobis_to_voxel(points_xyz, gmap, vidx)
 
 
 def _mahalanobis_to_voxel(points_xyz: np.ndarray, gmap: VoxelGaussianMap, vidx: np.ndarray) -> np.ndarray:
@@ -177,9 +164,3 @@ def statistical_outlier_mask(
     dist, _ = tree.query(points_xyz, k=n_neighbors + 1)
     mean_d = dist[:, 1:].mean(axis=1)
     return mean_d <= mean_d.mean() + std_ratio * mean_d.std()
-
-
-def isolated_point_mask(points_xyz: np.ndarray, voxel_size_m: float, min_points: int) -> np.ndarray:
-    """True for points whose voxel holds at least ``min_points`` points (cheap density test)."""
-    inverse, _, counts = voxel_groups(points_xyz, voxel_size_m)
-    return counts[inverse] >= min_points
