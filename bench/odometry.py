@@ -38,7 +38,8 @@ from kiss_icp.kiss_icp import KissICP
 
 from core.datasets import open_sequence
 from core.mapping import MapBuilder
-from core.metrics import ate, kitti_relative_errors, pdu
+from core.metrics.cloud import pdu
+from core.metrics.trajectory import ate, kitti_relative_errors
 from core.transforms import invert, transform_error, transform_points
 from tests.data import data_root
 

@@ -18,7 +18,7 @@ instead; the service then drops the oldest queued scans, and the summary counts 
 Errors (per vehicle, over the scans that got a pose)
 ----------------------------------------------------
 - ``ate_m``: RMS distance between estimated and true positions, no alignment (the shared frame).
-- ``rpe_cm``, ``rpe_deg``: RMS frame-to-frame error (``core.metrics.rpe``, delta 1).
+- ``rpe_cm``, ``rpe_deg``: RMS frame-to-frame error (``core.metrics.trajectory.rpe``, delta 1).
 - ``drift_pct``: KITTI's translation error over the whole drive as one segment,
   ``|t(inv(inv(E_0) E_n) inv(G_0) G_n)| / path length`` in percent; ``kitti_pct`` is the devkit's
   average over 100-800 m segments when the drive is longer than 100 m.
@@ -156,7 +156,7 @@ def evaluate(
     VehicleErrors or None
         None when fewer than 3 scans have both.
     """
-    from core.metrics import kitti_relative_errors, rpe
+    from core.metrics.trajectory import kitti_relative_errors, rpe
 
     seqs = sorted(set(truth) & set(estimate))
     if len(seqs) < 3:

@@ -12,8 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.svd import kabsch
-from core.transforms import apply_update, rotation_angle_deg, transform_points
+from core.transforms import apply_update, rotation_angle_deg, transform_points, umeyama
 
 __all__ = ["IcpOutcome", "estimate_normals", "icp_point_to_plane", "icp_point_to_point"]
 
@@ -90,7 +89,7 @@ def icp_point_to_point(
     """Point-to-point ICP: nearest neighbours, then the closed-form SVD step (Besl & McKay 1992)."""
 
     def step(q: np.ndarray, t: np.ndarray, _: np.ndarray) -> tuple[np.ndarray, float]:
-        return kabsch(q, t), float(np.sqrt(np.mean(np.sum((q - t) ** 2, axis=1))))
+        return umeyama(q, t)[0], float(np.sqrt(np.mean(np.sum((q - t) ** 2, axis=1))))
 
     return _icp_loop(
         source_xyz,

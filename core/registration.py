@@ -33,13 +33,13 @@ from core.icp import icp_point_to_plane, icp_point_to_point
 from core.kernels import best_voxel
 from core.ndt import apply_update_about, ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
 from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
-from core.svd import kabsch
 from core.transforms import (
     as_transform,
     invert,
     orthonormalize,
     rotation_angle_deg,
     transform_points,
+    umeyama,
 )
 from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap, voxel_downsample
 
@@ -376,7 +376,7 @@ def _svd_refine(
     it = 0
     for it in range(1, settings.svd_iterations + 1):
         q, r = residuals(T, corr)
-        D = kabsch(q, q - corr[2] * r[:, None])
+        D, _ = umeyama(q, q - corr[2] * r[:, None])
         T = D @ T
         # The step as a rotation about the matched points' centroid (not the frame's origin,
         # which may be far away) and the centroid's translation.
@@ -479,7 +479,7 @@ def _svd_refine_voxel(
     eps_t, eps_deg = settings.svd_translation_eps_m, np.degrees(settings.svd_rotation_eps_rad)
     it = 0
     for it in range(1, settings.svd_iterations + 1):
-        D = kabsch(q, proj)
+        D, _ = umeyama(q, proj)
         T = D @ T
         q, proj, r = pairs(T)
         if q.shape[0] < 10:

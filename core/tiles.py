@@ -82,7 +82,7 @@ import yaml
 from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io import PointCloud, atomic_open, read_cloud, write_cloud, write_pcd
 from core.kernels import first_per_voxel_pair, tile_voxel_keys
-from core.metrics import pdu
+from core.metrics.cloud import pdu
 from core.voxel import pack_keys, voxel_coords
 
 __all__ = [
@@ -711,7 +711,7 @@ class TileGrid:
     def tile_pdu(self, voxel_size_m: float | None = None) -> dict[str, float]:
         """Point Density Uniformity of every tile: ``1 - std / mean`` of its voxel point counts.
 
-        :func:`core.metrics.pdu` of each tile's points: counts over the tile's occupied voxels,
+        :func:`core.metrics.cloud.pdu` of each tile's points: counts over the tile's occupied voxels,
         population standard deviation. The points are shifted to the tile's corner first, so the
         voxels are aligned to it as the equalization voxels are. With the default voxel size
         and a cap of 1 every tile scores exactly 1; pass a coarser voxel to see how evenly the

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from core.errors import InvalidCloudError
+
 __all__ = [
     "apply_update",
     "as_transform",
@@ -24,6 +26,7 @@ __all__ = [
     "scale_motion",
     "transform_error",
     "transform_points",
+    "umeyama",
 ]
 
 
@@ -69,7 +72,17 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
 
 
 def invert(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (exact, no general matrix inverse)."""
+    """Inverse of a rigid (4,4) transform or of each of an (M,4,4) stack: ``[[R^T, -R^T t], [0, 1]]``.
+
+    Exact (no general matrix inverse).
+    """
+    if T.ndim == 3:
+        Ts = np.zeros_like(T)
+        Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+        Ts[:, :3, :3] = Rt
+        Ts[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+        Ts[:, 3, 3] = 1.0
+        return Ts
     Ti = np.eye(4)
     R = T[:3, :3]
     Ti[:3, :3] = R.T
@@ -131,3 +144,78 @@ def transform_error(T_estimate: np.ndarray, T_reference: np.ndarray) -> tuple[fl
     """Translation (m) and rotation (deg) of ``inv(T_reference) @ T_estimate``."""
     E = invert(T_reference) @ T_estimate
     return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+
+
+def umeyama(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    *,
+    weights: np.ndarray | None = None,
+    with_scale: bool = False,
+) -> tuple[np.ndarray, float]:
+    """Rigid (Kabsch) or similarity (Umeyama 1991) fit of corresponding rows: ``(T, c)``.
+
+    Minimises ``sum_i w_i |y_i - (c R x_i + t)|^2`` with ``x`` = source and ``y`` = target rows.
+    With ``mu`` the weighted means and ``x' = x - mu_x``, ``y' = y - mu_y``:
+
+    .. math::
+
+        \\Sigma = \\sum_i w_i y'_i x_i'^T = U D V^T, \\quad
+        S = \\mathrm{diag}(1, 1, \\det U \\det V)
+
+        R = U S V^T, \\quad
+        c = \\frac{\\mathrm{tr}(D S)}{\\sigma_x^2}, \\quad
+        \\sigma_x^2 = \\sum_i w_i |x'_i|^2, \\quad
+        t = \\mu_y - c R \\mu_x
+
+    (eqs. 40-42 of the paper, weights normalised to sum 1; ``c = 1`` when ``with_scale`` is False,
+    Kabsch's rigid fit, the closed-form step of the paper's Algorithm 3). Both centred sets are
+    scaled to unit weighted RMS radius before the SVD: the rotation is scale invariant and the
+    3x3 cross-covariance is better conditioned; ``c`` is scaled back.
+
+    Parameters
+    ----------
+    source_xyz, target_xyz : (N,3) float64 corresponding rows, N >= 3.
+    weights : (N,) non-negative, optional (all equal when ``None``).
+    with_scale : estimate ``c`` (Sim(3)); otherwise a rigid SE(3) fit.
+
+    Returns
+    -------
+    T_target_source : (4,4) float64 ``[[c R, t], [0, 1]]``.
+    scale : float ``c`` (1.0 without ``with_scale``).
+
+    Raises
+    ------
+    InvalidCloudError
+        Mismatched shapes, fewer than 3 rows, or a source with no spread (all rows equal).
+    """
+    if source_xyz.shape != target_xyz.shape or source_xyz.ndim != 2 or source_xyz.shape[0] < 3:
+        raise InvalidCloudError(
+            f"umeyama needs two (N,3) arrays with N >= 3, got {source_xyz.shape} and {target_xyz.shape}"
+        )
+    w = np.ones(source_xyz.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    mu_s = w @ source_xyz
+    mu_t = w @ target_xyz
+    s = source_xyz - mu_s
+    t = target_xyz - mu_t
+    radius_s = float(np.sqrt(w @ np.einsum("ij,ij->i", s, s)))
+    if radius_s <= 0.0:
+        raise InvalidCloudError("umeyama: all source points coincide; the alignment is undefined")
+    radius_t = float(np.sqrt(w @ np.einsum("ij,ij->i", t, t)))
+    # Intermediate normalization: unit weighted RMS radius for both sets.
+    s /= max(radius_s, 1e-12)
+    t /= max(radius_t, 1e-12)
+    cross = (t * w[:, None]).T @ s
+    U, D, Vt = np.linalg.svd(cross)
+    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ np.diag(signs) @ Vt
+    scale = 1.0
+    if with_scale:
+        # tr(D S) of the normalised sets is tr(D S) / (radius_s radius_t) of the centred ones.
+        scale = float(D @ signs) * max(radius_t, 1e-12) / max(radius_s, 1e-12)
+        R = scale * R
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = mu_t - R @ mu_s
+    return T, scale

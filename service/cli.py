@@ -243,7 +243,7 @@ def map_sequence(
         from core.datasets import open_sequence
         from core.io import atomic_write_bytes, write_kitti_poses, write_tum
         from core.mapping import MapBuilder
-        from core.metrics import pdu
+        from core.metrics.cloud import pdu
 
         seq = open_sequence(dataset_dir, start=start, end=end)
         builder = MapBuilder(tile_size_m=tile_size, map_voxel_m=map_voxel)
@@ -311,7 +311,7 @@ def eval_trajectory(
     """ATE, RPE and KITTI relative errors of ESTIMATE against REFERENCE."""
     try:
         from core.io import read_kitti_poses, read_tum
-        from core.metrics import evaluate_trajectory
+        from core.metrics.trajectory import evaluate_trajectory
 
         if fmt is TrajectoryFormat.kitti:
             ref, est = read_kitti_poses(reference), read_kitti_poses(estimate)
@@ -782,7 +782,7 @@ def _map_folder_stats(folder: Path, pdu_voxel_m: float) -> tuple[int, int, float
     import numpy as np
 
     from core.io import read_cloud
-    from core.metrics import pdu
+    from core.metrics.cloud import pdu
 
     files = sorted(folder.glob("*.pcd"))
     if not files:

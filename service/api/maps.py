@@ -22,7 +22,7 @@ from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, R
 from fastapi.responses import StreamingResponse
 
 from core.errors import NotFoundError
-from core.metrics import pdu
+from core.metrics.cloud import pdu
 from core.tiles import AUTOWARE_METADATA_NAME, Tile, TileGrid, tile_id
 from service.api.deps import (
     WRITER_RESPONSES,

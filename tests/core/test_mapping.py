@@ -9,7 +9,8 @@ from clients.sim.drive import Motion, Route, simulate
 from clients.sim.town import Town
 from core.datasets import open_sequence
 from core.mapping import MapBuilder
-from core.metrics import kitti_relative_errors, pdu, rpe
+from core.metrics.cloud import pdu
+from core.metrics.trajectory import kitti_relative_errors, rpe
 from core.transforms import invert, transform_points
 from tests.data import require_data
 

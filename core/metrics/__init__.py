@@ -1,0 +1,14 @@
+"""Quality metrics: point-cloud agreement (:mod:`core.metrics.cloud`, the RANDT paper's) and
+trajectory error (:mod:`core.metrics.trajectory`)."""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["json_float"]
+
+
+def json_float(value: float) -> float | None:
+    """A float for JSON: ``None`` for NaN/inf (JSON has no such numbers)."""
+    value = float(value)
+    return value if math.isfinite(value) else None
