@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -31,7 +33,14 @@ from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationF
 from core.grid import PointGrid
 from core.icp import icp_point_to_plane, icp_point_to_point
 from core.kernels import best_voxel
-from core.ndt import apply_update_about, ndt_constants, ndt_derivatives, ndt_newton, ndt_point_scores
+from core.ndt import (
+    NeighborCache,
+    apply_update_about,
+    ndt_constants,
+    ndt_derivatives,
+    ndt_newton,
+    ndt_point_scores,
+)
 from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
 from core.transforms import (
     as_transform,
@@ -508,6 +517,228 @@ def _plane_information(
 _AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
+class _StageClock:
+    """Wall time per named stage: ``with clock("match"): ...`` adds to ``clock.times["match"]``."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        yield
+        self.times[stage] = time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The sanitized clouds and the NDT levels, coarse to fine."""
+
+    source_xyz: np.ndarray
+    target_xyz: np.ndarray
+    levels: tuple[float, ...]
+    n_nonfinite_dropped: int
+
+
+@dataclass(frozen=True)
+class _Match:
+    """Where the solver (NDT or ICP, every level) left the pose."""
+
+    T: np.ndarray
+    iterations: int
+    converged: bool
+    final_cache: NeighborCache | None  # the finest NDT level's neighbour cache, reused by the judge
+
+
+@dataclass(frozen=True)
+class _Judgement:
+    """Autoware's fitness scores, the inlier ratio and the uncertainty at the final pose."""
+
+    transform_probability: float
+    nvtl: float
+    inlier_ratio: float
+    covariance: np.ndarray
+    plane_information: np.ndarray
+
+
+def _resolve_settings(settings: RegistrationSettings | None, method: Method | None) -> RegistrationSettings:
+    """The settings to use: ``method``'s defaults when it overrides (or no settings are given)."""
+    if settings is None:
+        return RegistrationSettings.for_method(method or "randt")
+    if method is not None and method != settings.method:
+        return RegistrationSettings.for_method(method)
+    return settings
+
+
+def _sanitize_inputs(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    reference: PreparedReference | None,
+    settings: RegistrationSettings,
+) -> _Inputs:
+    """Finite points only (counted), clouds too small rejected; the levels given, the reference's,
+    or derived from the target's scale (:func:`auto_voxel_sizes`)."""
+    src, n_bad_s = sanitize_points(source_xyz, name="source", min_points=settings.min_points)
+    if reference is None:
+        tgt, n_bad_t = sanitize_points(target_xyz, name="target", min_points=settings.min_points)
+        levels = settings.voxel_sizes_m or auto_voxel_sizes(tgt)
+    else:
+        tgt, n_bad_t = reference.points_xyz, 0
+        levels = reference.voxel_sizes_m
+    return _Inputs(src, tgt, tuple(levels), n_bad_s + n_bad_t)
+
+
+def _reference(
+    inputs: _Inputs, reference: PreparedReference | None, settings: RegistrationSettings
+) -> PreparedReference:
+    """The reference given, or the target prepared (:func:`prepare_reference`)."""
+    if reference is not None:
+        return reference
+    return prepare_reference(inputs.target_xyz, settings, inputs.levels)
+
+
+def _moving_points(source_xyz: np.ndarray, settings: RegistrationSettings, finest: float) -> np.ndarray:
+    """:func:`_select_moving_points`, refusing a cloud too sparse to match."""
+    moving = _select_moving_points(source_xyz, settings, finest)
+    if moving.shape[0] < settings.min_points:
+        raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
+    return moving
+
+
+def _match(
+    moving: np.ndarray,
+    ref: PreparedReference,
+    levels: tuple[float, ...],
+    T: np.ndarray,
+    settings: RegistrationSettings,
+) -> _Match:
+    """The solver from ``T``: NDT for ``randt`` and ``ndt``, ICP for the ICP baselines."""
+    if settings.method in ("randt", "ndt"):
+        return _match_ndt(moving, ref, T, settings)
+    return _match_icp(moving, ref, levels, T, settings)
+
+
+def _match_ndt(
+    moving: np.ndarray, ref: PreparedReference, T: np.ndarray, settings: RegistrationSettings
+) -> _Match:
+    """Newton on the NDT cost (:func:`core.ndt.ndt_newton`), level by level from the previous pose."""
+    iterations = 0
+    converged = True
+    final_cache = None
+    for level, gmap in enumerate(ref.maps):
+        final = level == len(ref.maps) - 1
+        consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
+        # Coarse levels only need to hand a good start to the next: stop at 1 % of a voxel.
+        level_moving = moving if final else _coarse_points(moving, gmap.voxel_size_m, settings)
+        out = ndt_newton(
+            level_moving,
+            gmap,
+            consts,
+            T,
+            n_neighbors=settings.n_neighbors,
+            max_iterations=settings.max_iterations,
+            translation_eps_m=settings.translation_eps_m if final else 0.01 * gmap.voxel_size_m,
+            rotation_eps_rad=settings.rotation_eps_rad if final else 1e-3,
+        )
+        T, iterations = out.T, iterations + out.iterations
+        converged = converged and out.converged
+        final_cache = out.cache if final else None
+    return _Match(T, iterations, converged, final_cache)
+
+
+def _match_icp(
+    moving: np.ndarray,
+    ref: PreparedReference,
+    levels: tuple[float, ...],
+    T: np.ndarray,
+    settings: RegistrationSettings,
+) -> _Match:
+    """The ICP baselines: one run per level, the level's voxel as the correspondence distance."""
+    tree = ref.kdtree
+    icp = icp_point_to_point if settings.method == "icp-point" else icp_point_to_plane
+    iterations = 0
+    for v in levels:
+        out_icp = icp(
+            moving,
+            ref.points_xyz,
+            T,
+            max_correspondence_m=v,
+            max_iterations=settings.max_iterations,
+            translation_eps_m=settings.translation_eps_m,
+            rotation_eps_rad=settings.rotation_eps_rad,
+            tree=tree,
+        )
+        T, iterations = out_icp.T, iterations + out_icp.iterations
+    return _Match(T, iterations, out_icp.converged, None)
+
+
+def _refine(
+    moving: np.ndarray, ref: PreparedReference, T: np.ndarray, settings: RegistrationSettings
+) -> tuple[np.ndarray, int, bool]:
+    """Algorithm 3 (the SVD step), kept only if it agrees: returns the pose, the SVD iterations
+    and whether the step was accepted (the point-to-plane residual improves and the step stays
+    within one finest voxel)."""
+    if settings.svd_correspondences == "voxel":
+        T_svd, n_svd, rmse_before, rmse_after = _svd_refine_voxel(moving, ref, T, settings)
+    else:
+        T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings)
+    step_t = float(np.linalg.norm((invert(T) @ T_svd)[:3, 3]))
+    if rmse_after < rmse_before and step_t < ref.maps[-1].voxel_size_m:
+        return T_svd, n_svd, True
+    return T, n_svd, False
+
+
+def _judge(
+    moving: np.ndarray,
+    T: np.ndarray,
+    ref: PreparedReference,
+    settings: RegistrationSettings,
+    final_cache: NeighborCache | None,
+) -> _Judgement:
+    """Fitness as Autoware reports it (TP, NVTL), the inlier ratio, the covariance from the NDT
+    Hessian and the point-to-plane information the degeneracy test reads; never the initial guess
+    dressed up as a result (no overlap raises)."""
+    finest_map = ref.maps[-1]
+    consts = ndt_constants(finest_map.voxel_size_m, settings.outlier_ratio)
+    n_neighbors = settings.n_neighbors
+    score_sum, score_max, best_m = ndt_point_scores(moving, T, finest_map, consts, n_neighbors, final_cache)
+    has = score_max > 0
+    if not np.any(has):
+        raise RegistrationFailedError(
+            "no moving point lies near a reference voxel at the final pose: the clouds do not "
+            "overlap from this initial guess"
+        )
+    ev = ndt_derivatives(moving, T, finest_map, consts, n_neighbors, cache=final_cache)
+    H = ev.hessian
+    if np.linalg.eigvalsh(H).min() <= 0:
+        H = ev.gauss_newton_hessian
+    covariance = np.linalg.pinv(H)
+    return _Judgement(
+        transform_probability=float(score_sum.sum() / moving.shape[0]),
+        nvtl=float(score_max[has].mean()),
+        inlier_ratio=float(np.mean(best_m < CHI2_3DOF_99)),
+        covariance=0.5 * (covariance + covariance.T),
+        plane_information=_plane_information(moving, T, finest_map, n_neighbors),
+    )
+
+
+def _raise_if_degenerate(result: RegistrationResult, information: np.ndarray, threshold: float) -> None:
+    """Raise :class:`DegenerateProblemError` (holding ``result``) when a direction of the
+    point-to-plane information is weaker than ``threshold`` times the strongest."""
+    evals, evecs = np.linalg.eigh(information)
+    ratio = evals / max(evals[-1], 1e-300)
+    weak = ratio < threshold
+    if np.any(weak):
+        names = tuple(_AXES[int(np.argmax(np.abs(evecs[:, i])))] for i in np.flatnonzero(weak))
+        raise DegenerateProblemError(
+            f"the geometry does not constrain {len(names)} degree(s) of freedom "
+            f"(mostly {', '.join(names)}; eigenvalue ratios {np.array2string(ratio[weak], precision=2)}): "
+            "the scene is likely a single plane or a featureless corridor",
+            result=result,
+            weak_directions=names,
+        )
+
+
 def register(
     source_xyz: np.ndarray,
     target_xyz: np.ndarray,
@@ -518,6 +749,8 @@ def register(
     reference: PreparedReference | None = None,
 ) -> RegistrationResult:
     """Align ``source_xyz`` to ``target_xyz``; returns a :class:`RegistrationResult`.
+
+    The stages are the module docstring's: sanitize, reference, moving, match, refine (SVD), judge.
 
     Parameters
     ----------
@@ -535,143 +768,44 @@ def register(
         the pose reached, ``.weak_directions`` names the directions).
     RegistrationFailedError : the solver produced a non-finite pose or found no overlap at all.
     """
-    if settings is None:
-        settings = RegistrationSettings.for_method(method or "randt")
-    elif method is not None and method != settings.method:
-        settings = RegistrationSettings.for_method(method)
-    T0 = as_transform(init_T_target_source, name="init_T_target_source")
-    times: dict[str, float] = {}
-    t0 = time.perf_counter()
-    src, n_bad_s = sanitize_points(source_xyz, name="source", min_points=settings.min_points)
-    if reference is None:
-        tgt, n_bad_t = sanitize_points(target_xyz, name="target", min_points=settings.min_points)
-        levels = settings.voxel_sizes_m or auto_voxel_sizes(tgt)
-    else:
-        tgt, n_bad_t = reference.points_xyz, 0
-        levels = reference.voxel_sizes_m
-    finest = levels[-1]
-    times["sanitize"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    ref = reference if reference is not None else prepare_reference(tgt, settings, levels)
-    times["reference"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    moving = _select_moving_points(src, settings, finest)
-    if moving.shape[0] < settings.min_points:
-        raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
-    times["moving"] = time.perf_counter() - t0
-
-    T = T0
-    iterations = 0
-    converged = True
-    final_cache = None  # the finest NDT level's neighbour cache, reused by the judge
-    t0 = time.perf_counter()
-    if settings.method in ("randt", "ndt"):
-        for level, gmap in enumerate(ref.maps):
-            final = level == len(ref.maps) - 1
-            consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
-            # Coarse levels only need to hand a good start to the next: stop at 1 % of a voxel.
-            level_moving = moving if final else _coarse_points(moving, gmap.voxel_size_m, settings)
-            out = ndt_newton(
-                level_moving,
-                gmap,
-                consts,
-                T,
-                n_neighbors=settings.n_neighbors,
-                max_iterations=settings.max_iterations,
-                translation_eps_m=settings.translation_eps_m if final else 0.01 * gmap.voxel_size_m,
-                rotation_eps_rad=settings.rotation_eps_rad if final else 1e-3,
-            )
-            T, iterations = out.T, iterations + out.iterations
-            converged = converged and out.converged
-            final_cache = out.cache if final else None
-    else:
-        tree = ref.kdtree
-        icp = icp_point_to_point if settings.method == "icp-point" else icp_point_to_plane
-        for v in levels:
-            out_icp = icp(
-                moving,
-                ref.points_xyz,
-                T,
-                max_correspondence_m=v,
-                max_iterations=settings.max_iterations,
-                translation_eps_m=settings.translation_eps_m,
-                rotation_eps_rad=settings.rotation_eps_rad,
-                tree=tree,
-            )
-            T, iterations = out_icp.T, iterations + out_icp.iterations
-        converged = out_icp.converged
-    times["match"] = time.perf_counter() - t0
-
-    finest_map = ref.maps[-1]
-    consts = ndt_constants(finest_map.voxel_size_m, settings.outlier_ratio)
-    svd_accepted = False
+    settings = _resolve_settings(settings, method)
+    T = as_transform(init_T_target_source, name="init_T_target_source")
+    clock = _StageClock()
+    with clock("sanitize"):
+        inputs = _sanitize_inputs(source_xyz, target_xyz, reference, settings)
+    with clock("reference"):
+        ref = _reference(inputs, reference, settings)
+    with clock("moving"):
+        moving = _moving_points(inputs.source_xyz, settings, inputs.levels[-1])
+    with clock("match"):
+        match = _match(moving, ref, inputs.levels, T, settings)
+    T, iterations, svd_accepted = match.T, match.iterations, False
     if settings.svd_refinement:
-        t0 = time.perf_counter()
-        if settings.svd_correspondences == "voxel":
-            T_svd, n_svd, rmse_before, rmse_after = _svd_refine_voxel(moving, ref, T, settings)
-        else:
-            T_svd, n_svd, rmse_before, rmse_after = _svd_refine(moving, ref, T, settings)
-        iterations += n_svd
-        step_t = float(np.linalg.norm((invert(T) @ T_svd)[:3, 3]))
-        # Accept when the surface residual improves and the step stays within one finest voxel.
-        if rmse_after < rmse_before and step_t < finest_map.voxel_size_m:
-            T, svd_accepted = T_svd, True
-        times["svd"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    if not np.all(np.isfinite(T)):
-        raise RegistrationFailedError("registration produced a non-finite transform")
-    T = orthonormalize(T)
-    score_sum, score_max, best_m = ndt_point_scores(
-        moving, T, finest_map, consts, settings.n_neighbors, final_cache
-    )
-    has = score_max > 0
-    if not np.any(has):
-        raise RegistrationFailedError(
-            "no moving point lies near a reference voxel at the final pose: the clouds do not "
-            "overlap from this initial guess"
-        )
-    tp = float(score_sum.sum() / moving.shape[0])
-    nvtl = float(score_max[has].mean())
-    inlier_ratio = float(np.mean(best_m < CHI2_3DOF_99))
-    ev = ndt_derivatives(moving, T, finest_map, consts, settings.n_neighbors, cache=final_cache)
-    H = ev.hessian
-    if np.linalg.eigvalsh(H).min() <= 0:
-        H = ev.gauss_newton_hessian
-    covariance = np.linalg.pinv(H)
-    info = _plane_information(moving, T, finest_map, settings.n_neighbors)
-    times["judge"] = time.perf_counter() - t0
-
+        with clock("svd"):
+            T, n_svd, svd_accepted = _refine(moving, ref, T, settings)
+            iterations += n_svd
+    with clock("judge"):
+        if not np.all(np.isfinite(T)):
+            raise RegistrationFailedError("registration produced a non-finite transform")
+        T = orthonormalize(T)
+        judged = _judge(moving, T, ref, settings, match.final_cache)
     result = RegistrationResult(
         T_target_source=T,
-        converged=bool(converged),
+        converged=bool(match.converged),
         iterations=int(iterations),
-        transform_probability=tp,
-        nearest_voxel_transformation_likelihood=nvtl,
-        inlier_ratio=inlier_ratio,
-        covariance=0.5 * (covariance + covariance.T),
+        transform_probability=judged.transform_probability,
+        nearest_voxel_transformation_likelihood=judged.nvtl,
+        inlier_ratio=judged.inlier_ratio,
+        covariance=judged.covariance,
         method=settings.method,
-        voxel_sizes_m=tuple(float(v) for v in levels),
-        n_source_points=int(src.shape[0]),
-        n_target_points=int(tgt.shape[0]),
+        voxel_sizes_m=tuple(float(v) for v in inputs.levels),
+        n_source_points=int(inputs.source_xyz.shape[0]),
+        n_target_points=int(inputs.target_xyz.shape[0]),
         n_source_used=int(moving.shape[0]),
-        n_nonfinite_dropped=n_bad_s + n_bad_t,
+        n_nonfinite_dropped=inputs.n_nonfinite_dropped,
         svd_accepted=svd_accepted,
-        stage_times_s=times,
-        message="" if converged else "solver stopped at the iteration limit before converging",
+        stage_times_s=clock.times,
+        message="" if match.converged else "solver stopped at the iteration limit before converging",
     )
-    evals, evecs = np.linalg.eigh(info)
-    ratio = evals / max(evals[-1], 1e-300)
-    weak = ratio < settings.degeneracy_threshold
-    if np.any(weak):
-        names = tuple(_AXES[int(np.argmax(np.abs(evecs[:, i])))] for i in np.flatnonzero(weak))
-        raise DegenerateProblemError(
-            f"the geometry does not constrain {len(names)} degree(s) of freedom "
-            f"(mostly {', '.join(names)}; eigenvalue ratios {np.array2string(ratio[weak], precision=2)}): "
-            "the scene is likely a single plane or a featureless corridor",
-            result=result,
-            weak_directions=names,
-        )
+    _raise_if_degenerate(result, judged.plane_information, settings.degeneracy_threshold)
     return result
