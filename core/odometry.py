@@ -26,7 +26,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -57,7 +57,7 @@ from core.transforms import (
 )
 from core.voxel import voxel_downsample
 
-__all__ = ["IncrementalMatcher", "MatcherSettings", "PosePrior", "ScanResult"]
+__all__ = ["IncrementalMatcher", "MatcherSettings", "MatcherState", "PosePrior", "ScanResult"]
 
 log = logging.getLogger(__name__)
 
@@ -173,6 +173,99 @@ class ScanResult:
     stage_times_s: dict[str, float] = field(default_factory=dict)
 
 
+def _same(a: object, b: object) -> bool:
+    """Equality through arrays, tuples, lists and deques (``np.array_equal`` on arrays)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)
+    if isinstance(a, (tuple, list, deque)) and isinstance(b, (tuple, list, deque)):
+        return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+@dataclass(eq=False)
+class MatcherState:
+    """Everything one sweep may change: the whole of what :meth:`IncrementalMatcher.register_scan`
+    snapshots before a sweep and puts back if the sweep raises (all or nothing).
+
+    Attributes
+    ----------
+    poses : ``T_world_sensor`` (4,4) of every sweep so far.
+    delta : (4,4) the sensor's motion over one sweep period (the velocity), from the last two poses.
+    keyframes : (pose, model points in the world frame) fused into the model, the newest last.
+    model : the fused, density-equalized keyframe model prepared for matching (None before the first).
+    last_keyframe_pose : where the last keyframe (pending ones included) was taken.
+    recent_inliers : inlier ratios of the last accepted matches (the weak-match test).
+    first_raw : the first sweep and its point times, kept until the second gives a velocity.
+    last_stamp_s : the previous sweep's stamp (None without stamps).
+    pending : keyframes ``register_scan(defer_model=True)`` left for :meth:`~IncrementalMatcher.update_model`.
+    fallback_run : consecutive fallbacks (from :data:`LOST_AFTER_FALLBACKS` on, no retries).
+
+    Arrays in it are replaced, never changed in place, so a snapshot copies only the containers.
+    Two states are equal when every field is (arrays element by element, the model by identity).
+    """
+
+    poses: list[np.ndarray]
+    delta: np.ndarray
+    keyframes: deque[tuple[np.ndarray, np.ndarray]]
+    model: PreparedReference | None = None
+    last_keyframe_pose: np.ndarray | None = None
+    recent_inliers: deque[float] = field(default_factory=lambda: deque(maxlen=20))
+    first_raw: tuple[np.ndarray, np.ndarray] | None = None
+    last_stamp_s: float | None = None
+    pending: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    fallback_run: int = 0
+
+    @classmethod
+    def empty(cls, max_keyframes: int) -> MatcherState:
+        """The state of a session before its first sweep."""
+        return cls(poses=[], delta=np.eye(4), keyframes=deque(maxlen=max_keyframes))
+
+    def snapshot(self) -> MatcherState:
+        """A copy that later changes to this state do not reach."""
+        return replace(
+            self,
+            poses=list(self.poses),
+            delta=self.delta.copy(),
+            keyframes=deque(self.keyframes, maxlen=self.keyframes.maxlen),
+            recent_inliers=deque(self.recent_inliers, maxlen=self.recent_inliers.maxlen),
+            pending=list(self.pending),
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, MatcherState):
+            return NotImplemented
+        return self.model is other.model and all(
+            _same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self) if f.name != "model"
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # mutable
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """A sweep's finite points within range (sensor frame), their point times and input rows."""
+
+    xyz: np.ndarray
+    time_offset_s: np.ndarray | None
+    source_index: np.ndarray
+    n_nonfinite_dropped: int
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """What matching concluded: the pose, how it was reached, and the sweep it was matched with."""
+
+    T: np.ndarray
+    status: Literal["first", "ok", "fallback"]
+    message: str
+    converged: bool
+    fitness: float
+    covariance: np.ndarray
+    inlier_ratio: float
+    xyz: np.ndarray
+    feats: Features
+
+
 def deskew(
     points_xyz: np.ndarray,
     time_offset_s: np.ndarray,
@@ -211,19 +304,17 @@ class IncrementalMatcher:
         self.period_s = period_s
         self.feature_voxel_m = 0.0
         self.model_voxel_m = 0.0
-        self.poses: list[np.ndarray] = []
-        self._delta = np.eye(4)
-        self._keyframes: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.settings.max_keyframes)
-        self._model: PreparedReference | None = None
-        self._last_keyframe_pose: np.ndarray | None = None
-        self._recent_inliers: deque[float] = deque(maxlen=20)
-        self._last_stamp_s: float | None = None
-        self._fallback_run = 0  # consecutive fallbacks: from LOST_AFTER_FALLBACKS on, no retries
-        # Keyframes (pose, sensor points) that register_scan(defer_model=True) left for
-        # update_model(): not in the model yet.
-        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
-        # The first sweep cannot be deskewed (no velocity yet): kept raw until the second gives one.
-        self._first_raw: tuple[np.ndarray, np.ndarray] | None = None
+        self._state = MatcherState.empty(self.settings.max_keyframes)
+
+    @property
+    def state(self) -> MatcherState:
+        """The session's state (read it; :meth:`register_scan` and :meth:`load_state_dict` change it)."""
+        return self._state
+
+    @property
+    def poses(self) -> list[np.ndarray]:
+        """``T_world_sensor`` (4,4) of every sweep so far."""
+        return self._state.poses
 
     def _resolve_scales(self, first_xyz: np.ndarray) -> None:
         """Fix the voxel sizes from the first sweep (or the settings) for the whole session."""
@@ -260,7 +351,7 @@ class IncrementalMatcher:
     def get_model(self) -> PreparedReference | None:
         """The fused, density-equalized keyframe model (prepared for matching), if any."""
         self.update_model()
-        return self._model
+        return self._state.model
 
     def set_keyframe(self, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
         """Add a keyframe and rebuild the fused model around it (bounded in count and radius).
@@ -271,17 +362,17 @@ class IncrementalMatcher:
 
     def _add_keyframes(self, keyframes: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """Append keyframes (pose, sensor points) and rebuild the model once, around the last."""
-        before = list(self._keyframes)
+        before = list(self._state.keyframes)
         for T, points in keyframes:
             world = transform_points(T, points)
-            self._keyframes.append((T.copy(), voxel_downsample(world, self.model_voxel_m)))
+            self._state.keyframes.append((T.copy(), voxel_downsample(world, self.model_voxel_m)))
         try:
             self._rebuild_model(keyframes[-1][0])
         except BaseException:
-            self._keyframes.clear()
-            self._keyframes.extend(before)
+            self._state.keyframes.clear()
+            self._state.keyframes.extend(before)
             raise
-        self._last_keyframe_pose = keyframes[-1][0].copy()
+        self._state.last_keyframe_pose = keyframes[-1][0].copy()
 
     def update_model(self) -> float:
         """Fold the keyframes ``register_scan(defer_model=True)`` left pending into the model
@@ -294,7 +385,7 @@ class IncrementalMatcher:
         for two keyframes. Keyframes the model cannot be built from (too sparse) are skipped with
         a warning: the previous model stays, and the next sweep is a keyframe candidate again.
         """
-        pending, self._pending = self._pending, []
+        pending, self._state.pending = self._state.pending, []
         if not pending:
             return 0.0
         t0 = time.perf_counter()
@@ -302,16 +393,18 @@ class IncrementalMatcher:
             self._add_keyframes(pending)
         except RandtError as exc:
             log.warning("keyframes not modelled, the previous model stays: %s", exc)
-            self._last_keyframe_pose = self._keyframes[-1][0].copy() if self._keyframes else None
+            self._state.last_keyframe_pose = (
+                self._state.keyframes[-1][0].copy() if self._state.keyframes else None
+            )
         return time.perf_counter() - t0
 
     def _rebuild_model(self, T_world_sensor: np.ndarray) -> None:
         """Fuse the keyframes near ``T_world_sensor`` into the density-equalized matching model."""
         cx, cy = T_world_sensor[0, 3], T_world_sensor[1, 3]
-        fused = np.vstack([pts for _, pts in self._keyframes])
+        fused = np.vstack([pts for _, pts in self._state.keyframes])
         fused = within_xy_radius(fused, float(cx), float(cy), float(self.settings.model_radius_m) ** 2)
         fused = voxel_downsample(fused, self.model_voxel_m)
-        self._model = prepare_reference(
+        self._state.model = prepare_reference(
             fused,
             self.registration,
             self.registration.voxel_sizes_m or (),
@@ -321,7 +414,7 @@ class IncrementalMatcher:
     @property
     def model_size(self) -> int:
         """Points in the fused model (bounded by ``max_keyframes`` and ``model_radius_m``)."""
-        return 0 if self._model is None else int(self._model.points_xyz.shape[0])
+        return 0 if self._state.model is None else int(self._state.model.points_xyz.shape[0])
 
     # -- one sweep --------------------------------------------------------------------------------
     def register_scan(
@@ -348,42 +441,15 @@ class IncrementalMatcher:
         All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model), the
         matcher is left exactly as it was, so the session's poses and stamps stay in step.
         """
-        if len(self._pending) > MAX_PENDING_KEYFRAMES:
+        if len(self._state.pending) > MAX_PENDING_KEYFRAMES:
             self.update_model()
-        saved = (
-            len(self.poses),
-            self._delta.copy(),
-            list(self._keyframes),
-            self._model,
-            self._last_keyframe_pose,
-            list(self._recent_inliers),
-            self._first_raw,
-            self._last_stamp_s,
-            list(self._pending),
-            self._fallback_run,
-        )
+        saved = self._state.snapshot()
         try:
             return self._register_scan(
                 points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
             )
         except BaseException:
-            (
-                n,
-                self._delta,
-                keyframes,
-                self._model,
-                self._last_keyframe_pose,
-                recent,
-                self._first_raw,
-                self._last_stamp_s,
-                self._pending,
-                self._fallback_run,
-            ) = saved
-            del self.poses[n:]
-            self._keyframes.clear()
-            self._keyframes.extend(keyframes)
-            self._recent_inliers.clear()
-            self._recent_inliers.extend(recent)
+            self._state = saved
             raise
 
     def _register_scan(
@@ -395,8 +461,58 @@ class IncrementalMatcher:
         stamp_s: float | None = None,
         defer_model: bool = False,
     ) -> ScanResult:
+        """One sweep, the stages of the module docstring; :meth:`register_scan` restores the state
+        if it raises."""
         t_start = time.perf_counter()
-        times: dict[str, float] = {}
+        times: dict[str, float] = {"deskew": 0.0, "features": 0.0}
+        sweep = self._sanitize(points_xyz, time_offset_s)
+        index = len(self._state.poses)
+        if index == 0:
+            self._resolve_scales(sweep.xyz)
+        prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
+        # Periods since the previous sweep: 1 without stamps, more after sweeps dropped upstream.
+        periods = self._periods_since_last(stamp_s)
+        T_pred = self._predict(index, prior_T, periods)
+        prepare = self._preparer(sweep.xyz, sweep.time_offset_s if index > 0 else None, times)
+        xyz, feats = prepare(self._state.delta)
+        if index == 0:
+            if sweep.time_offset_s is not None:
+                self._state.first_raw = (xyz, sweep.time_offset_s)
+            outcome = _Outcome(T_pred, "first", "", True, 0.0, np.full((6, 6), np.nan), 1.0, xyz, feats)
+        else:
+            t0 = time.perf_counter()
+            has_times = sweep.time_offset_s is not None
+            outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
+            times["match"] = time.perf_counter() - t0
+        T = orthonormalize(outcome.T)
+        self._advance(T, index, periods, stamp_s)
+        if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
+            self._deskew_first_keyframe(T)
+        keep_map = ~outcome.feats.noise_mask
+        mapped_xyz = outcome.xyz[keep_map]
+        is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
+        return ScanResult(
+            index=index,
+            T_world_sensor=T,
+            status=outcome.status,
+            converged=bool(outcome.converged),
+            fitness=float(outcome.fitness),
+            inlier_ratio=float(outcome.inlier_ratio),
+            is_keyframe=is_kf,
+            time_s=time.perf_counter() - t_start,
+            covariance=outcome.covariance,
+            deskewed_xyz=mapped_xyz,
+            map_index=sweep.source_index[keep_map],
+            n_points=int(outcome.xyz.shape[0]),
+            n_nonfinite_dropped=sweep.n_nonfinite_dropped,
+            message=outcome.message,
+            stage_times_s=times,
+        )
+
+    # -- the stages of one sweep ------------------------------------------------------------------
+    def _sanitize(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None) -> _Sweep:
+        """Finite points (counted) within ``min_range_m``..``max_range_m``, with their point times
+        and their rows in the input; a sweep with too few is an :class:`InvalidCloudError`."""
         s = self.settings
         xyz, n_bad = sanitize_points(points_xyz, name="scan", min_points=self.registration.min_points)
         if time_offset_s is not None:
@@ -422,22 +538,22 @@ class IncrementalMatcher:
             time_offset_s = time_offset_s[keep]
         if xyz.shape[0] < self.registration.min_points:
             raise InvalidCloudError(f"scan: {xyz.shape[0]} points within {s.min_range_m}-{s.max_range_m} m")
+        return _Sweep(xyz, time_offset_s, source_index, n_bad)
 
-        index = len(self.poses)
+    def _predict(self, index: int, prior_T: np.ndarray | None, periods: float) -> np.ndarray:
+        """Constant velocity: ``T_last @ delta`` over ``periods``; the first sweep at its prior
+        (or the identity)."""
         if index == 0:
-            self._resolve_scales(xyz)
-        prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
-        first_pose = np.eye(4) if prior_T is None else prior_T
-        # Periods since the previous sweep: 1 without stamps, more after sweeps dropped upstream.
-        periods = self._periods_since_last(stamp_s)
-        T_pred = (
-            first_pose if index == 0 else orthonormalize(self.poses[-1] @ scale_motion(self._delta, periods))
-        )
-        times["deskew"] = times["features"] = 0.0
-        xyz_raw, tau = xyz, time_offset_s if index > 0 else None
+            return np.eye(4) if prior_T is None else prior_T
+        return orthonormalize(self._state.poses[-1] @ scale_motion(self._state.delta, periods))
+
+    def _preparer(
+        self, xyz_raw: np.ndarray, tau: np.ndarray | None, times: dict[str, float]
+    ) -> Callable[[np.ndarray], tuple[np.ndarray, Features]]:
+        """``prepare(delta)``: the sweep deskewed with ``delta`` (when it has point times ``tau``)
+        and its features, the time spent added to ``times``."""
 
         def prepare(delta: np.ndarray) -> tuple[np.ndarray, Features]:
-            """The sweep deskewed with ``delta`` (when it has point times) and its features."""
             t0 = time.perf_counter()
             cloud = xyz_raw
             if tau is not None:
@@ -448,126 +564,144 @@ class IncrementalMatcher:
             times["features"] += time.perf_counter() - t1
             return cloud, feats
 
-        xyz, feats = prepare(self._delta)
-        if index == 0 and time_offset_s is not None:
-            self._first_raw = (xyz, time_offset_s)
+        return prepare
 
-        status: Literal["first", "ok", "fallback"]
-        message = ""
-        converged, fitness, inliers, cov = False, 0.0, 0.0, np.full((6, 6), np.nan)
-        if index == 0:
-            T, status, converged, inliers = T_pred, "first", True, 1.0
+    def _match(
+        self,
+        index: int,
+        xyz: np.ndarray,
+        feats: Features,
+        has_times: bool,
+        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
+        T_pred: np.ndarray,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+        periods: float,
+    ) -> _Outcome:
+        """Match against the model from the prediction (then its hypotheses), deskew again with the
+        velocity found, and accept the best gated match or fall back to the prediction (or prior)."""
+        best, outcome = self._try_hypotheses(xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
+        if best is not None and has_times and self.settings.redeskew:
+            best = self._redeskew(best, prepare, T_pred, prior_T, prior, periods)
+        if best is not None:
+            attempt, res, best_xyz, best_feats, _ = best
+            self._state.recent_inliers.append(res.inlier_ratio)
+            outcome = _Outcome(
+                res.T_target_source, "ok", "", res.converged, res.fitness, res.covariance,
+                res.inlier_ratio, best_xyz, best_feats,
+            )  # fmt: skip
+            if attempt:
+                log.info("scan %d: matched from yaw hypothesis %d", index, attempt)
         else:
-            t0 = time.perf_counter()
-            T, status, message = T_pred, "fallback", ""
-            # The prediction first; if its match fails a gate, yaw hypotheses around it (a corner's
-            # onset changes the yaw rate faster than a constant-velocity prior can follow).
-            best = None
-            # A session that has lost its track (LOST_AFTER_FALLBACKS in a row) tries the prediction
-            # only: the retries (up to 8 registrations) cannot find it and would starve others.
-            lost = self._fallback_run >= LOST_AFTER_FALLBACKS
-            for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
-                if lost and attempt > 0:
-                    break
-                cloud, cloud_feats = xyz, feats
-                if tau is not None and attempt > 0 and s.redeskew:
-                    # A yaw hypothesis implies another velocity: deskew the sweep with it.
-                    cloud, cloud_feats = prepare(self._per_period(invert(self.poses[-1]) @ init, periods))
-                try:
-                    res = register(
-                        cloud_feats.matching_xyz,
-                        None,
-                        init,
-                        settings=self.registration,
-                        reference=self._model,
-                    )
-                except RandtError as exc:
-                    message = message or f"registration failed: {exc}"
-                    continue
-                why = self._gate(res, T_pred, prior_T, prior, periods)
-                if why is None and (best is None or res.inlier_ratio > best[1].inlier_ratio):
-                    best = (attempt, res, cloud, cloud_feats, init)
-                if attempt == 0 and best is None:
-                    converged, fitness, cov, inliers = (
-                        res.converged,
-                        res.fitness,
-                        res.covariance,
-                        res.inlier_ratio,
-                    )
-                message = message or (why or "")
-                if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
-                    break  # the prediction's match passed and looks like the recent ones: no retries
-            if best is not None and tau is not None and s.redeskew:
-                best = self._redeskew(best, prepare, T_pred, prior_T, prior, periods)
-            if best is not None:
-                attempt, res, xyz, feats, _ = best
-                self._recent_inliers.append(res.inlier_ratio)
-                T, status, message = res.T_target_source, "ok", ""
+            if prior_T is not None:
+                outcome = replace(outcome, T=prior_T)
+            log.warning(
+                "scan %d: falling back to the %s: %s",
+                index,
+                "prior" if prior_T is not None else "motion prediction",
+                outcome.message,
+            )
+        self._state.fallback_run = self._state.fallback_run + 1 if outcome.status == "fallback" else 0
+        return outcome
+
+    def _try_hypotheses(
+        self,
+        xyz: np.ndarray,
+        feats: Features,
+        has_times: bool,
+        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
+        T_pred: np.ndarray,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+        periods: float,
+    ) -> tuple[_Match | None, _Outcome]:
+        """Register from the prediction first; if its match fails a gate (or looks weak), from the
+        alternatives of :meth:`_hypotheses` (a corner's onset changes the yaw rate faster than a
+        constant-velocity prior can follow). Returns the gated match with the most inliers (None if
+        none passed) and the fallback outcome: the prediction, with the prediction's own match
+        figures and the first reason a match was refused."""
+        message = ""
+        converged, fitness, cov, inliers = False, 0.0, np.full((6, 6), np.nan), 0.0
+        best: _Match | None = None
+        # A session that has lost its track (LOST_AFTER_FALLBACKS in a row) tries the prediction
+        # only: the retries (up to 8 registrations) cannot find it and would starve others.
+        lost = self._state.fallback_run >= LOST_AFTER_FALLBACKS
+        for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
+            if lost and attempt > 0:
+                break
+            cloud, cloud_feats = xyz, feats
+            if has_times and attempt > 0 and self.settings.redeskew:
+                # A yaw hypothesis implies another velocity: deskew the sweep with it.
+                cloud, cloud_feats = prepare(self._per_period(invert(self._state.poses[-1]) @ init, periods))
+            try:
+                res = register(
+                    cloud_feats.matching_xyz,
+                    None,
+                    init,
+                    settings=self.registration,
+                    reference=self._state.model,
+                )
+            except RandtError as exc:
+                message = message or f"registration failed: {exc}"
+                continue
+            why = self._gate(res, T_pred, prior_T, prior, periods)
+            if why is None and (best is None or res.inlier_ratio > best[1].inlier_ratio):
+                best = (attempt, res, cloud, cloud_feats, init)
+            if attempt == 0 and best is None:
                 converged, fitness, cov, inliers = (
                     res.converged,
                     res.fitness,
                     res.covariance,
                     res.inlier_ratio,
                 )
-                if attempt:
-                    log.info("scan %d: matched from yaw hypothesis %d", index, attempt)
-            if status == "fallback":
-                if prior_T is not None:
-                    T = prior_T
-                log.warning(
-                    "scan %d: falling back to the %s: %s",
-                    index,
-                    "prior" if prior_T is not None else "motion prediction",
-                    message,
-                )
-            times["match"] = time.perf_counter() - t0
-            self._fallback_run = self._fallback_run + 1 if status == "fallback" else 0
+            message = message or (why or "")
+            if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
+                break  # the prediction's match passed and looks like the recent ones: no retries
+        return best, _Outcome(T_pred, "fallback", message, converged, fitness, cov, inliers, xyz, feats)
 
-        T = orthonormalize(T)
+    def _advance(self, T: np.ndarray, index: int, periods: float, stamp_s: float | None) -> None:
+        """Append the pose; the velocity from the last two poses (per period), the stamp kept."""
+        st = self._state
         if index > 0:
-            self._delta = orthonormalize(self._per_period(invert(self.poses[-1]) @ T, periods))
-        self.poses.append(T)
+            st.delta = orthonormalize(self._per_period(invert(st.poses[-1]) @ T, periods))
+        st.poses.append(T)
         if stamp_s is not None:
-            self._last_stamp_s = float(stamp_s)
-        if index == 1 and self._first_raw is not None and status == "ok":
-            # Now that the velocity is known, replace the first keyframe by its deskewed sweep.
-            raw, tau = self._first_raw
-            first = deskew(raw, tau, self._delta, self.period_s, reference_fraction=MID_SWEEP)
-            self._keyframes.popleft()
-            self._keyframes.appendleft(
-                (self.poses[0], voxel_downsample(transform_points(self.poses[0], first), self.model_voxel_m))
-            )
-            self._first_raw = None
-            if not (self._model is None or self._needs_keyframe(T)):
-                self._rebuild_model(self.poses[0])
-        keep_map = ~feats.noise_mask
-        mapped_xyz = xyz[keep_map]
-        is_kf = self._model is None or self._needs_keyframe(T)
+            st.last_stamp_s = float(stamp_s)
+
+    def _deskew_first_keyframe(self, T: np.ndarray) -> None:
+        """Now that the velocity is known, replace the first keyframe by its deskewed sweep."""
+        st = self._state
+        assert st.first_raw is not None
+        raw, tau = st.first_raw
+        first = deskew(raw, tau, st.delta, self.period_s, reference_fraction=MID_SWEEP)
+        st.keyframes.popleft()
+        st.keyframes.appendleft(
+            (st.poses[0], voxel_downsample(transform_points(st.poses[0], first), self.model_voxel_m))
+        )
+        st.first_raw = None
+        if not (st.model is None or self._needs_keyframe(T)):
+            self._rebuild_model(st.poses[0])
+
+    def _keyframe_if_due(
+        self,
+        T: np.ndarray,
+        status: Literal["first", "ok", "fallback"],
+        mapped_xyz: np.ndarray,
+        defer_model: bool,
+        times: dict[str, float],
+    ) -> bool:
+        """The paper's Set: a matched sweep far enough (or turned enough) from the last keyframe
+        becomes one, modelled now or left pending (``defer_model``); returns whether it did."""
+        is_kf = self._state.model is None or self._needs_keyframe(T)
         if is_kf and status != "fallback":
-            if defer_model and self._model is not None:
-                self._pending.append((T.copy(), mapped_xyz))
-                self._last_keyframe_pose = T.copy()  # keyframe spacing counts pending ones
+            if defer_model and self._state.model is not None:
+                self._state.pending.append((T.copy(), mapped_xyz))
+                self._state.last_keyframe_pose = T.copy()  # keyframe spacing counts pending ones
             else:
                 t0 = time.perf_counter()
                 self.set_keyframe(T, mapped_xyz)
                 times["model"] = time.perf_counter() - t0
-        return ScanResult(
-            index=index,
-            T_world_sensor=T,
-            status=status,
-            converged=bool(converged),
-            fitness=float(fitness),
-            inlier_ratio=float(inliers),
-            is_keyframe=bool(is_kf and status != "fallback"),
-            time_s=time.perf_counter() - t_start,
-            covariance=cov,
-            deskewed_xyz=mapped_xyz,
-            map_index=source_index[keep_map],
-            n_points=int(xyz.shape[0]),
-            n_nonfinite_dropped=n_bad,
-            message=message,
-            stage_times_s=times,
-        )
+        return bool(is_kf and status != "fallback")
 
     # -- persistence ----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, np.ndarray]:
@@ -580,48 +714,50 @@ class IncrementalMatcher:
         (``defer_model``) is folded in first.
         """
         self.update_model()
-        kf = list(self._keyframes)
+        st = self._state
+        kf = list(st.keyframes)
         return {
-            "poses": np.array(self.poses).reshape(-1, 4, 4),
-            "delta": self._delta.copy(),
+            "poses": np.array(st.poses).reshape(-1, 4, 4),
+            "delta": st.delta.copy(),
             "keyframe_poses": np.array([p for p, _ in kf]).reshape(-1, 4, 4),
             "keyframe_points": np.vstack([x for _, x in kf]) if kf else np.zeros((0, 3)),
             "keyframe_sizes": np.array([x.shape[0] for _, x in kf], dtype=np.int64),
             "scales": np.array([self.feature_voxel_m, self.model_voxel_m]),
             "levels": np.array(self.registration.voxel_sizes_m or (), dtype=np.float64),
             "last_keyframe_pose": (
-                np.full((4, 4), np.nan) if self._last_keyframe_pose is None else self._last_keyframe_pose
+                np.full((4, 4), np.nan) if st.last_keyframe_pose is None else st.last_keyframe_pose
             ),
-            "last_stamp_s": np.array(np.nan if self._last_stamp_s is None else self._last_stamp_s),
+            "last_stamp_s": np.array(np.nan if st.last_stamp_s is None else st.last_stamp_s),
         }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         """Resume from :meth:`state_dict` output (same settings); the model is rebuilt from keyframes."""
-        self.poses = [np.asarray(p, dtype=np.float64) for p in state["poses"]]
-        self._delta = np.asarray(state["delta"], dtype=np.float64)
+        st = self._state
+        st.poses = [np.asarray(p, dtype=np.float64) for p in state["poses"]]
+        st.delta = np.asarray(state["delta"], dtype=np.float64)
         feature_voxel_m, model_voxel_m = (float(v) for v in state["scales"])
         self._apply_scales(tuple(float(v) for v in state["levels"]), feature_voxel_m, model_voxel_m)
         sizes = np.asarray(state["keyframe_sizes"], dtype=np.int64)
         chunks = np.split(np.asarray(state["keyframe_points"], dtype=np.float64), np.cumsum(sizes)[:-1])
-        self._keyframes.clear()
+        st.keyframes.clear()
         for pose, pts in zip(state["keyframe_poses"], chunks if sizes.size else [], strict=True):
-            self._keyframes.append((np.asarray(pose, dtype=np.float64), pts))
+            st.keyframes.append((np.asarray(pose, dtype=np.float64), pts))
         last = np.asarray(state["last_keyframe_pose"], dtype=np.float64)
-        self._last_keyframe_pose = None if np.isnan(last).any() else last
+        st.last_keyframe_pose = None if np.isnan(last).any() else last
         # States saved before stamps were kept have none: the next sweep then counts as one period.
         stamp = float(np.asarray(state.get("last_stamp_s", np.nan)))
-        self._last_stamp_s = None if np.isnan(stamp) else stamp
-        self._first_raw = None
-        self._model = None
-        if self._keyframes:
-            self._rebuild_model(self._keyframes[-1][0])
+        st.last_stamp_s = None if np.isnan(stamp) else stamp
+        st.first_raw = None
+        st.model = None
+        if st.keyframes:
+            self._rebuild_model(st.keyframes[-1][0])
 
     def _weak(self, inlier_ratio: float) -> bool:
         """A match whose inlier ratio is below 70 % of the session's recent median is suspect: at a
         corner's onset a wrong match can pass the absolute gate (0.32 where this drive sees 0.8)."""
-        if len(self._recent_inliers) < 3:
+        if len(self._state.recent_inliers) < 3:
             return False
-        return inlier_ratio < 0.7 * float(np.median(self._recent_inliers))
+        return inlier_ratio < 0.7 * float(np.median(self._state.recent_inliers))
 
     def _redeskew(
         self,
@@ -641,8 +777,8 @@ class IncrementalMatcher:
         (one pass; kept only if it passes the same gate).
         """
         attempt, res, _, _, init = best
-        used = self._per_period(invert(self.poses[-1]) @ init, periods)
-        found = self._per_period(invert(self.poses[-1]) @ res.T_target_source, periods)
+        used = self._per_period(invert(self._state.poses[-1]) @ init, periods)
+        found = self._per_period(invert(self._state.poses[-1]) @ res.T_target_source, periods)
         change = invert(used) @ found
         if rotation_angle_deg(change[:3, :3]) < REDESKEW_DEG and np.linalg.norm(change[:3, 3]) < REDESKEW_M:
             return best
@@ -653,7 +789,7 @@ class IncrementalMatcher:
                 None,
                 res.T_target_source,
                 settings=self.registration,
-                reference=self._model,
+                reference=self._state.model,
             )
         except RandtError:
             return best
@@ -666,9 +802,9 @@ class IncrementalMatcher:
 
         A non-increasing stamp counts as one period; a gap longer than ``max_gap_s`` as that long.
         """
-        if stamp_s is None or self._last_stamp_s is None or not np.isfinite(stamp_s):
+        if stamp_s is None or self._state.last_stamp_s is None or not np.isfinite(stamp_s):
             return 1.0
-        dt = float(stamp_s) - self._last_stamp_s
+        dt = float(stamp_s) - self._state.last_stamp_s
         if dt <= 0.0:
             return 1.0
         return min(dt, self.settings.max_gap_s) / self.period_s
@@ -694,7 +830,7 @@ class IncrementalMatcher:
         constant-velocity prior can follow).
         """
         yield T_pred
-        if periods > 1.5 and self.poses and matching_xyz is not None and self._model is not None:
+        if periods > 1.5 and self._state.poses and matching_xyz is not None and self._state.model is not None:
             yield from self._turns_over_gap(T_pred, periods, matching_xyz)
         for deg in self.settings.retry_yaw_deg:
             for sign in (1.0, -1.0):
@@ -706,18 +842,18 @@ class IncrementalMatcher:
         """Poses after turning by each of :data:`GAP_TURN_DEG` over the gap at the session's speed
         (the velocity's yaw rate replaced), best first by NDT cost on the coarsest model level;
         the :data:`GAP_TURN_CANDIDATES` best that are not the prediction itself."""
-        assert self._model is not None
-        gmap = self._model.maps[0]
+        assert self._state.model is not None
+        gmap = self._state.model.maps[0]
         consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
         pts = voxel_downsample(matching_xyz, 0.5 * gmap.voxel_size_m)
-        rotvec = Rotation.from_matrix(self._delta[:3, :3]).as_rotvec()
+        rotvec = Rotation.from_matrix(self._state.delta[:3, :3]).as_rotvec()
         scored = []
         for turn in GAP_TURN_DEG:
-            motion = self._delta.copy()
+            motion = self._state.delta.copy()
             motion[:3, :3] = Rotation.from_rotvec(
                 (rotvec[0], rotvec[1], np.radians(turn) / periods)
             ).as_matrix()
-            T = orthonormalize(self.poses[-1] @ scale_motion(motion, periods))
+            T = orthonormalize(self._state.poses[-1] @ scale_motion(motion, periods))
             if rotation_angle_deg((invert(T_pred) @ T)[:3, :3]) < 2.5:
                 continue  # the prediction, tried already
             scored.append((ndt_cost(pts, T, gmap, consts, self.registration.n_neighbors), turn, T))
@@ -749,7 +885,7 @@ class IncrementalMatcher:
         return None
 
     def _needs_keyframe(self, T: np.ndarray) -> bool:
-        last = self._last_keyframe_pose
+        last = self._state.last_keyframe_pose
         if last is None:
             return True
         rel = invert(last) @ T

@@ -330,7 +330,7 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
         if a > 0:
             prev = keep[a - 1]
             truth = invert(scans[prev].T_world_sensor) @ scan.T_world_sensor
-            predicted = scale_motion(matcher._delta, i - prev)
+            predicted = scale_motion(matcher.state.delta, i - prev)
             misses.append(rotation_angle_deg((invert(predicted) @ truth)[:3, :3]))
         prior = PosePrior(scan.T_world_sensor, np.diag([1e-4] * 3 + [1e-5] * 3)) if i == 0 else None
         stamp_s = scan.stamp_ns * 1e-9
@@ -363,3 +363,33 @@ def test_a_caller_behind_still_bridges_a_long_gap() -> None:
         assert r.status in ("first", "ok"), (i, r.message)
         err_m, err_deg = transform_error(r.T_world_sensor, scan.T_world_sensor)
         assert err_m < 0.05 and err_deg < 0.1, (i, err_m, err_deg)
+
+
+def test_a_sweep_failing_after_its_pose_was_appended_leaves_the_state_equal(monkeypatch) -> None:
+    """The failure comes late (the keyframe's model cannot be built, after the pose, velocity and
+    stamp were updated): the state object is put back whole, equal field by field to its snapshot."""
+    rng = np.random.default_rng(5)
+    settings = MatcherSettings(voxel_sizes_m=(2.0, 1.0, 0.5), keyframe_distance_m=0.5)
+    matcher = IncrementalMatcher(settings)
+    room = synthetic_room(rng)
+    step = make_transform(translation=(0.3, 0.0, 0.0))
+    for k, T in enumerate((np.eye(4), step)):
+        matcher.register_scan(transform_points(invert(T), room), stamp_s=0.1 * k)
+    before = matcher.state.snapshot()
+    assert before == matcher.state
+    seen_at_failure = []
+
+    def unbuildable(T_world_sensor: np.ndarray) -> None:
+        seen_at_failure.append((len(matcher.poses), matcher.state.last_stamp_s))
+        raise InvalidCloudError("model: too sparse")
+
+    monkeypatch.setattr(matcher, "_rebuild_model", unbuildable)
+    with pytest.raises(InvalidCloudError, match="too sparse"):  # 0.6 m from the last keyframe
+        matcher.register_scan(transform_points(invert(step @ step), room), stamp_s=0.2)
+    assert seen_at_failure == [(3, 0.2)], "the sweep failed after its pose and stamp were recorded"
+    assert matcher.state == before
+    assert len(matcher.poses) == 2 and matcher.state.last_stamp_s == 0.1
+    monkeypatch.undo()
+    r = matcher.register_scan(transform_points(invert(step @ step), room), stamp_s=0.2)
+    assert r.index == 2 and r.status == "ok"
+    assert matcher.state != before, "the equality sees a sweep's changes"
