@@ -55,7 +55,8 @@ nothing else may go into that file. The grid's own settings and tile versions go
 ``randt_tile_grid.yaml``, which Autoware ignores and :func:`load_autoware` uses to restore the map
 exactly (versions included, so tile updates stay monotonic across a service restart).
 :meth:`TileGrid.write_tiles` updates such a directory in place, rewriting only the tiles that changed
-(the service's store saves a growing map this way).
+(the service's store saves a growing map this way). The files themselves (names, formats, atomic
+writes) are :mod:`core.io.autoware`'s; this module decides what goes into them and in which order.
 
 Thread safety
 -------------
@@ -74,20 +75,26 @@ import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import yaml
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import PointCloud, atomic_open, read_cloud, write_cloud, write_pcd
+from core.io import PointCloud, read_cloud, write_cloud
+from core.io.autoware import (
+    make_directory,
+    read_metadata,
+    read_sidecar,
+    remove_stale_tile_files,
+    tile_file_name,
+    write_metadata,
+    write_sidecar,
+    write_tile_file,
+)
 from core.kernels import first_per_voxel_pair, tile_voxel_keys
 from core.metrics.cloud import pdu
 from core.voxel import pack_keys, voxel_coords
 
 __all__ = [
-    "AUTOWARE_METADATA_NAME",
-    "GRID_SIDECAR_NAME",
     "Tile",
     "TileBounds",
     "TileGrid",
@@ -98,15 +105,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: File name Autoware's map loader expects next to the divided PCD files.
-AUTOWARE_METADATA_NAME = "pointcloud_map_metadata.yaml"
-#: Our sidecar: grid settings and tile versions (Autoware does not read it).
-GRID_SIDECAR_NAME = "randt_tile_grid.yaml"
-_SIDECAR_FORMAT = "randt-tile-grid/1"
-
 _TILE_ID_RE = re.compile(r"^(-?\d+)_(-?\d+)$")
-_TILE_FILE_RE = re.compile(r"^(-?\d+)_(-?\d+)\.pcd$")
-_RESOLUTION_KEYS = ("x_resolution", "y_resolution")
 
 # Tile indices are packed into one int64 (31 bits each) to group points by tile; coordinates beyond
 # this are not a map frame (and float32 would hold them to metres, not centimetres).
@@ -767,11 +766,11 @@ class TileGrid:
         """Write the map as an Autoware divided point-cloud map.
 
         Writes, each file atomically, ``<ix>_<iy>.pcd`` per non-empty tile (binary PCD, float32
-        ``x y z intensity``), then :data:`GRID_SIDECAR_NAME`, then
-        :data:`AUTOWARE_METADATA_NAME` last, so the metadata never names a missing file. Stale
-        ``<ix>_<iy>.pcd`` files of tiles no longer in the map are removed afterwards (Autoware
-        globs every ``*.pcd`` of the directory); other ``.pcd`` files are left alone with a
-        warning.
+        ``x y z intensity``), then :data:`~core.io.autoware.GRID_SIDECAR_NAME`, then
+        :data:`~core.io.autoware.AUTOWARE_METADATA_NAME` last, so the metadata never names a
+        missing file. Stale ``<ix>_<iy>.pcd`` files of tiles no longer in the map are removed
+        afterwards (Autoware globs every ``*.pcd`` of the directory); other ``.pcd`` files are
+        left alone with a warning.
 
         Parameters
         ----------
@@ -790,35 +789,15 @@ class TileGrid:
         FormatError
             A file could not be written.
         """
-        directory = Path(directory)
         tiles = self._snapshot()
         if not tiles:
             raise InvalidCloudError("the map is empty: nothing to export")
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise FormatError(f"cannot create {directory}: {exc}") from exc
-
+        directory = make_directory(directory)
         for t in tiles:
-            write_pcd(directory / f"{t.id}.pcd", t.to_cloud())
-        _write_yaml(directory / GRID_SIDECAR_NAME, self._sidecar_document(tiles))
-        entries = _metadata_entries(tiles)
-        resolution = float(self._tile_size)
-        metadata: dict[str, Any] = {"x_resolution": resolution, "y_resolution": resolution, **entries}
-        _write_yaml(directory / AUTOWARE_METADATA_NAME, metadata)
-
-        for path in sorted(directory.glob("*.pcd")):
-            if path.name in entries:
-                continue
-            if _TILE_FILE_RE.match(path.name):
-                logger.info("removing stale tile file %s (tile no longer in the map)", path)
-                path.unlink(missing_ok=True)
-            else:
-                logger.warning(
-                    "%s is not one of this map's tiles; Autoware would load it too (not in %s)",
-                    path,
-                    AUTOWARE_METADATA_NAME,
-                )
+            write_tile_file(directory, t.id, t.to_cloud())
+        self._write_sidecar(directory, tiles)
+        entries = write_metadata(directory, self._tile_size, _corners(tiles))
+        remove_stale_tile_files(directory, entries)
         logger.info(
             "exported %d tiles (%d points) to %s", len(tiles), sum(t.n_points for t in tiles), directory
         )
@@ -830,10 +809,10 @@ class TileGrid:
         The incremental counterpart of :meth:`export_autoware` for a directory that holds an
         earlier save of this map. From one snapshot of the map it writes, each file atomically:
 
-        1. :data:`GRID_SIDECAR_NAME` (settings and the version of every tile);
+        1. :data:`~core.io.autoware.GRID_SIDECAR_NAME` (settings and the version of every tile);
         2. ``<ix>_<iy>.pcd`` of every named tile, and of every tile whose file is missing (a first
            save, or a tile the caller forgot), so the directory always holds every tile;
-        3. :data:`AUTOWARE_METADATA_NAME` last, listing every tile of the map.
+        3. :data:`~core.io.autoware.AUTOWARE_METADATA_NAME` last, listing every tile of the map.
 
         Other tile files are neither rewritten nor removed. A reader (or a restart after a crash at
         any point) therefore sees whole files only, and a metadata file that names only existing
@@ -869,7 +848,6 @@ class TileGrid:
         """
         if isinstance(tile_ids, str):
             raise TypeError(f"tile_ids must be a collection of tile ids, not the string {tile_ids!r}")
-        directory = Path(directory)
         tiles = self._snapshot()
         if not tiles:
             raise InvalidCloudError("the map is empty: nothing to write")
@@ -879,37 +857,26 @@ class TileGrid:
             if tid not in present:
                 raise NotFoundError(f"tile {tid!r} is not in the map (holds no points)")
             wanted.add(tid)
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise FormatError(f"cannot create {directory}: {exc}") from exc
-
-        _write_yaml(directory / GRID_SIDECAR_NAME, self._sidecar_document(tiles))
+        directory = make_directory(directory)
+        self._write_sidecar(directory, tiles)
         written: list[str] = []
         for t in tiles:
-            path = directory / f"{t.id}.pcd"
-            if t.id in wanted or not path.is_file():
-                write_pcd(path, t.to_cloud())
+            if t.id in wanted or not (directory / tile_file_name(t.id)).is_file():
+                write_tile_file(directory, t.id, t.to_cloud())
                 written.append(t.id)
-        resolution = float(self._tile_size)
-        metadata: dict[str, Any] = {
-            "x_resolution": resolution,
-            "y_resolution": resolution,
-            **_metadata_entries(tiles),
-        }
-        _write_yaml(directory / AUTOWARE_METADATA_NAME, metadata)
+        write_metadata(directory, self._tile_size, _corners(tiles))
         logger.debug("wrote %d of %d tiles to %s", len(written), len(tiles), directory)
         return written
 
-    def _sidecar_document(self, tiles: list[Tile]) -> dict[str, Any]:
-        """The content of :data:`GRID_SIDECAR_NAME` for the snapshot ``tiles``."""
-        return {
-            "format": _SIDECAR_FORMAT,
-            "tile_size_m": self._tile_size,
-            "voxel_size_m": self._voxel,
-            "max_points_per_voxel": self._cap,
-            "versions": {t.id: t.version for t in tiles},
-        }
+    def _write_sidecar(self, directory: Path, tiles: list[Tile]) -> None:
+        """Write :data:`~core.io.autoware.GRID_SIDECAR_NAME` for the snapshot ``tiles``."""
+        write_sidecar(
+            directory,
+            tile_size_m=self._tile_size,
+            voxel_size_m=self._voxel,
+            max_points_per_voxel=self._cap,
+            versions={t.id: t.version for t in tiles},
+        )
 
     def _restore_version(self, key: tuple[int, int], version: int) -> None:
         with self._lock:
@@ -920,69 +887,13 @@ class TileGrid:
 
 
 # --------------------------------------------------------------------------------------------
-# Autoware files
+# Autoware divided maps (the files: core.io.autoware)
 # --------------------------------------------------------------------------------------------
 
 
-def _metadata_entries(tiles: list[Tile]) -> dict[str, list[int]]:
-    """The tile entries of Autoware's metadata: ``"<ix>_<iy>.pcd" -> [x_min, y_min]`` integer metres."""
-    return {f"{t.id}.pcd": [int(t.bounds.cell_min_xy[0]), int(t.bounds.cell_min_xy[1])] for t in tiles}
-
-
-def _write_yaml(path: Path, document: dict[str, Any]) -> None:
-    text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
-    with atomic_open(path, "w") as fh:
-        fh.write(text)
-
-
-def _read_yaml_mapping(path: Path) -> dict[Any, Any]:
-    if not path.is_file():
-        raise NotFoundError(f"{path}: no such file")
-    try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise FormatError(f"{path}: cannot read YAML: {exc}") from exc
-    if not isinstance(document, dict):
-        raise FormatError(f"{path}: expected a mapping at the top level")
-    return document
-
-
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _parse_metadata(path: Path) -> tuple[int, dict[str, tuple[int, int]]]:
-    """Tile size and ``file name -> (ix, iy)`` from an Autoware ``pointcloud_map_metadata.yaml``."""
-    document = _read_yaml_mapping(path)
-    resolutions = []
-    for key in _RESOLUTION_KEYS:
-        value = document.get(key)
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise FormatError(f"{path}: {key} must be a number, got {value!r}")
-        resolutions.append(float(value))
-    x_res, y_res = resolutions
-    if x_res != y_res or not x_res.is_integer() or x_res <= 0:
-        raise FormatError(
-            f"{path}: a TileGrid needs square tiles of whole metres, got x_resolution={x_res:g}, "
-            f"y_resolution={y_res:g}"
-        )
-    tile = int(x_res)
-    files: dict[str, tuple[int, int]] = {}
-    for key, value in document.items():
-        if key in _RESOLUTION_KEYS:
-            continue
-        name = str(key)
-        if Path(name).name != name or not name.lower().endswith(".pcd"):
-            raise FormatError(f"{path}: key {name!r} is not a PCD file name")
-        if not (isinstance(value, list) and len(value) == 2 and all(_is_int(v) for v in value)):
-            raise FormatError(f"{path}: {name} must map to [x_min, y_min] integers, got {value!r}")
-        x_min, y_min = value
-        if x_min % tile or y_min % tile:
-            raise FormatError(f"{path}: {name} corner {value} is not a multiple of the {tile} m tile size")
-        files[name] = (x_min // tile, y_min // tile)
-    if not files:
-        raise FormatError(f"{path}: lists no PCD files")
-    return tile, files
+def _corners(tiles: list[Tile]) -> dict[str, tuple[int, int]]:
+    """``tile id -> (x_min, y_min)`` integer metres of each tile's cell, for Autoware's metadata."""
+    return {t.id: (int(t.bounds.cell_min_xy[0]), int(t.bounds.cell_min_xy[1])) for t in tiles}
 
 
 def load_autoware(
@@ -994,8 +905,8 @@ def load_autoware(
     """Restore a :class:`TileGrid` from an Autoware divided map (ours or another tool's).
 
     The tile size comes from the metadata's resolutions. Voxel size, cap and tile versions come
-    from :data:`GRID_SIDECAR_NAME` when present, else from the arguments, else the defaults of
-    :class:`TileGrid`. A map exported by :meth:`TileGrid.export_autoware` and loaded with its own
+    from :data:`~core.io.autoware.GRID_SIDECAR_NAME` when present, else from the arguments, else the
+    defaults of :class:`TileGrid`. A map exported by :meth:`TileGrid.export_autoware` and loaded with its own
     settings comes back identical: same points in the same order, same versions. Other settings
     re-equalize the points (and such tiles get ``version + 1`` so subscribers see the change).
 
@@ -1015,26 +926,8 @@ def load_autoware(
         unreadable PCD file.
     """
     directory = Path(directory)
-    tile, files = _parse_metadata(directory / AUTOWARE_METADATA_NAME)
-
-    versions: dict[str, int] = {}
-    saved: dict[str, Any] = {}
-    sidecar_path = directory / GRID_SIDECAR_NAME
-    if sidecar_path.is_file():
-        saved = _read_yaml_mapping(sidecar_path)
-        if saved.get("format") != _SIDECAR_FORMAT:
-            raise FormatError(f"{sidecar_path}: unknown format {saved.get('format')!r}")
-        if saved.get("tile_size_m") != tile:
-            raise FormatError(
-                f"{sidecar_path}: tile_size_m {saved.get('tile_size_m')!r} disagrees with the "
-                f"metadata's {tile} m resolution"
-            )
-        raw_versions = saved.get("versions") or {}
-        if not isinstance(raw_versions, dict) or not all(
-            _is_int(v) and v >= 1 for v in raw_versions.values()
-        ):
-            raise FormatError(f"{sidecar_path}: versions must map tile ids to integers >= 1")
-        versions = {str(k): int(v) for k, v in raw_versions.items()}
+    tile, files = read_metadata(directory)
+    saved, versions = read_sidecar(directory, tile)
 
     voxel = voxel_size_m if voxel_size_m is not None else saved.get("voxel_size_m", 0.2)
     cap = max_points_per_voxel if max_points_per_voxel is not None else saved.get("max_points_per_voxel", 1)

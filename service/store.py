@@ -81,7 +81,8 @@ from pydantic import (
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
 from core.io.atomic import fsync_directory
-from core.tiles import AUTOWARE_METADATA_NAME, TileGrid, load_autoware
+from core.io.autoware import AUTOWARE_METADATA_NAME
+from core.tiles import TileGrid, load_autoware
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
     import fcntl

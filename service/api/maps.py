@@ -22,8 +22,9 @@ from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, R
 from fastapi.responses import StreamingResponse
 
 from core.errors import NotFoundError
+from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.metrics.cloud import pdu
-from core.tiles import AUTOWARE_METADATA_NAME, Tile, TileGrid, tile_id
+from core.tiles import Tile, TileGrid, tile_id
 from service.api.deps import (
     WRITER_RESPONSES,
     MapName,

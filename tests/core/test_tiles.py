@@ -11,9 +11,8 @@ import yaml
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io import PointCloud, read_cloud, write_pcd
+from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
 from core.tiles import (
-    AUTOWARE_METADATA_NAME,
-    GRID_SIDECAR_NAME,
     TileGrid,
     load_autoware,
     parse_tile_id,

@@ -25,9 +25,10 @@ from pydantic import ValidationError
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import read_cloud, read_tum
+from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
 from core.odometry import IncrementalMatcher, MatcherSettings
 from core.protocol import synthetic_room
-from core.tiles import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME, Tile, TileGrid
+from core.tiles import Tile, TileGrid
 from core.transforms import invert, make_transform, transform_error, transform_points
 from service.store import (
     LOCK_FILENAME,
