@@ -19,6 +19,7 @@ for _var in (
     os.environ[_var] = "1"
 
 import platform  # noqa: E402
+import socket  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from importlib import metadata  # noqa: E402
@@ -27,9 +28,16 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-# tests/ is not part of the installed package; its data loaders are the single source of truth.
+# The benchmarks run as scripts from bench/: make the repository's packages importable.
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+
+def free_port() -> int:
+    """A TCP port on the loopback interface that is free right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def progress(message: str) -> None:
@@ -83,7 +91,7 @@ def git_line() -> str:
             ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
         ).stdout.strip()
         status = subprocess.run(
-            ["git", "status", "--porcelain", "--", "core", "tests/pairs.py", "tests/data.py"],
+            ["git", "status", "--porcelain", "--", "core"],
             cwd=repo,
             capture_output=True,
             text=True,

@@ -40,8 +40,8 @@ from core.datasets import open_sequence
 from core.mapping import MapBuilder
 from core.metrics.cloud import pdu
 from core.metrics.trajectory import ate, kitti_relative_errors
+from core.shared_data import data_root
 from core.transforms import invert, transform_error, transform_points
-from tests.data import data_root
 
 del common
 

@@ -6,7 +6,7 @@ Run from the repository root::
 
 Two experiments, one process, one thread (the thread limits are set before numpy is imported):
 
-1. **Real pairs.** The shared pairs of ``tests/pairs.py`` (reference transforms from their data
+1. **Real pairs.** The shared pairs of ``core/shared_data.py`` (reference transforms from their data
    sets) and consecutive KITTI 00 frames (reference: KITTI ground truth, approximate on these
    frames, so the disagreement with small_gicp VGICP is reported as well). Every method starts
    from the identity; the timed region goes from raw (N,3) float64 arrays to the transform, so
@@ -43,9 +43,8 @@ from core.errors import DegenerateProblemError, RegistrationFailedError
 from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
 from core.protocol import make_trial
 from core.registration import auto_voxel_sizes, register
+from core.shared_data import PAIRS, data_root, kitti00_velodyne
 from core.transforms import transform_error
-from tests.data import data_root
-from tests.pairs import PAIRS, kitti00_velodyne
 
 KITTI_FRAMES = (0, 4, 9)  # pairs k -> k+1
 PROTOCOL_SEED = 20261122
@@ -180,7 +179,7 @@ def load_pairs() -> tuple[dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, st
         "car": "pairs/libpointmatcher_car/carCloudList.csv",
     }
     pairs, skipped = {}, []
-    for name, (loader, *_tolerances) in PAIRS.items():
+    for name, loader in PAIRS.items():
         reason = missing(needs.get(name, name))
         if reason:
             skipped.append(f"{name}: {reason}")

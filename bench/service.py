@@ -31,7 +31,7 @@ import time
 
 import common
 import numpy as np
-from common import git_line, heading, machine_line, progress, table
+from common import free_port, git_line, heading, machine_line, progress, table
 
 del common
 
@@ -46,7 +46,6 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     from service.runtime import Service
     from service.settings import ServiceSettings
     from service.transport import zenoh_config
-    from tests.service.conftest import free_port
 
     n_scans = int(seconds * 10)
     town = Town.generate(1)

@@ -29,7 +29,7 @@ import numpy as np
 from common import git_line, heading, machine_line, table, warm_up
 
 from core.io import read_cloud
-from tests.data import data_root
+from core.shared_data import data_root
 
 _SCANS: list[np.ndarray] = []
 

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.data import DATA_DIR_ENV_VAR, data_root, require_data
+from core.shared_data import DATA_DIR_ENV_VAR, data_root
+from tests.data import require_data
 
 __all__ = ["DATA_DIR_ENV_VAR", "data_dir", "data_root", "require_data"]
 

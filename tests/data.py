@@ -1,28 +1,32 @@
-"""Locate the shared real data set for tests, skipping (or, in CI, failing) when it is absent.
+"""The shared real data set for tests: skip when it is absent, or fail under ``CI=true``.
 
-The data live outside the repository (never copy them in): ``$RANDT_SHARED_DATA`` if set, else
-``<repo root>/../shared/data``. See ``../shared/data/README.md`` for what each folder holds.
+Where the data are and how to load them is :mod:`core.shared_data`'s (the benchmarks read them
+without pytest); this module only turns a missing file into a skip or, in CI, a failure.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn, ParamSpec, TypeVar
 
 import pytest
 
-__all__ = ["DATA_DIR_ENV_VAR", "data_root", "require_data"]
+from core.errors import NotFoundError
+from core.shared_data import require
 
-DATA_DIR_ENV_VAR = "RANDT_SHARED_DATA"
-_REPO_ROOT = Path(__file__).resolve().parents[1]
+__all__ = ["require_data", "skip_if_missing"]
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
-def data_root() -> Path:
-    """Return where the shared data should be: ``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``."""
-    override = os.environ.get(DATA_DIR_ENV_VAR)
-    if override:
-        return Path(override).expanduser().resolve()
-    return (_REPO_ROOT.parent / "shared" / "data").resolve()
+def _skip_or_fail(message: str) -> NoReturn:
+    if os.environ.get("CI") == "true":
+        pytest.fail(message, pytrace=False)
+    pytest.skip(message)
 
 
 def require_data(*relative_paths: str) -> Path:
@@ -43,15 +47,20 @@ def require_data(*relative_paths: str) -> Path:
     When something is missing the calling test is skipped with a reason naming the missing path
     and ``$RANDT_SHARED_DATA``; when ``CI=true`` it fails instead, because CI always has the data.
     """
-    root = data_root()
-    missing = [p for p in ("", *relative_paths) if not (root / p).exists()]
-    if missing:
-        first = root / missing[0]
-        message = (
-            f"real test data missing: {first} does not exist (set {DATA_DIR_ENV_VAR} to the "
-            f"shared data directory; without it the default is <repo root>/../shared/data)"
-        )
-        if os.environ.get("CI") == "true":
-            pytest.fail(message, pytrace=False)
-        pytest.skip(message)
-    return root
+    try:
+        return require(*relative_paths)
+    except NotFoundError as exc:
+        _skip_or_fail(str(exc))
+
+
+def skip_if_missing(loader: Callable[P, R]) -> Callable[P, R]:
+    """``loader`` (a :mod:`core.shared_data` loader), skipping (failing in CI) on missing data."""
+
+    @functools.wraps(loader)
+    def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return loader(*args, **kwargs)
+        except NotFoundError as exc:
+            _skip_or_fail(str(exc))
+
+    return wrapped

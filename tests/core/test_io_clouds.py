@@ -591,7 +591,7 @@ def test_missing_file_raises_not_found(tmp_path: Path) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# the shared-data helper (tests/data.py)
+# the shared-data helper (core/shared_data.py, tests/data.py)
 # --------------------------------------------------------------------------------------------
 
 

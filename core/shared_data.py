@@ -1,0 +1,130 @@
+"""The shared real data set: where it is, and the scan pairs with their reference transforms.
+
+The data live outside the repository (never copy them in): ``$RANDT_SHARED_DATA`` if set, else
+``<repo root>/../shared/data``. See ``../shared/data/README.md`` for what each folder holds. The
+tests (``tests/data.py`` turns a missing file into a skip, or a failure under ``CI=true``) and the
+benchmarks (``bench/``, which must run without pytest) both read it through this module.
+
+Each pair loader returns ``(source_xyz, target_xyz, T_target_source_reference)`` in the convention
+``p_target = T @ p_source``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from core.errors import NotFoundError
+from core.io import read_cloud
+
+__all__ = [
+    "DATA_DIR_ENV_VAR",
+    "PAIRS",
+    "Pair",
+    "argoverse2",
+    "bunny",
+    "car",
+    "data_root",
+    "kitti00_velodyne",
+    "require",
+    "small_gicp",
+]
+
+DATA_DIR_ENV_VAR = "RANDT_SHARED_DATA"
+_REPO_ROOT = Path(__file__).resolve().parents[1]
+
+Pair = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def data_root() -> Path:
+    """Return where the shared data should be: ``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``."""
+    override = os.environ.get(DATA_DIR_ENV_VAR)
+    if override:
+        return Path(override).expanduser().resolve()
+    return (_REPO_ROOT.parent / "shared" / "data").resolve()
+
+
+def require(*relative_paths: str) -> Path:
+    """Return the data directory if it and every ``relative_paths`` entry in it exist.
+
+    Parameters
+    ----------
+    *relative_paths:
+        Files or folders relative to the data directory, e.g. ``"kitti00/poses.txt"``.
+
+    Raises
+    ------
+    NotFoundError
+        Naming the first missing path and ``$RANDT_SHARED_DATA``.
+    """
+    root = data_root()
+    missing = [p for p in ("", *relative_paths) if not (root / p).exists()]
+    if missing:
+        raise NotFoundError(
+            f"real test data missing: {root / missing[0]} does not exist (set {DATA_DIR_ENV_VAR} to the "
+            f"shared data directory; without it the default is <repo root>/../shared/data)"
+        )
+    return root
+
+
+def small_gicp() -> Pair:
+    """small_gicp's example pair (indoor, short range)."""
+    d = require("pairs/small_gicp/source.ply") / "pairs/small_gicp"
+    return (
+        read_cloud(d / "source.ply").xyz,
+        read_cloud(d / "target.ply").xyz,
+        np.loadtxt(d / "T_target_source.txt"),
+    )
+
+
+def argoverse2() -> Pair:
+    """Two Argoverse 2 LiDAR sweeps (outdoor)."""
+    d = require("pairs/argoverse2/T_a_b.txt") / "pairs/argoverse2"
+    a = read_cloud(d / "315966265259836000.bin").xyz
+    b = read_cloud(d / "315966265360032000.bin").xyz
+    return b, a, np.loadtxt(d / "T_a_b.txt")
+
+
+def bunny() -> Pair:
+    """bun045 (source) into bun000's frame; bun.conf: p_world = R(q)^T p + t, bun000 is the world."""
+    d = require("objects/bunny/bun.conf") / "objects/bunny"
+    poses = {}
+    for line in (d / "bun.conf").read_text().splitlines():
+        parts = line.split()
+        if parts and parts[0] == "bmesh":
+            t = np.array(parts[2:5], dtype=float)
+            q = np.array(parts[5:9], dtype=float)
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_quat(q).as_matrix().T
+            T[:3, 3] = t
+            poses[parts[1]] = T
+    T_ref = np.linalg.inv(poses["bun000.ply"]) @ poses["bun045.ply"]
+    return read_cloud(d / "bun045.ply").xyz, read_cloud(d / "bun000.ply").xyz, T_ref
+
+
+def car() -> Pair:
+    """libpointmatcher car: p_400 = gT_401 p_401 (carCloudList.csv)."""
+    d = require("pairs/libpointmatcher_car/carCloudList.csv") / "pairs/libpointmatcher_car"
+    rows = [r.split(",") for r in (d / "carCloudList.csv").read_text().splitlines()[1:] if r.strip()]
+    gT = {r[0].strip(): np.array(r[1:17], dtype=float).reshape(4, 4) for r in rows}
+    T_ref = np.linalg.inv(gT["car_cloud400.csv"]) @ gT["car_cloud401.csv"]
+    return read_cloud(d / "car_cloud401.csv").xyz, read_cloud(d / "car_cloud400.csv").xyz, T_ref
+
+
+def kitti00_velodyne(frame: int) -> np.ndarray:
+    """(N,3) points of KITTI odometry sequence 00's velodyne scan ``frame``."""
+    d = require(f"kitti00/velodyne/{frame:06d}.bin") / "kitti00/velodyne"
+    return read_cloud(d / f"{frame:06d}.bin").xyz
+
+
+#: The shared pairs with reference transforms, name -> loader, in the benchmarks' order.
+PAIRS: dict[str, Callable[[], Pair]] = {
+    "small_gicp": small_gicp,
+    "argoverse2": argoverse2,
+    "bunny": bunny,
+    "car": car,
+}
