@@ -10,7 +10,10 @@ sorts the keys, 8-14 ms for a KITTI sweep against 2-3 ms here. The SVD step's fi
 searches run on a hashed grid (:mod:`core.grid`), and thousands of 3x3 symmetric eigenproblems
 (voxel covariances, local planes) go through a Jacobi loop instead of LAPACK's per-matrix calls.
 
-The NDT kernels have numpy twins that stay the reference: ``core.ndt`` keeps the vectorized
+Every public kernel's docstring ends with ``Reference: module:function`` (the numpy formulation, or
+the numpy/scipy function, it is tested against) and ``Test: tests/...::test_name`` (the test that
+compares them); ``tests/core/test_kernels.py`` checks that both exist. The NDT kernels have numpy
+twins that stay the reference: ``core.ndt`` keeps the vectorized
 formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
 kernels against it to round-off on real scans. The kernels release the GIL (``nogil``), so the
 service's per-session worker threads run them on several cores at once. Kernels are compiled on
@@ -80,7 +83,11 @@ def _slot(key: int, mask: int) -> int:
 
 @nb.njit(cache=True, nogil=True)
 def build_hash(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Open-addressing table (keys, indices) over ``keys``, at most half full; empty slots hold -1."""
+    """Open-addressing table (keys, indices) over ``keys``, at most half full; empty slots hold -1.
+
+    Reference: numpy:searchsorted
+    Test: tests/core/test_kernels.py::test_hash_table_finds_every_key_and_no_other
+    """
     cap = 16
     while cap < 2 * keys.shape[0]:
         cap <<= 1
@@ -174,6 +181,9 @@ def ndt_accumulate(
     none; fill ``cache_cell`` with ``CACHE_EMPTY`` to start): Newton steps move points by
     millimetres, so after the first evaluation almost no point changes cell, and the hash lookups,
     half of this loop's time, are skipped.
+
+    Reference: core.ndt:ndt_derivatives_numpy
+    Test: tests/core/test_kernels.py::test_derivatives_kernel_matches_numpy
     """
     inv_v = 1.0 / voxel_size
     cost = 0.0
@@ -363,7 +373,11 @@ def ndt_scores(
     cache_vox: np.ndarray,
 ) -> None:
     """Per-point Autoware scores (see ``core.ndt.ndt_point_scores``), written into the outputs
-    (``cache_cell``/``cache_vox`` as in :func:`ndt_accumulate`)."""
+    (``cache_cell``/``cache_vox`` as in :func:`ndt_accumulate`).
+
+    Reference: core.ndt:ndt_point_scores_numpy
+    Test: tests/core/test_kernels.py::test_point_scores_kernel_matches_numpy
+    """
     inv_v = 1.0 / voxel_size
     n_off = offsets.shape[0]
     use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
@@ -413,7 +427,11 @@ def best_voxel(
     out_m: np.ndarray,
 ) -> None:
     """For each point moved by ``(R, t)``: the neighbour voxel of least squared Mahalanobis
-    distance (``out_voxel``, -1 when none is near) and that distance (``out_m``, inf when none)."""
+    distance (``out_voxel``, -1 when none is near) and that distance (``out_m``, inf when none).
+
+    Reference: numpy:searchsorted
+    Test: tests/core/test_kernels.py::test_hash_table_finds_every_key_and_no_other
+    """
     inv_v = 1.0 / voxel_size
     for i in range(points.shape[0]):
         q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
@@ -504,6 +522,9 @@ def group_voxels(
     doubles at half full, so it stays in cache; a point in the same voxel as the one before it (the
     common case in a scan's ring order) skips the probe. (Growing happens outside the hot loop:
     numba reference-counts arrays reassigned inside a loop, which made that loop 4x slower.)
+
+    Reference: numpy:unique
+    Test: tests/core/test_kernels.py::test_group_voxels_matches_np_unique
     """
     n = points.shape[0]
     inv_v = 1.0 / voxel_size
@@ -527,7 +548,11 @@ def group_moments(
     points: np.ndarray, inverse: np.ndarray, n_groups: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per group: point count, mean and scatter matrix (sum of outer products of the deviations
-    from the mean, two passes for accuracy). Returns ``(counts, means (m,3), scatter (m,3,3))``."""
+    from the mean, two passes for accuracy). Returns ``(counts, means (m,3), scatter (m,3,3))``.
+
+    Reference: numpy:cov
+    Test: tests/core/test_kernels.py::test_voxel_gaussians_match_a_per_voxel_numpy_fit
+    """
     counts = np.zeros(n_groups, dtype=np.int64)
     means = np.zeros((n_groups, 3))
     scatter = np.zeros((n_groups, 3, 3))
@@ -560,7 +585,11 @@ def group_moments(
 
 @nb.njit(cache=True, nogil=True)
 def group_centroids(points: np.ndarray, inverse: np.ndarray, n_groups: int) -> np.ndarray:
-    """Mean of each group's points, (m,3)."""
+    """Mean of each group's points, (m,3).
+
+    Reference: numpy:bincount
+    Test: tests/core/test_kernels.py::test_group_centroids_match_bincount
+    """
     sums = np.zeros((n_groups, 3))
     counts = np.zeros(n_groups)
     for i in range(points.shape[0]):
@@ -613,6 +642,9 @@ def build_grid(
 
     Returns ``(table_key, table_idx, starts, order, ok)``: cell ``c`` (found through the table)
     holds the points ``order[starts[c]:starts[c + 1]]``; ``ok`` as in :func:`group_voxels`.
+
+    Reference: scipy.spatial:cKDTree
+    Test: tests/core/test_kernels.py::test_point_grid_nearest_matches_kdtree
     """
     inverse, keys, counts, table_key, table_idx, ok = group_voxels(points, cell_size)
     m = keys.shape[0]
@@ -649,6 +681,9 @@ def grid_nearest(
 
     Exact when ``max_dist <= cell_size`` (every point that close lies in the query's 3x3x3 cell
     block). Writes the index (-1 when none is that close) and the squared distance (inf then).
+
+    Reference: scipy.spatial:cKDTree
+    Test: tests/core/test_kernels.py::test_point_grid_nearest_matches_kdtree
     """
     inv_c = 1.0 / cell_size
     max_d2 = max_dist * max_dist
@@ -705,7 +740,11 @@ def _jacobi_rotate(A: np.ndarray, V: np.ndarray, p: int, q: int) -> None:
 @nb.njit(cache=True, nogil=True)
 def smallest_eigenvector(A: np.ndarray, V: np.ndarray) -> int:
     """Cyclic Jacobi on a symmetric 3x3 ``A`` (overwritten with its eigenvalues on the diagonal,
-    ``V`` with the eigenvectors as columns); returns the column of the smallest eigenvalue."""
+    ``V`` with the eigenvectors as columns); returns the column of the smallest eigenvalue.
+
+    Reference: numpy.linalg:eigh
+    Test: tests/core/test_kernels.py::test_point_grid_normals_match_hybrid_knn
+    """
     for r in range(3):
         for c in range(3):
             V[r, c] = 1.0 if r == c else 0.0
@@ -748,6 +787,9 @@ def grid_knn_normals(
     the eigenvector of the smallest eigenvalue of their covariance. Fewer than ``min_points``
     neighbours give no normal (``out_valid`` false, normal zero). ``offsets`` is the
     :func:`cell_block` whose reach covers the radius (``reach * cell_size >= radius``).
+
+    Reference: numpy.linalg:eigh
+    Test: tests/core/test_kernels.py::test_point_grid_normals_match_hybrid_knn
     """
     inv_c = 1.0 / cell_size
     r2 = radius * radius
@@ -821,7 +863,11 @@ def grid_knn_normals(
 def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigen-decomposition of symmetric 3x3 matrices (Jacobi), like ``np.linalg.eigh``: eigenvalues
     ascending (m,3) and eigenvectors as columns (m,3,3). About 5x faster than LAPACK's per-matrix
-    calls for thousands of 3x3 voxel covariances."""
+    calls for thousands of 3x3 voxel covariances.
+
+    Reference: numpy.linalg:eigh
+    Test: tests/core/test_kernels.py::test_eigh3_matches_lapack
+    """
     m = matrices.shape[0]
     evals = np.empty((m, 3))
     evecs = np.empty((m, 3, 3))
@@ -854,7 +900,11 @@ def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def mahalanobis_to_assigned(
     points: np.ndarray, assignment: np.ndarray, means: np.ndarray, inv_cov: np.ndarray
 ) -> np.ndarray:
-    """Squared Mahalanobis distance of each point to its assigned voxel (inf where -1)."""
+    """Squared Mahalanobis distance of each point to its assigned voxel (inf where -1).
+
+    Reference: core.outliers:iqr_inlier_mask_numpy
+    Test: tests/core/test_kernels.py::test_algorithm1_kernel_matches_the_lexsort_formulation
+    """
     out = np.empty(points.shape[0])
     for i in range(points.shape[0]):
         v = assignment[i]
@@ -883,6 +933,9 @@ def grouped_fence_mask(
     values sits at position ``q (n - 1)``). Groups of fewer than ``min_count`` values use the
     pooled fences; values of group -1 are outside. One counting sort by group, then a sort of each
     group's few values: no global ``lexsort``.
+
+    Reference: core.outliers:iqr_inlier_mask_numpy
+    Test: tests/core/test_kernels.py::test_algorithm1_kernel_matches_the_lexsort_formulation
     """
     n = values.shape[0]
     counts = np.zeros(n_groups + 1, dtype=np.int64)
@@ -936,7 +989,11 @@ def isolated_points(
     table_idx: np.ndarray,
 ) -> np.ndarray:
     """True for points alone in their voxel whose 26 neighbour voxels are all empty (the voxel
-    grouping of :func:`group_voxels` passed in)."""
+    grouping of :func:`group_voxels` passed in).
+
+    Reference: core.features:_isolated_numpy
+    Test: tests/core/test_kernels.py::test_isolated_point_kernel_matches_numpy
+    """
     inv_v = 1.0 / voxel_size
     out = np.zeros(points.shape[0], dtype=np.bool_)
     for i in range(points.shape[0]):
@@ -964,7 +1021,11 @@ def isolated_points(
 
 @nb.njit(cache=True, nogil=True)
 def group_min(values: np.ndarray, inverse: np.ndarray, n_groups: int, skip: np.ndarray) -> np.ndarray:
-    """Least value of each group over the entries not flagged in ``skip`` (inf for none)."""
+    """Least value of each group over the entries not flagged in ``skip`` (inf for none).
+
+    Reference: numpy:minimum
+    Test: tests/core/test_kernels.py::test_group_min_matches_minimum_at
+    """
     out = np.full(n_groups, np.inf)
     for i in range(values.shape[0]):
         if not skip[i] and values[i] < out[inverse[i]]:
@@ -977,7 +1038,11 @@ def masked_group_centroids(
     points: np.ndarray, inverse: np.ndarray, n_groups: int, mask: np.ndarray
 ) -> np.ndarray:
     """Mean of the masked points of each group, for the groups holding at least one masked point
-    (in group order): voxel downsampling of a subset, reusing a grouping of the whole cloud."""
+    (in group order): voxel downsampling of a subset, reusing a grouping of the whole cloud.
+
+    Reference: numpy:bincount
+    Test: tests/core/test_kernels.py::test_group_centroids_match_bincount
+    """
     sums = np.zeros((n_groups, 3))
     counts = np.zeros(n_groups)
     for i in range(points.shape[0]):
@@ -1005,7 +1070,11 @@ def first_per_voxel_pair(
     order: what :meth:`core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
     twin, two ``np.lexsort`` calls, took 14-30 ms on a KITTI sweep with a cap of 1). A point
     equal (float32 x, y, z) to one already kept in its voxel is not distinct and is skipped, as
-    the map's insert drops it."""
+    the map's insert drops it.
+
+    Reference: core.tiles:TileGrid.candidate_mask_numpy
+    Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
+    """
     n = tile_keys.shape[0]
     size = 16
     while size < 2 * n:
@@ -1051,7 +1120,11 @@ def tile_voxel_keys(
     """Packed tile keys and packed tile-local voxel keys of float32 points,
     with the same float64 operations as the numpy formulation in :mod:`core.tiles` (``floor(x /
     tile)``, ``x - ix * tile``, ``floor(local / voxel)``), so the keys are identical. ``ok`` is
-    false when a voxel coordinate leaves the 21-bit key range."""
+    false when a voxel coordinate leaves the 21-bit key range.
+
+    Reference: core.tiles:TileGrid.candidate_mask_numpy
+    Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
+    """
     n = xyz32.shape[0]
     tkeys = np.empty(n, dtype=np.int64)
     vkeys = np.empty(n, dtype=np.int64)
@@ -1081,6 +1154,9 @@ def within_xy_radius(points: np.ndarray, cx: float, cy: float, radius2: float) -
     oversized buffer to fill and copy: at 13 MB a rebuild, fresh pages cost more than the loop):
     the numpy form (a boolean mask from two column differences, then fancy indexing) took 13 ms
     on the 535k fused keyframe points of a full window, this 1-2 ms.
+
+    Reference: numpy:sum
+    Test: tests/core/test_kernels.py::test_within_xy_radius_matches_the_numpy_crop
     """
     n = points.shape[0]
     m = 0

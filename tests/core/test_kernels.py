@@ -317,3 +317,66 @@ def test_within_xy_radius_matches_the_numpy_crop(kitti_clouds) -> None:
         got = kernels.within_xy_radius(points, cx, cy, r * r)
         np.testing.assert_array_equal(got, expected)
     assert kernels.within_xy_radius(points, 0.0, 0.0, 1.0).shape == (0, 3)
+
+
+def test_group_centroids_match_bincount(kitti_clouds) -> None:
+    """Per-group means (all points, and the masked ones of the groups holding any) against
+    weighted ``np.bincount`` sums over the same grouping."""
+    points = kitti_clouds[0]
+    inverse, keys, *_ = kernels.group_voxels(points, 0.5)
+    n = keys.size
+    expected = np.stack([np.bincount(inverse, weights=points[:, d], minlength=n) for d in range(3)], 1)
+    expected /= np.bincount(inverse, minlength=n)[:, None]
+    np.testing.assert_allclose(kernels.group_centroids(points, inverse, n), expected, rtol=1e-12, atol=1e-9)
+    mask = points[:, 2] > -1.0  # above the road
+    sub = np.stack([np.bincount(inverse[mask], weights=points[mask, d], minlength=n) for d in range(3)], 1)
+    sub_counts = np.bincount(inverse[mask], minlength=n)
+    expected_masked = sub[sub_counts > 0] / sub_counts[sub_counts > 0, None]
+    got = kernels.masked_group_centroids(points, inverse, n, mask)
+    assert 0 < got.shape[0] < n
+    np.testing.assert_allclose(got, expected_masked, rtol=1e-12, atol=1e-9)
+
+
+def test_group_min_matches_minimum_at() -> None:
+    rng = np.random.default_rng(7)
+    values = rng.normal(size=5000)
+    groups = rng.integers(0, 300, 5000)
+    skip = rng.random(5000) < 0.3
+    expected = np.full(310, np.inf)  # the last ten groups are empty
+    np.minimum.at(expected, groups[~skip], values[~skip])
+    np.testing.assert_array_equal(kernels.group_min(values, groups, 310, skip), expected)
+
+
+def _kernel_docstrings() -> dict[str, str]:
+    """Every public compiled kernel of core.kernels (a numba dispatcher) and its docstring."""
+    from numba.core.registry import CPUDispatcher
+
+    found = {
+        name: obj.py_func.__doc__ or ""
+        for name, obj in vars(kernels).items()
+        if isinstance(obj, CPUDispatcher) and not name.startswith("_")
+    }
+    assert len(found) >= 20
+    return found
+
+
+@pytest.mark.parametrize("name", sorted(_kernel_docstrings()))
+def test_every_kernel_names_an_existing_reference_and_test(name: str) -> None:
+    """A kernel's docstring ends with ``Reference: module:function`` and ``Test: path::test_name``;
+    the reference resolves to a function and the test is defined in that file."""
+    import ast
+    import importlib
+    import re
+    from pathlib import Path
+
+    doc = _kernel_docstrings()[name]
+    ref = re.search(r"^\s*Reference: ([\w.]+):([\w.]+)\s*$", doc, re.MULTILINE)
+    test = re.search(r"^\s*Test: (tests/[\w/]+\.py)::(test_\w+)\s*$", doc, re.MULTILINE)
+    assert ref and test, f"{name}: no Reference/Test line in its docstring"
+    target: object = importlib.import_module(ref.group(1))
+    for attr in ref.group(2).split("."):
+        target = getattr(target, attr)
+    assert callable(target), f"{name}: {ref.group(1)}:{ref.group(2)} is not callable"
+    path = Path(__file__).resolve().parents[2] / test.group(1)
+    defined = {n.name for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.FunctionDef)}
+    assert test.group(2) in defined, f"{name}: {test.group(1)} defines no {test.group(2)}"
