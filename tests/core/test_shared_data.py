@@ -1,0 +1,39 @@
+"""core.shared_data: where the real data set is, without pytest in the way."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core import shared_data
+from core.errors import NotFoundError
+from tests.data import require_data
+
+
+def test_data_root_follows_the_environment_variable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(shared_data.DATA_DIR_ENV_VAR, str(tmp_path))
+    assert shared_data.data_root() == tmp_path.resolve()
+    monkeypatch.delenv(shared_data.DATA_DIR_ENV_VAR)
+    assert shared_data.data_root() == (Path(shared_data.__file__).resolve().parents[2] / "shared" / "data")
+
+
+def test_require_raises_not_found_naming_the_first_missing_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(shared_data.DATA_DIR_ENV_VAR, str(tmp_path))
+    (tmp_path / "present.txt").write_text("x")
+    assert shared_data.require("present.txt") == tmp_path.resolve()
+    with pytest.raises(NotFoundError, match=r"kitti00/poses\.txt does not exist .*RANDT_SHARED_DATA"):
+        shared_data.require("present.txt", "kitti00/poses.txt")
+    with pytest.raises(NotFoundError, match="pairs/small_gicp"):
+        shared_data.small_gicp()
+
+
+def test_kitti_pair_loader_reads_the_scan() -> None:
+    require_data("kitti00/velodyne/000000.bin")
+    xyz = shared_data.kitti00_velodyne(0)
+    assert xyz.ndim == 2 and xyz.shape[1] == 3 and xyz.shape[0] > 100_000  # an HDL-64E sweep
+    assert np.isfinite(xyz).all()
+    assert list(shared_data.PAIRS) == ["small_gicp", "argoverse2", "bunny", "car"]
