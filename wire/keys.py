@@ -1,14 +1,12 @@
 """Every Zenoh key expression of the wire format (docs/wire-format.md, Key expressions).
 
-===================================  ===============  ==============================================
-key expression                       direction        built by
-===================================  ===============  ==============================================
-``randt/fleet/<vehicle>/scan``       vehicle → service  :func:`scan_key`; service: :data:`ALL_SCANS`
-``randt/fleet/<vehicle>/pose``       service → all    :func:`pose_key`; all vehicles: :data:`ALL_POSES`
-``randt/fleet/<vehicle>/error``      service → vehicle  :func:`error_key`; all: :data:`ALL_ERRORS`
-``randt/map/<map>/tile/<ix>_<iy>``   service → all    :func:`tile_key`; queryable: :data:`ALL_TILES`
-``randt/service/<instance>``         liveliness       :func:`service_token_key`
-===================================  ===============  ==============================================
+- ``randt/fleet/<vehicle>/scan``: vehicle → service, :func:`scan_key`; the service subscribes to
+  :data:`ALL_SCANS`;
+- ``randt/fleet/<vehicle>/pose``: service → all, :func:`pose_key` (:data:`ALL_POSES`);
+- ``randt/fleet/<vehicle>/error``: service → vehicle, :func:`error_key` (:data:`ALL_ERRORS`);
+- ``randt/map/<map>/tile/<ix>_<iy>``: service → all, and a get answered by the service's queryable
+  on :data:`ALL_TILES`, :func:`tile_key` (:func:`map_tiles_key` for one map's tiles);
+- ``randt/service/<instance>``: the liveliness token of a running service, :func:`service_token_key`.
 
 ``<vehicle>``, ``<map>`` and ``<instance>`` are ids (:mod:`wire.ids`), so they are single chunks
 without wildcards; ``<ix>_<iy>`` is a tile id (``5_-3``). :func:`key_for` gives the key a message is
