@@ -42,10 +42,12 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
 
     from clients.sim.drive import simulate_fleet
     from clients.sim.town import Town
-    from core.wire import decode_error, decode_pose, encode, scan_from_arrays
     from service.runtime import Service
     from service.settings import ServiceSettings
-    from service.transport import zenoh_config
+    from wire.codes import ErrorCode
+    from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
+    from wire.messages import decode_error, decode_pose, encode, scan_from_arrays
+    from wire.zenoh_config import zenoh_config
 
     n_scans = int(seconds * 10)
     town = Town.generate(1)
@@ -105,8 +107,8 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
 
         listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
         subs = [
-            listener.declare_subscriber("randt/fleet/*/pose", on_pose),
-            listener.declare_subscriber("randt/fleet/*/error", on_error),
+            listener.declare_subscriber(ALL_POSES, on_pose),
+            listener.declare_subscriber(ALL_ERRORS, on_error),
         ]
         time.sleep(1.0)
 
@@ -115,7 +117,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
             # As the vehicle library publishes (clients/publisher.py): block under congestion
             # rather than drop, so every scan reaches the service.
             pub = session.declare_publisher(
-                f"randt/fleet/{vehicle}/scan",
+                scan_key(vehicle),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
@@ -172,9 +174,9 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         "poses": len(got),
         "fallbacks": statuses.get("fallback", 0),
         "own_frame": own_frame[0],
-        "dropped": errors.get("dropped", 0),
-        "other_errors": sum(v for k, v in errors.items() if k != "dropped"),
-        "other_codes": ", ".join(f"{k} {v}" for k, v in sorted(errors.items()) if k != "dropped"),
+        "dropped": errors.get(ErrorCode.DROPPED, 0),
+        "other_errors": sum(v for k, v in errors.items() if k != ErrorCode.DROPPED),
+        "other_codes": ", ".join(f"{k} {v}" for k, v in sorted(errors.items()) if k != ErrorCode.DROPPED),
         "received": received,
         "unanswered": len(sent) - len(got) - sum(errors.values()),
         "scans_per_s": len(got) / wall,

@@ -39,7 +39,8 @@ import numpy as np
 
 from clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
 from clients.sim import FleetVehicle, Lidar64, Town, plan_fleet, simulate
-from core.wire import PoseMessage
+from wire.codes import ErrorCode
+from wire.messages import PoseMessage
 
 __all__ = ["FleetSettings", "VehicleErrors", "VehicleRun", "evaluate", "run_fleet", "summary_table"]
 
@@ -377,7 +378,7 @@ def summary_table(summaries: list[dict[str, Any]]) -> list[str]:
     lines = [TABLE_HEADER]
     for s in summaries:
         st = s["stats"]
-        service_drops = st["rejected_codes"].get("dropped", 0)
+        service_drops = st["rejected_codes"].get(ErrorCode.DROPPED, 0)
         e = s["errors"]
 
         def num(key: str, fmt: str, e: dict[str, Any] | None = e) -> str:

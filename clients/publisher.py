@@ -14,7 +14,7 @@ How it works
 - **One Zenoh session per publisher** (client of a router by default, or a peer), endpoints from
   the arguments or the environment (:class:`PublisherSettings`, prefix ``RANDT_VEHICLE_``).
 - **publish() never blocks** longer than building the message (a few ms for 120k points). The
-  message is validated with the wire format's own checks (``core/wire.py``: a bad array raises
+  message is validated with the wire format's own checks (:mod:`wire.messages`: a bad array raises
   ``BadMessageError`` at once, with the code the service would answer), then put into a bounded
   send queue. A full queue drops its **oldest** scan and counts it (``stats.dropped``): the newest
   data matter most to a mapping service.
@@ -52,9 +52,11 @@ import zenoh
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from clients.zenoh_config import check_endpoints, zenoh_config
 from core.errors import BadMessageError
-from core.wire import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
+from wire.codes import ErrorCode
+from wire.keys import error_key, pose_key, scan_key
+from wire.messages import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
+from wire.zenoh_config import check_endpoints, zenoh_config
 
 __all__ = ["PublisherSettings", "PublisherStats", "VehiclePublisher", "default_session_id"]
 
@@ -142,7 +144,7 @@ class VehiclePublisher:
     Parameters
     ----------
     vehicle:
-        The vehicle id (``^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$``).
+        The vehicle id (:mod:`wire.ids`).
     session:
         The drive's session id; default :func:`default_session_id`.
     mode, connect, listen, queue_size, answer_timeout_s:
@@ -150,7 +152,7 @@ class VehiclePublisher:
     settings:
         A complete settings object instead of the environment.
     on_pose, on_error:
-        Called with each :class:`~core.wire.PoseMessage` / :class:`~core.wire.ErrorMessage` of this
+        Called with each :class:`~wire.messages.PoseMessage` / :class:`~wire.messages.ErrorMessage` of this
         session, from the publisher's dispatcher thread (exceptions are logged, not raised).
     first_seq:
         Sequence number of the first scan (the service requires strictly increasing ``seq`` per
@@ -190,7 +192,7 @@ class VehiclePublisher:
         scan_from_arrays(vehicle, self.session, 0, 0, np.zeros((1, 3), np.float32))
         self.on_pose = on_pose
         self.on_error = on_error
-        self.scan_key = f"randt/fleet/{vehicle}/scan"
+        self.scan_key = scan_key(vehicle)
         self._next_seq = first_seq
         self._cond = threading.Condition()
         self._queue: deque[_Outgoing] = deque()
@@ -264,7 +266,7 @@ class VehiclePublisher:
             pts, intensity = pts[:, :3], pts[:, 3]
         elif pts.ndim != 2 or pts.shape[1] != 3:
             raise BadMessageError(
-                f"points: expected shape (N, 3) or (N, 4), got {pts.shape}", code="invalid_points"
+                f"points: expected shape (N, 3) or (N, 4), got {pts.shape}", code=ErrorCode.INVALID_POINTS
             )
         msg = scan_from_arrays(
             self.vehicle,
@@ -384,15 +386,14 @@ class VehiclePublisher:
         except Exception as exc:  # zenoh raises ZError when no endpoint answers
             log.warning("%s: cannot open a Zenoh %s session (%s); retrying", self.vehicle, s.mode, exc)
             return False
-        base = f"randt/fleet/{self.vehicle}"
         self._publisher = zs.declare_publisher(
             self.scan_key,
             congestion_control=zenoh.CongestionControl.BLOCK,  # the sender thread may wait, never drop
             reliability=zenoh.Reliability.RELIABLE,
         )
         self._subs = [
-            zs.declare_subscriber(f"{base}/pose", self._on_pose_sample),
-            zs.declare_subscriber(f"{base}/error", self._on_error_sample),
+            zs.declare_subscriber(pose_key(self.vehicle), self._on_pose_sample),
+            zs.declare_subscriber(error_key(self.vehicle), self._on_error_sample),
         ]
         self._zsession = zs
         log.info("%s: Zenoh %s session open (connect %s)", self.vehicle, s.mode, list(s.connect))

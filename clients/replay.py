@@ -34,7 +34,7 @@ from clients.publisher import PublisherSettings, PublisherStats, VehiclePublishe
 from core.datasets import ScanSequence, open_sequence
 from core.errors import BadMessageError
 from core.io import PointCloud
-from core.wire import ErrorMessage, PoseMessage
+from wire.messages import ErrorMessage, PoseMessage
 
 __all__ = ["ReplayResult", "replay", "sequence_rate_hz"]
 

@@ -11,12 +11,12 @@ from __future__ import annotations
 import logging
 import time
 
-from core.wire import encode
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager, tile_message
 from service.settings import ServiceSettings
 from service.store import Store
 from service.transport import ZenohTransport
+from wire.messages import WireMessage, encode
 
 __all__ = ["Service"]
 
@@ -34,7 +34,7 @@ class Service:
         self.sessions: SessionManager | None = None
         self.transport: ZenohTransport | None = None
         self._with_zenoh = with_zenoh
-        self._sent: list[object] = []  # outbound messages when running without Zenoh (tests)
+        self._sent: list[WireMessage] = []  # outbound messages when running without Zenoh (tests)
 
     def start(self) -> None:
         s = self.settings

@@ -46,27 +46,31 @@ from core.errors import BadMessageError, NotFoundError, RandtError
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
-from core.wire import (
+from service.matchers import LocalMatcher, MatcherPool, MatcherProcessDiedError, RemoteMatcher
+from service.metrics import ServiceMetrics
+from service.settings import ServiceSettings
+from service.store import SessionRecord, Store
+from wire.codes import ErrorCode
+from wire.ids import UNKNOWN_ID
+from wire.messages import (
     ErrorMessage,
     PoseMessage,
     ScanMessage,
+    TileUpdateMessage,
     WireLimits,
+    WireMessage,
     decode_scan,
     peek_ids,
     peek_seq,
     tile_update_from_arrays,
 )
-from service.matchers import LocalMatcher, MatcherPool, MatcherProcessDiedError, RemoteMatcher
-from service.metrics import ServiceMetrics
-from service.settings import ServiceSettings
-from service.store import SessionRecord, Store
 
 __all__ = ["MapInUseError", "Outbox", "SessionManager", "SessionWorker", "tile_message"]
 
 log = logging.getLogger(__name__)
 
 #: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
-Outbox = Callable[[object], None]
+Outbox = Callable[[WireMessage], None]
 
 
 class MapInUseError(RandtError):
@@ -176,7 +180,7 @@ class SessionWorker:
                     job.scan.vehicle,
                     job.scan.session,
                     job.scan.seq,
-                    "internal_error",
+                    ErrorCode.INTERNAL_ERROR,
                     "internal error while registering this scan (logged by the service)",
                 )
 
@@ -198,7 +202,7 @@ class SessionWorker:
                 job.scan.vehicle,
                 job.scan.session,
                 job.scan.seq,
-                "internal_error",
+                ErrorCode.INTERNAL_ERROR,
                 "the matcher process died; the session resumes from its last saved state",
             )
         self.matcher.close()
@@ -249,7 +253,7 @@ class SessionWorker:
                     behind=behind,
                 )
             except RandtError as exc:
-                m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
+                m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
                 return
             except MatcherProcessDiedError as exc:
                 log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
@@ -257,7 +261,7 @@ class SessionWorker:
                     scan.vehicle,
                     scan.session,
                     scan.seq,
-                    "internal_error",
+                    ErrorCode.INTERNAL_ERROR,
                     "the matcher process died; the session resumes from its last saved state",
                 )
                 self.broken = True
@@ -289,7 +293,6 @@ class SessionWorker:
         m.metrics.scans_processed.labels(result.status).inc()
         m.outbox(
             PoseMessage(
-                v=1,
                 vehicle=scan.vehicle,
                 session=scan.session,
                 seq=scan.seq,
@@ -361,12 +364,12 @@ class SessionManager:
             if scan.vehicle != key_vehicle:
                 raise BadMessageError(
                     f"vehicle: message says {scan.vehicle!r} but was published on {key_vehicle!r}'s key",
-                    code="invalid_field",
+                    code=ErrorCode.INVALID_FIELD,
                 )
         except BadMessageError as exc:
             _, session = peek_ids(payload)
             seq = peek_seq(payload)
-            self.reject(key_vehicle, session or "?", seq, exc.code, str(exc))
+            self.reject(key_vehicle, session or UNKNOWN_ID, seq, exc.code, str(exc))
             return
         key = (scan.vehicle, scan.session)
         with self._lock:
@@ -376,7 +379,7 @@ class SessionManager:
                     scan.vehicle,
                     scan.session,
                     scan.seq,
-                    "session_busy",
+                    ErrorCode.SESSION_BUSY,
                     "the session is being saved (closed or expired a moment ago): send the scan again",
                 )
                 return
@@ -385,7 +388,7 @@ class SessionManager:
                     scan.vehicle,
                     scan.session,
                     scan.seq,
-                    "sessions_full",
+                    ErrorCode.SESSIONS_FULL,
                     f"the service runs its maximum of {self.max_sessions} sessions (RANDT_MAX_SESSIONS): "
                     "send again later, close a session or add capacity",
                 )
@@ -397,7 +400,7 @@ class SessionManager:
                     self.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
                     return
                 except RandtError as exc:
-                    self.reject(scan.vehicle, scan.session, scan.seq, "session_error", str(exc))
+                    self.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.SESSION_ERROR, str(exc))
                     return
             info = worker.info
             if scan.seq == info.last_seq:
@@ -405,7 +408,7 @@ class SessionManager:
                     scan.vehicle,
                     scan.session,
                     scan.seq,
-                    "duplicate_seq",
+                    ErrorCode.DUPLICATE_SEQ,
                     f"seq {scan.seq} was already received for this session",
                 )
                 return
@@ -414,7 +417,7 @@ class SessionManager:
                     scan.vehicle,
                     scan.session,
                     scan.seq,
-                    "out_of_order",
+                    ErrorCode.OUT_OF_ORDER,
                     f"seq {scan.seq} arrived after seq {info.last_seq}: scans must come in order",
                 )
                 return
@@ -428,7 +431,7 @@ class SessionManager:
                 dropped.scan.vehicle,
                 dropped.scan.session,
                 dropped.scan.seq,
-                "dropped",
+                ErrorCode.DROPPED,
                 f"dropped: the session queue was full ({self.settings.queue_size} scans waiting)",
                 count=False,
             )
@@ -436,7 +439,8 @@ class SessionManager:
     def reject(
         self, vehicle: str, session: str, seq: int | None, code: str, reason: str, *, count: bool = True
     ) -> None:
-        """Answer one scan with an error on its vehicle's error key and count it."""
+        """Answer one scan with an error (``code``: an :class:`~wire.codes.ErrorCode`) on its
+        vehicle's error key and count it."""
         if count:
             self.metrics.scans_rejected.labels(code).inc()
         if not self.limits.id_ok(vehicle):
@@ -446,12 +450,12 @@ class SessionManager:
             )
             return
         if not self.limits.id_ok(session):
-            session = "?"
+            session = UNKNOWN_ID
         with self._lock:
             w = self._workers.get((vehicle, session))
             if w is not None:
                 w.info.n_errors += 1
-        self.outbox(ErrorMessage(v=1, vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
+        self.outbox(ErrorMessage(vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
 
     def _open_session(self, scan: ScanMessage) -> SessionWorker:
         key = (scan.vehicle, scan.session)
@@ -462,7 +466,7 @@ class SessionManager:
             raise BadMessageError(
                 f"session {scan.session!r} of vehicle {scan.vehicle!r} was closed: "
                 "publish under a new session id",
-                code="session_closed",
+                code=ErrorCode.SESSION_CLOSED,
             )
         if record is not None and record.state in ("active", "expired"):
             # Active: the service restarted. Expired: the vehicle paused longer than the idle
@@ -725,8 +729,8 @@ def queue_label(vehicle: str, session: str) -> str:
     return f"{vehicle}/{session}"
 
 
-def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> object:
-    """The current :class:`~core.wire.TileUpdateMessage` of one tile."""
+def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> TileUpdateMessage:
+    """The current :class:`~wire.messages.TileUpdateMessage` of one tile."""
     tile = grid.get(tile_id)
     return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
 

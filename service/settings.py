@@ -13,6 +13,9 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from wire.ids import ID_REGEX
+from wire.zenoh_config import check_endpoints
+
 __all__ = ["ServiceSettings"]
 
 
@@ -22,7 +25,7 @@ class ServiceSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="RANDT_", extra="forbid", frozen=True)
 
     data_dir: Path = Field(default=Path("randt-data"), description="maps, trajectories, session state")
-    instance: str = Field(default="randt-1", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    instance: str = Field(default="randt-1", pattern=ID_REGEX)
     # Zenoh
     zenoh_mode: Literal["peer", "client"] = "peer"
     listen: tuple[str, ...] = Field(default=("tcp/127.0.0.1:7447",), description="Zenoh endpoints")
@@ -52,7 +55,7 @@ class ServiceSettings(BaseSettings):
         "0 = run them in the session threads (service/matchers.py)",
     )
     # map
-    default_map: str = Field(default="default", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    default_map: str = Field(default="default", pattern=ID_REGEX)
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
@@ -63,11 +66,7 @@ class ServiceSettings(BaseSettings):
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        for ep in value:
-            proto, _, addr = ep.partition("/")
-            if proto not in ("tcp", "udp", "quic", "tls", "ws", "unixsock-stream") or not addr:
-                raise ValueError(f"not a Zenoh endpoint (expected e.g. tcp/127.0.0.1:7447): {ep!r}")
-        return value
+        return check_endpoints(value)
 
     @model_validator(mode="after")
     def _reads_need_a_token(self) -> ServiceSettings:

@@ -12,8 +12,8 @@ Layout
     DATA/sessions/<vehicle>/<session>/trajectory.tum   stamp_s tx ty tz qx qy qz qw, a line per scan
     DATA/sessions/<vehicle>/<session>/session.json     the session's record (:class:`SessionRecord`)
 
-Map, vehicle and session names must match :data:`NAME_PATTERN` (letters, digits, ``_ . -``, at
-most 64 characters, starting with a letter or digit); every path is built from checked names only.
+Map, vehicle and session names are ids (:mod:`wire.ids`: letters, digits, ``_ . -``, at most 64
+characters, starting with a letter or digit); every path is built from checked names only.
 
 Crash safety
 ------------
@@ -83,6 +83,7 @@ from core.io import atomic_write_bytes, read_tum, write_tum
 from core.io.atomic import fsync_directory
 from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.tiles import TileGrid, load_autoware
+from wire.ids import validate_id
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
     import fcntl
@@ -93,7 +94,6 @@ __all__ = [
     "LOCK_FILENAME",
     "MAPS_DIRNAME",
     "MATCHER_FILENAME",
-    "NAME_PATTERN",
     "SESSIONS_DIRNAME",
     "SESSION_FILENAME",
     "TRAJECTORY_FILENAME",
@@ -103,13 +103,9 @@ __all__ = [
     "Store",
     "StoreContents",
     "StoreProblem",
-    "validate_name",
 ]
 
 logger = logging.getLogger(__name__)
-
-#: What a map, vehicle or session name must match (and it must not be ``.`` or ``..``).
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 MAPS_DIRNAME = "maps"
 SESSIONS_DIRNAME = "sessions"
@@ -122,7 +118,7 @@ SessionState = Literal["active", "closed", "expired"]
 ProblemKind = Literal["map", "session", "entry"]
 
 # core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
-# in the target's directory. No name the store writes starts with a dot (NAME_PATTERN, fixed names).
+# in the target's directory. No name the store writes starts with a dot (ids, fixed names).
 _TEMP_FILE_RE = re.compile(r"^\..+\.tmp$")
 _DELETED_PREFIX = ".deleted-"  # maps/.deleted-<name>-...: a delete_map that did not finish
 # Keys of matcher.npz that belong to the store, not to the matcher state.
@@ -138,32 +134,6 @@ _BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 _NPZ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile)
 
 
-def validate_name(name: object, what: str = "name") -> str:
-    """Return ``name`` if it is a safe map, vehicle or session name, else raise.
-
-    Parameters
-    ----------
-    name:
-        The candidate; must be a ``str`` matching :data:`NAME_PATTERN` and not ``.`` or ``..``.
-    what:
-        What the name names (``"map"``, ``"vehicle"``, ``"session"``), for the message.
-
-    Raises
-    ------
-    ValueError
-        Not a string, or not a safe name (path separators, ``..``, leading dot or dash, empty,
-        longer than 64 characters, characters outside ``A-Z a-z 0-9 _ . -``).
-    """
-    if not isinstance(name, str):
-        raise ValueError(f"{what} name must be a string, got {type(name).__name__}")
-    if name in (".", "..") or NAME_PATTERN.fullmatch(name) is None:
-        raise ValueError(
-            f"invalid {what} name {name!r}: use 1-64 characters from A-Z a-z 0-9 _ . -, "
-            "starting with a letter or digit"
-        )
-    return name
-
-
 def _utcnow() -> datetime:
     return datetime.now(UTC)
 
@@ -174,7 +144,7 @@ class SessionRecord(BaseModel):
     Attributes
     ----------
     vehicle, session:
-        Names (:data:`NAME_PATTERN`); the session lives in ``sessions/<vehicle>/<session>/``.
+        Names (ids, :mod:`wire.ids`); the session lives in ``sessions/<vehicle>/<session>/``.
     map:
         The map the session's scans go into, or ``None``.
     state:
@@ -215,7 +185,7 @@ class SessionRecord(BaseModel):
     @field_validator("vehicle", "session", "map")
     @classmethod
     def _safe_name(cls, value: str | None, info: ValidationInfo) -> str | None:
-        return None if value is None else validate_name(value, info.field_name)
+        return None if value is None else validate_id(value, info.field_name)
 
     @model_validator(mode="after")
     def _fallbacks_within_scans(self) -> SessionRecord:
@@ -522,9 +492,9 @@ class Store:
         Raises
         ------
         ValueError
-            ``map_name`` is not a valid name (:func:`validate_name`).
+            ``map_name`` is not a valid name (:func:`wire.ids.validate_id`).
         """
-        return self._maps / validate_name(map_name, "map")
+        return self._maps / validate_id(map_name, "map")
 
     def session_dir(self, vehicle: str, session: str) -> Path:
         """``DATA/sessions/<vehicle>/<session>`` (not created).
@@ -532,9 +502,9 @@ class Store:
         Raises
         ------
         ValueError
-            ``vehicle`` or ``session`` is not a valid name (:func:`validate_name`).
+            ``vehicle`` or ``session`` is not a valid name (:func:`wire.ids.validate_id`).
         """
-        return self._sessions / validate_name(vehicle, "vehicle") / validate_name(session, "session")
+        return self._sessions / validate_id(vehicle, "vehicle") / validate_id(session, "session")
 
     # ------------------------------------------------------------------------------ maps
 
@@ -548,7 +518,7 @@ class Store:
         Parameters
         ----------
         map_name:
-            The map's name (:data:`NAME_PATTERN`).
+            The map's name (an id, :mod:`wire.ids`).
         grid:
             The map.
         changed_ids:
@@ -631,7 +601,7 @@ class Store:
             if not entry.is_dir():
                 continue
             try:
-                validate_name(entry.name, "map")
+                validate_id(entry.name, "map")
             except ValueError:
                 logger.warning("ignoring %s: not a valid map directory name", entry)
                 continue
@@ -872,7 +842,7 @@ class Store:
             self._report(problems, "entry", rel, path, f"not a {what} directory")
             return False
         try:
-            validate_name(path.name, what)
+            validate_id(path.name, what)
         except ValueError as exc:
             self._report(problems, "entry", rel, path, str(exc))
             return False

@@ -1,4 +1,4 @@
-"""Zenoh transport: the only module that talks to Zenoh.
+"""Zenoh transport: the only module of the service that talks to Zenoh.
 
 - a subscriber on ``randt/fleet/*/scan`` whose callback only hands the payload to the session
   manager (decode, validate, enqueue: no blocking, no Zenoh calls inside the callback);
@@ -7,13 +7,13 @@
 - a liveliness token ``randt/service/<instance>`` while the instance runs;
 - a queryable on ``randt/map/*/tile/*`` answering with the tile's current update message.
 
-Peer mode listening on 127.0.0.1 is the embedded default (no router). Multicast scouting is off:
-peers and routers are reached through explicit endpoints only.
+The key expressions come from :mod:`wire.keys`, the session's configuration from
+:mod:`wire.zenoh_config`. Peer mode listening on 127.0.0.1 is the embedded default (no router).
+Multicast scouting is off: peers and routers are reached through explicit endpoints only.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -22,41 +22,14 @@ from collections.abc import Callable
 
 import zenoh
 
-from core.wire import ErrorMessage, PoseMessage, TileUpdateMessage, encode
 from service.settings import ServiceSettings
+from wire.keys import ALL_SCANS, ALL_TILES, key_for, service_token_key, tile_of_key, vehicle_of_scan_key
+from wire.messages import ErrorMessage, PoseMessage, WireMessage, encode
+from wire.zenoh_config import zenoh_config
 
-__all__ = ["ZenohTransport", "zenoh_config"]
+__all__ = ["ZenohTransport"]
 
 log = logging.getLogger(__name__)
-
-SCAN_KEY = "randt/fleet/*/scan"
-
-
-def zenoh_config(mode: str, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
-    """A Zenoh config with explicit endpoints and multicast scouting off."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", json.dumps(mode))
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    if connect:
-        cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    return cfg
-
-
-_BLOCK, _DROP = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
-_ANSWER_PRIORITY, _TILE_PRIORITY = zenoh.Priority.INTERACTIVE_HIGH, zenoh.Priority.DATA
-
-
-def key_for(message: object) -> str:
-    """The key expression a message is published on (docs/wire-format.md)."""
-    if isinstance(message, PoseMessage):
-        return f"randt/fleet/{message.vehicle}/pose"
-    if isinstance(message, ErrorMessage):
-        return f"randt/fleet/{message.vehicle}/error"
-    if isinstance(message, TileUpdateMessage):
-        return f"randt/map/{message.map}/tile/{message.tile}"
-    raise TypeError(f"no key expression for {type(message).__name__}")
 
 
 class ZenohTransport:
@@ -90,29 +63,30 @@ class ZenohTransport:
         self._sender.start()
         sess = self._session
         self._handles = [
-            sess.declare_subscriber(SCAN_KEY, self._scan_callback),
-            sess.liveliness().declare_token(f"randt/service/{s.instance}"),
-            sess.declare_queryable("randt/map/*/tile/*", self._tile_query),
+            sess.declare_subscriber(ALL_SCANS, self._scan_callback),
+            sess.liveliness().declare_token(service_token_key(s.instance)),
+            sess.declare_queryable(ALL_TILES, self._tile_query),
         ]
         log.info("zenoh %s session open (listen %s, connect %s)", s.zenoh_mode, s.listen, s.connect)
 
     def _scan_callback(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
         try:
-            self._on_scan(parts[2], sample.payload.to_bytes(), time.time_ns())
+            self._on_scan(
+                vehicle_of_scan_key(str(sample.key_expr)), sample.payload.to_bytes(), time.time_ns()
+            )
         except Exception:  # never let an exception escape into Zenoh's thread
             log.exception("scan callback failed")
 
     def _tile_query(self, query: zenoh.Query) -> None:
-        parts = str(query.key_expr).split("/")
         try:
-            payload = self._tile_provider(parts[2], parts[4]) if len(parts) == 5 else None
+            tile = tile_of_key(str(query.key_expr))
+            payload = None if tile is None else self._tile_provider(*tile)
             if payload is not None:
                 query.reply(query.key_expr, payload)
         except Exception:
             log.exception("tile query %s failed", query.key_expr)
 
-    def send(self, message: object) -> None:
+    def send(self, message: WireMessage) -> None:
         """Queue a message for publication (drops it, counted, if the outbound queue is full)."""
         answer = isinstance(message, PoseMessage | ErrorMessage)
         try:

@@ -13,8 +13,8 @@ Auth
 
 Ids
 ---
-Map, vehicle and session names are checked against the store's pattern
-(:data:`service.store.NAME_PATTERN`) by FastAPI before a handler runs (**422** otherwise), and tile
+Map, vehicle and session names are checked against the id rule
+(:data:`wire.ids.ID_REGEX`) by FastAPI before a handler runs (**422** otherwise), and tile
 indices are bounded integers. Handlers look names up in the live maps and sessions; no file is ever
 opened from a client-supplied string.
 """
@@ -31,7 +31,7 @@ from core.tiles import TileGrid
 from service.api.models import ErrorBody
 from service.runtime import Service
 from service.sessions import SessionManager
-from service.store import NAME_PATTERN
+from wire.ids import ID_MAX_LENGTH, ID_REGEX
 
 __all__ = [
     "MAX_TILE_INDEX",
@@ -51,10 +51,13 @@ __all__ = [
 #: Largest |ix|, |iy| a tile index may have (the grid packs indices into 31 bits).
 MAX_TILE_INDEX = (1 << 30) - 1
 
-_NAME = NAME_PATTERN.pattern
-MapName = Annotated[str, Path(pattern=_NAME, max_length=64, description="map name, e.g. 'default'")]
-VehicleName = Annotated[str, Path(pattern=_NAME, max_length=64, description="vehicle id")]
-SessionName = Annotated[str, Path(pattern=_NAME, max_length=64, description="session id of the vehicle")]
+MapName = Annotated[
+    str, Path(pattern=ID_REGEX, max_length=ID_MAX_LENGTH, description="map name, e.g. 'default'")
+]
+VehicleName = Annotated[str, Path(pattern=ID_REGEX, max_length=ID_MAX_LENGTH, description="vehicle id")]
+SessionName = Annotated[
+    str, Path(pattern=ID_REGEX, max_length=ID_MAX_LENGTH, description="session id of the vehicle")
+]
 TileIx = Annotated[int, Path(ge=-MAX_TILE_INDEX, le=MAX_TILE_INDEX, description="tile index")]
 
 

@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from clients.zenoh_config import zenoh_config
 from core.errors import BadMessageError
-from core.wire import ErrorMessage, PoseMessage, decode_scan, encode
 from tests.service.conftest import free_port
+from wire.codes import ErrorCode
+from wire.keys import ALL_SCANS, key_for
+from wire.messages import ErrorMessage, PoseMessage, decode_scan, encode
+from wire.zenoh_config import zenoh_config
 
 
 class Router:
@@ -60,9 +62,7 @@ class FakeService:
         self.received: list[tuple[str, str, int, int]] = []  # vehicle, session, seq, n_points
         self._jobs: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._zs = zenoh.open(zenoh_config("client", connect=(endpoint,)))
-        self._sub = self._zs.declare_subscriber(
-            "randt/fleet/*/scan", lambda s: self._jobs.put(s.payload.to_bytes())
-        )
+        self._sub = self._zs.declare_subscriber(ALL_SCANS, lambda s: self._jobs.put(s.payload.to_bytes()))
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
@@ -74,18 +74,15 @@ class FakeService:
                 continue
             self.received.append((scan.vehicle, scan.session, scan.seq, scan.n_points))
             if scan.seq in self.reject_seqs:
-                answer: object = ErrorMessage(
-                    v=1,
+                answer: ErrorMessage | PoseMessage = ErrorMessage(
                     vehicle=scan.vehicle,
                     session=scan.session,
                     seq=scan.seq,
-                    code="invalid_field",
+                    code=ErrorCode.INVALID_FIELD,
                     reason="test",
                 )
-                key = f"randt/fleet/{scan.vehicle}/error"
             else:
                 answer = PoseMessage(
-                    v=1,
                     vehicle=scan.vehicle,
                     session=scan.session,
                     seq=scan.seq,
@@ -98,8 +95,7 @@ class FakeService:
                     latency_ms=0.0,
                     map="default",
                 )
-                key = f"randt/fleet/{scan.vehicle}/pose"
-            self._zs.put(key, encode(answer))
+            self._zs.put(key_for(answer), encode(answer))
 
     def close(self) -> None:
         self._jobs.put(None)

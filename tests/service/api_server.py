@@ -22,11 +22,11 @@ import uvicorn
 from clients.sim.drive import Route, SimScan, simulate, simulate_fleet
 from clients.sim.lidar import Lidar64
 from clients.sim.town import Town
-from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from service.app import create_app
 from service.runtime import Service
 from service.settings import ServiceSettings
 from tests.service.conftest import free_port
+from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 TOKEN = "test-token-0123456789abcdef"
 PRIOR_COV = np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)

@@ -25,9 +25,9 @@ from pydantic import ValidationError
 from core.io import read_cloud
 from core.protocol import synthetic_room
 from core.transforms import transform_error
-from core.wire import ErrorMessage, encode, scan_from_arrays
 from service.settings import ServiceSettings
 from tests.service.api_server import TOKEN, Fleet, LiveServer, answers, drive_fleet, live_server, wait_answers
+from wire.messages import ErrorMessage, encode, scan_from_arrays
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 

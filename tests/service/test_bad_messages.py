@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from core.protocol import synthetic_room
-from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store
-from service.transport import key_for
+from wire.keys import key_for
+from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
 
@@ -229,8 +229,8 @@ def test_overload_keeps_a_young_sessions_first_scans() -> None:
     waiting scan instead: its first scan anchors it, its first sweeps give the velocity."""
     from collections import deque
 
-    from core.wire import decode_scan
     from service.sessions import _Job, drop_index
+    from wire.messages import decode_scan
 
     def job(seq: int) -> _Job:
         return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM))), 0)

@@ -12,10 +12,10 @@ import zenoh
 from clients.sim.drive import simulate_fleet
 from clients.sim.town import Town
 from core.transforms import transform_error
-from core.wire import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
 from service.runtime import Service
 from service.settings import ServiceSettings
-from service.transport import zenoh_config
+from wire.messages import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
+from wire.zenoh_config import zenoh_config
 
 N_VEHICLES = 3
 N_SCANS = 10

@@ -26,9 +26,9 @@ REPO = Path(__file__).resolve().parents[2]
 def _worker(data_dir: str) -> None:
     from core.protocol import synthetic_room
     from core.transforms import make_transform, transform_points
-    from core.wire import encode, scan_from_arrays
     from service.runtime import Service
     from service.settings import ServiceSettings
+    from wire.messages import encode, scan_from_arrays
 
     service = Service(ServiceSettings(data_dir=data_dir, flush_interval_s=0.05), with_zenoh=False)
     service.start()

@@ -13,12 +13,12 @@ from core.odometry import IncrementalMatcher, MatcherSettings
 from core.protocol import synthetic_room
 from core.tiles import TileGrid
 from core.transforms import invert, make_transform, transform_points
-from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from service.matchers import MatcherPool
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store
+from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000)
 STEP = make_transform(euler_deg=(0.0, 0.0, 2.0), translation=(0.3, 0.05, 0.0))

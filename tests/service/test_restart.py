@@ -9,9 +9,9 @@ import numpy as np
 from clients.sim.drive import Route, simulate
 from clients.sim.town import Town
 from core.transforms import transform_error
-from core.wire import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from service.runtime import Service
 from service.settings import ServiceSettings
+from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 
 def _wait(out: list[object], n: int, timeout: float = 120.0) -> None:

@@ -14,9 +14,9 @@ import pytest
 import zenoh
 
 from core.protocol import synthetic_room
-from core.wire import decode_pose, encode, scan_from_arrays
-from service.transport import zenoh_config
 from tests.service.conftest import free_port
+from wire.messages import decode_pose, encode, scan_from_arrays
+from wire.zenoh_config import zenoh_config
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])

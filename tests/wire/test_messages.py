@@ -1,4 +1,4 @@
-"""Tests for core.wire: round trips, one crafted payload per error code, fuzzing, peeking."""
+"""Tests for wire.messages: round trips, one crafted payload per error code, fuzzing, peeking."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import logging
 import re
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import msgpack
 import numpy as np
@@ -15,12 +15,13 @@ from pydantic import ValidationError
 
 from core.errors import BadMessageError
 from core.transforms import make_transform
-from core.wire import (
-    ERROR_CODES,
+from wire.codes import DECODE_CODES
+from wire.messages import (
     SCHEMA_VERSION,
     ErrorMessage,
     PoseMessage,
     ScanMessage,
+    SchemaVersion,
     TileUpdateMessage,
     WireLimits,
     decode_error,
@@ -52,7 +53,7 @@ def scan_dict(n: int = 20, **overrides: Any) -> dict[str, Any]:
     """A valid scan as the raw msgpack map, with fields replaced (or dropped with ``DROP``)."""
     rng = np.random.default_rng(3)
     obj: dict[str, Any] = {
-        "v": 1,
+        "v": SCHEMA_VERSION,
         "vehicle": "car-07",
         "session": "2024-05-01.a",
         "seq": 12,
@@ -118,6 +119,84 @@ def test_scan_round_trip_with_every_optional_field() -> None:
     cloud = got.to_cloud()
     np.testing.assert_array_equal(cloud.xyz, xyz.astype(np.float64))
     np.testing.assert_array_equal(cloud.time_offset_s, offsets.astype(np.float64))
+
+
+def test_encode_writes_the_documented_v1_maps() -> None:
+    """The exact bytes: each message is the msgpack map of docs/wire-format.md, keys in the order of
+    its tables and ``v`` = 1 first, so a v1 sender or receiver written from the doc keeps working."""
+    xyz = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    T = make_transform([0.0, 0.0, 0.5], [105.2, -42.7, 1.9])
+    C = np.diag([0.04, 0.04, 0.09, 1e-4, 1e-4, 4e-4])
+    scan = scan_from_arrays("car-07", "2024-05-01.a", 1842, 17, xyz, np.ones(2), np.zeros(2), T, C)
+    assert encode(scan) == pack(
+        {
+            "v": 1,
+            "vehicle": "car-07",
+            "session": "2024-05-01.a",
+            "seq": 1842,
+            "stamp_ns": 17,
+            "fields": "xyzi",
+            "points": f32(np.c_[xyz, np.ones(2)]),
+            "time_offsets": f32(np.zeros(2)),
+            "prior": {"pose": T.ravel().tolist(), "covariance": C.ravel().tolist()},
+        }
+    )
+    bare = scan_from_arrays("car-07", "s", 0, 0, xyz)
+    assert encode(bare) == pack(
+        {
+            "v": 1,
+            "vehicle": "car-07",
+            "session": "s",
+            "seq": 0,
+            "stamp_ns": 0,
+            "fields": "xyz",
+            "points": f32(xyz),
+            "time_offsets": None,
+            "prior": None,
+        }
+    )
+    pose_fields = {
+        "vehicle": "car-07",
+        "session": "s",
+        "seq": 3,
+        "stamp_ns": 17,
+        "pose": T.ravel().tolist(),
+        "fitness": 2.41,
+        "inlier_ratio": 0.93,
+        "converged": True,
+        "status": "ok",
+        "covariance": None,
+        "latency_ms": 38.5,
+        "map": "default",
+    }
+    assert encode(PoseMessage(**pose_fields)) == pack({"v": 1, **pose_fields})
+    error = ErrorMessage(vehicle="car-07", session="?", code="malformed", reason="why")
+    assert encode(error) == pack(
+        {"v": 1, "vehicle": "car-07", "session": "?", "seq": None, "code": "malformed", "reason": "why"}
+    )
+    tile = tile_update_from_arrays("default", 5, -3, 12, xyz, np.array([7.0, 8.0]))
+    assert encode(tile) == pack(
+        {
+            "v": 1,
+            "map": "default",
+            "tile": "5_-3",
+            "ix": 5,
+            "iy": -3,
+            "version": 12,
+            "bounds": {"min": (1.0, 2.0, 3.0), "max": (4.0, 5.0, 6.0)},
+            "n_points": 2,
+            "points": f32(np.c_[xyz, [7.0, 8.0]]),
+        }
+    )
+
+
+def test_schema_version_is_the_only_accepted_v() -> None:
+    assert SCHEMA_VERSION == 1
+    assert get_args(SchemaVersion) == (SCHEMA_VERSION,)
+    for model in (ScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage):
+        assert model.model_fields["v"].default == SCHEMA_VERSION
+    with pytest.raises(ValidationError):
+        ErrorMessage(v=SCHEMA_VERSION + 1, vehicle="car", session="s", code="malformed", reason="r")
 
 
 def test_scan_points_are_views_of_the_unpacked_bytes() -> None:
@@ -495,10 +574,10 @@ def test_valid_prior_tolerates_float32_rounding() -> None:
 
 def test_every_code_is_documented_and_exercised() -> None:
     doc = DOC.read_text(encoding="utf-8")
-    for code in ERROR_CODES:
+    for code in DECODE_CODES:
         assert re.search(rf"^\| `{code}` \|", doc, flags=re.MULTILINE), f"{code} missing from the doc table"
     tests = [name for name in globals() if name.startswith("test_")]
-    for code in ERROR_CODES:
+    for code in DECODE_CODES:
         assert any(name.startswith(f"test_{code}") for name in tests), f"no test for {code}"
 
 
@@ -581,7 +660,7 @@ def test_wire_limits_reject_unsafe_id_patterns() -> None:
 
 def test_encode_rejects_other_objects() -> None:
     with pytest.raises(TypeError):
-        encode({"v": 1})  # type: ignore[arg-type]
+        encode({"v": SCHEMA_VERSION})  # type: ignore[arg-type]
 
 
 def test_pose_matrix_helpers() -> None:
@@ -669,7 +748,7 @@ def _only_bad_message_errors(payload: bytes) -> None:
         try:
             decoder(payload)
         except BadMessageError as exc:
-            assert exc.code in ERROR_CODES, exc.code
+            assert exc.code in DECODE_CODES, exc.code
     vehicle, session = peek_ids(payload)
     assert vehicle is None or isinstance(vehicle, str)
     assert session is None or isinstance(session, str)
@@ -678,7 +757,7 @@ def _only_bad_message_errors(payload: bytes) -> None:
 
 def assert_no_decoder_bug(caplog: pytest.LogCaptureFixture) -> None:
     """The decoders' safety net (unexpected exceptions reported as malformed) must never fire."""
-    bugs = [r for r in caplog.records if r.name == "core.wire" and r.levelno >= logging.ERROR]
+    bugs = [r for r in caplog.records if r.name == "wire.messages" and r.levelno >= logging.ERROR]
     assert not bugs, bugs[0].getMessage()
 
 

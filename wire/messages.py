@@ -1,21 +1,21 @@
-"""The wire format between vehicles, the service and map users: versioned msgpack messages.
+"""The messages of the wire format: versioned msgpack maps, their models, encode, decode and peek.
 
 Every message is one msgpack map (packed with ``use_bin_type=True``, so raw bytes travel as msgpack
-``bin`` and text as ``str``) whose ``v`` key is the schema version, here :data:`SCHEMA_VERSION` = 1.
+``bin`` and text as ``str``) whose ``v`` key is the schema version, :data:`SCHEMA_VERSION`.
 ``docs/wire-format.md`` is the reference for key expressions, fields, units, frames, error codes and
-versioning; this module implements it and is shared by the service and the vehicle clients (it does
-not import Zenoh, and clients never import ``service/``).
+versioning; this module implements the messages and is shared by the service and the vehicle clients
+(it does not import Zenoh).
 
 Decoding in one screen::
 
-    payload --size check--> msgpack.unpackb --top-level map?--> v == 1? --pydantic (strict)-->
+    payload --size check--> msgpack.unpackb --top-level map?--> v == SCHEMA_VERSION? --pydantic (strict)-->
         ids match the id pattern --> points: stride, count, limits, finite --> prior: rigid, PSD
 
-Each step raises :class:`~core.errors.BadMessageError` with a stable ``code`` (:data:`ERROR_CODES`)
-and a reason naming the field and the problem; nothing else escapes a ``decode_*`` function, whatever
-the bytes. Point buffers are kept as the ``bytes`` msgpack produced and read through
-``np.frombuffer`` (no further copy). :func:`peek_ids` and :func:`peek_seq` read the addressing
-fields of a message that failed to decode, so its error can still reach the right vehicle.
+Each step raises :class:`~core.errors.BadMessageError` with a stable ``code`` (one of
+:data:`wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else escapes
+a ``decode_*`` function, whatever the bytes. Point buffers are kept as the ``bytes`` msgpack produced
+and read through ``np.frombuffer`` (no further copy). :func:`peek_ids` and :func:`peek_seq` read the
+addressing fields of a message that failed to decode, so its error can still reach the right vehicle.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import io
 import logging
 import re
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Final, Literal, TypeVar
 
 import msgpack
 import numpy as np
@@ -42,19 +42,20 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from core.errors import BadMessageError
+from wire.codes import CODE_REGEX, DECODE_CODES, ErrorCode
+from wire.ids import ID_REGEX, UNKNOWN_ID, UNSAFE_ID_SAMPLES
 
 if TYPE_CHECKING:
     from core.io.clouds import PointCloud
 
 __all__ = [
-    "ERROR_CODES",
     "SCHEMA_VERSION",
-    "UNKNOWN_ID",
     "Bounds",
     "ErrorMessage",
     "PoseMessage",
     "Prior",
     "ScanMessage",
+    "SchemaVersion",
     "TileUpdateMessage",
     "WireLimits",
     "WireMessage",
@@ -73,28 +74,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: The schema version this module writes and the only one it reads.
-SCHEMA_VERSION = 1
+#: The schema version this package writes and the only one it reads (docs/wire-format.md, Versioning).
+SCHEMA_VERSION: Final = 1
 
-#: ``vehicle`` / ``session`` of an :class:`ErrorMessage` when the failed message did not say.
-UNKNOWN_ID = "?"
-
-#: Every ``code`` a ``decode_*`` function raises, with its meaning (docs/wire-format.md has the table).
-ERROR_CODES: dict[str, str] = {
-    "payload_too_large": "the payload exceeds max_payload_bytes (checked before unpacking)",
-    "malformed": "not msgpack, truncated, trailing bytes, or the top level is not a map",
-    "unsupported_version": "v is an integer other than 1",
-    "missing_field": "a required field is absent",
-    "invalid_field": "a field has the wrong type or value (the reason names the field)",
-    "invalid_id": "vehicle, session or map does not match the id pattern",
-    "invalid_points": "point bytes not a multiple of the point size, time offsets of the wrong length "
-    "or outside [0, max_time_offset_s], or a tile's point bytes not matching n_points",
-    "empty_scan": "the scan holds no points",
-    "too_many_points": "the scan holds more than max_points points",
-    "nonfinite_points": "a point has a NaN or infinite coordinate or intensity",
-    "invalid_prior": "the prior pose is not a finite rigid transform, or its covariance is not a "
-    "finite symmetric positive semi-definite 6x6 matrix",
-}
+#: The type of every message's ``v``: :data:`SCHEMA_VERSION` and nothing else.
+SchemaVersion = Literal[1]
 
 _INT64_MAX = 2**63 - 1
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
@@ -107,9 +91,6 @@ _ROTATION_ATOL = 1e-4
 _LAST_ROW_ATOL = 1e-9
 _SYMMETRY_RTOL = 1e-6
 _PSD_RTOL = 1e-9
-
-# Ids become Zenoh key-expression chunks and file names: a configured pattern must reject these.
-_UNSAFE_ID_SAMPLES = ("", "a/b", "*", "**", "$*", "a?b", "a#b", "a b", ".", "..", "a\nb")
 
 _PREVIEW_CHARS = 40
 
@@ -130,8 +111,9 @@ class WireLimits(BaseModel):
         Largest payload accepted, checked before unpacking (``payload_too_large``).
     id_pattern:
         Regular expression a ``vehicle``, ``session`` or ``map`` id must match in full. The default
-        allows 1-64 letters, digits, ``_``, ``.`` and ``-``, starting with a letter or digit: no
-        ``/ * $ ? #`` or spaces, which would break Zenoh key expressions or file paths.
+        is the id rule, :data:`wire.ids.ID_REGEX`; a pattern accepting any of
+        :data:`wire.ids.UNSAFE_ID_SAMPLES` (which would break key expressions or file paths) is
+        refused.
     max_time_offset_s:
         Per-point time offsets must lie in ``[0, max_time_offset_s]`` seconds.
     """
@@ -140,7 +122,7 @@ class WireLimits(BaseModel):
 
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1)
-    id_pattern: str = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+    id_pattern: str = ID_REGEX
     max_time_offset_s: float = Field(default=1.0, gt=0, allow_inf_nan=False)
 
     @field_validator("id_pattern")
@@ -150,7 +132,7 @@ class WireLimits(BaseModel):
             compiled = _compiled(value)
         except re.error as exc:
             raise ValueError(f"id_pattern is not a regular expression: {exc}") from exc
-        for sample in _UNSAFE_ID_SAMPLES:
+        for sample in UNSAFE_ID_SAMPLES:
             if compiled.fullmatch(sample):
                 raise ValueError(
                     f"id_pattern accepts {sample!r}, which would break key expressions or file paths"
@@ -197,8 +179,8 @@ Vec3 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length
 Count = Annotated[int, Field(ge=0, le=_INT64_MAX)]
 
 
-def _fail(code: str, reason: str) -> PydanticCustomError:
-    """A validation error whose ``type`` is one of :data:`ERROR_CODES`."""
+def _fail(code: ErrorCode, reason: str) -> PydanticCustomError:
+    """A validation error whose ``type`` is one of :data:`~wire.codes.DECODE_CODES`."""
     return PydanticCustomError(code, "{reason}", {"reason": reason})
 
 
@@ -223,7 +205,9 @@ def _check_id(value: str, info: ValidationInfo, *, allow_unknown: bool = False) 
         return value
     limits = _limits_of(info)
     if not limits.id_ok(value):
-        raise _fail("invalid_id", f"{_preview(value)} is not a valid id (must match {limits.id_pattern})")
+        raise _fail(
+            ErrorCode.INVALID_ID, f"{_preview(value)} is not a valid id (must match {limits.id_pattern})"
+        )
     return value
 
 
@@ -276,7 +260,7 @@ class _Message(BaseModel):
 
     model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
 
-    v: Literal[1] = SCHEMA_VERSION
+    v: SchemaVersion = SCHEMA_VERSION
 
 
 class Prior(BaseModel):
@@ -300,10 +284,10 @@ class Prior(BaseModel):
     def _check(self) -> Prior:
         problem = _rigid_problem(self.pose)
         if problem is not None:
-            raise _fail("invalid_prior", f"pose {problem}")
+            raise _fail(ErrorCode.INVALID_PRIOR, f"pose {problem}")
         problem = _covariance_problem(self.covariance)
         if problem is not None:
-            raise _fail("invalid_prior", f"covariance {problem}")
+            raise _fail(ErrorCode.INVALID_PRIOR, f"covariance {problem}")
         return self
 
 
@@ -313,7 +297,7 @@ class ScanMessage(_Message):
     Attributes
     ----------
     v:
-        Schema version, 1.
+        Schema version, :data:`SCHEMA_VERSION`.
     vehicle, session:
         Ids (:attr:`WireLimits.id_pattern`); a session is one drive, one matcher on the service.
     seq:
@@ -351,18 +335,20 @@ class ScanMessage(_Message):
         size = _POINT_SIZE[self.fields]
         if len(self.points) % size:
             raise _fail(
-                "invalid_points",
+                ErrorCode.INVALID_POINTS,
                 f"points: {len(self.points)} bytes is not a multiple of {size} (fields {self.fields})",
             )
         n = len(self.points) // size
         if n == 0:
-            raise _fail("empty_scan", "points: the scan holds no points")
+            raise _fail(ErrorCode.EMPTY_SCAN, "points: the scan holds no points")
         if n > limits.max_points:
-            raise _fail("too_many_points", f"points: {n} points exceed the limit of {limits.max_points}")
+            raise _fail(
+                ErrorCode.TOO_MANY_POINTS, f"points: {n} points exceed the limit of {limits.max_points}"
+            )
         if self.time_offsets is not None:
             if len(self.time_offsets) != 4 * n:
                 raise _fail(
-                    "invalid_points",
+                    ErrorCode.INVALID_POINTS,
                     f"time_offsets: {len(self.time_offsets)} bytes, expected {4 * n} "
                     f"(one float32 per point, {n} points)",
                 )
@@ -371,7 +357,7 @@ class ScanMessage(_Message):
             if bad.any():
                 first = int(np.argmax(bad))
                 raise _fail(
-                    "invalid_points",
+                    ErrorCode.INVALID_POINTS,
                     f"time_offsets: {int(np.count_nonzero(bad))} offsets outside "
                     f"[0, {limits.max_time_offset_s}] s, first at index {first} ({float(offsets[first])})",
                 )
@@ -380,13 +366,13 @@ class ScanMessage(_Message):
             count, first = _first_nonfinite(table[:, :3])
             if count:
                 raise _fail(
-                    "nonfinite_points",
+                    ErrorCode.NONFINITE_POINTS,
                     f"points: {count} points have a non-finite coordinate (NaN or Inf), "
                     f"first at index {first}",
                 )
             count, first = _first_nonfinite(table[:, 3])
             raise _fail(
-                "nonfinite_points",
+                ErrorCode.NONFINITE_POINTS,
                 f"points: {count} points have a non-finite intensity (NaN or Inf), first at index {first}",
             )
         return self
@@ -478,7 +464,7 @@ class PoseMessage(_Message):
     def _check_pose(self) -> PoseMessage:
         problem = _rigid_problem(self.pose)
         if problem is not None:
-            raise _fail("invalid_field", f"pose: {problem}")
+            raise _fail(ErrorCode.INVALID_FIELD, f"pose: {problem}")
         return self
 
     def matrix(self) -> np.ndarray:
@@ -496,12 +482,13 @@ class ErrorMessage(_Message):
     Attributes
     ----------
     vehicle, session:
-        Ids of the rejected scan, or :data:`UNKNOWN_ID` (``"?"``) when it could not be read.
+        Ids of the rejected scan, or :data:`~wire.ids.UNKNOWN_ID` (``"?"``) when it could not be read.
     seq:
         The rejected scan's ``seq``, or ``None`` when unknown.
     code:
-        Stable machine-readable code: one of :data:`ERROR_CODES` for decoding failures, others for
-        the service's own refusals (lower-case letters, digits and ``_``).
+        Stable machine-readable code (:class:`~wire.codes.ErrorCode`): one of
+        :data:`~wire.codes.DECODE_CODES` for decoding failures, of :data:`~wire.codes.SERVICE_CODES`
+        for the service's own refusals (:data:`~wire.codes.CODE_REGEX`).
     reason:
         Human-readable: what was wrong and where.
     """
@@ -509,7 +496,7 @@ class ErrorMessage(_Message):
     vehicle: str
     session: str
     seq: Count | None = None
-    code: str = Field(pattern=r"^[a-z][a-z0-9_]{0,63}$")
+    code: str = Field(pattern=CODE_REGEX)
     reason: str
 
     @field_validator("vehicle", "session")
@@ -567,22 +554,24 @@ class TileUpdateMessage(_Message):
         expected = f"{self.ix}_{self.iy}"
         if self.tile != expected:
             raise _fail(
-                "invalid_field", f"tile: {_preview(self.tile)} does not match ix, iy (expected {expected!r})"
+                ErrorCode.INVALID_FIELD,
+                f"tile: {_preview(self.tile)} does not match ix, iy (expected {expected!r})",
             )
         if len(self.points) != _TILE_POINT_SIZE * self.n_points:
             raise _fail(
-                "invalid_points",
+                ErrorCode.INVALID_POINTS,
                 f"points: {len(self.points)} bytes, expected {_TILE_POINT_SIZE * self.n_points} "
                 f"({self.n_points} points of {_TILE_POINT_SIZE} bytes, x y z intensity)",
             )
         if self.n_points and any(lo > hi for lo, hi in zip(self.bounds.min, self.bounds.max, strict=True)):
             raise _fail(
-                "invalid_field", f"bounds: min {list(self.bounds.min)} exceeds max {list(self.bounds.max)}"
+                ErrorCode.INVALID_FIELD,
+                f"bounds: min {list(self.bounds.min)} exceeds max {list(self.bounds.max)}",
             )
         count, first = _first_nonfinite(self.points_f32())
         if count:
             raise _fail(
-                "nonfinite_points",
+                ErrorCode.NONFINITE_POINTS,
                 f"points: {count} points have a non-finite value (NaN or Inf), first at index {first}",
             )
         return self
@@ -627,30 +616,35 @@ def _unpack(payload: bytes, limits: WireLimits) -> dict[str, Any]:
     size = memoryview(payload).nbytes
     if size > limits.max_payload_bytes:
         raise BadMessageError(
-            f"payload: {size} bytes exceed the limit of {limits.max_payload_bytes}", code="payload_too_large"
+            f"payload: {size} bytes exceed the limit of {limits.max_payload_bytes}",
+            code=ErrorCode.PAYLOAD_TOO_LARGE,
         )
     try:
         obj = msgpack.unpackb(payload, raw=False, use_list=False, strict_map_key=True)
     except msgpack.ExtraData as exc:
-        raise BadMessageError("payload: trailing bytes after the message", code="malformed") from exc
+        raise BadMessageError("payload: trailing bytes after the message", code=ErrorCode.MALFORMED) from exc
     except Exception as exc:  # msgpack raises several unrelated types for bad input
         detail = str(exc)[:120] or "truncated or invalid"
         raise BadMessageError(
-            f"payload: not valid msgpack ({type(exc).__name__}: {detail})", code="malformed"
+            f"payload: not valid msgpack ({type(exc).__name__}: {detail})", code=ErrorCode.MALFORMED
         ) from exc
     if not isinstance(obj, dict):
-        raise BadMessageError(f"payload: the top level must be a map, got {_preview(obj)}", code="malformed")
+        raise BadMessageError(
+            f"payload: the top level must be a map, got {_preview(obj)}", code=ErrorCode.MALFORMED
+        )
     if "v" not in obj:
-        raise BadMessageError("v: required field is missing (the schema version)", code="missing_field")
+        raise BadMessageError(
+            "v: required field is missing (the schema version)", code=ErrorCode.MISSING_FIELD
+        )
     version = obj["v"]
     if type(version) is not int:
         raise BadMessageError(
-            f"v: the schema version must be an integer, got {_preview(version)}", code="invalid_field"
+            f"v: the schema version must be an integer, got {_preview(version)}", code=ErrorCode.INVALID_FIELD
         )
     if version != SCHEMA_VERSION:
         raise BadMessageError(
             f"v: schema version {version} is not supported (this decoder reads {SCHEMA_VERSION})",
-            code="unsupported_version",
+            code=ErrorCode.UNSUPPORTED_VERSION,
         )
     return obj
 
@@ -668,17 +662,17 @@ def _as_bad_message(exc: ValidationError) -> BadMessageError:
     first = errors[0]
     kind, where = first["type"], _location(first["loc"])
     if kind == "missing":
-        code, text = "missing_field", "required field is missing"
-    elif kind in ERROR_CODES:
+        code, text = ErrorCode.MISSING_FIELD, "required field is missing"
+    elif kind in DECODE_CODES:
         code, text = kind, first["msg"]
     elif kind in ("too_short", "too_long"):
         ctx = first.get("ctx", {})
         bound = (
             f"at least {ctx.get('min_length')}" if kind == "too_short" else f"at most {ctx.get('max_length')}"
         )
-        code, text = "invalid_field", f"expected {bound} values, got {ctx.get('actual_length')}"
+        code, text = ErrorCode.INVALID_FIELD, f"expected {bound} values, got {ctx.get('actual_length')}"
     else:
-        code, msg = "invalid_field", first["msg"]
+        code, msg = ErrorCode.INVALID_FIELD, first["msg"]
         text = f"{msg[:1].lower()}{msg[1:]}, got {_preview(first.get('input'))}"
         if kind == "bytes_type" and isinstance(first.get("input"), str):
             text += " (pack with use_bin_type=True so bytes travel as msgpack bin)"
@@ -705,7 +699,7 @@ def _decode(model: type[_M], payload: bytes, limits: WireLimits | None) -> _M:
     except Exception as exc:  # a decoder bug must not take down a transport callback
         log.exception("decoding a %s raised %s; reported as malformed", model.__name__, type(exc).__name__)
         raise BadMessageError(
-            f"payload: could not be decoded ({type(exc).__name__})", code="malformed"
+            f"payload: could not be decoded ({type(exc).__name__})", code=ErrorCode.MALFORMED
         ) from exc
 
 
@@ -727,7 +721,7 @@ def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage
     Raises
     ------
     BadMessageError
-        For any payload that is not a valid v1 scan; ``code`` is one of :data:`ERROR_CODES`.
+        For any payload that is not a valid scan; ``code`` is one of :data:`~wire.codes.DECODE_CODES`.
     TypeError
         ``payload`` does not support the buffer protocol (a programming error, not bad input).
     """
@@ -873,7 +867,7 @@ def scan_from_arrays(
     limits = _DEFAULT_LIMITS if limits is None else limits
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code="invalid_points")
+        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code=ErrorCode.INVALID_POINTS)
     n = xyz.shape[0]
     if intensity is None:
         points = np.ascontiguousarray(xyz, dtype=_F32).tobytes()
@@ -881,7 +875,7 @@ def scan_from_arrays(
         intensity = np.asarray(intensity)
         if intensity.shape != (n,):
             raise BadMessageError(
-                f"intensity: expected shape ({n},), got {intensity.shape}", code="invalid_points"
+                f"intensity: expected shape ({n},), got {intensity.shape}", code=ErrorCode.INVALID_POINTS
             )
         table = np.empty((n, 4), dtype=_F32)
         table[:, :3] = xyz
@@ -892,11 +886,12 @@ def scan_from_arrays(
         time_offset_s = np.asarray(time_offset_s)
         if time_offset_s.shape != (n,):
             raise BadMessageError(
-                f"time_offsets: expected shape ({n},), got {time_offset_s.shape}", code="invalid_points"
+                f"time_offsets: expected shape ({n},), got {time_offset_s.shape}",
+                code=ErrorCode.INVALID_POINTS,
             )
         offsets = np.ascontiguousarray(time_offset_s, dtype=_F32).tobytes()
     if (prior_pose is None) != (prior_covariance is None):
-        raise BadMessageError("prior: pose and covariance go together", code="invalid_prior")
+        raise BadMessageError("prior: pose and covariance go together", code=ErrorCode.INVALID_PRIOR)
     prior = None
     if prior_pose is not None:
         prior = {
@@ -943,7 +938,7 @@ def tile_update_from_arrays(
     """
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code="invalid_points")
+        raise BadMessageError(f"xyz: expected shape (N, 3), got {xyz.shape}", code=ErrorCode.INVALID_POINTS)
     n = xyz.shape[0]
     table = np.zeros((n, 4), dtype=_F32)
     table[:, :3] = xyz
@@ -951,7 +946,7 @@ def tile_update_from_arrays(
         intensity = np.asarray(intensity)
         if intensity.shape != (n,):
             raise BadMessageError(
-                f"intensity: expected shape ({n},), got {intensity.shape}", code="invalid_points"
+                f"intensity: expected shape ({n},), got {intensity.shape}", code=ErrorCode.INVALID_POINTS
             )
         table[:, 3] = intensity
     lo = table[:, :3].min(axis=0).tolist() if n else [0.0, 0.0, 0.0]

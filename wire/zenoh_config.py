@@ -1,8 +1,9 @@
-"""Zenoh configuration for clients: explicit endpoints, multicast scouting off.
+"""The Zenoh configuration every session of ours uses: explicit endpoints, multicast scouting off.
 
-The service has its own copy of this in ``service/transport.py``; ``clients/`` must not import
-``service/`` (a vehicle computer installs the clients without the service's dependencies in mind),
-so the dozen lines live here too.
+The service (:mod:`service.transport`), the vehicle publisher (:mod:`clients.publisher`), the tests
+and the benchmarks open their Zenoh sessions with :func:`zenoh_config`; settings check their
+endpoints with :func:`check_endpoints`. This is the only module of :mod:`wire` that imports Zenoh,
+and :mod:`wire` does not import it on its own: ``from wire.zenoh_config import zenoh_config``.
 """
 
 from __future__ import annotations

@@ -1,0 +1,44 @@
+"""The wire package's place in the layers: it imports ``core`` and itself, and only its Zenoh
+helper imports Zenoh."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import wire
+
+REPO = Path(__file__).resolve().parents[2]
+OURS = {"core", "wire", "service", "clients", "cli", "bench", "tests"}
+
+
+def imported_roots(path: Path) -> set[str]:
+    """Top-level names of every module ``path`` imports (lazy imports inside functions included)."""
+    roots: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            roots |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            roots.add(node.module.split(".")[0])
+    return roots
+
+
+def test_wire_imports_only_core_and_itself() -> None:
+    files = sorted((REPO / "wire").glob("*.py"))
+    assert {f.name for f in files} >= {"__init__.py", "messages.py", "keys.py", "ids.py", "codes.py"}
+    for path in files:
+        ours = imported_roots(path) & OURS
+        assert ours <= {"core", "wire"}, f"{path.name} imports {sorted(ours - {'core', 'wire'})}"
+
+
+def test_only_the_zenoh_helper_names_zenoh() -> None:
+    users = sorted(p.name for p in (REPO / "wire").glob("*.py") if "zenoh" in imported_roots(p))
+    assert users == ["zenoh_config.py"]
+
+
+def test_the_package_exports_what_it_documents() -> None:
+    assert wire.__doc__ is not None
+    for name in wire.__all__:
+        assert hasattr(wire, name), name
+    for module in ("wire.messages", "wire.keys", "wire.ids", "wire.codes", "wire.zenoh_config"):
+        assert f":mod:`{module}`" in wire.__doc__, module

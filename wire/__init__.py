@@ -1,0 +1,118 @@
+"""The wire contract between vehicles, the service and map users, in one place.
+
+``docs/wire-format.md`` is its reference; this package implements it. The service (``service/``)
+and the vehicle library (``clients/``) both import it and neither redefines any of it. It imports
+``core`` (the error tree, the point-cloud type) and nothing else of ours.
+
+Contents
+--------
+:mod:`wire.messages`
+    The messages (:class:`ScanMessage`, :class:`PoseMessage`, :class:`ErrorMessage`,
+    :class:`TileUpdateMessage`), their schema version :data:`SCHEMA_VERSION`, the decoder limits
+    :class:`WireLimits`, :func:`encode`, the ``decode_*`` functions, :func:`peek_ids` /
+    :func:`peek_seq`, and the senders' helpers (:func:`scan_from_arrays`, ...).
+:mod:`wire.keys`
+    Every key expression: :func:`scan_key`, :func:`pose_key`, :func:`error_key`, :func:`tile_key`,
+    :func:`service_token_key`, the wildcards :data:`ALL_SCANS`, :data:`ALL_POSES`,
+    :data:`ALL_ERRORS`, :data:`ALL_TILES`, and :func:`key_for` (the key of a message).
+:mod:`wire.ids`
+    The id rule for vehicles, sessions, maps and service instances: :data:`ID_REGEX`,
+    :func:`is_valid_id`, :func:`validate_id`.
+:mod:`wire.codes`
+    The error codes: :class:`ErrorCode` (a ``StrEnum``: members are their strings on the wire),
+    :data:`DECODE_CODES` and :data:`SERVICE_CODES` with their meanings.
+:mod:`wire.zenoh_config`
+    The Zenoh configuration helper (:func:`~wire.zenoh_config.zenoh_config`,
+    :func:`~wire.zenoh_config.check_endpoints`). The only module that imports Zenoh, so it is not
+    imported here: ``from wire.zenoh_config import zenoh_config``.
+"""
+
+from __future__ import annotations
+
+from wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
+from wire.ids import ID_MAX_LENGTH, ID_PATTERN, ID_REGEX, UNKNOWN_ID, is_valid_id, validate_id
+from wire.keys import (
+    ALL_ERRORS,
+    ALL_POSES,
+    ALL_SCANS,
+    ALL_TILES,
+    error_key,
+    key_for,
+    map_tiles_key,
+    pose_key,
+    scan_key,
+    service_token_key,
+    tile_key,
+    tile_of_key,
+    vehicle_of_scan_key,
+)
+from wire.messages import (
+    SCHEMA_VERSION,
+    Bounds,
+    ErrorMessage,
+    PoseMessage,
+    Prior,
+    ScanMessage,
+    SchemaVersion,
+    TileUpdateMessage,
+    WireLimits,
+    WireMessage,
+    decode_error,
+    decode_pose,
+    decode_scan,
+    decode_tile_update,
+    encode,
+    matrix_to_pose,
+    peek_ids,
+    peek_seq,
+    pose_to_matrix,
+    scan_from_arrays,
+    tile_update_from_arrays,
+)
+
+__all__ = [
+    "ALL_ERRORS",
+    "ALL_POSES",
+    "ALL_SCANS",
+    "ALL_TILES",
+    "CODE_REGEX",
+    "DECODE_CODES",
+    "ID_MAX_LENGTH",
+    "ID_PATTERN",
+    "ID_REGEX",
+    "SCHEMA_VERSION",
+    "SERVICE_CODES",
+    "UNKNOWN_ID",
+    "Bounds",
+    "ErrorCode",
+    "ErrorMessage",
+    "PoseMessage",
+    "Prior",
+    "ScanMessage",
+    "SchemaVersion",
+    "TileUpdateMessage",
+    "WireLimits",
+    "WireMessage",
+    "decode_error",
+    "decode_pose",
+    "decode_scan",
+    "decode_tile_update",
+    "encode",
+    "error_key",
+    "is_valid_id",
+    "key_for",
+    "map_tiles_key",
+    "matrix_to_pose",
+    "peek_ids",
+    "peek_seq",
+    "pose_key",
+    "pose_to_matrix",
+    "scan_from_arrays",
+    "scan_key",
+    "service_token_key",
+    "tile_key",
+    "tile_of_key",
+    "tile_update_from_arrays",
+    "validate_id",
+    "vehicle_of_scan_key",
+]
