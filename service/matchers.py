@@ -13,9 +13,13 @@ with fewest sessions) and waits for the result. A process serves its sessions on
 time. Requests and results are pickled through a pipe (a 120k-point sweep and its result are a
 few MB: about 5 ms against 100-300 ms of matching).
 
-If a worker process dies, the calls on it raise :class:`MatcherProcessDiedError`; the session manager
-then drops the affected sessions without saving them (their last saved state, at most one flush
-interval old, is the truth) and the next scan resumes each from the store on a fresh process.
+An exception raised in a worker process reaches the session thread as the same class with the
+same attributes (a :class:`~core.errors.DegenerateProblemError` keeps its ``weak_directions``, a
+``ValueError`` stays a ``ValueError``), the worker's traceback attached as a note; one that cannot
+be pickled arrives as a :class:`MatcherProcessError` naming it. If a worker process dies, the calls
+on it raise :class:`MatcherProcessDiedError`; the session manager then drops the affected sessions
+without saving them (their last saved state, at most one flush interval old, is the truth) and the
+next scan resumes each from the store on a fresh process.
 """
 
 from __future__ import annotations
@@ -23,8 +27,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import os
+import pickle
 import threading
 import time
+import traceback
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -36,19 +43,30 @@ from core.odometry import IncrementalMatcher, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
 
-__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "RemoteMatcher"]
+__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "MatcherProcessError", "RemoteMatcher"]
 
 log = logging.getLogger(__name__)
 
 Key = tuple[str, str]
 
 
-class MatcherProcessDiedError(RuntimeError):
+class MatcherProcessError(RandtError, RuntimeError):
+    """A matcher worker process failed: an error raised there could not be sent back as itself."""
+
+
+class MatcherProcessDiedError(MatcherProcessError):
     """The worker process holding a session's matcher is gone (the session must be resumed)."""
 
 
-class _RemoteRandtError(RandtError):
-    """A :class:`~core.errors.RandtError` raised in a worker process (its message kept)."""
+def _portable(exc: Exception) -> Exception:
+    """``exc`` with the worker's traceback as a note, if it survives pickling; else a
+    :class:`MatcherProcessError` naming it (the caller's ``recv`` must never fail to unpickle)."""
+    exc.add_note(f"raised in matcher process pid {os.getpid()}:\n{''.join(traceback.format_exception(exc))}")
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:
+        return MatcherProcessError(f"in matcher process pid {os.getpid()}: {type(exc).__name__}: {exc}")
+    return exc
 
 
 def _warm_up() -> None:
@@ -132,10 +150,8 @@ def _serve(conn: Connection) -> None:
                 value = matchers.pop(key, None) is not None
             else:
                 raise ValueError(f"unknown request {op!r}")
-        except RandtError as exc:
-            conn.send((False, ("randt", str(exc))))
-        except Exception as exc:  # reported to the session thread, logged there
-            conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
+        except Exception as exc:  # raised again in the session thread, as itself (module docstring)
+            conn.send((False, _portable(exc)))
         else:
             conn.send((True, value))
         # Rebuild the keyframe model now unless the session said more of its scans wait (behind)
@@ -177,7 +193,7 @@ class _WorkerProcess:
             return False
         message = self._conn.recv()
         if message != _READY:
-            raise RuntimeError(f"matcher process {self.index} sent {message!r} before being ready")
+            raise MatcherProcessError(f"matcher process {self.index} sent {message!r} before being ready")
         self.ready = True
         return True
 
@@ -221,10 +237,7 @@ class _WorkerProcess:
                 ) from exc
         if ok:
             return value
-        kind, message = value
-        if kind == "randt":
-            raise _RemoteRandtError(message)
-        raise RuntimeError(f"in matcher process {self.index}: {message}")
+        raise value
 
     def close(self, timeout: float = 10.0) -> None:
         if not self.dead:

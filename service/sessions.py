@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.errors import BadMessageError, NotFoundError, RandtError
+from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
@@ -56,7 +56,13 @@ from core.wire import (
     peek_seq,
     tile_update_from_arrays,
 )
-from service.matchers import LocalMatcher, MatcherPool, MatcherProcessDiedError, RemoteMatcher
+from service.matchers import (
+    LocalMatcher,
+    MatcherPool,
+    MatcherProcessDiedError,
+    MatcherProcessError,
+    RemoteMatcher,
+)
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
 from service.store import SessionRecord, Store
@@ -69,7 +75,7 @@ log = logging.getLogger(__name__)
 Outbox = Callable[[object], None]
 
 
-class MapInUseError(RandtError):
+class MapInUseError(ConflictError):
     """A map cannot be deleted while running sessions fold scans into it."""
 
 
@@ -248,10 +254,7 @@ class SessionWorker:
                     defer_model=True,  # the keyframe model is rebuilt after the pose is out
                     behind=behind,
                 )
-            except RandtError as exc:
-                m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
-                return
-            except MatcherProcessDiedError as exc:
+            except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
                 log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
                 m.reject(
                     scan.vehicle,
@@ -261,6 +264,11 @@ class SessionWorker:
                     "the matcher process died; the session resumes from its last saved state",
                 )
                 self.broken = True
+                return
+            except MatcherProcessError:
+                raise  # a bug, not bad input: logged and answered internal_error by the worker loop
+            except RandtError as exc:
+                m.reject(scan.vehicle, scan.session, scan.seq, "registration_failed", str(exc))
                 return
             changed: list[str] = []
             if result.status != "fallback":
@@ -611,7 +619,7 @@ class SessionManager:
                 )
             grid = self.maps.pop(map_name, None)
             if grid is None:
-                raise NotFoundError(f"map {map_name!r} not found")
+                raise NotFoundError(f"map {map_name!r} not found", resource="map", ident=map_name)
             self._dirty_tiles.pop(map_name, None)
             n_tiles = len(grid)
             self.store.delete_map(map_name)
