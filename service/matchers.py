@@ -38,8 +38,9 @@ from typing import Any
 
 import numpy as np
 
+from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import IncrementalMatcher, PosePrior, ScanResult
+from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
 
@@ -120,8 +121,8 @@ def _serve(conn: Connection) -> None:
         behind = False
         try:
             if op == "open":
-                state, grid_params = args
-                matcher = IncrementalMatcher()
+                state, grid_params, settings, registration = args
+                matcher = IncrementalMatcher(settings, registration)
                 if state:
                     matcher.load_state_dict(state)
                 matchers[key] = matcher
@@ -293,11 +294,15 @@ class MatcherPool:
         key: Key,
         state: dict[str, np.ndarray] | None = None,
         grid: TileGrid | None = None,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
     ) -> RemoteMatcher:
         """A matcher for session ``key`` (restored from ``state``) on the least busy process.
 
         With ``grid`` (the session's map), results carry only the points ``grid.insert`` could
         keep (:meth:`~core.tiles.TileGrid.candidate_mask`, computed in the worker process).
+        ``settings`` and ``registration`` are the :class:`~core.odometry.IncrementalMatcher`'s
+        (None: its defaults).
         """
         with self._lock:
             for i, p in enumerate(self._procs):
@@ -310,7 +315,7 @@ class MatcherPool:
             proc.sessions.add(key)
         params = None if grid is None else (grid.tile_size_m, grid.voxel_size_m, grid.max_points_per_voxel)
         try:
-            return RemoteMatcher(self, proc, key, state, params)
+            return RemoteMatcher(self, proc, key, state, params, settings, registration)
         except BaseException:
             proc.sessions.discard(key)
             raise
@@ -339,9 +344,11 @@ class RemoteMatcher:
         key: Key,
         state: dict[str, np.ndarray] | None,
         grid_params: tuple[int, float, int] | None = None,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
     ) -> None:
         self._pool, self._proc, self._key = pool, proc, key
-        proc.call("open", key, state, grid_params)
+        proc.call("open", key, state, grid_params, settings, registration)
         self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
 
     @property

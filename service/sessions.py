@@ -493,10 +493,11 @@ class SessionManager:
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
         grid = self.map_grid(info.map_name)
         matcher: LocalMatcher | RemoteMatcher
+        settings = self.settings
         if self.pool is not None:
-            matcher = self.pool.open(key, state or None, grid)
+            matcher = self.pool.open(key, state or None, grid, settings.matcher, settings.registration)
         else:
-            matcher = LocalMatcher()
+            matcher = LocalMatcher(settings.matcher, settings.registration)
             if state:
                 matcher.load_state_dict(state)
         worker = SessionWorker(info, matcher, grid, self)
