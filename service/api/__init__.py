@@ -10,6 +10,7 @@ module             paths                                                        
                    /export]``
 ``metrics``        ``/metrics``                                                 read
 ``viewer``         ``/`` and ``/static/*``                                      open
+``docs``           ``/docs`` (Swagger UI from ``/static/vendor/swagger-ui``)    open
 =================  ===========================================================  ==============
 
 ``deps`` holds what they share (service, auth, validated names), ``models`` the response
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from service.api import health, maps, metrics, sessions, viewer
+from service.api import docs, health, maps, metrics, sessions, viewer
 from service.api.maps import PduCache
 
 __all__ = ["install"]
@@ -34,6 +35,6 @@ __all__ = ["install"]
 def install(app: FastAPI) -> None:
     """Add every router and the viewer to ``app``."""
     app.state.pdu_cache = PduCache()
-    for module in (health, sessions, maps, metrics):
+    for module in (health, sessions, maps, metrics, docs):
         app.include_router(module.router)
     viewer.mount_viewer(app)
