@@ -714,6 +714,24 @@ class SessionManager:
             stamps = np.array(w.info.stamps_s[: len(poses)], dtype=np.float64)
         return stamps, poses[: len(stamps)]
 
+    def stored_trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(stamps_s (N,), poses (N, 4, 4))`` of a session as the store's commit record holds them.
+
+        Raises
+        ------
+        NotFoundError
+            The store holds no readable trajectory of it (never saved, deleted, damaged);
+            ``resource`` is ``"session"``, ``ident`` ``"<vehicle>/<session>"``.
+        """
+        try:
+            loaded = self.store.load_session(vehicle, session)
+        except (RandtError, OSError, ValueError) as exc:
+            sid = f"{vehicle}/{session}"
+            raise NotFoundError(
+                f"session {sid!r} has no readable trajectory: {exc}", resource="session", ident=sid
+            ) from exc
+        return np.asarray(loaded.stamps, dtype=float), np.asarray(loaded.poses, dtype=float).reshape(-1, 4, 4)
+
     def close_stored(self, vehicle: str, session: str) -> SessionRecord | None:
         """Mark a stored session that has no running worker ``closed``; ``None`` if it is not stored.
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import NotFoundError, RandtError
+from core.errors import NotFoundError
 from core.tiles import TileGrid
 from service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
 from service.sessions import SessionManager, SessionState
@@ -106,14 +106,9 @@ def load_trajectory(mgr: SessionManager, found: FoundSession) -> tuple[np.ndarra
         live = mgr.trajectory(found.vehicle, found.session)
         if live is not None:
             return live
-    # Stored (or closed between the two look-ups): the store's commit record is the truth.
-    try:
-        loaded = mgr.store.load_session(found.vehicle, found.session)
-    except (RandtError, OSError, ValueError) as exc:  # listed, but gone or unreadable now
-        raise NotFoundError(
-            f"session {found.id!r} has no readable trajectory: {exc}", resource="session", ident=found.id
-        ) from exc
-    return np.asarray(loaded.stamps, dtype=float), np.asarray(loaded.poses, dtype=float).reshape(-1, 4, 4)
+    # Stored (or closed between the two look-ups): the store's commit record is the truth; a
+    # session listed but gone or unreadable now is not found.
+    return mgr.stored_trajectory(found.vehicle, found.session)
 
 
 def session_detail(mgr: SessionManager, found: FoundSession) -> SessionDetail:

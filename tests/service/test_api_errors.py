@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -20,11 +22,14 @@ from core.errors import (
     RegistrationFailedError,
     UnavailableError,
 )
+from core.wire import encode, scan_from_arrays
 from service.api.errors import HTTP_STATUS, status_of
 from service.app import create_app
 from service.matchers import MatcherProcessDiedError
 from service.sessions import MapInUseError
 from service.settings import ServiceSettings
+from service.store import MATCHER_FILENAME
+from tests.service.test_matchers import _sweeps
 
 #: (error, status, body, WWW-Authenticate) as the API has answered them since before the table.
 CASES: list[tuple[RandtError, int, dict[str, str], str | None]] = [
@@ -104,3 +109,26 @@ def test_a_service_that_is_not_running_answers_503(tmp_path) -> None:
     for path in ("/sessions", "/maps", "/maps/default/tiles"):
         r = client.get(path)
         assert (r.status_code, r.json()) == (503, {"detail": "the service is not running"}), path
+
+
+def test_a_listed_session_without_a_readable_trajectory_is_not_found(tmp_path) -> None:
+    """The store's damage surfaces as the tree's NotFoundError (SessionManager.stored_trajectory),
+    answered 404 naming the session, not as a 500."""
+    settings = ServiceSettings(data_dir=tmp_path, matcher_processes=0, flush_interval_s=0.2)
+    with TestClient(create_app(settings, with_zenoh=False)) as client:
+        mgr = client.app.state.service.sessions
+        for seq, sweep in enumerate(_sweeps(2)):
+            mgr.submit("v", encode(scan_from_arrays("v", "s", seq, seq * 100_000_000, sweep)))
+        deadline = time.monotonic() + 60
+        while client.get("/sessions/v/s").json().get("scans") != 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert client.post("/sessions/v/s/close").status_code == 403  # (no token configured)
+        assert mgr.close("v", "s")
+        assert len(client.get("/sessions/v/s/trajectory").json()["poses"]) == 2
+        (mgr.store.session_dir("v", "s") / MATCHER_FILENAME).write_bytes(b"not an npz")
+        r = client.get("/sessions/v/s/trajectory")
+        assert r.status_code == 404
+        body = r.json()
+        assert (body["resource"], body["id"]) == ("session", "v/s")
+        assert body["detail"].startswith("session 'v/s' has no readable trajectory: ")
