@@ -8,19 +8,62 @@
     ├── RegistrationFailedError     the optimiser diverged or produced a non-finite pose
     ├── FormatError                 a file could not be read or written in the named format
     ├── BadMessageError             a wire message failed to decode or validate (service)
-    └── NotFoundError               a session, map or tile that does not exist
+    ├── InvalidRequestError         an API request's parameters are malformed (service)
+    ├── NotFoundError               a session, map, tile or file that does not exist
+    ├── ConflictError               the request conflicts with the current state
+    │   └── MapInUseError           running sessions fold scans into the map (service.sessions)
+    ├── AuthError                   missing or wrong credentials (service)
+    │   └── ForbiddenError          refused whatever the credentials (mutations disabled)
+    ├── UnavailableError            the service is starting or stopping (service)
+    └── MatcherProcessError         a matcher worker process failed (service.matchers)
+        └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
 
-One place maps these to HTTP status codes (``service``) and one place to CLI exit codes
+One place maps these to HTTP status codes (``service.api.errors``) and one place to CLI exit codes
 (``service.cli``); library code only raises them.
+
+Every error of the tree survives pickling with its class, message and attributes
+(``pickle.loads(pickle.dumps(exc))``): the service's matcher processes send the errors raised
+there back to the session threads, which see the same :class:`DegenerateProblemError` (with its
+``weak_directions``) or :class:`BadMessageError` (with its ``code``) as an in-process call would.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+__all__ = [
+    "AuthError",
+    "BadMessageError",
+    "ConflictError",
+    "DegenerateProblemError",
+    "ForbiddenError",
+    "FormatError",
+    "InvalidCloudError",
+    "InvalidRequestError",
+    "NotFoundError",
+    "RandtError",
+    "RegistrationFailedError",
+    "UnavailableError",
+]
+
+
+def _restore(cls: type[RandtError], args: tuple[Any, ...]) -> RandtError:
+    """Unpickle ``cls`` without calling its ``__init__`` (its state follows: ``__setstate__``)."""
+    exc = cls.__new__(cls, *args)
+    exc.args = args
+    return exc
+
 
 class RandtError(Exception):
-    """Root of every error raised on purpose by randt-fleet."""
+    """Root of every error raised on purpose by randt-fleet.
+
+    Pickled as class, ``args`` and instance attributes, rebuilt without calling ``__init__``: a
+    subclass may take any constructor arguments (keyword-only, or several formatted into one
+    message) and still cross a process boundary unchanged.
+    """
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_restore, (type(self), self.args), self.__dict__ or None)
 
 
 class InvalidCloudError(RandtError, ValueError):
@@ -61,5 +104,45 @@ class BadMessageError(RandtError, ValueError):
         self.code = code
 
 
+class InvalidRequestError(RandtError, ValueError):
+    """A request's parameters are malformed or contradict each other (an inverted bounding box)."""
+
+
 class NotFoundError(RandtError, LookupError):
-    """A named session, map, tile or file does not exist."""
+    """A named session, map, tile or file does not exist.
+
+    Attributes
+    ----------
+    resource:
+        What was looked for (``"session"``, ``"map"``, ``"tile"``), when the raiser says so.
+    ident:
+        The name or id that was asked for, with ``resource``.
+    """
+
+    def __init__(self, message: str = "", *, resource: str | None = None, ident: str | None = None):
+        super().__init__(message or f"{resource or 'resource'} {ident!r} not found")
+        self.resource = resource
+        self.ident = ident
+
+
+class ConflictError(RandtError):
+    """The request conflicts with the current state (deleting a map that is being written)."""
+
+
+class AuthError(RandtError):
+    """Credentials are missing or wrong. ``challenge`` is the ``WWW-Authenticate`` answer."""
+
+    def __init__(self, message: str, *, challenge: str = "Bearer"):
+        super().__init__(message)
+        self.challenge = challenge
+
+
+class ForbiddenError(AuthError):
+    """The action is refused whatever the credentials (mutating endpoints without a configured token)."""
+
+    def __init__(self, message: str):
+        super().__init__(message, challenge="")
+
+
+class UnavailableError(RandtError):
+    """The service cannot answer now: it is starting or stopping (retry later)."""

@@ -57,7 +57,14 @@ from core.transforms import (
 )
 from core.voxel import voxel_downsample
 
-__all__ = ["IncrementalMatcher", "MatcherSettings", "MatcherState", "PosePrior", "ScanResult"]
+__all__ = [
+    "MATCHER_REGISTRATION",
+    "IncrementalMatcher",
+    "MatcherSettings",
+    "MatcherState",
+    "PosePrior",
+    "ScanResult",
+]
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +93,17 @@ GAP_TURN_CANDIDATES = 3
 #: deskewed with by more than this (degrees over one sweep period, metres over one period).
 REDESKEW_DEG = 0.25
 REDESKEW_M = 0.05
+
+
+#: The registration settings a matcher uses unless given others (voxel sizes from the first sweep).
+#: The density-based feature extraction already removes the sweep's noise, and features are too
+#: sparse for Algorithm 1's own-voxel Gaussians: the moving-point selection is off here. Algorithm 3
+#: (the SVD step) is off too, measured (docs/mapping.md): on 120 simulated sweeps it raised the
+#: frame-to-frame error (0.11 against 0.09 cm) and the time per sweep by 45 %; on a synthetic room
+#: it moved converged NDT poses 3-7 cm off (its gate, a lower point-to-plane RMSE, passed); on
+#: KITTI 00 the two are within the ground truth's error. Pass
+#: ``registration=RegistrationSettings(...)`` to turn it back on.
+MATCHER_REGISTRATION = RegistrationSettings(select_moving_points=False, svd_refinement=False)
 
 
 class MatcherSettings(BaseModel):
@@ -332,17 +350,7 @@ class IncrementalMatcher:
         self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, s.model_voxel_m or r / 4)
 
     def _apply_scales(self, levels: tuple[float, ...], feature_voxel_m: float, model_voxel_m: float) -> None:
-        # The density-based feature extraction already removes the sweep's noise, and features are
-        # too sparse for Algorithm 1's own-voxel Gaussians: the moving-point selection is off here.
-        # Algorithm 3 (the SVD step) is off too, measured (docs/mapping.md): on 120 simulated
-        # sweeps it raised the frame-to-frame error (0.11 against 0.09 cm) and the time per sweep
-        # by 45 %; on a synthetic room it moved converged NDT poses 3-7 cm off (its gate, a lower
-        # point-to-plane RMSE, passed); on KITTI 00 the two are within the ground truth's error.
-        # Pass ``registration=RegistrationSettings(...)`` to turn it back on.
-        base = self._registration_given or RegistrationSettings(
-            select_moving_points=False,
-            svd_refinement=False,
-        )
+        base = self._registration_given or MATCHER_REGISTRATION
         self.registration = base.model_copy(update={"voxel_sizes_m": tuple(levels)})
         self.feature_voxel_m = feature_voxel_m
         self.model_voxel_m = model_voxel_m

@@ -5,7 +5,9 @@
 lifespan starts the service before the first request and stops it (drain, flush, close Zenoh) on
 shutdown, so ``randt serve``'s SIGTERM and SIGINT stop everything cleanly. The routes live in
 :mod:`service.api`, one router per resource; ``docs/api.md`` documents them, ``/docs`` serves the
-OpenAPI UI.
+OpenAPI UI (Swagger UI vendored: it works offline). The project's errors (:mod:`core.errors`)
+become HTTP answers in one exception handler, registered here, with one table
+(:mod:`service.api.errors`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service import api
+from service.api.errors import HTTP_STATUS, error_response
 from service.runtime import Service
 from service.settings import ServiceSettings
 
@@ -47,7 +50,16 @@ def create_app(settings: ServiceSettings | None = None, *, with_zenoh: bool = Tr
         finally:
             service.stop()
 
-    app = FastAPI(title="randt-fleet", version="0.1.0", description=_DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(
+        title="randt-fleet",
+        version="0.1.0",
+        description=_DESCRIPTION,
+        lifespan=lifespan,
+        docs_url=None,  # served from vendored assets instead (service/api/docs.py): works offline
+        redoc_url=None,  # ReDoc would load from a CDN too
+    )
     app.state.service = service
+    for error_class in HTTP_STATUS:  # one handler, one table: the project's errors -> status codes
+        app.add_exception_handler(error_class, error_response)
     api.install(app)
     return app

@@ -13,9 +13,13 @@ with fewest sessions) and waits for the result. A process serves its sessions on
 time. Requests and results are pickled through a pipe (a 120k-point sweep and its result are a
 few MB: about 5 ms against 100-300 ms of matching).
 
-If a worker process dies, the calls on it raise :class:`MatcherProcessDiedError`; the session manager
-then drops the affected sessions without saving them (their last saved state, at most one flush
-interval old, is the truth) and the next scan resumes each from the store on a fresh process.
+An exception raised in a worker process reaches the session thread as the same class with the
+same attributes (a :class:`~core.errors.DegenerateProblemError` keeps its ``weak_directions``, a
+``ValueError`` stays a ``ValueError``), the worker's traceback attached as a note; one that cannot
+be pickled arrives as a :class:`MatcherProcessError` naming it. If a worker process dies, the calls
+on it raise :class:`MatcherProcessDiedError`; the session manager then drops the affected sessions
+without saving them (their last saved state, at most one flush interval old, is the truth) and the
+next scan resumes each from the store on a fresh process.
 """
 
 from __future__ import annotations
@@ -23,32 +27,47 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import os
+import pickle
 import threading
 import time
+import traceback
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
+from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import IncrementalMatcher, PosePrior, ScanResult
+from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
 
-__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "RemoteMatcher"]
+__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "MatcherProcessError", "RemoteMatcher"]
 
 log = logging.getLogger(__name__)
 
 Key = tuple[str, str]
 
 
-class MatcherProcessDiedError(RuntimeError):
+class MatcherProcessError(RandtError, RuntimeError):
+    """A matcher worker process failed: an error raised there could not be sent back as itself."""
+
+
+class MatcherProcessDiedError(MatcherProcessError):
     """The worker process holding a session's matcher is gone (the session must be resumed)."""
 
 
-class _RemoteRandtError(RandtError):
-    """A :class:`~core.errors.RandtError` raised in a worker process (its message kept)."""
+def _portable(exc: Exception) -> Exception:
+    """``exc`` with the worker's traceback as a note, if it survives pickling; else a
+    :class:`MatcherProcessError` naming it (the caller's ``recv`` must never fail to unpickle)."""
+    exc.add_note(f"raised in matcher process pid {os.getpid()}:\n{''.join(traceback.format_exception(exc))}")
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:
+        return MatcherProcessError(f"in matcher process pid {os.getpid()}: {type(exc).__name__}: {exc}")
+    return exc
 
 
 def _warm_up() -> None:
@@ -102,8 +121,8 @@ def _serve(conn: Connection) -> None:
         behind = False
         try:
             if op == "open":
-                state, grid_params = args
-                matcher = IncrementalMatcher()
+                state, grid_params, settings, registration = args
+                matcher = IncrementalMatcher(settings, registration)
                 if state:
                     matcher.load_state_dict(state)
                 matchers[key] = matcher
@@ -132,10 +151,8 @@ def _serve(conn: Connection) -> None:
                 value = matchers.pop(key, None) is not None
             else:
                 raise ValueError(f"unknown request {op!r}")
-        except RandtError as exc:
-            conn.send((False, ("randt", str(exc))))
-        except Exception as exc:  # reported to the session thread, logged there
-            conn.send((False, ("internal", f"{type(exc).__name__}: {exc}")))
+        except Exception as exc:  # raised again in the session thread, as itself (module docstring)
+            conn.send((False, _portable(exc)))
         else:
             conn.send((True, value))
         # Rebuild the keyframe model now unless the session said more of its scans wait (behind)
@@ -177,7 +194,7 @@ class _WorkerProcess:
             return False
         message = self._conn.recv()
         if message != _READY:
-            raise RuntimeError(f"matcher process {self.index} sent {message!r} before being ready")
+            raise MatcherProcessError(f"matcher process {self.index} sent {message!r} before being ready")
         self.ready = True
         return True
 
@@ -221,10 +238,7 @@ class _WorkerProcess:
                 ) from exc
         if ok:
             return value
-        kind, message = value
-        if kind == "randt":
-            raise _RemoteRandtError(message)
-        raise RuntimeError(f"in matcher process {self.index}: {message}")
+        raise value
 
     def close(self, timeout: float = 10.0) -> None:
         if not self.dead:
@@ -280,11 +294,15 @@ class MatcherPool:
         key: Key,
         state: dict[str, np.ndarray] | None = None,
         grid: TileGrid | None = None,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
     ) -> RemoteMatcher:
         """A matcher for session ``key`` (restored from ``state``) on the least busy process.
 
         With ``grid`` (the session's map), results carry only the points ``grid.insert`` could
         keep (:meth:`~core.tiles.TileGrid.candidate_mask`, computed in the worker process).
+        ``settings`` and ``registration`` are the :class:`~core.odometry.IncrementalMatcher`'s
+        (None: its defaults).
         """
         with self._lock:
             for i, p in enumerate(self._procs):
@@ -297,7 +315,7 @@ class MatcherPool:
             proc.sessions.add(key)
         params = None if grid is None else (grid.tile_size_m, grid.voxel_size_m, grid.max_points_per_voxel)
         try:
-            return RemoteMatcher(self, proc, key, state, params)
+            return RemoteMatcher(self, proc, key, state, params, settings, registration)
         except BaseException:
             proc.sessions.discard(key)
             raise
@@ -326,9 +344,11 @@ class RemoteMatcher:
         key: Key,
         state: dict[str, np.ndarray] | None,
         grid_params: tuple[int, float, int] | None = None,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
     ) -> None:
         self._pool, self._proc, self._key = pool, proc, key
-        proc.call("open", key, state, grid_params)
+        proc.call("open", key, state, grid_params, settings, registration)
         self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
 
     @property

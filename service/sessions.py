@@ -42,11 +42,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.errors import BadMessageError, NotFoundError, RandtError
+from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
-from service.matchers import LocalMatcher, MatcherPool, MatcherProcessDiedError, RemoteMatcher
+from service.matchers import (
+    LocalMatcher,
+    MatcherPool,
+    MatcherProcessDiedError,
+    MatcherProcessError,
+    RemoteMatcher,
+)
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
 from service.store import SessionRecord, Store
@@ -73,7 +79,7 @@ log = logging.getLogger(__name__)
 Outbox = Callable[[WireMessage], None]
 
 
-class MapInUseError(RandtError):
+class MapInUseError(ConflictError):
     """A map cannot be deleted while running sessions fold scans into it."""
 
 
@@ -252,10 +258,7 @@ class SessionWorker:
                     defer_model=True,  # the keyframe model is rebuilt after the pose is out
                     behind=behind,
                 )
-            except RandtError as exc:
-                m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
-                return
-            except MatcherProcessDiedError as exc:
+            except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
                 log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
                 m.reject(
                     scan.vehicle,
@@ -265,6 +268,11 @@ class SessionWorker:
                     "the matcher process died; the session resumes from its last saved state",
                 )
                 self.broken = True
+                return
+            except MatcherProcessError:
+                raise  # a bug, not bad input: logged and answered internal_error by the worker loop
+            except RandtError as exc:
+                m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
                 return
             changed: list[str] = []
             if result.status != "fallback":
@@ -489,10 +497,11 @@ class SessionManager:
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
         grid = self.map_grid(info.map_name)
         matcher: LocalMatcher | RemoteMatcher
+        settings = self.settings
         if self.pool is not None:
-            matcher = self.pool.open(key, state or None, grid)
+            matcher = self.pool.open(key, state or None, grid, settings.matcher, settings.registration)
         else:
-            matcher = LocalMatcher()
+            matcher = LocalMatcher(settings.matcher, settings.registration)
             if state:
                 matcher.load_state_dict(state)
         worker = SessionWorker(info, matcher, grid, self)
@@ -615,7 +624,7 @@ class SessionManager:
                 )
             grid = self.maps.pop(map_name, None)
             if grid is None:
-                raise NotFoundError(f"map {map_name!r} not found")
+                raise NotFoundError(f"map {map_name!r} not found", resource="map", ident=map_name)
             self._dirty_tiles.pop(map_name, None)
             n_tiles = len(grid)
             self.store.delete_map(map_name)
@@ -708,6 +717,24 @@ class SessionManager:
             poses = np.array(w.matcher.poses, dtype=np.float64).reshape(-1, 4, 4)
             stamps = np.array(w.info.stamps_s[: len(poses)], dtype=np.float64)
         return stamps, poses[: len(stamps)]
+
+    def stored_trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(stamps_s (N,), poses (N, 4, 4))`` of a session as the store's commit record holds them.
+
+        Raises
+        ------
+        NotFoundError
+            The store holds no readable trajectory of it (never saved, deleted, damaged);
+            ``resource`` is ``"session"``, ``ident`` ``"<vehicle>/<session>"``.
+        """
+        try:
+            loaded = self.store.load_session(vehicle, session)
+        except (RandtError, OSError, ValueError) as exc:
+            sid = f"{vehicle}/{session}"
+            raise NotFoundError(
+                f"session {sid!r} has no readable trajectory: {exc}", resource="session", ident=sid
+            ) from exc
+        return np.asarray(loaded.stamps, dtype=float), np.asarray(loaded.poses, dtype=float).reshape(-1, 4, 4)
 
     def close_stored(self, vehicle: str, session: str) -> SessionRecord | None:
         """Mark a stored session that has no running worker ``closed``; ``None`` if it is not stored.

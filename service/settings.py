@@ -3,6 +3,18 @@
 Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
 flags (``randt serve --help``) override the environment. Settings are built in the app factory
 (``service.runtime.Service``), never at import time.
+
+Every session's matcher gets two nested groups, one environment variable per field with ``__``
+between group and field:
+
+* ``matcher`` (:class:`core.odometry.MatcherSettings`): ``RANDT_MATCHER__MAX_RANGE_M=80``,
+  ``RANDT_MATCHER__VOXEL_SIZES_M='[8, 4, 2, 1]'`` (JSON for tuples);
+* ``registration`` (:class:`core.config.RegistrationSettings`, what the matcher's NDT uses):
+  ``RANDT_REGISTRATION__MAX_ITERATIONS=20``. Fields not given keep the *matcher's* defaults
+  (:data:`core.odometry.MATCHER_REGISTRATION`: Algorithm 1 and 3 off), not pairwise
+  registration's.
+
+A whole group can also be given as one JSON object (``RANDT_MATCHER='{"max_range_m": 80}'``).
 """
 
 from __future__ import annotations
@@ -13,6 +25,8 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from core.config import RegistrationSettings
+from core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from wire.ids import ID_REGEX
 from wire.zenoh_config import check_endpoints
 
@@ -22,7 +36,9 @@ __all__ = ["ServiceSettings"]
 class ServiceSettings(BaseSettings):
     """Everything ``randt serve`` needs; defaults run embedded on one machine, no router."""
 
-    model_config = SettingsConfigDict(env_prefix="RANDT_", extra="forbid", frozen=True)
+    model_config = SettingsConfigDict(
+        env_prefix="RANDT_", env_nested_delimiter="__", extra="forbid", frozen=True
+    )
 
     data_dir: Path = Field(default=Path("randt-data"), description="maps, trajectories, session state")
     instance: str = Field(default="randt-1", pattern=ID_REGEX)
@@ -62,6 +78,22 @@ class ServiceSettings(BaseSettings):
     # wire limits
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
+    # every session's matcher (module docstring: RANDT_MATCHER__<FIELD>, RANDT_REGISTRATION__<FIELD>)
+    matcher: MatcherSettings = Field(
+        default_factory=MatcherSettings, description="the incremental matcher (Algorithm 2) of every session"
+    )
+    registration: RegistrationSettings = Field(
+        default=MATCHER_REGISTRATION,
+        description="the matcher's NDT registration; fields not given keep the matcher's defaults",
+    )
+
+    @field_validator("registration", mode="before")
+    @classmethod
+    def _matcher_registration_defaults(cls, value: object) -> object:
+        """Fields given as a mapping (the environment, JSON) start from the matcher's defaults."""
+        if isinstance(value, dict):
+            return {**MATCHER_REGISTRATION.model_dump(exclude_defaults=True), **value}
+        return value
 
     @field_validator("listen", "connect")
     @classmethod

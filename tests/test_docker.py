@@ -238,6 +238,21 @@ def test_build_context_and_zenoh_versions_agree() -> None:
     assert version("eclipse-zenoh").split(".")[0] == tag.split(".")[0], "the project's binding is Zenoh 1.x"
 
 
+def test_the_images_zenoh_pin_meets_the_projects_bounds() -> None:
+    """The image installs the project with ``eclipse-zenoh==ZENOH_VERSION``: a pin outside
+    pyproject's bounds (raised there only after the tests pass on it) would not install."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    bounds = {r.name: r.specifier for r in map(Requirement, deps)}
+    pinned = _dockerfile_stages()[0]["ZENOH_VERSION"]
+    assert bounds["eclipse-zenoh"].contains(pinned), (pinned, str(bounds["eclipse-zenoh"]))
+    for name in ("eclipse-zenoh", "numpy", "numba"):  # bounded from above (pyproject's comment)
+        assert any(s.operator == "<" for s in bounds[name]), name
+
+
 # -- (b) the command lines and the environment ----------------------------------------------------
 
 

@@ -10,36 +10,31 @@ module             paths                                                        
                    /export]``
 ``metrics``        ``/metrics``                                                 read
 ``viewer``         ``/`` and ``/static/*``                                      open
+``docs``           ``/docs`` (Swagger UI from ``/static/vendor/swagger-ui``)    open
 =================  ===========================================================  ==============
 
 ``deps`` holds what they share (service, auth, validated names), ``models`` the response
 models, ``views`` the builders of those models, ``encoding`` the point-cloud file bodies.
-Errors: a missing resource raises :class:`~service.api.deps.NotFoundHTTPError`, rendered by one
-handler here as ``404 {"detail", "resource", "id"}``; every other error is FastAPI's
-``{"detail": ...}`` (422 for invalid names, coordinates and parameters).
+Errors: routes raise the project's errors (:mod:`core.errors`: a missing resource is a
+:class:`~core.errors.NotFoundError` naming its ``resource`` and ``ident``); :mod:`service.api.errors`
+maps them to status codes in one table, registered by the app factory. A 404 answers
+``{"detail", "resource", "id"}``, every other error ``{"detail": ...}`` (FastAPI's own 422 for
+invalid names, coordinates and parameters).
 """
 
 from __future__ import annotations
 
-from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
-from service.api import health, maps, metrics, sessions, viewer
-from service.api.deps import NotFoundHTTPError
+from service.api import docs, health, maps, metrics, sessions, viewer
 from service.api.maps import PduCache
 
 __all__ = ["install"]
 
 
-async def _not_found(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, NotFoundHTTPError)
-    return JSONResponse({"detail": exc.detail, "resource": exc.resource, "id": exc.ident}, status_code=404)
-
-
 def install(app: FastAPI) -> None:
-    """Add every router, the viewer and the not-found handler to ``app``."""
+    """Add every router and the viewer to ``app``."""
     app.state.pdu_cache = PduCache()
-    app.add_exception_handler(NotFoundHTTPError, _not_found)
-    for module in (health, sessions, maps, metrics):
+    for module in (health, sessions, maps, metrics, docs):
         app.include_router(module.router)
     viewer.mount_viewer(app)

@@ -1,11 +1,12 @@
-"""What the routers share: the service, auth, validated path parameters and the not-found error.
+"""What the routers share: the service, auth and validated path parameters.
 
 Auth
 ----
 ``RANDT_API_TOKEN`` is a bearer token (``Authorization: Bearer <token>``).
 
-* mutating endpoints depend on :func:`require_writer`: no token configured -> **403** (they are
-  refused, never open); missing or wrong token -> **401** with ``WWW-Authenticate: Bearer``;
+* mutating endpoints depend on :func:`require_writer`: no token configured -> **403**
+  (:class:`~core.errors.ForbiddenError`: they are refused, never open); missing or wrong token ->
+  **401** with ``WWW-Authenticate: Bearer`` (:class:`~core.errors.AuthError`);
 * read endpoints depend on :func:`require_reader`: open unless ``RANDT_PROTECT_READS=true``, then
   the same check (the settings refuse ``protect_reads`` without a token).
 * ``/healthz`` and ``/readyz`` stay open (probes carry no secrets), as do the viewer's static files
@@ -17,6 +18,8 @@ Map, vehicle and session names are checked against the id rule
 (:data:`wire.ids.ID_REGEX`) by FastAPI before a handler runs (**422** otherwise), and tile
 indices are bounded integers. Handlers look names up in the live maps and sessions; no file is ever
 opened from a client-supplied string.
+
+Errors are the project's (:mod:`core.errors`), answered by :mod:`service.api.errors`.
 """
 
 from __future__ import annotations
@@ -24,9 +27,10 @@ from __future__ import annotations
 import hmac
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Path, Request, status
+from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from core.errors import AuthError, ForbiddenError, NotFoundError, UnavailableError
 from core.tiles import TileGrid
 from service.api.models import ErrorBody
 from service.runtime import Service
@@ -36,7 +40,6 @@ from wire.ids import ID_MAX_LENGTH, ID_REGEX
 __all__ = [
     "MAX_TILE_INDEX",
     "MapName",
-    "NotFoundHTTPError",
     "ServiceDep",
     "SessionName",
     "TileIx",
@@ -61,16 +64,6 @@ SessionName = Annotated[
 TileIx = Annotated[int, Path(ge=-MAX_TILE_INDEX, le=MAX_TILE_INDEX, description="tile index")]
 
 
-class NotFoundHTTPError(Exception):
-    """A session, map or tile that does not exist; rendered as 404 ``{detail, resource, id}``."""
-
-    def __init__(self, resource: str, ident: str, detail: str | None = None) -> None:
-        self.resource = resource
-        self.ident = ident
-        self.detail = detail or f"{resource} {ident!r} not found"
-        super().__init__(self.detail)
-
-
 def get_service(request: Request) -> Service:
     """The :class:`~service.runtime.Service` the app factory attached to the app."""
     return request.app.state.service
@@ -82,7 +75,7 @@ ServiceDep = Annotated[Service, Depends(get_service)]
 def get_manager(svc: ServiceDep) -> SessionManager:
     """The running session manager (503 while the service is starting or stopped)."""
     if svc.sessions is None:
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, "the service is not running")
+        raise UnavailableError("the service is not running")
     return svc.sessions
 
 
@@ -90,7 +83,7 @@ def get_grid(mgr: SessionManager, name: str) -> TileGrid:
     """The live map ``name`` (404 if there is none)."""
     grid = mgr.maps.get(name)
     if grid is None:
-        raise NotFoundHTTPError("map", name)
+        raise NotFoundError(resource="map", ident=name)
     return grid
 
 
@@ -100,17 +93,9 @@ _Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 def _check_token(expected: str, credentials: HTTPAuthorizationCredentials | None) -> None:
     if credentials is None:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing bearer token (Authorization: Bearer <RANDT_API_TOKEN>)",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
+        raise AuthError("missing bearer token (Authorization: Bearer <RANDT_API_TOKEN>)", challenge="Bearer")
     if not hmac.compare_digest(credentials.credentials.encode(), expected.encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "wrong bearer token",
-            headers={"WWW-Authenticate": 'Bearer error="invalid_token"'},
-        )
+        raise AuthError("wrong bearer token", challenge='Bearer error="invalid_token"')
 
 
 #: The answers :func:`require_writer` can give, for a mutating route's ``responses``.
@@ -124,9 +109,8 @@ def require_writer(svc: ServiceDep, credentials: _Credentials) -> None:
     """Guard of mutating endpoints (module docstring): 403 without a configured token, else 401."""
     token = svc.settings.api_token
     if not token:
-        raise HTTPException(
-            status.HTTP_403_FORBIDDEN,
-            "mutating endpoints are disabled: no RANDT_API_TOKEN is configured on the service",
+        raise ForbiddenError(
+            "mutating endpoints are disabled: no RANDT_API_TOKEN is configured on the service"
         )
     _check_token(token, credentials)
 

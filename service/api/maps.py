@@ -18,17 +18,16 @@ from typing import Annotated
 
 import numpy as np
 import yaml
-from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
+from fastapi import APIRouter, Depends, Header, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 
-from core.errors import NotFoundError
+from core.errors import InvalidRequestError, NotFoundError
 from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.metrics.cloud import pdu
 from core.tiles import Tile, TileGrid, tile_id
 from service.api.deps import (
     WRITER_RESPONSES,
     MapName,
-    NotFoundHTTPError,
     TileIx,
     get_grid,
     get_manager,
@@ -46,7 +45,7 @@ from service.api.models import (
     TileInfo,
 )
 from service.api.views import map_summary
-from service.sessions import MapInUseError, SessionManager
+from service.sessions import SessionManager
 
 __all__ = ["PduCache", "parse_bbox", "router"]
 
@@ -97,10 +96,6 @@ def _tile_pdu(tile: Tile, voxel_m: float) -> float:
     return value if math.isfinite(value) else 0.0
 
 
-def _unprocessable(detail: str) -> HTTPException:
-    return HTTPException(422, detail)
-
-
 def parse_bbox(text: str) -> tuple[tuple[float, float], tuple[float, float]]:
     """``"x0,y0,x1,y1"`` -> ``((x0, y0), (x1, y1))``; 422 unless four finite numbers with x0<=x1, y0<=y1."""
     parts = text.split(",")
@@ -109,10 +104,10 @@ def parse_bbox(text: str) -> tuple[tuple[float, float], tuple[float, float]]:
     except ValueError:
         values = []
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
-        raise _unprocessable(f"bbox must be four finite numbers x_min,y_min,x_max,y_max; got {text!r}")
+        raise InvalidRequestError(f"bbox must be four finite numbers x_min,y_min,x_max,y_max; got {text!r}")
     x0, y0, x1, y1 = values
     if x0 > x1 or y0 > y1:
-        raise _unprocessable(f"bbox is inverted: ({x0:g}, {y0:g}) is not below ({x1:g}, {y1:g})")
+        raise InvalidRequestError(f"bbox is inverted: ({x0:g}, {y0:g}) is not below ({x1:g}, {y1:g})")
     return (x0, y0), (x1, y1)
 
 
@@ -162,13 +157,7 @@ def delete_map(map: MapName, mgr: ManagerDep) -> DeletedMap:
     The sessions' trajectories are kept. A later session with a prior pose starts a new
     ``default`` map.
     """
-    try:
-        n_tiles = mgr.delete_map(map)
-    except NotFoundError:
-        raise NotFoundHTTPError("map", map) from None
-    except MapInUseError as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    return DeletedMap(map=map, tiles=n_tiles)
+    return DeletedMap(map=map, tiles=mgr.delete_map(map))
 
 
 @router.get("/{map}/tiles", response_model=TileIndex, responses={**_404, **_422})
@@ -194,16 +183,16 @@ def tile_index(
     wanted: set[str] | None = None
     circle = (x, y, radius)
     if bbox is not None and any(v is not None for v in circle):
-        raise _unprocessable("give either bbox or x, y and radius, not both")
+        raise InvalidRequestError("give either bbox or x, y and radius, not both")
     if bbox is not None:
         lo, hi = parse_bbox(bbox)
         wanted = set(grid.tiles_in_bbox(lo, hi))
         query = {"x_min": lo[0], "y_min": lo[1], "x_max": hi[0], "y_max": hi[1]}
     elif any(v is not None for v in circle):
         if x is None or y is None or radius is None:
-            raise _unprocessable("a radius query needs x, y and radius")
+            raise InvalidRequestError("a radius query needs x, y and radius")
         if not all(math.isfinite(v) for v in (x, y, radius)):
-            raise _unprocessable("x, y and radius must be finite")
+            raise InvalidRequestError("x, y and radius must be finite")
         wanted = set(grid.tiles_within_radius((x, y), radius))
         query = {"x": x, "y": y, "radius": radius}
     cache: PduCache = request.app.state.pdu_cache
@@ -255,13 +244,11 @@ def get_tile(
 ) -> Response:
     """One tile's points (float32 x y z intensity, map frame) as PCD, PLY or LAS, with its ETag."""
     grid = get_grid(mgr, map)
-    try:
-        tile = grid.tile(ix, iy)
-    except NotFoundError as exc:
-        tid = tile_id(ix, iy)
-        raise NotFoundHTTPError(
-            "tile", tid, f"tile {tid!r} of map {map!r} not found (holds no points)"
-        ) from exc
+    tid = tile_id(ix, iy)
+    if tid not in grid:  # tiles are never removed from a live map
+        detail = f"tile {tid!r} of map {map!r} not found (holds no points)"
+        raise NotFoundError(detail, resource="tile", ident=tid)
+    tile = grid.tile(ix, iy)
     etag = _etag(tile, format)
     headers = {"ETag": etag, "Cache-Control": "no-cache", "X-Randt-Tile-Version": str(tile.version)}
     if _matches(if_none_match, etag):

@@ -16,10 +16,10 @@ import numpy as np
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import PlainTextResponse
 
+from core.errors import NotFoundError
 from core.io import write_kitti_poses, write_tum
 from service.api.deps import (
     WRITER_RESPONSES,
-    NotFoundHTTPError,
     SessionName,
     VehicleName,
     get_manager,
@@ -141,7 +141,7 @@ def close_session(vehicle: VehicleName, session: SessionName, mgr: ManagerDep) -
         return ClosedSession(id=found.id, state="closed", scans=scans, changed=True)
     current = mgr.records().get(key)
     if current is None:
-        raise NotFoundHTTPError("session", found.id)
+        raise NotFoundError(resource="session", ident=found.id)
     if current.state == "active":  # stored as active, no worker (not resumed since a restart)
         closed = mgr.close_stored(vehicle, session)
         if closed is not None:

@@ -13,9 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import RandtError
+from core.errors import NotFoundError
 from core.tiles import TileGrid
-from service.api.deps import NotFoundHTTPError
 from service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
 from service.sessions import SessionManager, SessionState
 from service.store import SessionRecord
@@ -93,11 +92,11 @@ class FoundSession:
 
 
 def find_session(mgr: SessionManager, vehicle: str, session: str) -> FoundSession:
-    """The running or stored session ``vehicle/session``; 404 (:class:`NotFoundHTTPError`) if neither."""
+    """The running or stored session ``vehicle/session``; :class:`~core.errors.NotFoundError` if neither."""
     worker = mgr.worker(vehicle, session)
     record = mgr.records().get((vehicle, session))
     if worker is None and record is None:
-        raise NotFoundHTTPError("session", session_id(vehicle, session))
+        raise NotFoundError(resource="session", ident=session_id(vehicle, session))
     return FoundSession(vehicle, session, worker.info if worker else None, record)
 
 
@@ -107,14 +106,9 @@ def load_trajectory(mgr: SessionManager, found: FoundSession) -> tuple[np.ndarra
         live = mgr.trajectory(found.vehicle, found.session)
         if live is not None:
             return live
-    # Stored (or closed between the two look-ups): the store's commit record is the truth.
-    try:
-        loaded = mgr.store.load_session(found.vehicle, found.session)
-    except (RandtError, OSError, ValueError) as exc:  # listed, but gone or unreadable now
-        raise NotFoundHTTPError(
-            "session", found.id, f"session {found.id!r} has no readable trajectory: {exc}"
-        ) from exc
-    return np.asarray(loaded.stamps, dtype=float), np.asarray(loaded.poses, dtype=float).reshape(-1, 4, 4)
+    # Stored (or closed between the two look-ups): the store's commit record is the truth; a
+    # session listed but gone or unreadable now is not found.
+    return mgr.stored_trajectory(found.vehicle, found.session)
 
 
 def session_detail(mgr: SessionManager, found: FoundSession) -> SessionDetail:

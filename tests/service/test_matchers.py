@@ -4,16 +4,19 @@ scans since the last save (the session resumes from the store; other sessions ar
 from __future__ import annotations
 
 import os
+import pickle
 import signal
 import time
 
 import numpy as np
+import pytest
 
+from core.errors import DegenerateProblemError, InvalidCloudError, RandtError
 from core.odometry import IncrementalMatcher, MatcherSettings
 from core.protocol import synthetic_room
 from core.tiles import TileGrid
 from core.transforms import invert, make_transform, transform_points
-from service.matchers import MatcherPool
+from service.matchers import MatcherPool, MatcherProcessDiedError, MatcherProcessError, _portable
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
@@ -124,3 +127,40 @@ def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
     assert full.tile_ids() == reduced.tile_ids() and full.n_points == reduced.n_points > 1000
     for tid in full.tile_ids():
         np.testing.assert_array_equal(full.get(tid).points, reduced.get(tid).points)
+
+
+def test_an_error_raised_in_a_matcher_process_arrives_as_itself() -> None:
+    """The worker sends the exception object back: same class, message and attributes, the
+    worker's traceback as a note (it arrived as a bare RandtError or RuntimeError before)."""
+    with pytest.raises(InvalidCloudError) as in_process:
+        IncrementalMatcher().register_scan(ROOM[:5])  # fewer points than a registration needs
+    pool = MatcherPool(1)
+    try:
+        remote = pool.open(("v", "s"))
+        pid = pool.pids()[0]
+        with pytest.raises(InvalidCloudError) as caught:
+            remote.register_scan(ROOM[:5])
+        assert type(caught.value) is InvalidCloudError and caught.value.args == in_process.value.args
+        notes = "\n".join(caught.value.__notes__)
+        assert f"raised in matcher process pid {pid}" in notes and "Traceback" in notes
+        # the process keeps serving the session, and a failure that is not ours keeps its type too
+        assert remote.register_scan(ROOM).status == "first"
+        remote.close()
+        with pytest.raises(KeyError) as missing:
+            remote.state_dict()  # the process forgot the session
+        assert type(missing.value) is KeyError and missing.value.args == (("v", "s"),)
+    finally:
+        pool.close()
+
+
+def test_an_error_that_cannot_be_pickled_arrives_as_a_matcher_process_error() -> None:
+    class LocalError(Exception):  # not importable by name: cannot be unpickled by the session
+        pass
+
+    sent = _portable(LocalError("boom"))
+    assert type(sent) is MatcherProcessError and isinstance(sent, RandtError)
+    assert str(sent) == f"in matcher process pid {os.getpid()}: LocalError: boom"
+    kept = _portable(DegenerateProblemError("flat", weak_directions=("tz", "rx")))
+    back = pickle.loads(pickle.dumps(kept))
+    assert type(back) is DegenerateProblemError and back.weak_directions == ("tz", "rx")
+    assert issubclass(MatcherProcessDiedError, MatcherProcessError)

@@ -1,0 +1,105 @@
+"""The exception tree (core/errors.py and its subclasses elsewhere): every class survives pickling
+with its type, message and attributes, as the matcher processes need (tests/service/test_matchers.py
+sends errors through a real one)."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+import clients.rest
+import service.matchers
+import service.sessions
+from core.errors import (
+    AuthError,
+    BadMessageError,
+    ConflictError,
+    DegenerateProblemError,
+    ForbiddenError,
+    FormatError,
+    InvalidCloudError,
+    InvalidRequestError,
+    NotFoundError,
+    RandtError,
+    RegistrationFailedError,
+    UnavailableError,
+)
+
+
+def _subclasses(cls: type) -> set[type]:
+    out = set()
+    for sub in cls.__subclasses__():
+        out |= {sub} | _subclasses(sub)
+    return out
+
+
+def _examples() -> list[RandtError]:
+    """One instance of every class of the tree, each with its attributes set (not the defaults)."""
+    return [
+        RandtError("root"),
+        InvalidCloudError("scan: 3 points within 2.0-100.0 m"),
+        DegenerateProblemError(
+            "the geometry does not constrain 2 degree(s) of freedom",
+            result={"T_target_source": np.arange(16.0).reshape(4, 4), "converged": True},
+            weak_directions=("tx", "rz"),
+        ),
+        RegistrationFailedError("non-finite pose"),
+        FormatError("x.pcd: malformed header"),
+        BadMessageError("points: 3 columns expected", code="bad_points"),
+        InvalidRequestError("bbox is inverted"),
+        NotFoundError("tile '3_4' of map 'm' not found", resource="tile", ident="3_4"),
+        ConflictError("busy"),
+        service.sessions.MapInUseError("map 'default' is in use by 1 running session(s)"),
+        AuthError("wrong bearer token", challenge='Bearer error="invalid_token"'),
+        ForbiddenError("mutating endpoints are disabled"),
+        UnavailableError("the service is not running"),
+        service.matchers.MatcherProcessError("in matcher process pid 7: Boom: x"),
+        service.matchers.MatcherProcessDiedError("matcher process 1 (pid 7) died"),
+        clients.rest.ApiError(500, "Internal Server Error", "http://127.0.0.1:8080/maps"),
+        clients.rest.ApiNotFoundError(404, "map 'x' not found", "http://127.0.0.1:8080/maps/x"),
+    ]
+
+
+def _same_attributes(a: dict[str, object], b: dict[str, object]) -> None:
+    assert a.keys() == b.keys()
+    for key, value in a.items():
+        if isinstance(value, dict):
+            _same_attributes(value, b[key])  # type: ignore[arg-type]
+        else:
+            np.testing.assert_equal(b[key], value, err_msg=key)
+
+
+def test_the_examples_cover_every_class_of_the_tree() -> None:
+    assert {type(e) for e in _examples()} == {RandtError} | _subclasses(RandtError)
+
+
+@pytest.mark.parametrize("exc", _examples(), ids=lambda e: type(e).__name__)
+def test_every_error_survives_pickling_with_its_type_message_and_attributes(exc: RandtError) -> None:
+    exc.add_note("raised in matcher process pid 7")
+    back = pickle.loads(pickle.dumps(exc))
+    assert type(back) is type(exc)
+    assert back.args == exc.args and str(back) == str(exc)
+    assert back.__notes__ == ["raised in matcher process pid 7"]
+    _same_attributes(exc.__dict__, back.__dict__)
+
+
+def test_attributes_that_pickling_used_to_lose_come_back() -> None:
+    """An __init__ whose arguments are not its ``args`` (ApiError formats three into one message)
+    could not be rebuilt by the default pickling: ``cls(*args)`` raised TypeError."""
+    err = clients.rest.ApiNotFoundError(404, "map 'x' not found", "http://h/maps/x")
+    back = pickle.loads(pickle.dumps(err))
+    assert (back.status, back.detail, back.url) == (404, "map 'x' not found", "http://h/maps/x")
+    assert isinstance(back, NotFoundError) and str(back) == "HTTP 404 from http://h/maps/x: map 'x' not found"
+    degenerate = pickle.loads(pickle.dumps(DegenerateProblemError("flat", weak_directions=("tz",))))
+    assert degenerate.weak_directions == ("tz",) and degenerate.result is None
+    assert pickle.loads(pickle.dumps(BadMessageError("late", code="stale"))).code == "stale"
+
+
+def test_not_found_names_what_was_asked_for() -> None:
+    err = NotFoundError(resource="map", ident="nowhere")
+    assert str(err) == "map 'nowhere' not found" and (err.resource, err.ident) == ("map", "nowhere")
+    assert isinstance(err, LookupError)
+    plain = NotFoundError("x.pcd: no such file")
+    assert str(plain) == "x.pcd: no such file" and plain.resource is None and plain.ident is None
