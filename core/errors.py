@@ -11,7 +11,7 @@
     └── NotFoundError               a session, map or tile that does not exist
 
 One place maps these to HTTP status codes (``service``) and one place to CLI exit codes
-(``service.cli``); library code only raises them.
+(``cli.errors``); library code only raises them.
 """
 
 from __future__ import annotations

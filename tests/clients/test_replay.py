@@ -9,11 +9,11 @@ import sys
 import numpy as np
 from typer.testing import CliRunner
 
+from cli.main import app
 from clients.publisher import PublisherSettings
 from clients.replay import replay
 from core.io import PointCloud, read_cloud, read_kitti_poses, read_tum, write_cloud
 from core.transforms import transform_error
-from service.cli import app
 from service.runtime import Service
 from service.settings import ServiceSettings
 from tests.clients.conftest import FakeService, Router
@@ -41,7 +41,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     try:
         proc = subprocess.run(
             [
-                sys.executable, "-m", "service.cli", "replay", str(seq_dir),
+                sys.executable, "-m", "cli", "replay", str(seq_dir),
                 "--vehicle", "kitti", "--session", "seq00", "--rate", "0",
                 "--connect", restartable_router.endpoint, "--mode", "client",
                 "--out", str(tmp_path / "replay"), "--no-progress",

@@ -53,7 +53,7 @@ def demo(tmp_path_factory):
     hport, zport = free_port(), free_port()
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "service.cli", "demo",
+            sys.executable, "-m", "cli", "demo",
             "--vehicles", str(VEHICLES), "--duration", str(DURATION_S),
             "--data-dir", str(data), "--http-port", str(hport), "--zenoh-port", str(zport), "--no-progress",
         ],
@@ -128,7 +128,7 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 
     def tiles(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "service.cli", "tiles", *args, "--url", base],
+            [sys.executable, "-m", "cli", "tiles", *args, "--url", base],
             capture_output=True,
             text=True,
             timeout=120,
@@ -158,8 +158,8 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
     from typer.testing import CliRunner
 
+    from cli.main import app
     from core.io import read_kitti_poses
-    from service.cli import app
 
     _, _, data, base = demo
     run = CliRunner().invoke

@@ -16,9 +16,7 @@ from tests.pairs import car
 
 
 def _randt(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300
-    )
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_register_json_on_the_car_pair(tmp_path) -> None:

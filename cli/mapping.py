@@ -1,0 +1,125 @@
+"""``randt map`` and ``randt eval``: a map and poses from a recorded sequence, and their errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def map_sequence(
+    dataset_dir: Annotated[Path, typer.Argument(help="KITTI sequence folder or a folder of scan files.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (created).")],
+    start: Annotated[int, typer.Option(help="First scan index.")] = 0,
+    end: Annotated[int | None, typer.Option(help="Stop before this scan index.")] = None,
+    tile_size: Annotated[int, typer.Option(help="Map tile edge in metres (Autoware: 20).")] = 20,
+    map_voxel: Annotated[float, typer.Option(help="Density-equalization voxel of the map, m.")] = 0.2,
+    pdu_voxel: Annotated[float, typer.Option(help="Voxel for the PDU index, m.")] = 0.5,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Build poses and a tiled map from a scan sequence (the paper's Algorithm 2, offline).
+
+    Writes OUT/poses_kitti.txt, OUT/poses_tum.txt, OUT/map/*.pcd with
+    OUT/map/pointcloud_map_metadata.yaml, and OUT/summary.json.
+    """
+    import numpy as np
+    from tqdm import tqdm
+
+    from core.datasets import open_sequence
+    from core.io import atomic_write_bytes, write_kitti_poses, write_tum
+    from core.mapping import MapBuilder
+    from core.metrics import pdu
+
+    seq = open_sequence(dataset_dir, start=start, end=end)
+    builder = MapBuilder(tile_size_m=tile_size, map_voxel_m=map_voxel)
+    scans = []
+    bar = tqdm(total=len(seq), unit="scan", disable=not progress, file=sys.stderr)
+    for i in range(len(seq)):
+        cloud = seq.read(i)
+        update = builder.add_scan(cloud.xyz, intensity=cloud.intensity, time_offset_s=cloud.time_offset_s)
+        r = update.scan
+        scans.append(
+            {
+                "index": i + start,
+                "time_s": r.time_s,
+                "fitness": r.fitness,
+                "converged": r.converged,
+                "status": r.status,
+                "inlier_ratio": r.inlier_ratio,
+                "message": r.message,
+            }
+        )
+        bar.set_postfix(status=r.status, tiles=len(builder.tiles), refresh=False)
+        bar.update()
+    bar.close()
+    out.mkdir(parents=True, exist_ok=True)
+    poses = np.array(builder.poses)
+    write_kitti_poses(out / "poses_kitti.txt", poses)
+    stamps = seq.stamps_s if seq.stamps_s is not None else np.arange(len(poses)) * 0.1
+    write_tum(out / "poses_tum.txt", stamps, poses)
+    builder.tiles.export_autoware(out / "map")
+    map_points = builder.tiles.to_cloud().xyz.astype(np.float64)
+    summary = {
+        "scans": scans,
+        "map": {
+            "pdu": pdu(map_points, pdu_voxel) if len(map_points) else None,
+            "pdu_voxel_m": pdu_voxel,
+            "tiles": len(builder.tiles),
+            "points": int(builder.tiles.n_points),
+            "tile_pdu": builder.tiles.tile_pdu(pdu_voxel),
+        },
+    }
+    atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=1).encode())
+    n_ok = sum(s["status"] != "fallback" for s in scans)
+    typer.echo(
+        f"{len(scans)} scans ({n_ok} matched), {summary['map']['tiles']} tiles, "
+        f"{summary['map']['points']} map points, PDU {summary['map']['pdu']:.3f} -> {out}"
+    )
+
+
+class TrajectoryFormat(StrEnum):
+    kitti = "kitti"
+    tum = "tum"
+
+
+def eval_trajectory(
+    reference: Annotated[Path, typer.Option("--reference", help="Reference trajectory file.")],
+    estimate: Annotated[Path, typer.Option("--estimate", help="Estimated trajectory file.")],
+    fmt: Annotated[TrajectoryFormat, typer.Option("--format", help="File format of both.")] = (
+        TrajectoryFormat.kitti
+    ),
+    as_json: Annotated[bool, typer.Option("--json", help="Print exactly one JSON object.")] = False,
+) -> None:
+    """ATE, RPE and KITTI relative errors of ESTIMATE against REFERENCE."""
+    from core.io import read_kitti_poses, read_tum
+    from core.metrics import evaluate_trajectory
+
+    if fmt is TrajectoryFormat.kitti:
+        ref, est = read_kitti_poses(reference), read_kitti_poses(estimate)
+    else:
+        ref, est = read_tum(reference)[1], read_tum(estimate)[1]
+    if len(ref) != len(est):
+        raise ValueError(f"{reference} has {len(ref)} poses but {estimate} has {len(est)}")
+    report = evaluate_trajectory(ref, est)
+    if as_json:
+        typer.echo(json.dumps(report))
+        return
+    ate, rpe = report["ate"], report["rpe"]
+    typer.echo(f"poses {report['n_poses']}  path {report['path_length_m']:.1f} m")
+    typer.echo(f"ATE (se3 aligned) rmse {ate['translation_m']['rmse']:.4f} m")
+    typer.echo(
+        f"RPE (1 frame) translation rmse {rpe['translation_m']['rmse']:.4f} m, "
+        f"rotation rmse {rpe['rotation_deg']['rmse']:.4f} deg"
+    )
+    kitti = report.get("kitti")
+    if kitti:
+        typer.echo(
+            f"KITTI relative error {kitti['translation_pct']:.3f} %, "
+            f"{kitti['rotation_deg_per_100m']:.4f} deg/100 m"
+        )
+    else:
+        typer.echo(f"KITTI relative error: n/a ({'; '.join(report.get('notes', []))})")
