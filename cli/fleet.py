@@ -33,17 +33,12 @@ def _publisher_settings(mode: VehicleMode | None, connect: list[str] | None) -> 
     return PublisherSettings(**{k: v for k, v in overrides.items() if v is not None})
 
 
+#: The options of ``randt replay`` and ``randt simulate`` that override ``PublisherSettings`` fields.
+PUBLISHER_OPTIONS = ("connect", "mode")
 ConnectOption = Annotated[
-    list[str] | None,
-    typer.Option(
-        help="Zenoh endpoint of the router or service, repeatable "
-        "[env RANDT_VEHICLE_CONNECT; default tcp/127.0.0.1:7447]."
-    ),
+    list[str] | None, typer.Option(help="Zenoh endpoint of the router or service, repeatable.")
 ]
-ModeOption = Annotated[
-    VehicleMode | None,
-    typer.Option(help="Zenoh mode of the vehicle [env RANDT_VEHICLE_MODE; default client]."),
-]
+ModeOption = Annotated[VehicleMode | None, typer.Option(help="Zenoh mode of the vehicle.")]
 
 
 def replay(

@@ -7,44 +7,53 @@ import sys
 from typing import Annotated
 
 import typer
+from typer.core import TyperCommand
 
-from cli import fleet, mapping, register, serve, tiles
-from cli.errors import exits_on_error
+from cli import config, fleet, mapping, register, serve, tiles
+from cli.errors import exit_code_table, exits_on_error
 
+# Plain help (rich_markup_mode=None): click's layout, no "<bool>" type column, text as written.
 app = typer.Typer(
     name="randt",
     help="randt-fleet: RANDT scan matching and fleet map building.",
+    epilog="\b\nExit codes (every command; errors are one line 'randt: error: ...' on stderr):\n"
+    + exit_code_table(),
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
 )
 tiles_app = typer.Typer(
     help="Sessions, trajectories and map tiles from a running service, over HTTP.",
     no_args_is_help=True,
+    rich_markup_mode=None,
 )
 
-#: Every command, in ``randt --help``'s order: (typer app, name, function). Each is wrapped by
-#: :func:`cli.errors.exits_on_error` here, so no command maps its own errors.
-COMMANDS = (
-    (app, "register", register.register),
-    (app, "demo-register", register.demo_register),
-    (app, "map", mapping.map_sequence),
-    (app, "eval", mapping.eval_trajectory),
-    (app, "serve", serve.serve),
-    (app, "replay", fleet.replay),
-    (app, "simulate", fleet.simulate),
-    (app, "demo", fleet.demo),
-    (app, "config", register.show_config),
-    (tiles_app, "sessions", tiles.tiles_sessions),
-    (tiles_app, "trajectory", tiles.tiles_trajectory),
-    (tiles_app, "maps", tiles.tiles_maps),
-    (tiles_app, "list", tiles.tiles_list),
-    (tiles_app, "download", tiles.tiles_download),
-    (tiles_app, "export", tiles.tiles_export),
+_SERVICE = config.settings_command("service.settings:ServiceSettings", serve.SETTINGS_OPTIONS)
+_PUBLISHER = config.settings_command("clients.publisher:PublisherSettings", fleet.PUBLISHER_OPTIONS)
+
+#: Every command, in ``randt --help``'s order: (typer app, name, function, command class). Each is
+#: wrapped by :func:`cli.errors.exits_on_error` here, so no command maps its own errors.
+COMMANDS: tuple[tuple[typer.Typer, str, object, type[TyperCommand] | None], ...] = (
+    (app, "register", register.register, None),
+    (app, "demo-register", register.demo_register, None),
+    (app, "map", mapping.map_sequence, None),
+    (app, "eval", mapping.eval_trajectory, None),
+    (app, "serve", serve.serve, _SERVICE),
+    (app, "replay", fleet.replay, _PUBLISHER),
+    (app, "simulate", fleet.simulate, _PUBLISHER),
+    (app, "demo", fleet.demo, None),
+    (app, "config", config.show_config, None),
+    (tiles_app, "sessions", tiles.tiles_sessions, None),
+    (tiles_app, "trajectory", tiles.tiles_trajectory, None),
+    (tiles_app, "maps", tiles.tiles_maps, None),
+    (tiles_app, "list", tiles.tiles_list, None),
+    (tiles_app, "download", tiles.tiles_download, None),
+    (tiles_app, "export", tiles.tiles_export, None),
 )
-for _app, _name, _command in COMMANDS:
+for _app, _name, _command, _cls in COMMANDS:
     _full = _name if _app is app else f"tiles {_name}"
-    _app.command(_name)(exits_on_error(_command, _full))
+    _app.command(_name, cls=_cls)(exits_on_error(_command, _full))  # type: ignore[arg-type]
 app.add_typer(tiles_app, name="tiles")
 
 

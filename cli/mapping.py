@@ -6,9 +6,12 @@ import json
 import sys
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+
+from cli.errors import input_file
+from core.errors import FormatError
 
 
 def map_sequence(
@@ -92,23 +95,64 @@ def eval_trajectory(
     fmt: Annotated[TrajectoryFormat, typer.Option("--format", help="File format of both.")] = (
         TrajectoryFormat.kitti
     ),
+    calib: Annotated[
+        Path | None,
+        typer.Option(
+            help="KITTI calib.txt (or its sequence folder): REFERENCE is KITTI ground truth in the left "
+            "camera's frame and is converted to the LiDAR frame with its Tr, the frame randt map writes. "
+            "Default: a calib.txt found next to REFERENCE (DIR/poses.txt) or in KITTI's layout "
+            "(poses/NN.txt, sequences/NN/calib.txt)."
+        ),
+    ] = None,
+    no_calib: Annotated[
+        bool, typer.Option("--no-calib", help="Compare both files as given, even if a calib.txt is found.")
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print exactly one JSON object.")] = False,
 ) -> None:
-    """ATE, RPE and KITTI relative errors of ESTIMATE against REFERENCE."""
-    from core.io import read_kitti_poses, read_tum
+    """ATE, RPE and KITTI relative errors of ESTIMATE against REFERENCE, in the frames it prints.
+
+    KITTI's ground truth (poses.txt) holds left-camera poses while randt map writes LiDAR poses: with
+    a calib.txt (--calib, or found next to REFERENCE) the reference is converted (inv(Tr) P Tr)
+    before comparing; the output says which frames were compared.
+    """
+    from core.io import kitti_velodyne_poses, read_kitti_calib, read_kitti_poses, read_tum
     from core.metrics import evaluate_trajectory
 
+    if calib is not None and no_calib:
+        raise ValueError("--calib and --no-calib exclude each other")
     if fmt is TrajectoryFormat.kitti:
-        ref, est = read_kitti_poses(reference), read_kitti_poses(estimate)
+        ref, est = read_kitti_poses(input_file(reference)), read_kitti_poses(input_file(estimate))
     else:
-        ref, est = read_tum(reference)[1], read_tum(estimate)[1]
+        ref, est = read_tum(input_file(reference))[1], read_tum(input_file(estimate))[1]
     if len(ref) != len(est):
         raise ValueError(f"{reference} has {len(ref)} poses but {estimate} has {len(est)}")
+    calib_file, found = (None, False) if no_calib else _calib_file(calib, reference)
+    if calib_file is not None:
+        ref = kitti_velodyne_poses(ref, _velodyne_to_cam0(read_kitti_calib(calib_file), calib_file))
+        how = "given" if not found else "found next to the reference"
+        frames = {
+            "reference": "lidar (KITTI left camera poses converted with Tr: inv(Tr) P Tr)",
+            "estimate": "as given",
+            "calib": str(calib_file),
+        }
+        said = (
+            f"frames: reference converted from KITTI's left camera to the LiDAR with Tr of {calib_file} "
+            f"({how})"
+        )
+    else:
+        frames = {"reference": "as given", "estimate": "as given", "calib": None}
+        said = (
+            "frames: both as given"
+            + (" (--no-calib)" if no_calib else "")
+            + "; KITTI ground truth is in the left camera's frame: against randt map's LiDAR poses, "
+            "pass --calib calib.txt"
+        )
     report = evaluate_trajectory(ref, est)
     if as_json:
-        typer.echo(json.dumps(report))
+        typer.echo(json.dumps({**report, "frames": frames}))
         return
     ate, rpe = report["ate"], report["rpe"]
+    typer.echo(said)
     typer.echo(f"poses {report['n_poses']}  path {report['path_length_m']:.1f} m")
     typer.echo(f"ATE (se3 aligned) rmse {ate['translation_m']['rmse']:.4f} m")
     typer.echo(
@@ -123,3 +167,24 @@ def eval_trajectory(
         )
     else:
         typer.echo(f"KITTI relative error: n/a ({'; '.join(report.get('notes', []))})")
+
+
+def _calib_file(calib: Path | None, reference: Path) -> tuple[Path | None, bool]:
+    """The calib.txt to use and whether it was found (not given): ``--calib``, else next to REFERENCE."""
+    if calib is not None:
+        return (calib / "calib.txt" if calib.is_dir() else calib), False
+    for candidate in (
+        reference.parent / "calib.txt",  # a sequence folder: DIR/poses.txt, DIR/calib.txt
+        reference.parent.parent / "sequences" / reference.stem / "calib.txt",  # poses/00.txt
+    ):
+        if candidate.is_file():
+            return candidate, True
+    return None, False
+
+
+def _velodyne_to_cam0(calib: dict[str, Any], path: Path) -> Any:
+    """``Tr`` (odometry calib.txt) or ``Tr_velo_to_cam`` (object calib) of a KITTI calibration."""
+    for key in ("Tr", "Tr_velo_to_cam"):
+        if key in calib:
+            return calib[key]
+    raise FormatError(f"{path}: no Tr (velodyne to camera 0) line")

@@ -1,4 +1,4 @@
-"""``randt register``, ``randt demo-register`` and ``randt config``: two clouds, offline."""
+"""``randt register`` and ``randt demo-register``: two clouds, offline."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from cli.errors import ExitCode
+from cli.errors import ExitCode, input_file
 from core.errors import FormatError, RandtError
 
 if TYPE_CHECKING:
@@ -69,9 +69,9 @@ def register(
     from core.registration import register as do_register
     from core.transforms import transform_points
 
-    init_T = _read_init(init)
-    src = read_cloud(source)
-    tgt = read_cloud(target)
+    init_T = _read_init(None if init is None else input_file(init))
+    src = read_cloud(input_file(source))
+    tgt = read_cloud(input_file(target))
     settings = RegistrationSettings.for_method(
         method.value, **({"voxel_sizes_m": tuple(voxel)} if voxel else {})
     )
@@ -154,10 +154,3 @@ def demo_register(
             f"  {name:20s} error {e_m * 100:6.2f} cm {e_deg:6.3f} deg  fitness {r.fitness:.3f}  "
             f"time {r.time_s:.3f} s"
         )
-
-
-def show_config() -> None:
-    """Print the default registration settings as JSON."""
-    from core.config import RegistrationSettings
-
-    typer.echo(RegistrationSettings().model_dump_json(indent=2))

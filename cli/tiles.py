@@ -12,9 +12,7 @@ import typer
 if TYPE_CHECKING:
     from clients.rest import MapClient
 
-UrlOption = Annotated[
-    str, typer.Option("--url", envvar="RANDT_URL", help="The service's HTTP address [env RANDT_URL].")
-]
+UrlOption = Annotated[str, typer.Option("--url", envvar="RANDT_URL", help="The service's HTTP address.")]
 TokenOption = Annotated[
     str | None,
     typer.Option("--token", envvar="RANDT_API_TOKEN", help="Bearer token if reads are protected."),
