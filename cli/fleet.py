@@ -237,7 +237,8 @@ def demo(
         bool, typer.Option("--exit", help="Stop after the summary instead of serving on.")
     ] = False,
     data_dir: Annotated[
-        Path | None, typer.Option(help="Service data directory (default: a new temporary folder).")
+        Path | None,
+        typer.Option(help="Service data directory, kept (default: a temporary folder, removed at exit)."),
     ] = None,
     http_port: Annotated[int, typer.Option(help="HTTP port (a free one if taken; 0 = any).")] = 8080,
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port (a free one if taken; 0 = any).")] = 7447,
@@ -247,13 +248,15 @@ def demo(
 ) -> None:
     """The fleet demo: the service, a simulated fleet, errors against ground truth, then the map.
 
-    Starts the service on embedded defaults (Zenoh peer and HTTP on 127.0.0.1), drives VEHICLES
-    simulated vehicles for DURATION simulated seconds each (a child ``randt simulate``, flow
-    controlled so no scan is dropped), prints per vehicle the trajectory error against the
-    simulator's ground truth, the map's PDU, where the tiles are and the viewer's URL, and keeps
-    serving until Ctrl-C (or stops at once with --exit).
+    Starts the service on embedded defaults (Zenoh peer and HTTP on 127.0.0.1) and prints the
+    viewer's URL (open it to watch the map grow), drives VEHICLES simulated vehicles for DURATION
+    simulated seconds each (a child randt simulate, flow controlled so no scan is dropped), prints
+    per vehicle the trajectory error against the simulator's ground truth, the map's PDU and where
+    the tiles are, and keeps serving until Ctrl-C (or stops at once with --exit). Without
+    --data-dir the data live in a temporary folder removed at exit.
     """
     import os
+    import shutil
     import subprocess
     import tempfile
     import threading
@@ -265,7 +268,10 @@ def demo(
     from clients.fleet import summary_table
     from service.app import create_app
     from service.settings import ServiceSettings
+    from service.store import check_data_dir_free
 
+    if data_dir is not None:
+        check_data_dir_free(data_dir)
     data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
     logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
     zport, z_ok = _usable_port(zenoh_port)
@@ -309,7 +315,9 @@ def demo(
                 raise fail(ConnectionError(f"the service did not start on {base} (see the log above)"))
             time.sleep(0.1)
         n_scans = max(1, round(duration * 10.0))
-        typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}")
+        kept = "" if data_dir is not None else " (temporary, removed at exit: keep one with --data-dir)"
+        typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}{kept}")
+        typer.echo(f"viewer: {base}/  (open it now: the map grows as the fleet drives)")
         typer.echo(
             f"simulating {vehicles} vehicles for {duration:g} s each: {n_scans} sweeps of a 64-beam LiDAR "
             f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s; each vehicle waits for its answers "
@@ -380,6 +388,8 @@ def demo(
         typer.echo("\nrandt demo: stopping", err=True)
     finally:
         shutdown()
+        if data_dir is None:
+            shutil.rmtree(data, ignore_errors=True)
     # Everything is flushed and closed. Leave without interpreter finalization: Zenoh's native
     # threads may still release Python callbacks of the closed session, and one run in about ten
     # aborted there ("FATAL: exception not rethrown", exit 134) after a complete, correct summary.
