@@ -98,6 +98,16 @@ def replay(
             f"({n_fallback} fallback), {s.rejected} rejected{codes}, {s.dropped} dropped, {s.lost} lost, "
             f"{len(r.skipped)} invalid, {r.wall_s:.1f} s"
         )
+        for name in sorted({p.map for p in r.poses.values()}):
+            own = (
+                " (the session's own frame: its scans carried no prior pose)"
+                if name == f"{r.vehicle}.{r.session}"
+                else ""
+            )
+            typer.echo(
+                f"  map {name}{own}: GET /maps/{name}/tiles on the service's HTTP address, "
+                f"or randt tiles download {name} DIR"
+            )
         complete &= s.acknowledged == r.n_scans
         if out is not None:
             _write_replay(out if k == 0 else out / f"pass{k}", r)

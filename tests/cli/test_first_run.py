@@ -274,3 +274,11 @@ def test_config_groups_follow_the_models() -> None:
     assert groups["outer"].rows == (SettingRow("name", "a", "X_NAME", ""),)
     assert groups["inner"].rows == (SettingRow("depth_m", 2.5, "X_INNER__DEPTH_M", "how deep"),)
     assert groups["inner"].env_note == "env prefix X_INNER__"
+
+
+def test_the_readme_documents_every_exit_code() -> None:
+    from cli.errors import DESCRIPTIONS
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    rows = dict(re.findall(r"^\| (\d+) \| (.+?) \|$", readme, flags=re.M))
+    assert {int(k): v for k, v in rows.items()} == {int(c): t for c, t in DESCRIPTIONS.items()}
