@@ -19,9 +19,13 @@ from core.errors import FormatError, NotFoundError
 from core.io import PointCloud, kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
 from core.transforms import invert
 
-__all__ = ["ScanSequence", "open_sequence"]
+__all__ = ["NoScansError", "ScanSequence", "open_sequence"]
 
 _SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".csv", ".txt", ".npy")
+
+
+class NoScansError(FormatError):
+    """A sequence folder exists but holds no scan files (or none in the requested range)."""
 
 
 @dataclass(frozen=True)
@@ -59,8 +63,10 @@ class ScanSequence:
 def open_sequence(directory: str | Path, *, start: int = 0, end: int | None = None) -> ScanSequence:
     """Find the scans of a sequence folder (module docstring); ``start``/``end`` slice them."""
     root = Path(directory)
-    if not root.is_dir():
+    if not root.exists():
         raise NotFoundError(f"{root}: no such directory")
+    if not root.is_dir():
+        raise NotADirectoryError(20, "not a directory, expected a sequence folder of scan files", str(root))
     velodyne = root / "velodyne"
     if velodyne.is_dir():
         files = sorted(velodyne.glob("*.bin"))
@@ -72,8 +78,8 @@ def open_sequence(directory: str | Path, *, start: int = 0, end: int | None = No
         layout = "files"
         stamps = None
     if not files:
-        raise FormatError(
-            f"{root}: no scans found (expected velodyne/*.bin or files ending in {', '.join(_SCAN_SUFFIXES)})"
+        raise NoScansError(
+            f"{root}: no scan files (expected velodyne/*.bin or files ending in {', '.join(_SCAN_SUFFIXES)})"
         )
     if stamps is not None and stamps.shape[0] < len(files):
         stamps = None
@@ -82,5 +88,5 @@ def open_sequence(directory: str | Path, *, start: int = 0, end: int | None = No
     if stamps is not None:
         stamps = stamps[sl]
     if not files:
-        raise FormatError(f"{root}: no scans in the range start={start} end={end}")
+        raise NoScansError(f"{root}: no scan files in the range start={start} end={end}")
     return ScanSequence(root=root, layout=layout, files=tuple(files), stamps_s=stamps)

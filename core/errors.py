@@ -19,7 +19,7 @@
         └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
 
 One place maps these to HTTP status codes (``service.api.errors``) and one place to CLI exit codes
-(``service.cli``); library code only raises them.
+(``cli.errors``); library code only raises them.
 
 Every error of the tree survives pickling with its class, message and attributes
 (``pickle.loads(pickle.dumps(exc))``): the service's matcher processes send the errors raised

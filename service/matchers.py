@@ -29,6 +29,7 @@ import logging
 import multiprocessing
 import os
 import pickle
+import signal
 import threading
 import time
 import traceback
@@ -98,7 +99,12 @@ _READY = (True, "ready")
 
 
 def _serve(conn: Connection) -> None:
-    """A worker process's loop: one matcher per session key, one request at a time."""
+    """A worker process's loop: one matcher per session key, one request at a time.
+
+    SIGINT is ignored: Ctrl-C in a terminal reaches the whole process group, and the service
+    (the parent) stops its workers itself after draining the sessions (``quit``, or the pipe closing).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         _warm_up()
     except Exception:  # a failed warm-up only costs the first sweep its compile time

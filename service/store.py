@@ -97,12 +97,14 @@ __all__ = [
     "SESSIONS_DIRNAME",
     "SESSION_FILENAME",
     "TRAJECTORY_FILENAME",
+    "DataDirInUseError",
     "LoadedSession",
     "SessionRecord",
     "SessionState",
     "Store",
     "StoreContents",
     "StoreProblem",
+    "check_data_dir_free",
 ]
 
 logger = logging.getLogger(__name__)
@@ -287,6 +289,42 @@ def _guarded() -> Iterator[None]:
             _GUARD_STATE.inside = False
 
 
+class DataDirInUseError(RandtError):
+    """Another process holds the data directory's lock (a service already runs on it)."""
+
+
+def _in_use(key: Path) -> DataDirInUseError:
+    return DataDirInUseError(
+        f"data directory {key} is already open in another process (lock {LOCK_FILENAME} is held): "
+        "stop that service or choose another --data-dir"
+    )
+
+
+def check_data_dir_free(directory: str | os.PathLike[str]) -> None:
+    """Raise :class:`DataDirInUseError` if another process holds ``directory``'s lock.
+
+    Creates nothing: a directory or lock file that does not exist yet is free. The lock is only
+    probed (taken and released at once), so ``randt serve`` can say so before starting anything.
+    """
+    key = Path(directory).resolve()
+    path = key / LOCK_FILENAME
+    if fcntl is None or not path.is_file():
+        return
+    with _guarded():
+        if key in _HELD_LOCKS:
+            return  # this process holds it: its Stores share it
+        try:
+            fd = os.open(path, os.O_RDWR)
+        except OSError:
+            return  # unreadable: Store() reports it with its reason
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            raise _in_use(key) from exc
+        finally:
+            os.close(fd)  # closing the descriptor releases a lock taken here
+
+
 def _acquire_lock(directory: Path) -> tuple[Path, bool]:
     """Hold ``directory``'s lock for one more Store of this process.
 
@@ -295,7 +333,7 @@ def _acquire_lock(directory: Path) -> tuple[Path, bool]:
 
     Raises
     ------
-    RandtError
+    DataDirInUseError
         Another process holds the lock.
     FormatError
         The lock file cannot be opened.
@@ -319,9 +357,7 @@ def _acquire_lock(directory: Path) -> tuple[Path, bool]:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
                 os.close(fd)
-                raise RandtError(
-                    f"data directory {key} is already open in another process (lock {LOCK_FILENAME} is held)"
-                ) from exc
+                raise _in_use(key) from exc
         _HELD_LOCKS[key] = _HeldLock(fd=fd, users=1)
         return key, True
 

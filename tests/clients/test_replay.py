@@ -9,11 +9,11 @@ import sys
 import numpy as np
 from typer.testing import CliRunner
 
+from cli.main import app
 from clients.publisher import PublisherSettings
 from clients.replay import replay
 from core.io import PointCloud, read_cloud, read_kitti_poses, read_tum, write_cloud
 from core.transforms import transform_error
-from service.cli import app
 from service.runtime import Service
 from service.settings import ServiceSettings
 from tests.clients.conftest import FakeService, Router
@@ -41,7 +41,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     try:
         proc = subprocess.run(
             [
-                sys.executable, "-m", "service.cli", "replay", str(seq_dir),
+                sys.executable, "-m", "cli", "replay", str(seq_dir),
                 "--vehicle", "kitti", "--session", "seq00", "--rate", "0",
                 "--connect", restartable_router.endpoint, "--mode", "client",
                 "--out", str(tmp_path / "replay"), "--no-progress",
@@ -52,6 +52,9 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
         service.stop()
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "11 scans, 11 sent, 11 poses" in proc.stdout and "0 dropped, 0 lost" in proc.stdout
+    # no prior poses: the session is its own map, and the output says where to find it
+    assert "map kitti.seq00 (the session's own frame" in proc.stdout
+    assert "GET /maps/kitti.seq00/tiles" in proc.stdout and "randt tiles download kitti.seq00" in proc.stdout
     summary = json.loads((tmp_path / "replay/summary.json").read_text())
     assert summary["stats"]["acknowledged"] == 11 and summary["stats"]["rejected"] == 0
     assert [p["seq"] for p in summary["poses"]] == list(range(11))

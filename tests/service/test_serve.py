@@ -28,7 +28,7 @@ def test_serve_answers_and_flushes_on_signal(tmp_path, sig) -> None:
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "cli",
             "serve",
             "--data-dir",
             str(data),

@@ -7,6 +7,7 @@ with Ctrl-C (SIGINT) as a user would.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -53,22 +54,22 @@ def demo(tmp_path_factory):
     hport, zport = free_port(), free_port()
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "service.cli", "demo",
+            sys.executable, "-m", "cli", "demo",
             "--vehicles", str(VEHICLES), "--duration", str(DURATION_S),
             "--data-dir", str(data), "--http-port", str(hport), "--zenoh-port", str(zport), "--no-progress",
         ],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, start_new_session=True,
     )  # fmt: skip
     try:
         lines = _read_until(proc, "serving until Ctrl-C", 240)
         yield proc, lines, data, f"http://127.0.0.1:{hport}"
     finally:
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            os.killpg(proc.pid, signal.SIGINT)
             try:
                 proc.wait(60)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                os.killpg(proc.pid, signal.SIGKILL)
 
 
 def test_demo_summary_meets_thresholds(demo) -> None:
@@ -128,7 +129,7 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 
     def tiles(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "service.cli", "tiles", *args, "--url", base],
+            [sys.executable, "-m", "cli", "tiles", *args, "--url", base],
             capture_output=True,
             text=True,
             timeout=120,
@@ -158,8 +159,8 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
     from typer.testing import CliRunner
 
+    from cli.main import app
     from core.io import read_kitti_poses
-    from service.cli import app
 
     _, _, data, base = demo
     run = CliRunner().invoke
@@ -181,8 +182,37 @@ def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
 
 
 def test_demo_stops_cleanly_on_ctrl_c(demo) -> None:
-    """Last in this module: the other tests use the running demo."""
+    """Last in this module: the other tests use the running demo. Ctrl-C in a terminal signals the
+    whole process group (the matcher processes too): one line, no traceback, the data kept."""
     proc, _, data, _ = demo
-    proc.send_signal(signal.SIGINT)
+    os.killpg(proc.pid, signal.SIGINT)
     assert proc.wait(60) == 0
+    err = proc.stderr.read() if proc.stderr else ""
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "randt demo: stopping" in err
     assert (data / "sessions").is_dir() and len(list(Path(data, "sessions").iterdir())) == VEHICLES
+
+
+def test_demo_shows_the_viewer_first_and_removes_its_temporary_data(tmp_path: Path) -> None:
+    """Without --data-dir: the viewer's URL comes before the fleet starts, and nothing is left behind."""
+    hport, zport = free_port(), free_port()
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    proc = subprocess.run(
+        [
+            sys.executable, "-m", "cli", "demo", "--vehicles", "1", "--duration", "0.5", "--exit",
+            "--http-port", str(hport), "--zenoh-port", str(zport), "--no-progress",
+        ],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "TMPDIR": str(tmp)},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    base = f"http://127.0.0.1:{hport}"
+    viewer = next(i for i, line in enumerate(lines) if line.startswith(f"viewer: {base}/"))
+    fleet = next(i for i, line in enumerate(lines) if line.startswith("simulating 1 vehicles"))
+    assert viewer < fleet, "the viewer's URL is printed before the fleet starts"
+    data = re.search(r"data in (\S+) \(temporary, removed at exit", proc.stdout)
+    assert data and Path(data[1]).parent == tmp, proc.stdout
+    rows = [m.groups() for line in lines if (m := ROW.match(line))]
+    assert [(r[0], int(r[1]), int(r[2])) for r in rows] == [("sim000", 5, 5)], proc.stdout
+    assert list(tmp.iterdir()) == [], "the temporary data directory is removed at exit"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -16,9 +17,7 @@ from tests.pairs import car
 
 
 def _randt(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300
-    )
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_register_json_on_the_car_pair(tmp_path) -> None:
@@ -79,9 +78,9 @@ def test_errors_exit_nonzero_with_one_line(tmp_path) -> None:
 
 
 def test_config_dumps_defaults() -> None:
-    proc = _randt("config")
+    proc = _randt("config", "--json")
     assert proc.returncode == 0
-    doc = json.loads(proc.stdout)
+    doc = json.loads(proc.stdout)["registration"]["defaults"]
     assert doc["method"] == "randt" and doc["iqr_k"] == 1.5 and doc["n_neighbors"] == 7
 
 
@@ -150,3 +149,44 @@ def test_eval_reports_known_errors(tmp_path) -> None:
     assert report["kitti"]["rotation_deg_per_100m"] == pytest.approx(0.0, abs=1e-9)
     bad = _randt("eval", "--reference", str(tmp_path / "ref.txt"), "--estimate", str(tmp_path / "nope.txt"))
     assert bad.returncode == 2 and "nope.txt" in bad.stderr
+
+
+def test_eval_converts_kitti_ground_truth_to_the_lidar_frame_of_randt_map(tmp_path) -> None:
+    """KITTI 00 frames 0-10: ground truth in the left camera's frame against ``randt map``'s LiDAR
+    poses. Compared as given the frame-to-frame error is 1.17 m (the car moves along camera z but
+    LiDAR x); converted with calib.txt's Tr it is the 0.12 m of the scans' 7.6 m against the
+    ground truth's 8.6 m (data README). The output names the frames compared."""
+    root = require_data("kitti00/velodyne/000010.bin", "kitti00/calib.txt", "kitti00/poses.txt")
+    seq = tmp_path / "kitti00"
+    seq.mkdir()
+    for name in ("poses.txt", "times.txt"):
+        (seq / name).write_bytes((root / "kitti00" / name).read_bytes())
+    (seq / "velodyne").symlink_to(root / "kitti00/velodyne")
+    out = tmp_path / "out"
+    assert _randt("map", str(seq), "--out", str(out), "--no-progress").returncode == 0
+    args = ("eval", "--reference", str(seq / "poses.txt"), "--estimate", str(out / "poses_kitti.txt"))
+
+    def rpe(proc: subprocess.CompletedProcess[str]) -> float:
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout)["rpe"]["translation_m"]["rmse"]
+
+    as_given = _randt(*args, "--json")  # no calib.txt next to poses.txt in this copy
+    assert rpe(as_given) == pytest.approx(1.17, abs=0.02)
+    assert json.loads(as_given.stdout)["frames"] == {
+        "reference": "as given",
+        "estimate": "as given",
+        "calib": None,
+    }
+    text = _randt(*args).stdout
+    assert "frames: both as given" in text and "--calib" in text
+    calib = root / "kitti00/calib.txt"
+    converted = _randt(*args, "--calib", str(calib), "--json")
+    assert rpe(converted) == pytest.approx(0.12, abs=0.01)
+    assert json.loads(converted.stdout)["frames"]["calib"] == str(calib)
+    (seq / "calib.txt").write_bytes(calib.read_bytes())  # a full sequence folder: found by itself
+    found = _randt(*args)
+    assert found.returncode == 0, found.stderr
+    assert f"converted from KITTI's left camera to the LiDAR with Tr of {seq / 'calib.txt'}" in found.stdout
+    m = re.search(r"RPE \(1 frame\) translation rmse ([\d.]+) m", found.stdout)
+    assert m and float(m[1]) == pytest.approx(0.12, abs=0.01)
+    assert rpe(_randt(*args, "--no-calib", "--json")) == pytest.approx(1.17, abs=0.02)

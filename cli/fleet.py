@@ -1,0 +1,408 @@
+"""``randt replay``, ``randt simulate`` and ``randt demo``: vehicles (recorded or simulated) and a service."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from cli.errors import ExitCode, fail
+
+if TYPE_CHECKING:
+    from clients.fleet import FleetSettings
+    from clients.publisher import PublisherSettings
+    from clients.replay import ReplayResult
+
+
+class VehicleMode(StrEnum):
+    client = "client"
+    peer = "peer"
+
+
+def _publisher_settings(mode: VehicleMode | None, connect: list[str] | None) -> PublisherSettings:
+    """``PublisherSettings`` from the flags, falling back to ``RANDT_VEHICLE_*`` and the defaults."""
+    from clients.publisher import PublisherSettings
+
+    overrides = {"mode": mode.value if mode else None, "connect": tuple(connect) if connect else None}
+    return PublisherSettings(**{k: v for k, v in overrides.items() if v is not None})
+
+
+#: The options of ``randt replay`` and ``randt simulate`` that override ``PublisherSettings`` fields.
+PUBLISHER_OPTIONS = ("connect", "mode")
+ConnectOption = Annotated[
+    list[str] | None, typer.Option(help="Zenoh endpoint of the router or service, repeatable.")
+]
+ModeOption = Annotated[VehicleMode | None, typer.Option(help="Zenoh mode of the vehicle.")]
+
+
+def replay(
+    path: Annotated[
+        Path, typer.Argument(help="KITTI sequence folder or a folder of .bin/.pcd/.ply/.csv scans.")
+    ],
+    vehicle: Annotated[str, typer.Option("--vehicle", help="Vehicle id on the wire.")],
+    session: Annotated[str | None, typer.Option(help="Session id (default: the UTC time).")] = None,
+    rate: Annotated[
+        float | None,
+        typer.Option(
+            help="Scans per second (default: the recording's rate, else 10); 0 = send the next scan "
+            "when the previous one is answered (no scan dropped)."
+        ),
+    ] = None,
+    window: Annotated[int, typer.Option(min=1, help="With --rate 0: scans in flight at once.")] = 1,
+    loop: Annotated[bool, typer.Option(help="Start again at the end (each pass a new session).")] = False,
+    start: Annotated[int, typer.Option(help="First scan index.")] = 0,
+    end: Annotated[int | None, typer.Option(help="Stop before this scan index.")] = None,
+    connect: ConnectOption = None,
+    mode: ModeOption = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Write the received poses_kitti.txt, poses_tum.txt, summary.json here."),
+    ] = None,
+    connect_timeout: Annotated[float, typer.Option(help="Seconds to wait for the service.")] = 15.0,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Replay a recorded drive into the service over Zenoh and report the poses it sends back.
+
+    Exit code 0 when every scan got a pose, 11 when some were rejected, dropped or lost (the
+    summary line says which), 10 when no service answered.
+    """
+    from clients.replay import replay as do_replay
+
+    settings = _publisher_settings(mode, connect)
+    results = do_replay(
+        path,
+        vehicle,
+        session=session,
+        rate_hz=rate,
+        window=window,
+        loop=loop,
+        start=start,
+        end=end,
+        settings=settings,
+        connect_timeout_s=connect_timeout,
+        progress=progress,
+    )
+    complete = True
+    for k, r in enumerate(results):
+        s = r.stats
+        n_fallback = sum(p.status == "fallback" for p in r.poses.values())
+        codes = "".join(f" {c}={n}" for c, n in sorted(s.rejected_codes.items()))
+        typer.echo(
+            f"{path} -> {r.vehicle}/{r.session}: {r.n_scans} scans, {s.sent} sent, {s.acknowledged} poses "
+            f"({n_fallback} fallback), {s.rejected} rejected{codes}, {s.dropped} dropped, {s.lost} lost, "
+            f"{len(r.skipped)} invalid, {r.wall_s:.1f} s"
+        )
+        for name in sorted({p.map for p in r.poses.values()}):
+            own = (
+                " (the session's own frame: its scans carried no prior pose)"
+                if name == f"{r.vehicle}.{r.session}"
+                else ""
+            )
+            typer.echo(
+                f"  map {name}{own}: GET /maps/{name}/tiles on the service's HTTP address, "
+                f"or randt tiles download {name} DIR"
+            )
+        complete &= s.acknowledged == r.n_scans
+        if out is not None:
+            _write_replay(out if k == 0 else out / f"pass{k}", r)
+    if not complete:
+        raise typer.Exit(ExitCode.INCOMPLETE)
+
+
+def _write_replay(out: Path, result: ReplayResult) -> None:
+    """poses_kitti.txt, poses_tum.txt (received poses, in scan order) and summary.json of one pass."""
+    from dataclasses import asdict
+
+    from core.io import atomic_write_bytes, write_kitti_poses, write_tum
+
+    out.mkdir(parents=True, exist_ok=True)
+    seqs, poses = result.trajectory()
+    if len(seqs):
+        write_kitti_poses(out / "poses_kitti.txt", poses)
+        write_tum(out / "poses_tum.txt", result.stamps_s(), poses)
+    summary = {
+        "vehicle": result.vehicle,
+        "session": result.session,
+        "scans": result.n_scans,
+        "stats": asdict(result.stats),
+        "poses": [
+            {"seq": int(s), "status": result.poses[int(s)].status, "fitness": result.poses[int(s)].fitness}
+            for s in seqs
+        ],
+        "errors": {str(k): v.code for k, v in result.errors.items()},
+    }
+    atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=1).encode())
+
+
+def simulate(
+    vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles, each its own session.")] = 3,
+    duration: Annotated[
+        float, typer.Option(min=0.1, help="Simulated seconds of driving per vehicle.")
+    ] = 10.0,
+    connect: ConnectOption = None,
+    mode: ModeOption = None,
+    speed: Annotated[float, typer.Option(min=0.0, help="Mean speed, m/s.")] = 6.0,
+    rate: Annotated[float, typer.Option(min=0.1, help="LiDAR sweeps per simulated second.")] = 10.0,
+    azimuth: Annotated[
+        int, typer.Option(min=100, help="Firings per revolution (2000: a real HDL-64E, ~120k points).")
+    ] = 2000,
+    window: Annotated[
+        int, typer.Option(min=0, help="Unanswered scans per vehicle at most; 0 = real time, no flow control.")
+    ] = 2,
+    seed: Annotated[int, typer.Option(help="Seed of the routes.")] = 0,
+    session: Annotated[
+        str | None, typer.Option(help="Session id of every vehicle (default: UTC time).")
+    ] = None,
+    json_out: Annotated[Path | None, typer.Option(help="Also write the summary as JSON here.")] = None,
+    connect_timeout: Annotated[float, typer.Option(help="Seconds to wait for the service.")] = 30.0,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Drive simulated vehicles through a procedural town, publish their scans, score their poses.
+
+    Each vehicle's first scan carries its true pose as a prior, so the fleet shares the map
+    ``default``; the table gives each vehicle's errors against the simulator's exact poses
+    (docs/clients.md). Exit code 11 when some scan got no pose, 10 when no service answered.
+    """
+    from clients.fleet import FleetSettings, run_fleet, summary_table
+
+    settings = _publisher_settings(mode, connect)
+    fleet = FleetSettings(
+        n_vehicles=vehicles,
+        duration_s=duration,
+        speed_mps=speed,
+        rate_hz=rate,
+        n_azimuth=azimuth,
+        window=window,
+        fleet_seed=seed,
+    )
+    runs = run_fleet(fleet, settings, session=session, progress=progress, connect_timeout_s=connect_timeout)
+    summaries = [r.summary() for r in runs]
+    doc = {"fleet": _fleet_dict(fleet), "vehicles": summaries}
+    if json_out is not None:
+        from core.io import atomic_write_bytes
+
+        atomic_write_bytes(json_out, json.dumps(doc, indent=1).encode())
+    for line in summary_table(summaries):
+        typer.echo(line)
+    if any(s["stats"]["acknowledged"] < s["scans"] for s in summaries):
+        raise typer.Exit(ExitCode.INCOMPLETE)
+
+
+def _fleet_dict(fleet: FleetSettings) -> dict[str, object]:
+    """The fleet settings as a JSON-ready dict (with the derived number of scans)."""
+    from dataclasses import asdict
+
+    return {**asdict(fleet), "n_scans": fleet.n_scans}
+
+
+# -- randt demo: the README's main job ----------------------------------------------------------
+
+
+def _usable_port(port: int) -> tuple[int, bool]:
+    """``(port, True)`` if it can be bound on 127.0.0.1, else ``(a free port, False)``; 0 = any."""
+    import socket
+
+    if port:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+                return port, True
+            except OSError:
+                pass
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1], port == 0
+
+
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _map_folder_stats(folder: Path, pdu_voxel_m: float) -> tuple[int, int, float | None]:
+    """Tiles, points and PDU of an Autoware tile folder (the store's ``maps/<map>/``)."""
+    import numpy as np
+
+    from core.io import read_cloud
+    from core.metrics.cloud import pdu
+
+    files = sorted(folder.glob("*.pcd"))
+    if not files:
+        return 0, 0, None
+    xyz = np.concatenate([read_cloud(f).xyz for f in files])
+    return len(files), int(xyz.shape[0]), float(pdu(xyz, pdu_voxel_m))
+
+
+def demo(
+    vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles.")] = 3,
+    duration: Annotated[
+        float, typer.Option(min=0.5, help="Simulated seconds of driving per vehicle.")
+    ] = 10.0,
+    exit_: Annotated[
+        bool, typer.Option("--exit", help="Stop after the summary instead of serving on.")
+    ] = False,
+    data_dir: Annotated[
+        Path | None,
+        typer.Option(help="Service data directory, kept (default: a temporary folder, removed at exit)."),
+    ] = None,
+    http_port: Annotated[int, typer.Option(help="HTTP port (a free one if taken; 0 = any).")] = 8080,
+    zenoh_port: Annotated[int, typer.Option(help="Zenoh port (a free one if taken; 0 = any).")] = 7447,
+    speed: Annotated[float, typer.Option(min=0.0, help="Mean speed of the vehicles, m/s.")] = 6.0,
+    azimuth: Annotated[int, typer.Option(min=100, help="LiDAR firings per revolution.")] = 2000,
+    progress: Annotated[bool, typer.Option(help="Show the fleet's progress bar.")] = True,
+) -> None:
+    """The fleet demo: the service, a simulated fleet, errors against ground truth, then the map.
+
+    Starts the service on embedded defaults (Zenoh peer and HTTP on 127.0.0.1) and prints the
+    viewer's URL (open it to watch the map grow), drives VEHICLES simulated vehicles for DURATION
+    simulated seconds each (a child randt simulate, flow controlled so no scan is dropped), prints
+    per vehicle the trajectory error against the simulator's ground truth, the map's PDU and where
+    the tiles are, and keeps serving until Ctrl-C (or stops at once with --exit). Without
+    --data-dir the data live in a temporary folder removed at exit.
+    """
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+    import threading
+    import time
+
+    import httpx
+    import uvicorn
+
+    from clients.fleet import summary_table
+    from service.app import create_app
+    from service.settings import ServiceSettings
+    from service.store import check_data_dir_free
+
+    if data_dir is not None:
+        check_data_dir_free(data_dir)
+    data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
+    logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
+    zport, z_ok = _usable_port(zenoh_port)
+    hport, h_ok = _usable_port(http_port)
+    for name, wanted, got, ok in (("Zenoh", zenoh_port, zport, z_ok), ("HTTP", http_port, hport, h_ok)):
+        if not ok:
+            typer.echo(f"randt demo: {name} port {wanted} is taken, using {got}", err=True)
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    settings = ServiceSettings(
+        data_dir=data,
+        zenoh_mode="peer",
+        listen=(endpoint,),
+        connect=(),
+        http_host="127.0.0.1",
+        http_port=hport,
+        # Every requested vehicle is admitted: the demo's vehicles wait for their answers
+        # (clients/fleet.py's window), so they pace themselves instead of overloading.
+        max_sessions=0,
+    )
+    base = f"http://127.0.0.1:{hport}"
+    server = uvicorn.Server(
+        uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_level="warning")
+    )
+    thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
+    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+
+    def shutdown() -> None:
+        server.should_exit = True
+        if thread.is_alive():
+            thread.join(60)  # uvicorn's lifespan stops the service: queues drained, tiles saved
+        signal.signal(signal.SIGTERM, previous_sigterm)
+
+    fleet_json = data / "demo-fleet.json"
+    proc: subprocess.Popen[bytes] | None = None
+    summarized = False
+    try:
+        thread.start()
+        deadline = time.monotonic() + 60
+        while not server.started:
+            if not thread.is_alive() or time.monotonic() > deadline:
+                raise fail(ConnectionError(f"the service did not start on {base} (see the log above)"))
+            time.sleep(0.1)
+        n_scans = max(1, round(duration * 10.0))
+        kept = "" if data_dir is not None else " (temporary, removed at exit: keep one with --data-dir)"
+        typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}{kept}")
+        typer.echo(f"viewer: {base}/  (open it now: the map grows as the fleet drives)")
+        typer.echo(
+            f"simulating {vehicles} vehicles for {duration:g} s each: {n_scans} sweeps of a 64-beam LiDAR "
+            f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s; each vehicle waits for its answers "
+            "(at most 2 scans in flight), so no scan is dropped and simulated time runs slower than real "
+            "time..."
+        )
+        cmd = [
+            sys.executable, "-m", "cli", "simulate",
+            "--vehicles", str(vehicles), "--duration", str(duration), "--speed", str(speed),
+            "--azimuth", str(azimuth), "--window", "2", "--connect", endpoint, "--mode", "client",
+            "--session", f"demo-{time.strftime('%Y%m%d-%H%M%S')}", "--json-out", str(fleet_json),
+            *([] if progress else ["--no-progress"]),
+        ]  # fmt: skip
+        tic = time.monotonic()
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        rc = proc.wait()
+        if rc not in (0, ExitCode.INCOMPLETE) or not fleet_json.is_file():
+            raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
+        wall = time.monotonic() - tic
+        fleet = json.loads(fleet_json.read_text())
+        with httpx.Client(base_url=base, timeout=30) as http:
+            # wait until the matcher queues are empty and the flusher has written the tiles
+            for _ in range(120):
+                depths = http.get("/status").json().get("queue_depths", {})
+                if not any(depths.values()):
+                    break
+                time.sleep(0.5)
+            time.sleep(2.5 * settings.flush_interval_s)
+            available = [
+                p
+                for p in ("/status", "/sessions", "/maps", "/maps/default/tiles", "/metrics", "/docs")
+                if http.get(p).status_code == 200
+            ]
+            viewer = http.get("/").status_code == 200
+        tiles_dir = data / "maps" / "default"
+        n_tiles, n_points, map_pdu = _map_folder_stats(tiles_dir, 0.5)
+        total = sum(v["scans"] for v in fleet["vehicles"])
+        typer.echo(
+            f"\nfleet done in {wall:.0f} s ({total / max(wall, 1e-9):.1f} scans/s); "
+            "errors against ground truth:"
+        )
+        for line in summary_table(fleet["vehicles"]):
+            typer.echo(line)
+        typer.echo(
+            "(ATE: RMS position error in the shared map frame; RPE: frame-to-frame error; drift: end-to-end "
+            "translation error per distance driven)"
+        )
+        pdu_text = "n/a" if map_pdu is None else f"{map_pdu:.3f}"
+        typer.echo(
+            f"map default: {n_tiles} tiles, {n_points} points, PDU {pdu_text} (0.5 m voxels; 1 = uniform)"
+        )
+        typer.echo(f"tiles (Autoware layout): {tiles_dir}")
+        typer.echo(f"viewer: {base}/" if viewer else "viewer: not available in this version")
+        typer.echo(f"REST: {' '.join(base + p for p in available)}")
+        typer.echo(f"download the map: randt tiles download default ./map --url {base}")
+        summarized = True
+        if not exit_:
+            typer.echo("serving until Ctrl-C")
+            while thread.is_alive():
+                thread.join(0.5)
+    except KeyboardInterrupt:
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        typer.echo("\nrandt demo: stopping", err=True)
+    finally:
+        shutdown()
+        if data_dir is None:
+            shutil.rmtree(data, ignore_errors=True)
+    # Everything is flushed and closed. Leave without interpreter finalization: Zenoh's native
+    # threads may still release Python callbacks of the closed session, and one run in about ten
+    # aborted there ("FATAL: exception not rethrown", exit 134) after a complete, correct summary.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0 if summarized else ExitCode.INTERRUPTED)

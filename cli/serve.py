@@ -1,0 +1,115 @@
+"""``randt serve``: the fleet mapping service (Zenoh ingest and HTTP) in the foreground.
+
+Before anything starts (no store lock, no matcher process), the HTTP port, the Zenoh listen
+endpoints and the data directory are checked: a busy one is one line and its exit code.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import socket
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from cli.errors import PortInUseError
+
+if TYPE_CHECKING:
+    from service.settings import ServiceSettings
+
+#: The options of ``randt serve`` that override the ``ServiceSettings`` field of the same name.
+SETTINGS_OPTIONS = ("data_dir", "zenoh_mode", "listen", "connect", "http_host", "http_port")
+
+
+class ZenohMode(StrEnum):
+    peer = "peer"
+    client = "client"
+
+
+def serve(
+    data_dir: Annotated[Path | None, typer.Option(help="Data directory.")] = None,
+    zenoh_mode: Annotated[ZenohMode | None, typer.Option(help="Zenoh mode.")] = None,
+    listen: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to listen on, repeatable.")] = None,
+    connect: Annotated[
+        list[str] | None, typer.Option(help="Zenoh endpoint to connect to, repeatable.")
+    ] = None,
+    http_host: Annotated[str | None, typer.Option(help="HTTP bind address.")] = None,
+    http_port: Annotated[int | None, typer.Option(help="HTTP port.")] = None,
+) -> None:
+    """Run the fleet mapping service (Zenoh ingest + HTTP) until SIGTERM or Ctrl-C.
+
+    Every option is also an environment variable (shown with its default); the other settings
+    (queue sizes, matcher processes, admission, tokens) are environment variables only:
+    randt config lists them all.
+    """
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import ServiceSettings
+    from service.store import check_data_dir_free
+
+    overrides = {
+        "data_dir": data_dir,
+        "zenoh_mode": zenoh_mode.value if zenoh_mode else None,
+        "listen": tuple(listen) if listen else None,
+        "connect": tuple(connect) if connect else None,
+        "http_host": http_host,
+        "http_port": http_port,
+    }
+    settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
+    check_ports_free(settings)
+    check_data_dir_free(settings.data_dir)
+    logging.getLogger().setLevel(logging.INFO)
+    app_ = create_app(settings)
+    typer.echo(
+        f"randt serve: zenoh {settings.zenoh_mode} listen {list(settings.listen)} connect "
+        f"{list(settings.connect)}; http://{settings.http_host}:{settings.http_port}; "
+        f"data {settings.data_dir}",
+        err=True,
+    )
+    uvicorn.run(app_, host=settings.http_host, port=settings.http_port, log_level="info")
+
+
+def check_ports_free(settings: ServiceSettings) -> None:
+    """Raise :class:`PortInUseError` if the HTTP port or a Zenoh listen endpoint is taken.
+
+    Each is bound for a moment as the servers bind it (``SO_REUSEADDR``, so a port in TIME_WAIT is
+    free, a listening one is not). Endpoints that are not tcp/udp/quic ``host:port`` are left to Zenoh.
+    """
+    http = f"{settings.http_host}:{settings.http_port}"
+    busy = f"HTTP port {http} is in use (another service?): choose another with --http-port"
+    _check_bind("tcp", settings.http_host, settings.http_port, busy)
+    for endpoint in settings.listen:
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.split("#")[0].rpartition(":")
+        if proto not in ("tcp", "udp", "quic", "tls", "ws") or not port.isdigit() or not host:
+            continue
+        _check_bind(
+            "udp" if proto in ("udp", "quic") else "tcp",
+            host.strip("[]"),
+            int(port),
+            f"Zenoh endpoint {endpoint} is in use (another service or router?): choose another with --listen",
+        )
+
+
+def _check_bind(proto: str, host: str, port: int, busy: str) -> None:
+    if port == 0:
+        return
+    kind = socket.SOCK_DGRAM if proto == "udp" else socket.SOCK_STREAM
+    try:
+        family, _, _, _, address = socket.getaddrinfo(host, port, type=kind)[0]
+    except socket.gaierror as exc:
+        raise ValueError(f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+    with socket.socket(family, kind) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(address)
+            if kind == socket.SOCK_STREAM:
+                s.listen()
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise PortInUseError(busy) from exc
+            raise ValueError(f"cannot listen on {host}:{port}: {exc.strerror}") from exc
