@@ -104,35 +104,50 @@ def settings_groups(groups: Mapping[str, type | str] | None = None) -> list[Sett
     """The groups of ``groups`` (default :data:`GROUPS`) and of the models nested in them.
 
     A nested model is its own group, named after its field (``parent.field`` if that name is
-    taken), placed right after its parent; a model listed at the top level and also nested is
-    shown once, where it is nested (with the environment variables that reach it there).
+    taken), placed right after its parent, with the defaults the parent gives it (the service's
+    ``registration`` starts from the matcher's defaults, not pairwise registration's). A model
+    listed at the top level and also nested with the same defaults is shown once, where it is
+    nested (with the environment variables that reach it there).
     """
     models = {name: _load(m) if isinstance(m, str) else m for name, m in (groups or GROUPS).items()}
-    nested_types = {tp for model in models.values() for _, tp, _, _, _ in _fields(model) if _is_model(tp)}
+
+    def same_defaults(tp: type, default: Any) -> bool:
+        return _jsonable(default) == _jsonable(tp())
+
+    nested_types = {
+        tp
+        for model in models.values()
+        for _, tp, default, _, _ in _fields(model)
+        if _is_model(tp) and same_defaults(tp, default)
+    }
     taken = {name for name, model in models.items() if model not in nested_types}
     out: list[SettingsGroup] = []
 
-    def add(name: str, model: type, env_prefix: str | None, delimiter: str | None, note: str) -> None:
+    def add(
+        name: str, model: type, env_prefix: str | None, delimiter: str | None, note: str, instance: Any = None
+    ) -> None:
         rows, children = [], []
         for field, tp, default, text, alias in _fields(model):
+            if instance is not None:
+                default = getattr(instance, field)
             env = alias.upper() if alias and env_prefix is not None else None
             if env is None and env_prefix is not None:
                 env = f"{env_prefix}{field}".upper()
             if _is_model(tp):
-                children.append((field, tp, env))
+                children.append((field, tp, env, default))
                 continue
             rows.append(SettingRow(field, _jsonable(default), env, text))
         source = f"{model.__module__}.{model.__qualname__}"
         out.append(SettingsGroup(name, source, note, tuple(rows)))
-        for field, tp, env in children:
+        for field, tp, env, default in children:
             child = field if field not in taken else f"{name}.{field}"
             taken.add(child)
             if env is None:
-                add(child, tp, None, None, "")
+                add(child, tp, None, None, "", default)
             elif delimiter:
-                add(child, tp, f"{env}{delimiter}", delimiter, f"env prefix {env}{delimiter}")
+                add(child, tp, f"{env}{delimiter}", delimiter, f"env prefix {env}{delimiter}", default)
             else:
-                add(child, tp, None, None, f"env {env} (the whole group as JSON)")
+                add(child, tp, None, None, f"env {env} (the whole group as JSON)", default)
 
     for name, model in models.items():
         if model in nested_types:

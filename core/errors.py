@@ -7,6 +7,7 @@
     ├── DegenerateProblemError      the geometry does not constrain all 6 DoF (e.g. one plane)
     ├── RegistrationFailedError     the optimiser diverged or produced a non-finite pose
     ├── FormatError                 a file could not be read or written in the named format
+    │   └── NoScansError            a sequence folder holds no scan files (core.datasets)
     ├── BadMessageError             a wire message failed to decode or validate (service)
     ├── InvalidRequestError         an API request's parameters are malformed (service)
     ├── NotFoundError               a session, map, tile or file that does not exist
@@ -15,8 +16,11 @@
     ├── AuthError                   missing or wrong credentials (service)
     │   └── ForbiddenError          refused whatever the credentials (mutations disabled)
     ├── UnavailableError            the service is starting or stopping (service)
-    └── MatcherProcessError         a matcher worker process failed (service.matchers)
-        └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
+    ├── MatcherProcessError         a matcher worker process failed (service.matchers)
+    │   └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
+    ├── DataDirInUseError           another process holds the data directory (service.store)
+    ├── PortInUseError              a port a command would listen on is taken (cli.errors)
+    └── WrongInputError             a directory where a file is expected, or the reverse (cli.errors)
 
 One place maps these to HTTP status codes (``service.api.errors``) and one place to CLI exit codes
 (``cli.errors``); library code only raises them.

@@ -44,8 +44,9 @@ class Absent(types.ModuleType):
         return Absent(f"{self.__name__}.{attr}")
 
 
+absent = {top for top in ("small_gicp", "kiss_icp", "open3d") if importlib.util.find_spec(top) is None}
 for name in ("small_gicp", "kiss_icp", "kiss_icp.config", "kiss_icp.kiss_icp", "open3d"):
-    if importlib.util.find_spec(name.split(".")[0]) is None:
+    if name.split(".")[0] in absent:
         sys.modules[name] = Absent(name)
 
 script = Path(sys.argv[1])

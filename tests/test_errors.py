@@ -9,9 +9,12 @@ import pickle
 import numpy as np
 import pytest
 
+import cli.errors
 import clients.rest
+import core.datasets
 import service.matchers
 import service.sessions
+import service.store
 from core.errors import (
     AuthError,
     BadMessageError,
@@ -57,6 +60,10 @@ def _examples() -> list[RandtError]:
         UnavailableError("the service is not running"),
         service.matchers.MatcherProcessError("in matcher process pid 7: Boom: x"),
         service.matchers.MatcherProcessDiedError("matcher process 1 (pid 7) died"),
+        service.store.DataDirInUseError("data directory d is already open in another process"),
+        core.datasets.NoScansError("d: no scan files (.bin .pcd .ply)"),
+        cli.errors.PortInUseError("HTTP port 8080 on 127.0.0.1 is in use"),
+        cli.errors.WrongInputError("d is a directory, a file is expected"),
         clients.rest.ApiError(500, "Internal Server Error", "http://127.0.0.1:8080/maps"),
         clients.rest.ApiNotFoundError(404, "map 'x' not found", "http://127.0.0.1:8080/maps/x"),
     ]

@@ -232,7 +232,7 @@ def test_config_prints_every_settings_group_with_defaults_and_env_vars() -> None
     from clients.fleet import FleetSettings
     from clients.publisher import PublisherSettings
     from core.config import RegistrationSettings
-    from core.odometry import MatcherSettings
+    from core.odometry import MATCHER_REGISTRATION, MatcherSettings
     from service.settings import ServiceSettings
 
     proc = _randt("config", "--json")
@@ -251,7 +251,12 @@ def test_config_prints_every_settings_group_with_defaults_and_env_vars() -> None
     text = _randt("config").stdout
     assert re.search(r"^\[service\]", text, flags=re.M) and re.search(r"^\[matcher\]", text, flags=re.M)
     assert re.search(r"^http_port\s+8080\s+RANDT_HTTP_PORT\b", text, flags=re.M), text
-    assert re.search(r"^iqr_k\s+1\.5\s*(\s-\s.*)?$", text, flags=re.M), text
+    assert re.search(r"^iqr_k\s+1\.5\s+-\s", text, flags=re.M), text  # randt register's: no env
+    # The service's matcher registration starts from the matcher's defaults (Algorithms 1 and 3 off).
+    served = doc["service.registration"]
+    assert served["defaults"] == json.loads(MATCHER_REGISTRATION.model_dump_json())
+    assert served["defaults"]["svd_refinement"] is False and doc["registration"]["defaults"]["svd_refinement"]
+    assert served["env"]["iqr_k"] == "RANDT_REGISTRATION__IQR_K"
 
 
 def test_config_groups_follow_the_models() -> None:
