@@ -10,7 +10,7 @@ Run from the repository root::
    interleaved runs of both); PDU of our density-equalized map against the
    raw accumulated sweeps. Run without deskewing and with deskewing (per-point times from the
    azimuth, as KISS-ICP derives them for KITTI).
-2. **Simulated drive** (``clients.sim``): a procedural town, an HDL-64E-like sensor at 10 Hz,
+2. **Simulated drive** (``sim``): a procedural town, an HDL-64E-like sensor at 10 Hz,
    exact ground truth, at least 500 sweeps and 1 km by default; KITTI relative translation and
    rotation errors, ATE, per-scan time, and the matcher's memory (model points, map points and
    the process's peak RSS) as the drive goes on.
@@ -154,8 +154,8 @@ def sim_section(
     n_scans: int, speed_mps: float, markdown: bool, modes: tuple[bool, ...] = (False, True)
 ) -> list[str]:
     """Simulated drive: RANDT (perfect and raw sweeps) and KISS-ICP, scored on exact ground truth."""
-    from clients.sim.drive import Motion, Route, simulate
-    from clients.sim.town import Town
+    from sim.drive import Motion, Route, simulate
+    from sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)

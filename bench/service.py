@@ -40,10 +40,10 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     """One configuration, in this process (called in a fresh subprocess by :func:`main`)."""
     import zenoh
 
-    from clients.sim.drive import simulate_fleet
-    from clients.sim.town import Town
     from service.runtime import Service
     from service.settings import ServiceSettings
+    from sim.drive import simulate_fleet
+    from sim.town import Town
     from wire.codes import ErrorCode
     from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
     from wire.messages import decode_error, decode_pose, encode, scan_from_arrays

@@ -1,7 +1,7 @@
 """Simulated vehicles publishing to the service, and their errors against ground truth.
 
 ``randt simulate`` and ``randt demo`` are thin shells over :func:`run_fleet`: ``n_vehicles``
-vehicles of :func:`clients.sim.plan_fleet` drive their loops through a procedural town, each in its
+vehicles of :func:`sim.plan_fleet` drive their loops through a procedural town, each in its
 own thread with its own :class:`~clients.publisher.VehiclePublisher` (its own Zenoh session) and
 session. Every vehicle's first scan carries its true pose as a GNSS-like prior, so all sessions
 share the service's map ``default`` and their poses are in the town's frame: the errors below
@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
-from clients.sim import FleetVehicle, Lidar64, Town, plan_fleet, simulate
+from sim import FleetVehicle, Lidar64, Town, plan_fleet, simulate
 from wire.codes import ErrorCode
 from wire.messages import PoseMessage
 

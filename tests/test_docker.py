@@ -412,7 +412,7 @@ def test_dockerignore_sends_the_sources_and_nothing_else() -> None:
     _, stages = _dockerfile_stages()
     copied = [shlex.split(rest)[:-1] for stage in stages for word, rest in stage if word == "COPY"]
     sources = [src for args in copied if not any(a.startswith("--from") for a in args) for src in args]
-    assert {"pyproject.toml", "README.md", "core", "wire", "service", "clients", "cli"} <= set(sources)
+    assert {"pyproject.toml", "README.md", "core", "wire", "sim", "service", "clients", "cli"} <= set(sources)
     needed = []
     for src in sources:
         p = REPO / src

@@ -1,7 +1,9 @@
 """The layers never reach sideways: every import of every module, read with ``ast``.
 
-``core`` imports nothing else of ours; ``wire`` (when present) only ``core``; ``service`` and
-``clients`` never each other nor ``cli``; ``cli`` sits above all of them. Imports inside functions
+``core`` imports nothing else of ours; ``wire`` and ``sim`` (the LiDAR simulator) only ``core``;
+``service`` never ``clients``, ``sim`` or ``cli``; ``clients`` never ``service`` or ``cli`` (its
+fleet runner uses ``sim``; the vehicle library, ``clients.publisher``, does not: tested below);
+``cli`` sits above all of them. Imports inside functions
 and under ``TYPE_CHECKING`` count too: a lazy import is still a dependency.
 """
 
@@ -15,9 +17,10 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 #: package -> the project's packages it must never import
 FORBIDDEN: dict[str, frozenset[str]] = {
-    "core": frozenset({"service", "clients", "cli", "wire"}),
-    "wire": frozenset({"service", "clients", "cli"}),
-    "service": frozenset({"clients", "cli"}),
+    "core": frozenset({"service", "clients", "cli", "wire", "sim"}),
+    "wire": frozenset({"service", "clients", "cli", "sim"}),
+    "sim": frozenset({"service", "clients", "cli", "wire"}),
+    "service": frozenset({"clients", "cli", "sim"}),
     "clients": frozenset({"service", "cli"}),
 }
 
@@ -72,5 +75,20 @@ def test_no_package_imports_a_layer_it_must_not(package: str) -> None:
 
 def test_the_packages_exist() -> None:
     """The walk above covers real code: the packages are where the test looks."""
-    for package in ("core", "service", "clients", "cli"):
+    for package in ("core", "wire", "sim", "service", "clients", "cli"):
         assert _modules(package), package
+
+
+def test_the_vehicle_library_does_not_load_the_simulator() -> None:
+    """A vehicle computer imports ``clients.publisher``: neither it nor what it imports of ours
+    pulls in the simulator (or the service)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, clients.publisher; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'sim', 'service', 'cli', 'tests'}))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -114,8 +114,8 @@ def test_registration_far_from_the_origin_recovers_yaw() -> None:
     degrees off in yaw. With rotations about the origin the Newton solver stalled 1.2-1.9 m and
     4.2-4.4 degrees off (inlier ratio 0.4); at the origin the same pair converged to 1 mm.
     """
-    from clients.sim.drive import Route, simulate
-    from clients.sim.town import Town
+    from sim.drive import Route, simulate
+    from sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)

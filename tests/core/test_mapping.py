@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clients.sim.drive import Motion, Route, simulate
-from clients.sim.town import Town
 from core.datasets import open_sequence
 from core.mapping import MapBuilder
 from core.metrics.cloud import pdu
 from core.metrics.trajectory import kitti_relative_errors, rpe
 from core.transforms import invert, transform_points
+from sim.drive import Motion, Route, simulate
+from sim.town import Town
 from tests.data import require_data
 
 

@@ -203,8 +203,8 @@ def _raw_corner_run(redeskew: bool) -> tuple[int, float, float]:
     """170 distorted simulated sweeps at 12 m/s from the loop's start through its first corner
     (onset about 195 m along), deskewed by the matcher from the per-point times; returns
     (fallbacks, final translation error m, rotation error deg)."""
-    from clients.sim.drive import Motion, Route, simulate
-    from clients.sim.town import Town
+    from sim.drive import Motion, Route, simulate
+    from sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -234,8 +234,8 @@ def test_deskew_follows_a_corner_onset() -> None:
 def _gapped_run(use_stamps: bool) -> tuple[int, float, float, int]:
     """50 simulated sweeps at 12 m/s with runs of sweeps missing, as an overloaded service sheds
     them (drop-oldest): returns (fallbacks, final translation error m, rotation deg, sweeps fed)."""
-    from clients.sim.drive import Route, simulate
-    from clients.sim.town import Town
+    from sim.drive import Route, simulate
+    from sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -317,9 +317,9 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
     below, so the test keeps its teeth), the turns scored over the gap find the match, and the
     session keeps its track. Without the gap search this drive lost its track for good at
     sweep 39 (inlier ratio 0.20), found by bench/service.py with 4 vehicles."""
-    from clients.sim.drive import simulate_fleet
-    from clients.sim.town import Town
     from core.transforms import rotation_angle_deg, scale_motion
+    from sim.drive import simulate_fleet
+    from sim.town import Town
 
     keep = [*range(13), 14, 15, 18, 19, 23, 31, 39, 47, 52, 54, 59]
     scans = {s.index: s for _, s in simulate_fleet(Town.generate(1), 1, n_scans=60, seed=3, speed_mps=10.0)}
@@ -347,8 +347,8 @@ def test_a_caller_behind_still_bridges_a_long_gap() -> None:
     constant-velocity prediction misses the 25 -> 39 gap by 73 degrees. The gap search's turns
     reach 100 degrees either way; with 60, as first built, this drive lost its track there
     (found by replaying bench/service.py's drop patterns at 8 vehicles)."""
-    from clients.sim.drive import simulate_fleet
-    from clients.sim.town import Town
+    from sim.drive import simulate_fleet
+    from sim.town import Town
 
     keep = [*range(13), 17, 25, 39, 44, 54, 58]
     scans = {s.index: s for _, s in simulate_fleet(Town.generate(1), 1, n_scans=59, seed=3, speed_mps=10.0)}

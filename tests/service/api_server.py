@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import uvicorn
 
-from clients.sim.drive import Route, SimScan, simulate, simulate_fleet
-from clients.sim.lidar import Lidar64
-from clients.sim.town import Town
 from service.app import create_app
 from service.runtime import Service
 from service.settings import ServiceSettings
+from sim.drive import Route, SimScan, simulate, simulate_fleet
+from sim.lidar import Lidar64
+from sim.town import Town
 from tests.service.conftest import free_port
 from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from clients.sim.drive import simulate_fleet
-from clients.sim.town import Town
 from core.transforms import transform_error
 from service.runtime import Service
 from service.settings import ServiceSettings
+from sim.drive import simulate_fleet
+from sim.town import Town
 from wire.messages import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
 from wire.zenoh_config import zenoh_config
 

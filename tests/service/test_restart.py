@@ -6,11 +6,11 @@ import time
 
 import numpy as np
 
-from clients.sim.drive import Route, simulate
-from clients.sim.town import Town
 from core.transforms import transform_error
 from service.runtime import Service
 from service.settings import ServiceSettings
+from sim.drive import Route, simulate
+from sim.town import Town
 from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 

@@ -1,4 +1,4 @@
-"""Vectorized ray casting against a :class:`~clients.sim.town.Town`, and an HDL-64E-like sensor.
+"""Vectorized ray casting against a :class:`~sim.town.Town`, and an HDL-64E-like sensor.
 
 Ray-primitive intersections
 ---------------------------
@@ -45,7 +45,7 @@ from functools import cached_property
 
 import numpy as np
 
-from clients.sim.town import Boxes, Cylinders, PrimitiveBounds, Spheres, Town
+from sim.town import Boxes, Cylinders, PrimitiveBounds, Spheres, Town
 
 __all__ = [
     "NO_RETURN",
@@ -246,7 +246,7 @@ class RayHits:
         (M,) float64 distance along the ray (m); ``inf`` where there is no return (no surface within
         the maximum range, or the nearest one closer than the minimum range).
     material:
-        (M,) uint8 :class:`~clients.sim.town.Material` of the surface hit; ``NO_RETURN`` for none.
+        (M,) uint8 :class:`~sim.town.Material` of the surface hit; ``NO_RETURN`` for none.
     reflectivity:
         (M,) float64 in [0, 1] of the surface hit (0 for none).
     cos_incidence:
@@ -439,7 +439,7 @@ class Sweep:
     ring:
         (N,) uint8 beam index, 0 = highest elevation.
     label:
-        (N,) uint8 :class:`~clients.sim.town.Material` of the surface hit.
+        (N,) uint8 :class:`~sim.town.Material` of the surface hit.
     range_m:
         (N,) float64 measured range (with noise), metres.
     """

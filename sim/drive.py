@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clients.sim.lidar import Lidar64
-from clients.sim.town import Town
+from sim.lidar import Lidar64
+from sim.town import Town
 
 __all__ = [
     "FleetVehicle",
@@ -477,7 +477,7 @@ class SimScan:
     ring:
         (N,) uint8 beam index, 0 = highest.
     label:
-        (N,) uint8 :class:`~clients.sim.town.Material` of the surface each point lies on.
+        (N,) uint8 :class:`~sim.town.Material` of the surface each point lies on.
     deskewed:
         Which frame ``points_xyz`` are in (above).
     route_s_m:
