@@ -81,20 +81,36 @@ def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_pa
             tiles[msg.tile] = max(tiles.get(msg.tile, 0), msg.version)
 
     listener = zenoh.open(zenoh_config("client", connect=(router,)))
-    subs = [
-        listener.declare_subscriber("randt/fleet/*/pose", on_pose),
-        listener.declare_subscriber("randt/fleet/*/error", on_error),
-        listener.declare_subscriber("randt/map/default/tile/*", on_tile),
-    ]
+    subs = [listener.declare_subscriber("randt/map/default/tile/*", on_tile)]
     time.sleep(1.0)
 
     def drive(vehicle: str) -> None:
+        # Each vehicle listens for its answers on its own session, as the vehicle library does:
+        # its subscriber declarations then reach the service ahead of its first scan (same link,
+        # in order). Answers for a separate listener session were dropped at the service's side
+        # when that session's declarations had not arrived yet (a loaded machine lost pose 0).
+        # A put made before this session has heard of the service's subscriber is dropped at the
+        # source too: wait for the service first, and stay until this vehicle's answers are in.
         session = zenoh.open(zenoh_config("client", connect=(router,)))
+        own = [
+            session.declare_subscriber(f"randt/fleet/{vehicle}/pose", on_pose),
+            session.declare_subscriber(f"randt/fleet/{vehicle}/error", on_error),
+        ]
         pub = session.declare_publisher(f"randt/fleet/{vehicle}/scan")
+        wait_until = time.monotonic() + 30
+        while not pub.matching_status.matching and time.monotonic() < wait_until:
+            time.sleep(0.05)
         for scan in fleet_scans[vehicle]:
             pub.put(_payload(vehicle, scan, prior=scan.index == 0))
             time.sleep(0.2)
-        time.sleep(0.5)
+        wait_until = time.monotonic() + 120
+        while time.monotonic() < wait_until:
+            with lock:
+                if len(answers[vehicle]) >= N_SCANS:
+                    break
+            time.sleep(0.1)
+        for sub in own:
+            sub.undeclare()
         session.close()
 
     threads = [threading.Thread(target=drive, args=(v,)) for v in fleet_scans]
