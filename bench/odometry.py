@@ -87,6 +87,7 @@ def f2f_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def kitti_section(markdown: bool, repeats: int = 3) -> list[str]:
     seq = open_sequence(data_root() / "kitti00")
     gt = seq.reference_poses()
+    assert gt is not None  # KITTI 00 ships its poses
     scans = [c.xyz for c in seq]
     azimuth_t = [0.5 * (-np.arctan2(s[:, 1], s[:, 0]) / np.pi + 1.0) for s in scans]
     out = [heading("KITTI 00 frames 0-10 (real; ground truth approximate)", markdown)]

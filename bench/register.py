@@ -38,7 +38,7 @@ import open3d as o3d
 import small_gicp
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from core.config import RegistrationSettings
+from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, RegistrationFailedError
 from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
 from core.protocol import make_trial
@@ -82,7 +82,7 @@ class Outcome:
 Runner = Callable[[np.ndarray, np.ndarray, Scale], Outcome]
 
 
-def ours(method: str, **overrides: object) -> Runner:
+def ours(method: Method, **overrides: object) -> Runner:
     settings = RegistrationSettings.for_method(method, **overrides)
 
     def run(source: np.ndarray, target: np.ndarray, scale: Scale) -> Outcome:

@@ -28,6 +28,8 @@ import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
+from typing import Any
 
 import common
 import numpy as np
@@ -36,7 +38,7 @@ from common import free_port, git_line, heading, machine_line, progress, table
 del common
 
 
-def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
+def run_one(n_vehicles: int, seconds: float) -> dict[str, float | str]:
     """One configuration, in this process (called in a fresh subprocess by :func:`main`)."""
     import zenoh
 
@@ -54,7 +56,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
     scans: dict[str, list[bytes]] = {}
     truth: dict[tuple[str, int], np.ndarray] = {}
     for vehicle, scan in simulate_fleet(town, n_vehicles, n_scans=n_scans, seed=3, speed_mps=10.0):
-        prior = {}
+        prior: dict[str, Any] = {}  # prior_pose and prior_covariance on the first scan
         truth[(vehicle, scan.index)] = scan.T_world_sensor
         if scan.index == 0:
             prior = dict(prior_pose=scan.T_world_sensor, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
@@ -73,7 +75,7 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float]:
         )
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as data:
-        service = Service(ServiceSettings(data_dir=data, listen=(endpoint,), http_port=0))
+        service = Service(ServiceSettings(data_dir=Path(data), listen=(endpoint,), http_port=0))
         service.start()
         assert service.sessions is not None and service.sessions.wait_matchers(600), "matchers not warm"
         sent: dict[tuple[str, int], float] = {}

@@ -8,7 +8,7 @@ import signal
 import sys
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -29,7 +29,10 @@ def _publisher_settings(mode: VehicleMode | None, connect: list[str] | None) -> 
     """``PublisherSettings`` from the flags, falling back to ``RANDT_VEHICLE_*`` and the defaults."""
     from clients.publisher import PublisherSettings
 
-    overrides = {"mode": mode.value if mode else None, "connect": tuple(connect) if connect else None}
+    overrides: dict[str, Any] = {
+        "mode": mode.value if mode else None,
+        "connect": tuple(connect) if connect else None,
+    }
     return PublisherSettings(**{k: v for k, v in overrides.items() if v is not None})
 
 

@@ -66,7 +66,7 @@ def map_sequence(
     write_tum(out / "poses_tum.txt", stamps, poses)
     builder.tiles.export_autoware(out / "map")
     map_points = builder.tiles.to_cloud().xyz.astype(np.float64)
-    summary = {
+    summary: dict[str, Any] = {
         "scans": scans,
         "map": {
             "pdu": pdu(map_points, pdu_voxel) if len(map_points) else None,
@@ -130,7 +130,7 @@ def eval_trajectory(
     if calib_file is not None:
         ref = kitti_velodyne_poses(ref, _velodyne_to_cam0(read_kitti_calib(calib_file), calib_file))
         how = "given" if not found else "found next to the reference"
-        frames = {
+        frames: dict[str, str | None] = {
             "reference": "lidar (KITTI left camera poses converted with Tr: inv(Tr) P Tr)",
             "estimate": "as given",
             "calib": str(calib_file),

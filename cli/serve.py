@@ -11,7 +11,7 @@ import logging
 import socket
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -51,7 +51,7 @@ def serve(
     from service.settings import ServiceSettings
     from service.store import check_data_dir_free
 
-    overrides = {
+    overrides: dict[str, Any] = {
         "data_dir": data_dir,
         "zenoh_mode": zenoh_mode.value if zenoh_mode else None,
         "listen": tuple(listen) if listen else None,

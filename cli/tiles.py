@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal, cast
 
 import typer
 
@@ -65,7 +65,8 @@ def tiles_trajectory(
             stamps, poses = api.trajectory(vehicle, session)
             text = json.dumps({"stamps_s": stamps.tolist(), "poses": poses.tolist()})
         else:
-            text = api.trajectory_text(vehicle, session, fmt.value)
+            text_format = cast(Literal["kitti", "tum"], fmt.value)  # the members left once json is out
+            text = api.trajectory_text(vehicle, session, text_format)
     if out is None:
         typer.echo(text, nl=not text.endswith("\n"))
     else:
@@ -129,5 +130,5 @@ def tiles_export(
             raise ValueError(f"--bbox needs four numbers x_min,y_min,x_max,y_max, got {bbox!r}")
         box = values
     with _client(url, token) as api:
-        n = api.export(map_name, out, fmt.value if fmt else None, bbox=box)  # type: ignore[arg-type]
+        n = api.export(map_name, out, fmt.value if fmt else None, bbox=box)
     typer.echo(f"{n} points -> {out}")

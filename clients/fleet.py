@@ -120,6 +120,10 @@ class VehicleRun:
     stats: PublisherStats = field(default_factory=PublisherStats)
     points_per_scan: float = 0.0
 
+    def keep_pose(self, msg: PoseMessage) -> None:
+        """The publisher's ``on_pose``: the pose answered for scan ``msg.seq``."""
+        self.poses[msg.seq] = msg
+
     def errors(self) -> VehicleErrors | None:
         """:func:`evaluate` of the received poses (None with fewer than 3 poses)."""
         return evaluate(self.truth, {s: p.matrix() for s, p in self.poses.items()}, self.poses)
@@ -307,7 +311,7 @@ def run_fleet(
                     settings=publisher,
                     queue_size=max(publisher.queue_size, fleet.window + 1),
                     answer_timeout_s=answer_timeout_s,
-                    on_pose=lambda msg, run=run: run.poses.__setitem__(msg.seq, msg),
+                    on_pose=run.keep_pose,
                 )
             )
         deadline = time.monotonic() + connect_timeout_s

@@ -174,7 +174,7 @@ class VehiclePublisher:
         on_error: Callable[[ErrorMessage], Any] | None = None,
         first_seq: int = 0,
     ) -> None:
-        overrides = {
+        overrides: dict[str, Any] = {
             "mode": mode,
             "connect": tuple(connect) if connect is not None else None,
             "listen": tuple(listen) if listen is not None else None,
@@ -313,7 +313,8 @@ class VehiclePublisher:
         """Whether a service is subscribed to this vehicle's scans right now."""
         pub = self._publisher
         try:
-            return pub is not None and bool(pub.matching_status.matching)
+            # zenoh's stub says bool; the property returns a MatchingStatus (eclipse-zenoh 1.10)
+            return pub is not None and bool(pub.matching_status.matching)  # type: ignore[attr-defined]
         except Exception:  # the session is closing
             return False
 
@@ -501,7 +502,10 @@ class VehiclePublisher:
                 else:
                     self._stats.rejected += 1
                     self._stats.rejected_codes[msg.code] = self._stats.rejected_codes.get(msg.code, 0) + 1
-                callback = self.on_pose if isinstance(msg, PoseMessage) else self.on_error
+                # on_pose for a PoseMessage, on_error for an ErrorMessage
+                callback: Callable[[Any], Any] | None = (
+                    self.on_pose if isinstance(msg, PoseMessage) else self.on_error
+                )
                 if known is not None and callback is not None:
                     self._in_callback += 1
                 self._cond.notify_all()

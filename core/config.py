@@ -6,7 +6,7 @@ the benchmarks carry a validated set of them. ``randt config`` prints the defaul
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -83,7 +83,7 @@ class RegistrationSettings(BaseModel):
     @classmethod
     def for_method(cls, method: Method, **overrides: object) -> RegistrationSettings:
         """Defaults for a method: classic NDT switches off outlier removal and the SVD step."""
-        base: dict[str, object] = {"method": method}
+        base: dict[str, Any] = {"method": method}
         if method != "randt":
             base.update(outlier_removal="none", select_moving_points=False, svd_refinement=False)
         base.update(overrides)

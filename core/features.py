@@ -36,7 +36,8 @@ class Features:
 
     @property
     def object_mask(self) -> np.ndarray:
-        return ~(self.ground_mask | self.noise_mask)
+        mask: np.ndarray = ~(self.ground_mask | self.noise_mask)
+        return mask
 
 
 def _isolated(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -62,7 +63,7 @@ def _isolated_numpy(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     coords = voxel_coords(points_xyz, voxel_size_m)
     keys = pack_keys(coords)
     uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    single = counts[inverse] == 1
+    single: np.ndarray = counts[inverse] == 1
     if not np.any(single):
         return single
     cand = coords[single]

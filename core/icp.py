@@ -61,6 +61,7 @@ def _icp_loop(
     for it in range(1, max_iterations + 1):  # noqa: B007 - iterations count is returned
         q = transform_points(T, source_xyz)
         dist, idx = tree.query(q, distance_upper_bound=max_correspondence_m)
+        assert isinstance(idx, np.ndarray)  # (N,) for an (N,3) query
         ok = np.isfinite(dist)
         n_corr = int(ok.sum())
         if n_corr < 6:

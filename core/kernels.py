@@ -113,7 +113,8 @@ def _find(table_key: np.ndarray, table_idx: np.ndarray, key: int) -> int:
     while True:
         tk = table_key[h]
         if tk == key:
-            return table_idx[h]
+            idx: int = table_idx[h]
+            return idx
         if tk == -1:
             return -1
         h = (h + 1) & mask
@@ -134,11 +135,12 @@ def _moved_and_cell(
 @nb.njit(cache=True, inline="always")
 def _mahalanobis2(inv_cov: np.ndarray, v: int, x0: float, x1: float, x2: float) -> float:
     """Squared Mahalanobis distance ``x^T Sigma_v^-1 x``."""
-    return (
+    d2: float = (
         x0 * (inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2)
         + x1 * (inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2)
         + x2 * (inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2)
     )
+    return d2
 
 
 @nb.njit(cache=True, nogil=True)

@@ -84,7 +84,9 @@ class NdtEvaluation:
 _PRUNE = 30.0
 
 
-def _pairs(q: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int, d2: float):
+def _pairs(
+    q: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int, d2: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Point-voxel pairs with ``y = W x`` (whitened offsets) and ``m = |y|^2``, negligible ones pruned."""
     pidx, vidx = gmap.neighbors(q, n_neighbors)
     x = q[pidx] - gmap.means[vidx]
@@ -186,10 +188,20 @@ def apply_update_about(delta: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> n
     """Left-update ``T`` by ``delta = (t, r)`` rotating about ``pivot``: ``q -> R(r)(q - c) + c + t``."""
     U = apply_update(delta, np.eye(4))
     U[:3, 3] += pivot - U[:3, :3] @ pivot
-    return U @ T
+    updated: np.ndarray = U @ T
+    return updated
 
 
-def _kernel_args(points_xyz: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int):
+_KernelArgs = tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray
+]
+
+
+def _kernel_args(
+    points_xyz: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int
+) -> _KernelArgs:
+    """The leading arguments every NDT kernel takes: points, ``R``, ``t``, the map's hash table
+    (keys, indices), means, inverse covariances, voxel size and neighbour offsets."""
     return (
         np.ascontiguousarray(points_xyz, dtype=np.float64),
         np.ascontiguousarray(T[:3, :3], dtype=np.float64),
@@ -333,7 +345,8 @@ def _descent_direction(ev: NdtEvaluation) -> np.ndarray:
     evals, evecs = np.linalg.eigh(ev.hessian)
     top = max(float(np.abs(evals).max()), 1e-12)
     evals = np.maximum(np.abs(evals), 1e-6 * top)
-    return -(evecs @ ((evecs.T @ ev.gradient) / evals))
+    direction: np.ndarray = -(evecs @ ((evecs.T @ ev.gradient) / evals))
+    return direction
 
 
 def ndt_newton(
@@ -374,8 +387,8 @@ def ndt_newton(
         step = _descent_direction(ev)
         scale = min(
             1.0,
-            max_step_m / max(np.linalg.norm(step[:3]), 1e-15),
-            max_step_rad / max(np.linalg.norm(step[3:]), 1e-15),
+            max_step_m / max(float(np.linalg.norm(step[:3])), 1e-15),
+            max_step_rad / max(float(np.linalg.norm(step[3:])), 1e-15),
         )
         step *= scale
         slope = float(ev.gradient @ step)

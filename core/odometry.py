@@ -303,7 +303,8 @@ def deskew(
     s = np.clip(time_offset_s / period_s, 0.0, 1.5) - reference_fraction
     rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
     R = Rotation.from_rotvec(s[:, None] * rotvec[None, :])
-    return R.apply(points_xyz) + s[:, None] * delta[:3, 3][None, :]
+    deskewed: np.ndarray = R.apply(points_xyz) + s[:, None] * delta[:3, 3][None, :]
+    return deskewed
 
 
 class IncrementalMatcher:
@@ -870,7 +871,7 @@ class IncrementalMatcher:
 
     def _gate(
         self,
-        res,
+        res: RegistrationResult,
         T_pred: np.ndarray,
         prior_T: np.ndarray | None,
         prior: PosePrior | None,

@@ -59,7 +59,8 @@ def _grouped_quantile(
     lo = np.floor(pos).astype(np.int64)
     hi = np.minimum(lo + 1, counts - 1)
     frac = pos - lo
-    return sorted_vals[starts + lo] * (1.0 - frac) + sorted_vals[starts + hi] * frac
+    quantile: np.ndarray = sorted_vals[starts + lo] * (1.0 - frac) + sorted_vals[starts + hi] * frac
+    return quantile
 
 
 def iqr_inlier_mask(
@@ -162,5 +163,7 @@ def statistical_outlier_mask(
     """
     tree = cKDTree(points_xyz)
     dist, _ = tree.query(points_xyz, k=n_neighbors + 1)
+    assert isinstance(dist, np.ndarray)  # (N, k) for an (N,3) query
     mean_d = dist[:, 1:].mean(axis=1)
-    return mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+    inlier: np.ndarray = mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+    return inlier

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -136,7 +137,7 @@ class RegistrationResult:
         }
 
 
-def sanitize_points(points: np.ndarray, *, name: str, min_points: int) -> tuple[np.ndarray, int]:
+def sanitize_points(points: npt.ArrayLike | None, *, name: str, min_points: int) -> tuple[np.ndarray, int]:
     """Return ``(finite (N,3) float64 points, number of non-finite rows dropped)``.
 
     Accepts (N,3) or (N,>=4) arrays (extra columns such as intensity are ignored).
@@ -370,7 +371,9 @@ def _svd_refine(
             return None
         return moving[sel], ref.points_xyz[idx[sel]], normals[has_normal]
 
-    def residuals(T_cur: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]):
+    def residuals(
+        T_cur: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
         q = transform_points(T_cur, corr[0])
         return q, np.einsum("ij,ij->i", q - corr[1], corr[2])
 
@@ -511,7 +514,8 @@ def _plane_information(
     rel = qq - centre
     radius = max(float(np.sqrt((rel**2).sum(axis=1).mean())), 1e-9)
     J = np.concatenate([n, np.cross(rel, n) / radius], axis=1)
-    return J.T @ J / pidx.size
+    information: np.ndarray = J.T @ J / pidx.size
+    return information
 
 
 _AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -572,7 +576,7 @@ def _resolve_settings(settings: RegistrationSettings | None, method: Method | No
 
 def _sanitize_inputs(
     source_xyz: np.ndarray,
-    target_xyz: np.ndarray,
+    target_xyz: np.ndarray | None,
     reference: PreparedReference | None,
     settings: RegistrationSettings,
 ) -> _Inputs:
@@ -741,7 +745,7 @@ def _raise_if_degenerate(result: RegistrationResult, information: np.ndarray, th
 
 def register(
     source_xyz: np.ndarray,
-    target_xyz: np.ndarray,
+    target_xyz: np.ndarray | None,
     init_T_target_source: np.ndarray | None = None,
     *,
     settings: RegistrationSettings | None = None,
@@ -755,7 +759,7 @@ def register(
     Parameters
     ----------
     source_xyz : (N,3) moving points (extra columns ignored; non-finite rows dropped and counted).
-    target_xyz : (M,3) reference points (ignored when ``reference`` is given).
+    target_xyz : (M,3) reference points (ignored, and may be ``None``, when ``reference`` is given).
     init_T_target_source : (4,4) initial guess, identity when ``None``.
     settings : algorithm settings; ``method`` overrides ``settings.method`` with that method's
         defaults (:meth:`RegistrationSettings.for_method`).

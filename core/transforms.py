@@ -12,6 +12,7 @@ covariances) updates a transform on the left: ``T <- exp(delta) @ T`` with
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from core.errors import InvalidCloudError
@@ -46,8 +47,8 @@ def as_transform(T: np.ndarray | None, *, name: str = "transform") -> np.ndarray
 
 
 def make_transform(
-    rotvec: np.ndarray | None = None,
-    translation: np.ndarray | None = None,
+    rotvec: npt.ArrayLike | None = None,
+    translation: npt.ArrayLike | None = None,
     *,
     euler_deg: tuple[float, float, float] | None = None,
 ) -> np.ndarray:
@@ -92,7 +93,8 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 def transform_points(T: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
     """Apply ``T`` (4x4) to ``points_xyz`` (N,3); returns (N,3) float64."""
-    return points_xyz @ T[:3, :3].T + T[:3, 3]
+    moved: np.ndarray = points_xyz @ T[:3, :3].T + T[:3, 3]
+    return moved
 
 
 def apply_update(delta: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -100,7 +102,8 @@ def apply_update(delta: np.ndarray, T: np.ndarray) -> np.ndarray:
     U = np.eye(4)
     U[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
     U[:3, 3] = delta[:3]
-    return U @ T
+    updated: np.ndarray = U @ T
+    return updated
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -112,9 +115,11 @@ def _se3_left_jacobian(w: np.ndarray) -> np.ndarray:
     theta2 = float(w @ w)
     W = _skew(w)
     if theta2 < 1e-10:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
+        V: np.ndarray = np.eye(3) + 0.5 * W + W @ W / 6.0
+        return V
     theta = np.sqrt(theta2)
-    return np.eye(3) + (1.0 - np.cos(theta)) / theta2 * W + (theta - np.sin(theta)) / (theta2 * theta) * W @ W
+    V = np.eye(3) + (1.0 - np.cos(theta)) / theta2 * W + (theta - np.sin(theta)) / (theta2 * theta) * W @ W
+    return V
 
 
 def scale_motion(T: np.ndarray, k: float) -> np.ndarray:

@@ -63,7 +63,8 @@ def pack_keys(coords: np.ndarray) -> np.ndarray:
         raise InvalidCloudError(
             f"points span more than {_MASK} voxels along an axis; use a larger voxel size"
         )
-    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+    keys: np.ndarray = (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+    return keys
 
 
 def unpack_keys(keys: np.ndarray) -> np.ndarray:
@@ -347,7 +348,9 @@ def _parent_moments(
     parent_center = (unpack_keys(parent_keys) + 0.5) * parent_size
     d = mean - parent_center[inverse]
     n_p = np.bincount(inverse, weights=n, minlength=m)
-    e = np.stack([np.bincount(inverse, weights=n * d[:, a], minlength=m) for a in range(3)], axis=1)
+    e: np.ndarray = np.stack(
+        [np.bincount(inverse, weights=n * d[:, a], minlength=m) for a in range(3)], axis=1
+    )
     e /= n_p[:, None]
     s = scatter + n[:, None, None] * (d[:, :, None] * d[:, None, :])
     flat = s.reshape(-1, 9)

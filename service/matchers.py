@@ -177,7 +177,7 @@ def _serve(conn: Connection) -> None:
 class _WorkerProcess:
     """One child process and the pipe to it; calls are serialized by a lock."""
 
-    def __init__(self, ctx: multiprocessing.context.BaseContext, index: int) -> None:
+    def __init__(self, ctx: multiprocessing.context.SpawnContext, index: int) -> None:
         self.index = index
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager, tile_message
@@ -39,6 +40,7 @@ class Service:
     def start(self) -> None:
         s = self.settings
         self.store = Store(s.data_dir)
+        outbox: Callable[[WireMessage], None]
         if self._with_zenoh:
             self.transport = ZenohTransport(s, self._on_scan, self.tile_payload)
             outbox = self.transport.send

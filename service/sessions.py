@@ -55,7 +55,8 @@ from service.matchers import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
-from service.store import SessionRecord, Store
+from service.store import SessionFrame, SessionRecord, Store
+from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
 from wire.ids import UNKNOWN_ID
 from wire.messages import (
@@ -96,7 +97,7 @@ class SessionState:
     vehicle: str
     session: str
     map_name: str
-    frame: str
+    frame: SessionFrame
     created: float = field(default_factory=time.time)
     last_activity: float = field(default_factory=time.monotonic)
     last_seq: int = -1
@@ -108,7 +109,7 @@ class SessionState:
     last_status: str = ""
     last_latency_ms: float = float("nan")
     dirty: bool = False
-    state: str = "active"
+    state: RecordState = "active"
     #: Variance (m^2) of the position accumulated since the last prior pose: the prior's own
     #: variance, plus the trace of each registration's translational covariance (a random walk).
     drift_var_m2: float = 0.0
@@ -216,7 +217,7 @@ class SessionWorker:
     def _fix_frame(self, has_prior: bool) -> None:
         """Set the session's frame from its first processed scan (module docstring, Frames)."""
         info = self.info
-        frame = "map" if has_prior else "session"
+        frame: SessionFrame = "map" if has_prior else "session"
         if info.frame == frame:
             return
         old = info.map_name
@@ -241,7 +242,9 @@ class SessionWorker:
         prior = None
         pose = scan.prior_pose()
         if pose is not None:
-            prior = PosePrior(pose, scan.prior_covariance())
+            prior_cov = scan.prior_covariance()
+            assert prior_cov is not None  # a scan's prior carries both
+            prior = PosePrior(pose, prior_cov)
         intensity = scan.intensity()
         # More of this session's scans wait: the keyframe model may lag one keyframe rather than
         # delay them (IncrementalMatcher.update_model).
@@ -305,12 +308,12 @@ class SessionWorker:
                 session=scan.session,
                 seq=scan.seq,
                 stamp_ns=scan.stamp_ns,
-                pose=result.T_world_sensor.ravel().tolist(),
+                pose=tuple(result.T_world_sensor.ravel().tolist()),
                 fitness=float(result.fitness),
                 inlier_ratio=float(result.inlier_ratio),
                 converged=bool(result.converged),
                 status=result.status,
-                covariance=None if not np.all(np.isfinite(cov)) else cov.ravel().tolist(),
+                covariance=None if not np.all(np.isfinite(cov)) else tuple(cov.ravel().tolist()),
                 latency_ms=latency_ms,
                 map=info.map_name,
             )
@@ -480,6 +483,7 @@ class SessionManager:
             # Active: the service restarted. Expired: the vehicle paused longer than the idle
             # expiry and came back. Either way the session resumes where it stopped.
             _, stamps, poses, state = self.store.load_session(*key)
+            assert record.map is not None  # the service saves every session with its map
             info = SessionState(
                 scan.vehicle,
                 scan.session,
@@ -567,7 +571,7 @@ class SessionManager:
             if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
                 self.close(*w.key, state="expired")
 
-    def _save_session(self, w: SessionWorker, state: str | None = None) -> None:
+    def _save_session(self, w: SessionWorker, state: RecordState | None = None) -> None:
         with w.lock:
             info = w.info
             if state is not None:
@@ -631,7 +635,7 @@ class SessionManager:
         log.info("map %s deleted (%d tiles)", map_name, n_tiles)
         return n_tiles
 
-    def close(self, vehicle: str, session: str, *, state: str = "closed") -> bool:
+    def close(self, vehicle: str, session: str, *, state: RecordState = "closed") -> bool:
         """Finish a session: process what is queued, save it, stop its worker. False if unknown."""
         with self._lock:
             w = self._workers.pop((vehicle, session), None)

@@ -99,6 +99,7 @@ __all__ = [
     "TRAJECTORY_FILENAME",
     "DataDirInUseError",
     "LoadedSession",
+    "SessionFrame",
     "SessionRecord",
     "SessionState",
     "Store",
@@ -117,6 +118,7 @@ MATCHER_FILENAME = "matcher.npz"
 LOCK_FILENAME = ".randt-store.lock"
 
 SessionState = Literal["active", "closed", "expired"]
+SessionFrame = Literal["map", "session"]
 ProblemKind = Literal["map", "session", "entry"]
 
 # core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
@@ -177,7 +179,7 @@ class SessionRecord(BaseModel):
     last_seq: int = Field(default=-1, ge=-1)
     n_scans: int = Field(default=0, ge=0)
     n_fallbacks: int = Field(default=0, ge=0)
-    frame: Literal["map", "session"] = "session"
+    frame: SessionFrame = "session"
 
     @property
     def key(self) -> tuple[str, str]:
@@ -187,6 +189,7 @@ class SessionRecord(BaseModel):
     @field_validator("vehicle", "session", "map")
     @classmethod
     def _safe_name(cls, value: str | None, info: ValidationInfo) -> str | None:
+        assert info.field_name is not None  # a field validator's, always set
         return None if value is None else validate_id(value, info.field_name)
 
     @model_validator(mode="after")
@@ -706,7 +709,7 @@ class Store:
             arrays[_KEY_STAMPS] = stamps
             arrays[_KEY_POSES] = poses
             buffer = io.BytesIO()
-            np.savez(buffer, **arrays)
+            np.savez(buffer, **arrays)  # type: ignore[arg-type]  # mypy binds **arrays to allow_pickle: bool too
             try:
                 directory.mkdir(parents=True, exist_ok=True)
             except OSError as exc:

@@ -124,7 +124,9 @@ def intersect_boxes(
     rel = origins - centre_xyz
     o = (c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2])
     d = (c * dirs[..., 0] + s * dirs[..., 1], -s * dirs[..., 0] + c * dirs[..., 1], dirs[..., 2])
-    t_near = t_far = cos_near = None
+    t_near: np.ndarray | None = None
+    t_far: np.ndarray | None = None
+    cos_near: np.ndarray | None = None
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis in range(3):  # the three slabs
             h = half_extents_xyz[..., axis]
@@ -135,9 +137,11 @@ def intersect_boxes(
                 t_near, t_far = lo, hi
                 cos_near = np.broadcast_to(np.abs(d[axis]), lo.shape)
             else:
+                assert t_far is not None and cos_near is not None  # set with t_near on the first slab
                 enter = lo > t_near
                 cos_near = np.where(enter, np.abs(d[axis]), cos_near)
                 t_near, t_far = np.maximum(t_near, lo), np.minimum(t_far, hi)
+    assert t_near is not None and t_far is not None and cos_near is not None  # three slabs were cut
     hit = (t_near <= t_far) & (t_near > _EPS_T)
     return np.where(hit, t_near, np.inf), cos_near
 

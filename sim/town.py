@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = [
     "GROUND_MATERIALS",
@@ -68,7 +69,7 @@ _DASH_M, _DASH_PERIOD_M = 3.0, 9.0
 
 
 def _as_array(value: object, shape: tuple[int, ...], dtype: type, name: str) -> np.ndarray:
-    arr = np.ascontiguousarray(value, dtype=dtype)
+    arr: np.ndarray = np.ascontiguousarray(value, dtype=dtype)
     if arr.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
     return arr
@@ -270,7 +271,13 @@ class _Builder:
         return self.ground_z(xy) - np.linalg.norm(self.gradient) * radius - 0.05
 
     def add_boxes(
-        self, xy: np.ndarray, size_xy: np.ndarray, height: np.ndarray, yaw: np.ndarray, mat: Material, refl
+        self,
+        xy: npt.ArrayLike,
+        size_xy: npt.ArrayLike,
+        height: npt.ArrayLike,
+        yaw: npt.ArrayLike,
+        mat: Material,
+        refl: npt.ArrayLike,
     ) -> None:
         xy, size_xy = np.atleast_2d(xy), np.atleast_2d(size_xy)
         height, yaw = np.atleast_1d(height), np.atleast_1d(yaw)
@@ -282,7 +289,12 @@ class _Builder:
         self.boxes.append((centre, half, yaw, np.full(yaw.shape, mat, np.uint8), refl))
 
     def add_cylinders(
-        self, xy: np.ndarray, radius: np.ndarray, height: np.ndarray, mat: Material, refl
+        self,
+        xy: npt.ArrayLike,
+        radius: npt.ArrayLike,
+        height: npt.ArrayLike,
+        mat: Material,
+        refl: npt.ArrayLike,
     ) -> None:
         xy, radius, height = np.atleast_2d(xy), np.atleast_1d(radius), np.atleast_1d(height)
         base = self._base_z(xy, radius)
@@ -293,7 +305,7 @@ class _Builder:
     def add_trees(self, xy: np.ndarray, rng: np.random.Generator) -> None:
         """Trunk cylinders with sphere crowns; the crown's bottom clears 2 m (cars, the sensor)."""
         xy = np.atleast_2d(xy)
-        n = xy.shape[0]
+        n: int = xy.shape[0]
         if n == 0:
             return
         crown_r = rng.uniform(1.2, 2.5, n)
@@ -316,7 +328,9 @@ class _Builder:
         return Boxes(*b), Cylinders(*c), Spheres(*s)
 
 
-def _positions_along(rng: np.random.Generator, lo: float, hi: float, first: tuple, step: tuple) -> np.ndarray:
+def _positions_along(
+    rng: np.random.Generator, lo: float, hi: float, first: tuple[float, float], step: tuple[float, float]
+) -> np.ndarray:
     """Positions in [lo, hi] starting ``U(first)`` after ``lo`` with ``U(step)`` gaps (1-D, sorted)."""
     if hi <= lo:
         return np.zeros(0)
@@ -663,7 +677,7 @@ def _line_kerb(
     side spans ``[lo, hi]`` along the street.
     """
 
-    def xy(u: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+    def xy(u: np.ndarray, lateral: npt.ArrayLike) -> np.ndarray:
         lateral = np.broadcast_to(lateral, u.shape)
         return np.column_stack([lateral, u] if axis == 0 else [u, lateral])
 

@@ -661,6 +661,7 @@ def _as_bad_message(exc: ValidationError) -> BadMessageError:
     errors = exc.errors(include_url=False)
     first = errors[0]
     kind, where = first["type"], _location(first["loc"])
+    code: str  # an ErrorCode member, or a DECODE_CODES value pydantic reported
     if kind == "missing":
         code, text = ErrorCode.MISSING_FIELD, "required field is missing"
     elif kind in DECODE_CODES:

@@ -26,7 +26,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, cast
 
 import numpy as np
 import pypcd4
@@ -517,7 +517,7 @@ def write_pcd(path: str | os.PathLike[str], cloud: PointCloud) -> None:
         types=(np.float32, np.float32, np.float32, np.float32),
     )
     with atomic_open(path, "wb") as fh:
-        pcd.save(fh, encoding=pypcd4.Encoding.BINARY)
+        pcd.save(cast(BinaryIO, fh), encoding=pypcd4.Encoding.BINARY)  # atomic_open("wb"): a binary file
     logger.debug("wrote %s: %d points", path, cloud.n_points)
 
 

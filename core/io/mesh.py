@@ -217,4 +217,5 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n_points: int, *, se
     chosen = np.minimum(chosen, len(faces) - 1)
     r1, r2 = rng.random((2, n_points, 1))
     s = np.sqrt(r1)
-    return (1.0 - s) * a[chosen] + s * (1.0 - r2) * b[chosen] + s * r2 * c[chosen]
+    points: np.ndarray = (1.0 - s) * a[chosen] + s * (1.0 - r2) * b[chosen] + s * r2 * c[chosen]
+    return points

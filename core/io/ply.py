@@ -36,6 +36,7 @@ naming the path and what is wrong. The writer goes through :func:`core.io.atomic
 
 from __future__ import annotations
 
+import io
 import itertools
 import logging
 import os
@@ -280,7 +281,9 @@ def read_ply_header(path: str | os.PathLike[str]) -> PlyHeader:
 # --------------------------------------------------------------------------------------------
 
 
-def _read_binary_vertices(fh: BinaryIO, header: PlyHeader, index: int, path: Path) -> dict[str, np.ndarray]:
+def _read_binary_vertices(
+    fh: io.BufferedReader, header: PlyHeader, index: int, path: Path
+) -> dict[str, np.ndarray]:
     byte_order = "<" if header.format == "binary_little_endian" else ">"
     offset = header.data_offset
     for element in header.elements[:index]:
@@ -294,7 +297,8 @@ def _read_binary_vertices(fh: BinaryIO, header: PlyHeader, index: int, path: Pat
     vertex = header.elements[index]
     table = np.empty(vertex.count, dtype=vertex.record_dtype(byte_order))
     fh.seek(offset)
-    n_read = fh.readinto(table.view(np.uint8))
+    # numpy's stubs give ndarray the buffer protocol (__buffer__) only for Python >= 3.12
+    n_read = fh.readinto(table.view(np.uint8))  # type: ignore[arg-type]
     if n_read != table.nbytes:
         raise FormatError(
             f"{path}: truncated PLY: the header announces {vertex.count} vertices of "

@@ -220,7 +220,8 @@ def kitti_velodyne_poses(cam_poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
         Tr_inv = np.linalg.inv(Tr)
     except np.linalg.LinAlgError as exc:
         raise InvalidCloudError(f"Tr is singular: {exc}") from exc
-    return Tr_inv @ cam_poses @ Tr
+    lidar_poses: np.ndarray = Tr_inv @ cam_poses @ Tr
+    return lidar_poses
 
 
 def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:

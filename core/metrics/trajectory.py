@@ -331,7 +331,8 @@ def _path_distances(poses: np.ndarray) -> np.ndarray:
 def _kitti_rotation_error(pose_error: np.ndarray) -> np.ndarray:
     """(S,) devkit rotation angle, rad: ``acos(clip((trace(R) - 1) / 2, -1, 1))``."""
     trace = np.trace(pose_error[:, :3, :3], axis1=1, axis2=2)
-    return np.arccos(np.clip(0.5 * (trace - 1.0), -1.0, 1.0))
+    angle: np.ndarray = np.arccos(np.clip(0.5 * (trace - 1.0), -1.0, 1.0))
+    return angle
 
 
 def kitti_relative_errors(

@@ -25,7 +25,7 @@ Errors are the project's (:mod:`core.errors`), answered by :mod:`service.api.err
 from __future__ import annotations
 
 import hmac
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -99,7 +99,7 @@ def _check_token(expected: str, credentials: HTTPAuthorizationCredentials | None
 
 
 #: The answers :func:`require_writer` can give, for a mutating route's ``responses``.
-WRITER_RESPONSES: dict[int | str, dict[str, object]] = {
+WRITER_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
     403: {"model": ErrorBody, "description": "no RANDT_API_TOKEN configured: mutations are disabled"},
 }

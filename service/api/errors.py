@@ -61,7 +61,7 @@ HTTP_STATUS: dict[type[RandtError], int] = {
 def status_of(exc: BaseException) -> int | None:
     """The status code :data:`HTTP_STATUS` gives ``exc``'s most specific class (None: not mapped)."""
     for cls in type(exc).__mro__:
-        code = HTTP_STATUS.get(cls)  # type: ignore[call-overload]
+        code = HTTP_STATUS.get(cls)
         if code is not None:
             return code
     return None

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import yaml
@@ -59,8 +59,8 @@ BboxQuery = Annotated[
         examples=["-40,-40,40,40"],
     ),
 ]
-_404 = {404: {"model": ErrorBody, "description": "no such map or tile"}}
-_422 = {422: {"model": ErrorBody, "description": "malformed coordinates"}}
+_404: dict[int | str, dict[str, Any]] = {404: {"model": ErrorBody, "description": "no such map or tile"}}
+_422: dict[int | str, dict[str, Any]] = {422: {"model": ErrorBody, "description": "malformed coordinates"}}
 
 
 class PduCache:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query
@@ -41,7 +41,7 @@ __all__ = ["router"]
 
 router = APIRouter(prefix="/sessions", tags=["sessions"], dependencies=[Depends(require_reader)])
 ManagerDep = Annotated[SessionManager, Depends(get_manager)]
-_404 = {404: {"model": ErrorBody, "description": "no such session"}}
+_404: dict[int | str, dict[str, Any]] = {404: {"model": ErrorBody, "description": "no such session"}}
 
 
 @router.get("", response_model=list[SessionSummary])
@@ -146,5 +146,5 @@ def close_session(vehicle: VehicleName, session: SessionName, mgr: ManagerDep) -
         closed = mgr.close_stored(vehicle, session)
         if closed is not None:
             return ClosedSession(id=found.id, state="closed", scans=closed.n_scans, changed=True)
-    state = "expired" if current.state == "expired" else "closed"
+    state: Literal["closed", "expired"] = "expired" if current.state == "expired" else "closed"
     return ClosedSession(id=found.id, state=state, scans=current.n_scans, changed=False)
