@@ -9,6 +9,7 @@ Anything else is a bug and keeps its traceback (exit code 1).
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from collections.abc import Callable
 from enum import IntEnum
@@ -58,6 +59,7 @@ class ExitCode(IntEnum):
     DATA_DIR_IN_USE = 13
     WRONG_INPUT = 14
     INTERRUPTED = 130
+    BROKEN_PIPE = 141
 
 
 #: The exit-code table, as ``randt --help`` and the README print it.
@@ -78,6 +80,7 @@ DESCRIPTIONS: dict[ExitCode, str] = {
     ExitCode.DATA_DIR_IN_USE: "serve/demo: the data directory is in use by another process",
     ExitCode.WRONG_INPUT: "a directory where a file is expected, or a folder holding no scan files",
     ExitCode.INTERRUPTED: "interrupted (Ctrl-C)",
+    ExitCode.BROKEN_PIPE: "the reader of the output went away (output piped into `head`): no message",
 }
 
 
@@ -168,6 +171,11 @@ def exits_on_error(command: Callable[P, R], name: str) -> Callable[P, R]:
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return command(*args, **kwargs)
+        except BrokenPipeError:
+            # The reader left (``randt config | head``): stop quietly, as cat and grep do. Point
+            # stdout at /dev/null so the interpreter's final flush does not raise again.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            raise typer.Exit(ExitCode.BROKEN_PIPE) from None
         except HANDLED as exc:
             raise fail(exc) from exc
         except KeyboardInterrupt:

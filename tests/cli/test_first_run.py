@@ -287,3 +287,19 @@ def test_the_readme_documents_every_exit_code() -> None:
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     rows = dict(re.findall(r"^\| (\d+) \| (.+?) \|$", readme, flags=re.M))
     assert {int(k): v for k, v in rows.items()} == {int(c): t for c, t in DESCRIPTIONS.items()}
+
+
+def test_output_piped_into_a_reader_that_leaves_ends_quietly() -> None:
+    """``randt config | head -1``: the reader has closed the pipe; no error line, code 141.
+
+    The read end is closed right after the start, long before the interpreter has imported
+    enough to print (a reader that takes one line first races with this small output)."""
+    proc = subprocess.Popen(
+        [*RANDT, "config"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path.cwd()
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()
+    rc = proc.wait(timeout=60)
+    err = proc.stderr.read()
+    assert rc == ExitCode.BROKEN_PIPE == 141, err
+    assert "error" not in err and "Traceback" not in err, err
