@@ -33,6 +33,7 @@ import signal
 import threading
 import time
 import traceback
+from collections.abc import Iterator
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -104,7 +105,7 @@ def _serve(conn: Connection) -> None:
     SIGINT is ignored: Ctrl-C in a terminal reaches the whole process group, and the service
     (the parent) stops its workers itself after draining the sessions (``quit``, or the pipe closing).
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored when started from the main thread)
     try:
         _warm_up()
     except Exception:  # a failed warm-up only costs the first sweep its compile time
@@ -174,6 +175,27 @@ def _serve(conn: Connection) -> None:
                 log.exception("matcher process: keyframe model update failed")
 
 
+@contextlib.contextmanager
+def _sigint_ignored_by_children() -> Iterator[None]:
+    """Ignore SIGINT while a child process is started, so that it starts with SIGINT ignored.
+
+    An ignored disposition survives exec, and Python installs its KeyboardInterrupt handler only
+    where SIGINT was not ignored: a Ctrl-C during the child's first second (interpreter start,
+    imports, before :func:`_serve` runs) can then not kill it with a traceback on the terminal.
+    Only the main thread may change handlers; a process started from another thread (a
+    replacement for a dead one) relies on :func:`_serve` alone. The parent ignores a Ctrl-C for
+    the few milliseconds of the start.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class _WorkerProcess:
     """One child process and the pipe to it; calls are serialized by a lock."""
 
@@ -181,7 +203,8 @@ class _WorkerProcess:
         self.index = index
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)
-        self._proc.start()
+        with _sigint_ignored_by_children():
+            self._proc.start()
         child.close()
         self._lock = threading.Lock()
         self.sessions: set[Key] = set()

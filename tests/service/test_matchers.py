@@ -164,3 +164,20 @@ def test_an_error_that_cannot_be_pickled_arrives_as_a_matcher_process_error() ->
     back = pickle.loads(pickle.dumps(kept))
     assert type(back) is DegenerateProblemError and back.weak_directions == ("tz", "rx")
     assert issubclass(MatcherProcessDiedError, MatcherProcessError)
+
+
+def test_a_ctrl_c_while_a_matcher_process_starts_does_not_kill_it() -> None:
+    """Ctrl-C reaches the whole process group, matcher processes included, also during their
+    first second (interpreter start, imports) when _serve has not yet ignored SIGINT: they start
+    with SIGINT blocked, so the signal stays pending and is then discarded."""
+    pool = MatcherPool(1)
+    try:
+        for _ in range(5):  # during the spawn bootstrap and the imports
+            (pid,) = pool.pids()
+            assert pid is not None
+            os.kill(pid, signal.SIGINT)
+            time.sleep(0.05)
+        assert pool.wait_ready(timeout=120), "the matcher process died of a Ctrl-C while starting"
+        assert pool.pids() == [pid]
+    finally:
+        pool.close()
