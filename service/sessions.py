@@ -24,7 +24,9 @@ gaps from the stamps.
 
 **Frames**: a session whose first processed scan carries a prior pose (GNSS/INS) lives in the map
 frame and folds into the shared map (``default``). A session without priors has its own frame,
-starting at its first sweep, and its own map ``<vehicle>.<session>`` until it can be placed;
+starting at its first sweep, and its own map ``<vehicle>.<session>``
+(:func:`wire.ids.session_map_name`: the vehicle escaped so that no two sessions share a map) until
+it can be placed;
 status reports which (``frame``: ``"map"`` or ``"session"``). The frame is fixed by the first scan
 the matcher *processes* (the first one received may be rejected), never by an earlier one.
 """
@@ -58,7 +60,7 @@ from service.settings import ServiceSettings
 from service.store import SessionFrame, SessionRecord, Store
 from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
-from wire.ids import UNKNOWN_ID
+from wire.ids import UNKNOWN_ID, session_map_name
 from wire.messages import (
     ErrorMessage,
     PoseMessage,
@@ -775,15 +777,3 @@ def drop_index(queue: deque[_Job], *, n_processed: int) -> int:
     """Which waiting job the overload policy drops: the oldest (0), or the newest waiting one
     while the session has processed fewer than :data:`YOUNG_SESSION_SCANS` scans."""
     return len(queue) - 1 if n_processed < YOUNG_SESSION_SCANS else 0
-
-
-def session_map_name(vehicle: str, session: str) -> str:
-    """The map of a session without priors: ``<vehicle>.<session>``, or a hash-suffixed form when
-    that would exceed the 64 characters a name may have."""
-    name = f"{vehicle}.{session}"
-    if len(name) <= 64:
-        return name
-    import hashlib
-
-    digest = hashlib.sha1(name.encode()).hexdigest()[:12]
-    return f"{vehicle[:40]}.{digest}"

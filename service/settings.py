@@ -71,7 +71,12 @@ class ServiceSettings(BaseSettings):
         "0 = run them in the session threads (service/matchers.py)",
     )
     # map
-    default_map: str = Field(default="default", pattern=ID_REGEX)
+    default_map: str = Field(
+        default="default",
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
+        description="the shared map (sessions with prior poses); an id without a dot, since every "
+        "session's own map has one (wire.ids.session_map_name)",
+    )
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")

@@ -83,7 +83,7 @@ from core.io import atomic_write_bytes, read_tum, write_tum
 from core.io.atomic import fsync_directory
 from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.tiles import TileGrid, load_autoware
-from wire.ids import validate_id
+from wire.ids import legacy_session_map_name, session_map_name, validate_id
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
     import fcntl
@@ -808,6 +808,86 @@ class Store:
 
     # ------------------------------------------------------------------------------ everything
 
+    def migrate_map_names(self) -> list[tuple[str, str, str]]:
+        """Rename the maps of sessions without priors to their injective names (run by :meth:`load_all`).
+
+        Before, a session's own map was ``<vehicle>.<session>``, which collided (vehicle ``col.a``
+        + session ``b`` and vehicle ``col`` + session ``a.b`` shared ``col.a.b``). Each stored
+        session in its own frame whose record names that legacy map
+        (:func:`wire.ids.legacy_session_map_name`) moves to :func:`wire.ids.session_map_name`:
+
+        1. the map directory is renamed (one atomic step) when this session is its only user,
+           else copied (into a temporary directory, fsync'd, renamed): a map two sessions were
+           fused into stays fused, and each of them keeps a copy;
+        2. the session's record is saved with the new name;
+        3. a legacy map no record names any more is deleted.
+
+        Every step can be interrupted: the next open redoes what is left (an interrupted copy is
+        a ``.deleted-*`` directory, removed on open). Names that need no change (ids of letters,
+        digits and dashes) are untouched, so usually there is nothing to do.
+
+        Returns
+        -------
+        list[tuple[str, str, str]]
+            ``("<vehicle>/<session>", old map, new map)`` for each session moved.
+        """
+        self._check_open()
+        records, _ = self._scan_sessions()
+        moves = [
+            (r, session_map_name(r.vehicle, r.session))
+            for r in records
+            if r.frame == "session"
+            and r.map is not None
+            and r.map == legacy_session_map_name(r.vehicle, r.session)
+            and r.map != session_map_name(r.vehicle, r.session)
+        ]
+        done: list[tuple[str, str, str]] = []
+        for record, new in moves:
+            old = record.map
+            assert old is not None  # filtered above
+            users = sum(r.map == old for r in records)
+            old_dir, new_dir = self.map_dir(old), self.map_dir(new)
+            try:
+                with self._map_lock(old), self._map_lock(new):
+                    if old_dir.is_dir() and not new_dir.exists():
+                        if users == 1:
+                            os.replace(old_dir, new_dir)
+                        else:
+                            _copy_tree_durably(old_dir, new_dir, self._maps)
+                        fsync_directory(self._maps)
+                with self._session_lock(record.vehicle, record.session):
+                    loaded = self.load_session(record.vehicle, record.session)
+                    self.save_session(
+                        loaded.record.model_copy(update={"map": new}),
+                        loaded.poses,
+                        loaded.stamps,
+                        loaded.state,
+                    )
+            except (RandtError, OSError, ValueError) as exc:
+                logger.error(
+                    "store: could not move map %s of session %s/%s to %s: %s",
+                    old,
+                    record.vehicle,
+                    record.session,
+                    new,
+                    exc,
+                )
+                continue
+            records = [r for r in records if r.key != record.key] + [record.model_copy(update={"map": new})]
+            done.append((f"{record.vehicle}/{record.session}", old, new))
+            logger.warning(
+                "store: session %s/%s's map %s is now %s (injective session-map names)%s",
+                record.vehicle,
+                record.session,
+                old,
+                new,
+                "" if users == 1 else f"; {users} sessions were fused in {old}: each keeps a copy",
+            )
+        named = {r.map for r in records}
+        for old in {old for _, old, _ in done} - named:
+            self.delete_map(old)
+        return done
+
     def load_all(self) -> StoreContents:
         """Restore every map and session; skip (and report) what cannot be read.
 
@@ -818,6 +898,7 @@ class Store:
         """
         self._check_open()
         contents = StoreContents()
+        self.migrate_map_names()
         for name in self.list_maps():
             try:
                 grid = self.load_map(name)
@@ -1015,3 +1096,17 @@ def _read_commit(path: Path, vehicle: str, session: str) -> LoadedSession:
         raise FormatError(f"{path}: record says {record.n_scans} scans, trajectory has {poses.shape[0]}")
     state = {k: v for k, v in arrays.items() if not k.startswith(_RESERVED_PREFIX)}
     return LoadedSession(record=record, stamps=stamps, poses=poses, state=state)
+
+
+def _copy_tree_durably(source: Path, target: Path, parent: Path) -> None:
+    """Copy the directory ``source`` to ``target`` (in ``parent``) in one visible step: copy into
+    ``parent/.deleted-copy-*`` (removed on the next open if this is interrupted), fsync every file
+    and the directory, then rename it to ``target``."""
+    scratch = parent / f"{_DELETED_PREFIX}copy-{target.name}-{os.getpid()}-{time.time_ns()}"
+    shutil.copytree(source, scratch)
+    for path in scratch.rglob("*"):
+        if path.is_file():
+            with path.open("rb+") as fh:
+                os.fsync(fh.fileno())
+    fsync_directory(scratch)
+    os.replace(scratch, target)
