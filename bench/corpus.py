@@ -171,7 +171,7 @@ def _raw_map(session: str, replace: dict[str, bytes]) -> bytes:
     return bytes(out)
 
 
-def _prior(pose: list[float] | None = None, cov: list[float] | None = None) -> dict[str, Any]:
+def _prior(pose: list[Any] | None = None, cov: list[Any] | None = None) -> dict[str, Any]:
     return {"pose": _IDENTITY if pose is None else pose, "covariance": _COV if cov is None else cov}
 
 

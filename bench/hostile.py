@@ -149,18 +149,20 @@ def _run_wire(case: dict[str, Any], corpus: Path, ctx: _Ctx) -> tuple[dict[str, 
         for step in case["setup"]:
             t = time.monotonic()
             pub.put(build_payload(step))
-            ok = ctx.listener.wait(
-                lambda step=step, t=t: any(
-                    a.kind == "pose" and a.session == session and a.seq == step["seq"]
-                    for a in ctx.listener.of(HOSTILE, t)
-                ),
-                ANSWER_TIMEOUT_S,
-            )
+            seq, since = int(step["seq"]), t
+
+            def posed(seq: int = seq, since: float = since) -> bool:
+                return any(
+                    a.kind == "pose" and a.session == session and a.seq == seq
+                    for a in ctx.listener.of(HOSTILE, since)
+                )
+
+            ok = ctx.listener.wait(posed, ANSWER_TIMEOUT_S)
             if not ok:
-                got = [(a.kind, a.seq, a.code) for a in ctx.listener.of(HOSTILE, t)]
+                seen = [(a.kind, a.seq, a.code) for a in ctx.listener.of(HOSTILE, t)]
                 return (
                     {"setup": False},
-                    f"setup scan seq {step['seq']} got no pose: {got}",
+                    f"setup scan seq {seq} got no pose: {seen}",
                     t,
                     time.monotonic(),
                 )
@@ -334,15 +336,19 @@ def run_service_cases(
                             t0,
                             time.monotonic(),
                         )
+
                     # the good vehicle's scans in flight during the case: wait for their answers
-                    listener.wait(
-                        lambda ts=ts, te=te: all(
+                    def settled(ts: float = ts, te: float = te) -> bool:
+                        return all(
                             any(
                                 a.vehicle == s.vehicle and a.seq == s.seq for a in listener.of(s.vehicle, s.t)
                             )
                             for s in good.sent
                             if ts - 2.0 <= s.t <= te
-                        ),
+                        )
+
+                    listener.wait(
+                        settled,
                         30.0,
                     )
                     lat = latencies(good.sent, listener.snapshot(), ts, te)

@@ -30,6 +30,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -206,7 +207,7 @@ def run_soak(
                     while not stop.is_set():
                         lap, i = divmod(k, lap_scans)
                         stamp, xyz, inten, T = laps[vehicle][i]
-                        prior = (
+                        prior: dict[str, Any] = (
                             {"prior_pose": T, "prior_covariance": np.diag([1e-4] * 3 + [1e-5] * 3)}
                             if i == 0
                             else {}
@@ -248,7 +249,7 @@ def run_soak(
                     lat = [
                         (a.t - sent[(a.vehicle, a.session, a.seq)]) * 1e3
                         for a in window
-                        if a.kind == "pose" and (a.vehicle, a.session, a.seq) in sent
+                        if a.kind == "pose" and a.seq is not None and (a.vehicle, a.session, a.seq) in sent
                     ]
                     answered = {(a.vehicle, a.session, a.seq) for a in answers}
                     in_flight = sum(1 for key in sent if key not in answered)
