@@ -35,13 +35,18 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from bench.common import git_line, machine_line
-
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "reliability.md"
 PLOT = REPO / "docs" / "img" / "soak.png"
 CSV = REPO / "docs" / "img" / "soak.csv"
 PARTS = ("corpus", "faults", "crash", "soak")
+
+
+def _common() -> Any:
+    """``bench/common.py`` (machine and git lines). Imported by name: the older benchmarks import it
+    as the top-level module ``common`` (they run as scripts), and mypy refuses one file under two
+    module names."""
+    return importlib.import_module("bench.common")
 
 
 def _cell(text: object, width: int = 140) -> str:
@@ -99,8 +104,8 @@ def generate(*, soak_minutes: float, kill_cycles: int, skip: tuple[str, ...] = (
         "(kill -9) and `bench/soak.py`; their docstrings say exactly what each check means.",
         "",
         f"- command: `python -m bench.reliability{' ' + argv if argv else ''}`",
-        f"- {machine_line({}, single_threaded=False)}",
-        f"- {git_line()}; started {started}; took {(time.monotonic() - t_all) / 60:.1f} min; "
+        f"- {_common().machine_line({}, single_threaded=False)}",
+        f"- {_common().git_line()}; started {started}; took {(time.monotonic() - t_all) / 60:.1f} min; "
         f"1-min load average at start {load0:.2f} (other work shared the machine)",
         "",
         "## Totals",
