@@ -203,7 +203,12 @@ def _run_wire(case: dict[str, Any], corpus: Path, ctx: _Ctx) -> tuple[dict[str, 
             else:  # pose_or_error
                 good = ok and len(got) == 1 and (got[0].kind == "pose" or got[0].code in codes)
             checks["outcome"] = good
-            detail.append(f"answers {kinds}" if kinds else f"no answer in {ANSWER_TIMEOUT_S:.0f} s")
+            counts: dict[str, int] = {}
+            for kind, code in kinds:
+                label = kind if code is None else f"{kind} {code}"
+                counts[label] = counts.get(label, 0) + 1
+            summary = ", ".join(f"{n} x {label}" if n > 1 else label for label, n in counts.items())
+            detail.append(f"answered: {summary}" if kinds else f"no answer in {ANSWER_TIMEOUT_S:.0f} s")
         checks["alive"] = healthy(ctx.port)
         time.sleep(2 * ctx.flush_s)  # a wrong write would land by now
         after = hash_store(ctx.data_dir, ctx.exclude)
@@ -361,8 +366,12 @@ def run_service_cases(
                             case["surface"],
                             passed,
                             checks,
-                            detail
-                            + ("" if worst is None else f"; good p99 {worst:.3f} s over {len(lat)} scans"),
+                            (
+                                ""
+                                if worst is None
+                                else f"good vehicle p99 {worst:.3f} s over {len(lat)} scans; "
+                            )
+                            + detail,
                             time.monotonic() - t0,
                             worst,
                             len(lat),

@@ -54,9 +54,9 @@ def _cell(text: object, width: int = 140) -> str:
     return s if len(s) <= width else s[: width - 3] + "..."
 
 
-def _table(headers: list[str], rows: list[list[object]]) -> str:
+def _table(headers: list[str], rows: list[list[object]], width: int = 140) -> str:
     out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    out += ["| " + " | ".join(_cell(c) for c in r) + " |" for r in rows]
+    out += ["| " + " | ".join(_cell(c, width) for c in r) + " |" for r in rows]
     return "\n".join(out)
 
 
@@ -163,6 +163,7 @@ def generate(*, soak_minutes: float, kill_cycles: int, skip: tuple[str, ...] = (
                 _table(
                     ["case", "failed checks", "what happened"],
                     [[r.name, ", ".join(k for k, v in r.checks.items() if not v), r.detail] for r in failed],
+                    width=600,
                 ),
                 "",
             ]
@@ -214,6 +215,7 @@ def generate(*, soak_minutes: float, kill_cycles: int, skip: tuple[str, ...] = (
                     ]
                     for f in faults
                 ],
+                width=1200,
             ),
             "",
         ]
