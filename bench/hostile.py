@@ -213,9 +213,14 @@ def _run_wire(case: dict[str, Any], corpus: Path, ctx: _Ctx) -> tuple[dict[str, 
         time.sleep(2 * ctx.flush_s)  # a wrong write would land by now
         after = hash_store(ctx.data_dir, ctx.exclude)
         changed = diff_hashes(before, after)
-        if case["setup"]:
-            # from now on this session may change (its idle expiry saves it): not this case's doing
+        if case["setup"] or expect["answer"] in ("pose", "pose_or_error"):
+            # From now on this session's files may change (its close saves it): not this case's
+            # doing. It is closed so that later cases never meet a per-vehicle session limit.
             ctx.allowed_sessions.add(session)
+            try:
+                ctx.service.sessions.close(HOSTILE, session)
+            except Exception:
+                log.warning("closing %s/%s failed", HOSTILE, session, exc_info=True)
         checks["store"] = not changed
         if changed:
             detail.append(f"store changed: {changed[:5]}")
