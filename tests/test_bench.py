@@ -66,7 +66,20 @@ def _run(script: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.mark.parametrize("name", ["register", "odometry", "service", "workers"])
+_SCRIPTS = [
+    "register",
+    "odometry",
+    "service",
+    "workers",
+    "corpus",
+    "hostile",
+    "faults",
+    "soak",
+    "reliability",
+]
+
+
+@pytest.mark.parametrize("name", _SCRIPTS)
 def test_benchmark_runs_without_pytest_or_tests(name: str) -> None:
     done = _run(REPO / "bench" / f"{name}.py")
     assert done.returncode == 0, done.stderr

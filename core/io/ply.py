@@ -295,7 +295,17 @@ def _read_binary_vertices(
             )
         offset += element.count * element.record_dtype(byte_order).itemsize
     vertex = header.elements[index]
-    table = np.empty(vertex.count, dtype=vertex.record_dtype(byte_order))
+    dtype = vertex.record_dtype(byte_order)
+    # The header's count is checked against the file's size before anything is allocated: a header
+    # announcing 10^12 vertices is a truncated file, not a request for 11 TiB of memory.
+    available = max(os.fstat(fh.fileno()).st_size - offset, 0)
+    if vertex.count * dtype.itemsize > available:
+        raise FormatError(
+            f"{path}: truncated PLY: the header announces {vertex.count} vertices of "
+            f"{dtype.itemsize} bytes ({vertex.count * dtype.itemsize} bytes from offset {offset}), "
+            f"the file holds {available}"
+        )
+    table = np.empty(vertex.count, dtype=dtype)
     fh.seek(offset)
     # numpy's stubs give ndarray the buffer protocol (__buffer__) only for Python >= 3.12
     n_read = fh.readinto(table.view(np.uint8))  # type: ignore[arg-type]

@@ -473,3 +473,14 @@ def test_missing_file_raises_not_found(tmp_path: Path) -> None:
 def test_directory_raises_format_error(tmp_path: Path) -> None:
     with pytest.raises(FormatError, match="cannot read"):
         read_ply_vertices(tmp_path)
+
+
+def test_a_vertex_count_beyond_the_file_is_truncation_not_an_allocation(tmp_path: Path) -> None:
+    """A header announcing 10^12 vertices (11 TiB) of a 120-byte body: FormatError naming both sizes,
+    before numpy is asked for the memory (it raised MemoryError, so `randt register` crashed)."""
+    path = tmp_path / "lies.ply"
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\n"
+    header += "property float x\nproperty float y\nproperty float z\nend_header\n"
+    path.write_bytes(header.encode() + np.zeros((10, 3), "<f4").tobytes())
+    with pytest.raises(FormatError, match=r"announces 1000000000000 vertices.*the file holds 120"):
+        read_cloud(path)
