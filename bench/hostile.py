@@ -278,7 +278,7 @@ class _Ctx:
     allowed_sessions: set[str] = field(default_factory=set)
 
     def exclude(self, rel: str) -> bool:
-        from service.sessions import session_map_name
+        from wire.ids import session_map_name
 
         parts = rel.split("/")
         if parts[0] == "sessions" and len(parts) > 2:
