@@ -632,7 +632,7 @@ _CONTAINER: Final[dict[int, tuple[int, int]]] = {0xDC: (2, 1), 0xDD: (4, 1), 0xD
 _EXT: Final = frozenset({0xC7, 0xC8, 0xC9, 0xD4, 0xD5, 0xD6, 0xD7, 0xD8})
 
 
-class _NotMsgpack(ValueError):
+class _NotMsgpackError(ValueError):
     """The bytes are not msgpack (truncated, an invalid type byte), as opposed to a structure limit."""
 
 
@@ -645,7 +645,7 @@ class _Walker:
 
     def _uint(self, pos: int, width: int) -> int:
         if pos + width > len(self.buf):
-            raise _NotMsgpack("truncated")
+            raise _NotMsgpackError("truncated")
         return int.from_bytes(self.buf[pos : pos + width], "big")
 
     def skip(self, pos: int) -> int:
@@ -660,7 +660,7 @@ class _Walker:
             if self.budget < 0:
                 raise ValueError("more objects than a message of this format can hold")
             if pos >= len(self.buf):
-                raise _NotMsgpack("truncated")
+                raise _NotMsgpackError("truncated")
             b = self.buf[pos]
             count = -1
             if b <= 0x7F or b >= 0xE0:  # positive / negative fixint
@@ -692,9 +692,9 @@ class _Walker:
             elif b in _EXT:
                 raise ValueError("msgpack ext types are not part of this format")
             else:  # 0xC1: never used
-                raise _NotMsgpack(f"invalid type byte 0x{b:02x}")
+                raise _NotMsgpackError(f"invalid type byte 0x{b:02x}")
             if pos > len(self.buf):
-                raise _NotMsgpack("truncated")
+                raise _NotMsgpackError("truncated")
             if count > 0:
                 if count // 2 > MAX_CONTAINER_LEN:
                     raise ValueError(f"more than {MAX_CONTAINER_LEN} entries")
@@ -719,7 +719,7 @@ def check_structure(payload: bytes, *, max_objects: int = MAX_OBJECTS) -> None:
     walker = _Walker(payload, max_objects)
     try:
         end = walker.skip(0)
-    except _NotMsgpack as exc:
+    except _NotMsgpackError as exc:
         raise BadMessageError(f"payload: not valid msgpack ({exc})", code=ErrorCode.MALFORMED) from None
     except ValueError as exc:
         reason = f"payload: not a message of this format ({exc})"

@@ -351,12 +351,12 @@ def test_status_counters_go_on_across_a_restart(tmp_path) -> None:
     _wait(first._sent, 4)
     first.stop()
     assert counts(first) == (4.0, 1.0, 1.0)
-    assert (tmp_path / "counters.json").is_file()
 
     second = Service(settings, with_zenoh=False)
     second.start()
     try:
         assert counts(second) == (4.0, 1.0, 1.0), "the counters restart where they stopped"
+        assert (tmp_path / "counters.json").is_file()
         second.sessions.submit("v2", good("v2", 0))
         _wait(second._sent, 1)
         assert counts(second) == (5.0, 2.0, 1.0)
