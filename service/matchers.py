@@ -314,8 +314,7 @@ class MatcherPool:
     @property
     def ready(self) -> bool:
         """Every process has finished its warm-up (a non-blocking check)."""
-        with self._lock:
-            procs = list(self._procs)
+        procs = list(self._procs)  # no lock: /status must not wait while open() replaces a process
         return all(p.poll_ready() for p in procs)
 
     def open(

@@ -8,7 +8,10 @@ Two kinds of series live here:
 
 * **events**, counted where they happen (``service/sessions.py``): scans received, processed (by
   status), rejected (by reason, the wire error code), dropped; registration time and
-  receive-to-pose latency histograms; per-session queue depth; tiles written; store errors;
+  receive-to-pose latency histograms; per-session queue depth; tiles written; store errors. The
+  counters' totals (:attr:`ServiceMetrics.PERSISTENT`) are saved by the flusher in
+  ``DATA/counters.json`` and restored at start (:meth:`ServiceMetrics.restore`), so they count
+  across restarts (a kill -9 loses at most the last flush interval's counts);
 * **state**, read when Prometheus scrapes (:meth:`ServiceMetrics.watch`): points and tiles per map,
   so the numbers are always those of the live maps and nothing has to remember to update them.
 
@@ -101,6 +104,45 @@ class ServiceMetrics:
         self.tiles_written = Counter("randt_tiles_written", "Tile files written to the store", registry=r)
         self.store_errors = Counter("randt_store_errors", "Failed writes to the store", registry=r)
         self._map_collector: _MapCollector | None = None
+
+    #: The counters whose totals persist across restarts (DATA/counters.json, service/store.py).
+    PERSISTENT = (
+        "scans_received",
+        "scans_processed",
+        "scans_rejected",
+        "scans_dropped",
+        "tiles_written",
+        "store_errors",
+    )
+
+    def totals(self) -> dict[str, dict[str, float]]:
+        """``{counter: {label value ("" if unlabelled): total}}`` of :attr:`PERSISTENT`."""
+        out: dict[str, dict[str, float]] = {}
+        for name in self.PERSISTENT:
+            values: dict[str, float] = {}
+            for metric in getattr(self, name).collect():
+                for sample in metric.samples:
+                    if sample.name.endswith("_total"):
+                        values[next(iter(sample.labels.values()), "")] = sample.value
+            out[name] = values
+        return out
+
+    def restore(self, totals: Mapping[str, Mapping[str, float]]) -> None:
+        """Add saved totals (:meth:`totals` of an earlier run) to this instance's counters, so
+        ``/status`` and ``/metrics`` count from where the previous run stopped. Unknown counter
+        names are ignored."""
+        for name, values in totals.items():
+            if name not in self.PERSISTENT:
+                continue
+            counter: Counter = getattr(self, name)
+            for label, value in values.items():
+                if value <= 0:
+                    continue
+                if counter._labelnames:  # prometheus_client has no public accessor
+                    if label:
+                        counter.labels(label).inc(value)
+                elif not label:
+                    counter.inc(value)
 
     def watch(self, maps: MapStats, *, instance: str) -> None:
         """Report the live maps at every scrape (``randt_map_tiles``, ``randt_map_points``).

@@ -2,12 +2,29 @@
 
 Flow of a scan::
 
-    transport callback --decode+validate--> SessionManager.submit --seq check--> SessionWorker queue
-          (never blocks)                        (errors go to the outbox)         (bounded, drop oldest)
+    transport callback --> SessionManager.submit --> Intake (service/intake.py): bounded queue per
+          (only enqueues bytes)                      vehicle, drained round-robin by intake workers
+    intake worker --> SessionManager.handle: decode (bounded cost) --> admission --> seq check -->
+          SessionWorker queue (bounded, drop oldest), or the queue of an _Opening placeholder
+          while an opener thread opens the session (store read, matcher start) outside the lock
     SessionWorker thread --> matcher (a worker process, service/matchers.py) --> map tiles
         (shared TileGrid) --> pose to the outbox
     flusher thread (every flush_interval_s) --> dirty tiles and session state to the store,
-                                                tile updates to the outbox, idle sessions expired
+        tile updates to the outbox, idle sessions expired, counters to DATA/counters.json
+
+**Locking**: the manager lock (``_lock``) guards the dictionaries of sessions only and is never held
+across a store read, a matcher call or a matcher warm-up: ``/status``, ``/sessions`` and other
+vehicles' scans never wait for one. Opening a session (reading its saved state, starting its
+matcher, which may wait ~10 s for a cold matcher process) runs on an opener thread; meanwhile an
+``_Opening`` placeholder holds the session's slot, and its later scans queue behind it (bounded
+by ``queue_size`` with the overload policy below) and are seq-checked once it is open.
+
+**Admission**: a scan that would open a session is refused ``sessions_full`` at ``max_sessions``
+running (and opening) sessions, ``vehicle_sessions_full`` at ``max_sessions_per_vehicle`` of its
+vehicle, unless a running session (of that vehicle, for the per-vehicle limit) has been idle for
+``slot_idle_s`` (nothing queued, not matching): the idlest such session then gives up its slot,
+saved as ``expired`` like an idle expiry, and resumes from the store with its next scan. So
+sessions that sent one scan and went quiet cannot squat the service.
 
 Every scan a vehicle sends gets exactly one answer on its keys: a pose, or an error whose ``code``
 says why (bad message, duplicate or out-of-order sequence number, dropped by overload, failed
@@ -48,6 +65,7 @@ from core.errors import BadMessageError, ConflictError, NotFoundError, RandtErro
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from core.transforms import transform_points
+from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
     MatcherPool,
@@ -57,7 +75,7 @@ from service.matchers import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
-from service.store import SessionFrame, SessionRecord, Store
+from service.store import SessionFrame, SessionRecord, Store, load_counters, save_counters
 from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
 from wire.ids import UNKNOWN_ID, session_map_name
@@ -90,6 +108,17 @@ class MapInUseError(ConflictError):
 class _Job:
     scan: ScanMessage
     received_ns: int
+
+
+@dataclass
+class _Opening:
+    """A session being opened by an opener thread: holds its slot; its scans wait here meanwhile."""
+
+    first: ScanMessage
+    jobs: deque[_Job] = field(default_factory=deque)
+    #: A running session that gave up its slot (admission): saved and closed before the open.
+    evict: SessionWorker | None = None
+    done: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass
@@ -346,6 +375,9 @@ class SessionManager:
         # Sessions between leaving _workers and their final save: a scan for one is refused
         # (session_busy) rather than reopening it from an older saved state.
         self._closing: set[tuple[str, str]] = set()
+        # Sessions an opener thread is opening (module docstring, Locking).
+        self._opening: dict[tuple[str, str], _Opening] = {}
+        self._openers: set[threading.Thread] = set()
         #: Running sessions at most (0: no limit); see ServiceSettings.max_sessions.
         self.max_sessions = settings.max_sessions
         if self.max_sessions < 0:
@@ -363,15 +395,49 @@ class SessionManager:
         }
         self.maps: dict[str, TileGrid] = dict(contents.maps)
         self._dirty_tiles: dict[str, set[str]] = {}
+        self._restore_counters()
+        self.intake = Intake(
+            self.handle,
+            self._answer_intake_drop,
+            workers=settings.intake_workers,
+            max_scans=settings.intake_queue_scans,
+            max_bytes=settings.intake_queue_bytes,
+            total_bytes=settings.intake_total_bytes,
+        )
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name="store-flusher", daemon=True)
         self._flusher.start()
 
-    # -- intake (transport callback thread: decode, validate, enqueue; never blocks) ----------------
+    # -- intake (transport callback thread: enqueue only; service/intake.py) -----------------------
     def submit(self, key_vehicle: str, payload: bytes, received_ns: int | None = None) -> None:
-        """Handle one scan payload published on ``randt/fleet/<key_vehicle>/scan``."""
+        """Queue one scan payload published on ``randt/fleet/<key_vehicle>/scan`` (never blocks).
+
+        The payload waits in ``key_vehicle``'s intake queue until an intake worker calls
+        :meth:`handle` (service/intake.py). A ``key_vehicle`` that is not an id has no key to
+        answer on: the scan is counted as rejected (``invalid_id``) and logged, not queued.
+        """
         received_ns = time.time_ns() if received_ns is None else received_ns
         self.metrics.scans_received.inc()
+        if not self.limits.id_ok(key_vehicle):
+            self.reject(key_vehicle, UNKNOWN_ID, None, ErrorCode.INVALID_ID, "the key's vehicle is not an id")
+            return
+        if len(payload) > self.limits.max_payload_bytes:  # refused before queuing: O(1) and a bounded peek
+            self.handle(key_vehicle, payload, received_ns)
+            return
+        self.intake.put(key_vehicle, payload, received_ns)
+
+    def _answer_intake_drop(self, vehicle: str, payload: bytes, reason: str) -> None:
+        """Answer a payload the intake dropped unread: ``dropped``, addressed by a bounded peek."""
+        _, session = peek_ids(payload, self.limits)
+        self.metrics.scans_dropped.inc()
+        self.reject(vehicle, session or UNKNOWN_ID, peek_seq(payload), ErrorCode.DROPPED, reason, count=False)
+
+    def handle(self, key_vehicle: str, payload: bytes, received_ns: int) -> None:
+        """Decode, validate and admit one scan (an intake worker's call; flow in the module docstring).
+
+        Never waits for a store read or a matcher: a scan that opens a session is queued behind
+        an ``_Opening`` placeholder and an opener thread does the opening.
+        """
         try:
             scan = decode_scan(payload, self.limits)
             if scan.vehicle != key_vehicle:
@@ -380,74 +446,185 @@ class SessionManager:
                     code=ErrorCode.INVALID_FIELD,
                 )
         except BadMessageError as exc:
-            _, session = peek_ids(payload)
+            _, session = peek_ids(payload, self.limits)
             seq = peek_seq(payload)
             self.reject(key_vehicle, session or UNKNOWN_ID, seq, exc.code, str(exc))
             return
         key = (scan.vehicle, scan.session)
+        job = _Job(scan, received_ns)
+        dropped: _Job | None = None
+        refusal: tuple[str, str] | None = None
         with self._lock:
             worker = self._workers.get(key)
-            if worker is None and key in self._closing:
-                self.reject(
-                    scan.vehicle,
-                    scan.session,
-                    scan.seq,
+            opening = self._opening.get(key)
+            record = self._records.get(key)
+            if worker is not None:
+                dropped = self._enqueue(worker, job)
+            elif opening is not None:
+                # The first scan opens the session (like a scan being processed); the others wait
+                # as in a session queue, with a young session's overload policy.
+                waiting = len(opening.jobs) - 1
+                if waiting >= self.settings.queue_size:
+                    k = 1 + drop_index(deque(list(opening.jobs)[1:]), n_processed=0)
+                    dropped = opening.jobs[k]
+                    del opening.jobs[k]
+                opening.jobs.append(job)
+            elif key in self._closing:
+                refusal = (
                     ErrorCode.SESSION_BUSY,
                     "the session is being saved (closed or expired a moment ago): send the scan again",
                 )
-                return
-            if worker is None and 0 < self.max_sessions <= len(self._workers):
-                self.reject(
-                    scan.vehicle,
-                    scan.session,
-                    scan.seq,
-                    ErrorCode.SESSIONS_FULL,
-                    f"the service runs its maximum of {self.max_sessions} sessions (RANDT_MAX_SESSIONS): "
-                    "send again later, close a session or add capacity",
+            elif record is not None and record.state == "closed":
+                refusal = (
+                    ErrorCode.SESSION_CLOSED,
+                    f"session {scan.session!r} of vehicle {scan.vehicle!r} was closed: "
+                    "publish under a new session id",
                 )
-                return
-            if worker is None:
-                try:
-                    worker = self._open_session(scan)
-                except BadMessageError as exc:
-                    self.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
-                    return
-                except RandtError as exc:
-                    self.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.SESSION_ERROR, str(exc))
-                    return
-            info = worker.info
-            if scan.seq == info.last_seq:
-                self.reject(
-                    scan.vehicle,
-                    scan.session,
-                    scan.seq,
-                    ErrorCode.DUPLICATE_SEQ,
-                    f"seq {scan.seq} was already received for this session",
-                )
-                return
-            if scan.seq < info.last_seq:
-                self.reject(
-                    scan.vehicle,
-                    scan.session,
-                    scan.seq,
-                    ErrorCode.OUT_OF_ORDER,
-                    f"seq {scan.seq} arrived after seq {info.last_seq}: scans must come in order",
-                )
-                return
-            info.last_seq = scan.seq
-            info.last_activity = time.monotonic()
-            dropped = worker.submit(_Job(scan, received_ns))
-            self.metrics.queue_depth.labels(queue_label(scan.vehicle, scan.session)).set(worker.depth())
+            else:
+                admitted = self._admit(key)
+                if isinstance(admitted, tuple):
+                    refusal = admitted
+                else:
+                    opening = self._opening[key] = _Opening(scan, deque([job]), evict=admitted)
+                    opener = threading.Thread(
+                        target=self._open, args=(key, opening), name=f"open-{key[0]}-{key[1]}", daemon=True
+                    )
+                    self._openers.add(opener)
+                    opener.start()
+        if refusal is not None:
+            self.reject(scan.vehicle, scan.session, scan.seq, *refusal)
         if dropped is not None:
-            self.metrics.scans_dropped.inc()
+            self._answer_dropped(dropped)
+
+    def _enqueue(self, worker: SessionWorker, job: _Job) -> _Job | None:
+        """Seq check and enqueue on a running session (under the manager lock); the job dropped."""
+        scan, info = job.scan, worker.info
+        if scan.seq == info.last_seq:
             self.reject(
-                dropped.scan.vehicle,
-                dropped.scan.session,
-                dropped.scan.seq,
-                ErrorCode.DROPPED,
-                f"dropped: the session queue was full ({self.settings.queue_size} scans waiting)",
-                count=False,
+                scan.vehicle,
+                scan.session,
+                scan.seq,
+                ErrorCode.DUPLICATE_SEQ,
+                f"seq {scan.seq} was already received for this session",
             )
+            return None
+        if scan.seq < info.last_seq:
+            self.reject(
+                scan.vehicle,
+                scan.session,
+                scan.seq,
+                ErrorCode.OUT_OF_ORDER,
+                f"seq {scan.seq} arrived after seq {info.last_seq}: scans must come in order",
+            )
+            return None
+        info.last_seq = scan.seq
+        info.last_activity = time.monotonic()
+        dropped = worker.submit(job)
+        self.metrics.queue_depth.labels(queue_label(scan.vehicle, scan.session)).set(worker.depth())
+        return dropped
+
+    def _answer_dropped(self, dropped: _Job) -> None:
+        self.metrics.scans_dropped.inc()
+        self.reject(
+            dropped.scan.vehicle,
+            dropped.scan.session,
+            dropped.scan.seq,
+            ErrorCode.DROPPED,
+            f"dropped: the session queue was full ({self.settings.queue_size} scans waiting)",
+            count=False,
+        )
+
+    # -- admission (under the manager lock; module docstring, Admission) ---------------------------
+    def _admit(self, key: tuple[str, str]) -> SessionWorker | tuple[str, str] | None:
+        """May ``key`` open a session? ``None``: yes; a worker: yes, after that idle session gives
+        up its slot (already out of the running set); ``(code, reason)``: refused."""
+        vehicle = key[0]
+        evict: SessionWorker | None = None
+        per_vehicle = self.settings.max_sessions_per_vehicle
+        if per_vehicle > 0:
+            mine = [w for k, w in self._workers.items() if k[0] == vehicle]
+            n_mine = len(mine) + sum(1 for k in self._opening if k[0] == vehicle)
+            if n_mine >= per_vehicle:
+                evict = self._idlest(mine)
+                if evict is None:
+                    return (
+                        ErrorCode.VEHICLE_SESSIONS_FULL,
+                        f"vehicle {vehicle!r} runs its maximum of {per_vehicle} sessions "
+                        "(RANDT_MAX_SESSIONS_PER_VEHICLE), none idle for "
+                        f"{self.settings.slot_idle_s:g} s: close one or send again later",
+                    )
+        if evict is None and 0 < self.max_sessions <= len(self._workers) + len(self._opening):
+            evict = self._idlest(list(self._workers.values()))
+            if evict is None:
+                return (
+                    ErrorCode.SESSIONS_FULL,
+                    f"the service runs its maximum of {self.max_sessions} sessions (RANDT_MAX_SESSIONS), "
+                    f"none idle for {self.settings.slot_idle_s:g} s: send again later, close a session "
+                    "or add capacity",
+                )
+        if evict is not None:
+            log.info(
+                "session %s/%s gives its slot to %s/%s (idle %.1f s): saved as expired",
+                *evict.key,
+                *key,
+                time.monotonic() - evict.info.last_activity,
+            )
+            self._detach(evict.key)
+        return evict
+
+    def _idlest(self, candidates: list[SessionWorker]) -> SessionWorker | None:
+        """The running session idle longest, if one has been idle for ``slot_idle_s``: nothing
+        queued, not matching, no scan received for that long."""
+        limit = time.monotonic() - self.settings.slot_idle_s
+        idle = [
+            w
+            for w in candidates
+            if w.depth() == 0
+            and not w.lock.locked()
+            and w.info.last_activity <= limit
+            and w.key not in self._closing
+        ]
+        return min(idle, key=lambda w: w.info.last_activity, default=None)
+
+    def _open(self, key: tuple[str, str], opening: _Opening) -> None:
+        """Opener thread: free an evicted slot, open the session outside the lock, then hand it the
+        scans that waited behind the placeholder (seq-checked now that its last seq is known)."""
+        try:
+            if opening.evict is not None:
+                self._finish_close(opening.evict, "expired")
+            worker: SessionWorker | None = None
+            error: tuple[str, str] | None = None
+            try:
+                worker = self._open_session(opening.first)
+            except BadMessageError as exc:
+                error = (exc.code, str(exc))
+            except RandtError as exc:
+                error = (ErrorCode.SESSION_ERROR, str(exc))
+            except Exception:  # a bug: the scans still get their answer
+                log.exception("opening session %s/%s failed", *key)
+                error = (ErrorCode.INTERNAL_ERROR, "internal error while opening the session (logged)")
+            dropped: list[_Job] = []
+            with self._lock:
+                del self._opening[key]
+                jobs = list(opening.jobs)
+                opening.jobs.clear()
+                if worker is not None:
+                    self._workers[key] = worker
+                    self.metrics.sessions_active.set(len(self._workers))
+                    worker.info.last_activity = time.monotonic()
+                    for job in jobs:
+                        gone = self._enqueue(worker, job)
+                        if gone is not None:
+                            dropped.append(gone)
+            if error is not None:
+                for job in jobs:
+                    self.reject(job.scan.vehicle, job.scan.session, job.scan.seq, *error)
+            for job in dropped:
+                self._answer_dropped(job)
+        finally:
+            opening.done.set()
+            with self._lock:
+                self._openers.discard(threading.current_thread())
 
     def reject(
         self, vehicle: str, session: str, seq: int | None, code: str, reason: str, *, count: bool = True
@@ -464,10 +641,9 @@ class SessionManager:
             return
         if not self.limits.id_ok(session):
             session = UNKNOWN_ID
-        with self._lock:
-            w = self._workers.get((vehicle, session))
-            if w is not None:
-                w.info.n_errors += 1
+        w = self._workers.get((vehicle, session))  # no lock: reject runs on the callback's thread too
+        if w is not None:
+            w.info.n_errors += 1
         self.outbox(ErrorMessage(vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
 
     def _open_session(self, scan: ScanMessage) -> SessionWorker:
@@ -510,10 +686,8 @@ class SessionManager:
             matcher = LocalMatcher(settings.matcher, settings.registration)
             if state:
                 matcher.load_state_dict(state)
-        worker = SessionWorker(info, matcher, grid, self)
-        self._workers[key] = worker
-        self.metrics.sessions_active.set(len(self._workers))
-        return worker
+        # Called on an opener thread without the manager lock; _open installs the worker.
+        return SessionWorker(info, matcher, grid, self)
 
     # -- maps and persistence -----------------------------------------------------------------
     def map_grid(self, map_name: str) -> TileGrid:
@@ -547,6 +721,7 @@ class SessionManager:
         """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions."""
         with self._flush_lock:
             self._flush()
+            self._save_counters()
 
     def _flush(self) -> None:
         with self._lock:
@@ -638,14 +813,31 @@ class SessionManager:
         return n_tiles
 
     def close(self, vehicle: str, session: str, *, state: RecordState = "closed") -> bool:
-        """Finish a session: process what is queued, save it, stop its worker. False if unknown."""
+        """Finish a session: process what is queued, save it, stop its worker. False if unknown.
+
+        A session being opened is closed once open (this waits for the opening)."""
         with self._lock:
-            w = self._workers.pop((vehicle, session), None)
-            self.metrics.sessions_active.set(len(self._workers))
-            if w is not None:
-                self._closing.add(w.key)
+            opening = self._opening.get((vehicle, session))
+        if opening is not None:
+            opening.done.wait(120)
+        with self._lock:
+            w = self._detach((vehicle, session))
         if w is None:
             return False
+        self._finish_close(w, state)
+        return True
+
+    def _detach(self, key: tuple[str, str]) -> SessionWorker | None:
+        """Take a session out of the running set into ``_closing`` (under the manager lock)."""
+        w = self._workers.pop(key, None)
+        self.metrics.sessions_active.set(len(self._workers))
+        if w is not None:
+            self._closing.add(w.key)
+        return w
+
+    def _finish_close(self, w: SessionWorker, state: RecordState) -> None:
+        """Drain, save and stop a detached session (no manager lock held: it waits on the worker)."""
+        vehicle, session = w.key
         try:
             w.stop(drain=True)
             self._save_session(w, state=state)
@@ -655,7 +847,6 @@ class SessionManager:
         w.matcher.close()
         with contextlib.suppress(KeyError):  # a closed session's queue is no longer a time series
             self.metrics.queue_depth.remove(queue_label(vehicle, session))
-        return True
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.settings.flush_interval_s):
@@ -665,8 +856,10 @@ class SessionManager:
                 log.exception("flush failed")
 
     def stop(self) -> None:
-        """Drain every session, save everything, stop the flusher (SIGTERM path)."""
+        """Drain the intake and every session, save everything, stop the flusher (SIGTERM path)."""
         self._stop.set()
+        self.intake.stop()
+        self.wait_openings(60)
         self._flusher.join(10)
         with self._lock:
             workers = list(self._workers.values())
@@ -694,6 +887,37 @@ class SessionManager:
         """Wait until :attr:`matchers_warm` (None: as long as it takes); whether it became so."""
         return self.pool is None or self.pool.wait_ready(timeout)
 
+    def wait_openings(self, timeout: float | None = None) -> bool:
+        """Wait until no session is being opened; whether that happened in time."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            with self._lock:
+                pending = list(self._opening.values())
+            if not pending:
+                return True
+            for opening in pending:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                opening.done.wait(left)
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Wait until the intake is empty and no session is being opened (tests, shutdown)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not self.intake.wait_idle(deadline - time.monotonic()):
+                return False
+            if not self.wait_openings(max(0.0, deadline - time.monotonic())):
+                return False
+            if not self.intake.depths():
+                return True
+        return False
+
+    def opening(self) -> list[tuple[str, str]]:
+        """Sessions being opened right now (``(vehicle, session)``)."""
+        with self._lock:
+            return list(self._opening)
+
     def sessions(self) -> list[SessionState]:
         with self._lock:
             return [w.info for w in self._workers.values()]
@@ -714,15 +938,19 @@ class SessionManager:
     def trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray] | None:
         """``(stamps_s (N,), poses (N, 4, 4))`` of a running session, or ``None`` if it is not running.
 
-        Taken under the worker's lock, so stamps and poses belong to the same scans.
+        Read without the worker's lock (which is held while the matcher runs, up to a matcher
+        warm-up): both lists only grow, one entry per scan in the same order, so their common
+        prefix belongs to the same scans.
         """
         w = self.worker(vehicle, session)
         if w is None:
             return None
-        with w.lock:
-            poses = np.array(w.matcher.poses, dtype=np.float64).reshape(-1, 4, 4)
-            stamps = np.array(w.info.stamps_s[: len(poses)], dtype=np.float64)
-        return stamps, poses[: len(stamps)]
+        pose_list = list(w.matcher.poses)  # copies of append-only lists (atomic under the GIL)
+        stamp_list = list(w.info.stamps_s)
+        n = min(len(pose_list), len(stamp_list))
+        poses = np.array(pose_list[:n], dtype=np.float64).reshape(-1, 4, 4)
+        stamps = np.array(stamp_list[:n], dtype=np.float64)
+        return stamps, poses
 
     def stored_trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray]:
         """``(stamps_s (N,), poses (N, 4, 4))`` of a session as the store's commit record holds them.
@@ -755,6 +983,28 @@ class SessionManager:
         with self._lock:
             self._records[(vehicle, session)] = record
         return record
+
+    # -- counters that outlive a restart (DATA/counters.json) -------------------------------------
+    def _restore_counters(self) -> None:
+        """Start the scan counters from the totals the store kept (a missing file: from zero)."""
+        totals = load_counters(self.store.data_dir)
+        if totals:
+            self.metrics.restore(totals)
+            received = int(totals.get("scans_received", {}).get("", 0))
+            log.info("counters restored: %d scans received so far", received)
+        self._saved_counters = self.metrics.totals()
+
+    def _save_counters(self) -> None:
+        """Write the counters' totals when they changed (the flusher, and the last flush at stop)."""
+        totals = self.metrics.totals()
+        if totals == self._saved_counters:
+            return
+        try:
+            save_counters(self.store.data_dir, totals)
+            self._saved_counters = totals
+        except OSError:
+            self.metrics.store_errors.inc()
+            log.exception("saving the counters failed")
 
 
 def queue_label(vehicle: str, session: str) -> str:

@@ -64,6 +64,32 @@ class ServiceSettings(BaseSettings):
         "(sessions_full): -1 = 2 per core (what 2 cores track at 10 Hz, docs/benchmarks.md), 0 = no limit",
     )
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
+    # intake and fair admission (service/intake.py, service/sessions.py: Admission)
+    intake_workers: int = Field(
+        default=2, ge=1, description="threads decoding and admitting scans, vehicles served round-robin"
+    )
+    intake_queue_scans: int = Field(
+        default=16, ge=1, description="undecoded scans waiting per vehicle; beyond, its oldest is dropped"
+    )
+    intake_queue_bytes: int = Field(
+        default=64 * 1024 * 1024,
+        ge=1024,
+        description="bytes of undecoded scans waiting per vehicle (one scan is always admitted)",
+    )
+    intake_total_bytes: int = Field(
+        default=512 * 1024 * 1024,
+        ge=1024,
+        description="bytes of undecoded scans waiting over all vehicles; the largest queue loses its oldest",
+    )
+    max_sessions_per_vehicle: int = Field(
+        default=2, ge=0, description="running sessions per vehicle (then vehicle_sessions_full); 0 = no limit"
+    )
+    slot_idle_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="a session idle this long gives its slot to a new one when a limit is reached "
+        "(saved as expired; it resumes with its next scan)",
+    )
     matcher_processes: int = Field(
         default=-1,
         ge=-1,

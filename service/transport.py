@@ -1,7 +1,9 @@
 """Zenoh transport: the only module of the service that talks to Zenoh.
 
-- a subscriber on ``randt/fleet/*/scan`` whose callback only hands the payload to the session
-  manager (decode, validate, enqueue: no blocking, no Zenoh calls inside the callback);
+- a subscriber on ``randt/fleet/*/scan`` whose callback only copies the payload and hands it, with
+  the vehicle of its key and the receive time, to ``SessionManager.submit``, which puts it in that
+  vehicle's bounded intake queue (``service/intake.py``): no decoding, no locks held across work, no
+  store or matcher, no Zenoh calls inside the callback. Intake workers decode and admit it;
 - one sender thread that publishes everything outbound (poses, errors, tile updates) from a
   bounded queue, so neither callbacks nor session workers ever wait on the network;
 - a liveliness token ``randt/service/<instance>`` while the instance runs;

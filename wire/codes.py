@@ -47,6 +47,7 @@ class ErrorCode(StrEnum):
     SESSION_BUSY = "session_busy"
     SESSION_ERROR = "session_error"
     SESSIONS_FULL = "sessions_full"
+    VEHICLE_SESSIONS_FULL = "vehicle_sessions_full"
     REGISTRATION_FAILED = "registration_failed"
     INTERNAL_ERROR = "internal_error"
 
@@ -72,11 +73,15 @@ DECODE_CODES: Final[dict[ErrorCode, str]] = {
 SERVICE_CODES: Final[dict[ErrorCode, str]] = {
     ErrorCode.DUPLICATE_SEQ: "seq equals the session's last received one",
     ErrorCode.OUT_OF_ORDER: "seq is below the session's last received one",
-    ErrorCode.DROPPED: "the session's queue was full and this (oldest) scan made room for a newer one",
+    ErrorCode.DROPPED: "the session's queue (or the vehicle's intake queue) was full and this scan made "
+    "room for a newer one",
     ErrorCode.SESSION_CLOSED: "the session was closed: publish under a new session id",
     ErrorCode.SESSION_BUSY: "the session is being saved right now: send the scan again",
     ErrorCode.SESSION_ERROR: "the session could not be opened or resumed",
-    ErrorCode.SESSIONS_FULL: "the scan would open a session beyond the service's max_sessions",
+    ErrorCode.SESSIONS_FULL: "the scan would open a session beyond the service's max_sessions, and no "
+    "running session has been idle for slot_idle_s",
+    ErrorCode.VEHICLE_SESSIONS_FULL: "the scan would open a session beyond max_sessions_per_vehicle for its "
+    "vehicle, and none of the vehicle's running sessions has been idle for slot_idle_s",
     ErrorCode.REGISTRATION_FAILED: "the matcher raised on this scan; the session goes on",
     ErrorCode.INTERNAL_ERROR: "the service failed on this scan (a bug, logged) or its matcher process died",
 }

@@ -8,8 +8,19 @@ versioning; this module implements the messages and is shared by the service and
 
 Decoding in one screen::
 
-    payload --size check--> msgpack.unpackb --top-level map?--> v == SCHEMA_VERSION? --pydantic (strict)-->
-        ids match the id pattern --> points: stride, count, limits, finite --> prior: rigid, PSD
+    payload --size check--> structure check --> msgpack.unpackb (with limits) --top-level map?-->
+        v == SCHEMA_VERSION? --pydantic (strict)--> ids match the id pattern -->
+        points: stride, count, limits, finite --> prior: rigid, PSD
+
+**Bounded cost.** A payload of the maximum size can still declare millions of tiny map entries
+(16 MiB of 3-byte entries: about 3 s of CPU to unpack and peek in Python). Before anything is
+unpacked, :func:`check_structure` walks the msgpack headers (never the bodies of ``bin``/``str``
+values) with a budget: at most :data:`MAX_OBJECTS` objects, :data:`MAX_DEPTH` levels of nesting,
+:data:`MAX_CONTAINER_LEN` entries per map or array, :data:`MAX_STR_BYTES` per string and no ``ext``
+types; a message of this format needs about 80 objects and 3 levels. ``msgpack.unpackb`` then runs
+with the same limits (``max_map_len``, ``max_array_len``, ``max_str_len``, ``max_bin_len``,
+``max_ext_len``) as a second line. So a hostile payload costs at most about a millisecond of
+Python, whatever it declares; the peeks are bounded the same way.
 
 Each step raises :class:`~core.errors.BadMessageError` with a stable ``code`` (one of
 :data:`wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else escapes
@@ -21,7 +32,6 @@ addressing fields of a message that failed to decode, so its error can still rea
 from __future__ import annotations
 
 import functools
-import io
 import logging
 import re
 from collections.abc import Sequence
@@ -59,6 +69,7 @@ __all__ = [
     "TileUpdateMessage",
     "WireLimits",
     "WireMessage",
+    "check_structure",
     "decode_error",
     "decode_pose",
     "decode_scan",
@@ -594,6 +605,130 @@ _M = TypeVar("_M", ScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage)
 
 
 # --------------------------------------------------------------------------------------------
+# structure check: bounded work before unpacking (module docstring, Bounded cost)
+# --------------------------------------------------------------------------------------------
+
+#: Most msgpack objects (every key, value and container counts one) a message may hold.
+MAX_OBJECTS: Final = 4096
+#: Deepest nesting of maps and arrays (a scan: message -> prior -> covariance, 3 levels).
+MAX_DEPTH: Final = 8
+#: Most entries of one map or array (a scan has 9 top-level keys; a covariance 36 values).
+MAX_CONTAINER_LEN: Final = 64
+#: Longest string (bytes); ids have at most 64 characters, an error reason a few hundred.
+MAX_STR_BYTES: Final = 64 * 1024
+
+# msgpack type bytes -> size of a fixed-size value after the type byte
+_FIXED_SIZE: Final[dict[int, int]] = {
+    0xC0: 0, 0xC2: 0, 0xC3: 0,  # nil, false, true
+    0xCA: 4, 0xCB: 8,  # float32, float64
+    0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8,  # uint8..64
+    0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8,  # int8..64
+}  # fmt: skip
+# type byte -> width of the length field of a str / bin (body follows)
+_STR_LEN: Final[dict[int, int]] = {0xD9: 1, 0xDA: 2, 0xDB: 4}
+_BIN_LEN: Final[dict[int, int]] = {0xC4: 1, 0xC5: 2, 0xC6: 4}
+# type byte -> (width of the count field, entries per count: 1 array, 2 map)
+_CONTAINER: Final[dict[int, tuple[int, int]]] = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
+_EXT: Final = frozenset({0xC7, 0xC8, 0xC9, 0xD4, 0xD5, 0xD6, 0xD7, 0xD8})
+
+
+class _NotMsgpackError(ValueError):
+    """The bytes are not msgpack (truncated, an invalid type byte), as opposed to a structure limit."""
+
+
+class _Walker:
+    """Walks msgpack objects by their headers only, within an object budget (:func:`check_structure`)."""
+
+    def __init__(self, payload: object, max_objects: int) -> None:
+        self.buf = memoryview(payload).cast("B")  # type: ignore[arg-type]
+        self.budget = max_objects
+
+    def _uint(self, pos: int, width: int) -> int:
+        if pos + width > len(self.buf):
+            raise _NotMsgpackError("truncated")
+        return int.from_bytes(self.buf[pos : pos + width], "big")
+
+    def skip(self, pos: int) -> int:
+        """The position after the object starting at ``pos`` (ValueError on a limit or truncation)."""
+        pending = [1]  # objects still to read at each open level
+        while pending:
+            if pending[-1] == 0:
+                pending.pop()
+                continue
+            pending[-1] -= 1
+            self.budget -= 1
+            if self.budget < 0:
+                raise ValueError("more objects than a message of this format can hold")
+            if pos >= len(self.buf):
+                raise _NotMsgpackError("truncated")
+            b = self.buf[pos]
+            count = -1
+            if b <= 0x7F or b >= 0xE0:  # positive / negative fixint
+                pos += 1
+            elif b <= 0x8F:
+                count, pos = 2 * (b & 0x0F), pos + 1
+            elif b <= 0x9F:
+                count, pos = b & 0x0F, pos + 1
+            elif b <= 0xBF:
+                size = b & 0x1F
+                if size > MAX_STR_BYTES:
+                    raise ValueError(f"a string of {size} bytes (at most {MAX_STR_BYTES})")
+                pos += 1 + size
+            elif b in _FIXED_SIZE:
+                pos += 1 + _FIXED_SIZE[b]
+            elif b in _STR_LEN or b in _BIN_LEN:
+                width = _STR_LEN.get(b) or _BIN_LEN[b]
+                size = self._uint(pos + 1, width)
+                if b in _STR_LEN and size > MAX_STR_BYTES:
+                    raise ValueError(f"a string of {size} bytes (at most {MAX_STR_BYTES})")
+                pos += 1 + width + size
+            elif b in _CONTAINER:
+                width, per = _CONTAINER[b]
+                n = self._uint(pos + 1, width)
+                if n > MAX_CONTAINER_LEN:
+                    kind = "map" if per == 2 else "array"
+                    raise ValueError(f"a {kind} of {n} entries (at most {MAX_CONTAINER_LEN})")
+                count, pos = per * n, pos + 1 + width
+            elif b in _EXT:
+                raise ValueError("msgpack ext types are not part of this format")
+            else:  # 0xC1: never used
+                raise _NotMsgpackError(f"invalid type byte 0x{b:02x}")
+            if pos > len(self.buf):
+                raise _NotMsgpackError("truncated")
+            if count > 0:
+                if count // 2 > MAX_CONTAINER_LEN:
+                    raise ValueError(f"more than {MAX_CONTAINER_LEN} entries")
+                if len(pending) >= MAX_DEPTH:
+                    raise ValueError(f"nested deeper than {MAX_DEPTH} levels")
+                pending.append(count)
+        return pos
+
+
+def check_structure(payload: bytes, *, max_objects: int = MAX_OBJECTS) -> None:
+    """Check a payload's msgpack structure before unpacking it, in bounded time.
+
+    Walks type bytes and length fields only (``str``/``bin`` bodies are skipped by offset), so the
+    cost is at most ``max_objects`` small steps whatever the payload declares.
+
+    Raises
+    ------
+    BadMessageError
+        ``malformed``: truncated, trailing bytes, an invalid type byte, an ``ext`` value, or beyond
+        :data:`MAX_OBJECTS`, :data:`MAX_DEPTH`, :data:`MAX_CONTAINER_LEN` or :data:`MAX_STR_BYTES`.
+    """
+    walker = _Walker(payload, max_objects)
+    try:
+        end = walker.skip(0)
+    except _NotMsgpackError as exc:
+        raise BadMessageError(f"payload: not valid msgpack ({exc})", code=ErrorCode.MALFORMED) from None
+    except ValueError as exc:
+        reason = f"payload: not a message of this format ({exc})"
+        raise BadMessageError(reason, code=ErrorCode.MALFORMED) from None
+    if end != len(walker.buf):
+        raise BadMessageError("payload: trailing bytes after the message", code=ErrorCode.MALFORMED)
+
+
+# --------------------------------------------------------------------------------------------
 # encode / decode
 # --------------------------------------------------------------------------------------------
 
@@ -619,8 +754,19 @@ def _unpack(payload: bytes, limits: WireLimits) -> dict[str, Any]:
             f"payload: {size} bytes exceed the limit of {limits.max_payload_bytes}",
             code=ErrorCode.PAYLOAD_TOO_LARGE,
         )
+    check_structure(payload)
     try:
-        obj = msgpack.unpackb(payload, raw=False, use_list=False, strict_map_key=True)
+        obj = msgpack.unpackb(
+            payload,
+            raw=False,
+            use_list=False,
+            strict_map_key=True,
+            max_map_len=MAX_CONTAINER_LEN,
+            max_array_len=MAX_CONTAINER_LEN,
+            max_str_len=MAX_STR_BYTES,
+            max_bin_len=limits.max_payload_bytes,
+            max_ext_len=0,
+        )
     except msgpack.ExtraData as exc:
         raise BadMessageError("payload: trailing bytes after the message", code=ErrorCode.MALFORMED) from exc
     except Exception as exc:  # msgpack raises several unrelated types for bad input
@@ -751,23 +897,41 @@ def decode_tile_update(payload: bytes, limits: WireLimits | None = None) -> Tile
 _PEEK_KEYS = frozenset({"vehicle", "session", "seq"})
 
 
+#: Budget of a peek: objects walked (the addressing fields come first in any encoder's output).
+_PEEK_OBJECTS: Final = 512
+#: Largest encoded value a peek decodes (an id is at most 64 characters; a seq 9 bytes).
+_PEEK_VALUE_BYTES: Final = 256
+
+
 def _peek(payload: object) -> dict[str, Any]:
     """Top-level ``vehicle``, ``session`` and ``seq`` values found before the payload breaks.
 
-    Streams the map key by key and skips other values unparsed, so it is cheap on a payload of any
-    size and reads what precedes a truncation.
+    Walks the top-level map with the structure walker's budget (:data:`_PEEK_OBJECTS` objects),
+    skipping other values by their headers and decoding only short values of the wanted keys, so it
+    costs microseconds on a payload of any size and reads what precedes a truncation or a limit.
     """
     found: dict[str, Any] = {}
     try:
-        unpacker = msgpack.Unpacker(io.BytesIO(payload), raw=False, use_list=False)  # type: ignore[arg-type]
-        for _ in range(unpacker.read_map_header()):
-            key = unpacker.unpack()
+        walker = _Walker(payload, _PEEK_OBJECTS)
+        buf = walker.buf
+        b = buf[0]
+        if 0x80 <= b <= 0x8F:
+            n, pos = b & 0x0F, 1
+        elif b in (0xDE, 0xDF):
+            width = 2 if b == 0xDE else 4
+            n, pos = walker._uint(1, width), 1 + width
+        else:
+            return found
+        for _ in range(min(n, MAX_CONTAINER_LEN)):
+            key_end = walker.skip(pos)
+            end = walker.skip(key_end)
+            key = msgpack.unpackb(buf[pos:key_end], raw=False) if key_end - pos <= _PEEK_VALUE_BYTES else None
             if isinstance(key, str) and key in _PEEK_KEYS and key not in found:
-                found[key] = unpacker.unpack()
+                if end - key_end <= _PEEK_VALUE_BYTES:
+                    found[key] = msgpack.unpackb(buf[key_end:end], raw=False, use_list=False)
                 if len(found) == len(_PEEK_KEYS):
                     break
-            else:
-                unpacker.skip()
+            pos = end
     except Exception:  # best effort by contract: whatever was read before the failure is kept
         log.debug("peek stopped early", exc_info=True)
     return found

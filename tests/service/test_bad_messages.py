@@ -122,9 +122,11 @@ def test_duplicate_and_out_of_order_sequence_numbers(manager) -> None:
 
 
 def test_unaddressable_vehicle_key_is_counted_not_answered(manager) -> None:
+    """A key whose vehicle chunk is not an id is refused before the intake queues it: counted
+    (invalid_id), never answered (there is no key to answer on)."""
     mgr, out = manager
     mgr.submit("bad vehicle/*", b"garbage")
-    assert out == [] and _rejected(mgr, "malformed") == 1
+    assert out == [] and _rejected(mgr, "invalid_id") == 1 and mgr.intake.depths() == {}
 
 
 def test_overload_drops_the_oldest_and_answers_it(tmp_path) -> None:
@@ -155,6 +157,7 @@ def test_a_closed_session_is_not_reopened_and_an_expired_one_resumes(tmp_path) -
         for seq in (0, 1):
             mgr.submit("v1", good("v1", seq, "drive"))
             mgr.submit("v2", good("v2", seq, "drive"))
+        assert mgr.wait_idle()  # the intake has handed both sessions their scans
         assert mgr.close("v1", "drive")  # drains v1's queue first
         mgr.submit("v1", good("v1", 2, "drive"))
         _wait(out, 5)
@@ -193,9 +196,9 @@ def test_a_scan_for_a_session_being_saved_is_refused_not_reopened(manager) -> No
     older saved state (its last scans would be lost): the scan gets session_busy."""
     mgr, out = manager
     mgr._closing.add(("v1", "s1"))  # the window close() holds open while it drains and saves
-    mgr.submit("v1", good("v1", 0))
+    mgr.handle("v1", good("v1", 0), time.time_ns())  # what an intake worker calls
     mgr._closing.discard(("v1", "s1"))
-    mgr.submit("v1", good("v1", 1))
+    mgr.handle("v1", good("v1", 1), time.time_ns())
     _wait(out, 2)
     answers = [(m.seq, getattr(m, "code", "pose")) for m in out if isinstance(m, PoseMessage | ErrorMessage)]
     assert answers == [(0, "session_busy"), (1, "pose")]
@@ -248,8 +251,8 @@ def test_a_session_beyond_max_sessions_is_refused_and_others_go_on(tmp_path) -> 
     mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
     try:
         for seq in range(2):
-            for v in ("v1", "v2", "v3"):
-                mgr.submit(v, good(v, seq))
+            for v in ("v1", "v2", "v3"):  # in this order (the intake's workers may interleave vehicles)
+                mgr.handle(v, good(v, seq), time.time_ns())
         _wait(out, 6)
         answers = {(m.vehicle, m.seq): m for m in out if isinstance(m, PoseMessage | ErrorMessage)}
         assert all(isinstance(answers[(v, s)], PoseMessage) for v in ("v1", "v2") for s in (0, 1))

@@ -1,0 +1,234 @@
+"""Scan intake: the Zenoh callback only enqueues bytes; intake workers decode and admit them, fairly.
+
+Flow of a scan payload::
+
+    Zenoh callback thread (service/transport.py)
+      Intake.put(vehicle from the key, payload bytes, received_ns)        O(1), never waits on a
+        key's vehicle not an id ------> counted (invalid_id), no key to    matcher, the store or a
+                                        answer on                          session lock
+        payload > max_payload_bytes --> answered payload_too_large (bounded peek of seq/session)
+        else appended to the vehicle's queue
+             per vehicle: at most intake_queue_scans payloads and intake_queue_bytes bytes
+             all vehicles: at most intake_total_bytes bytes
+             overflow: the vehicle's (for the total: the largest queue's) OLDEST payload is
+                       dropped and answered `dropped`
+                |
+                v   vehicles served round-robin: one payload of a vehicle, then the next vehicle
+    intake worker threads (intake_workers; a vehicle is on at most one of them at a time, so its
+    scans stay in order)
+      handle(vehicle, payload, received_ns)   = SessionManager.handle: decode with bounded cost
+        (wire.messages: structure check, msgpack limits), seq check, admission, then the session
+        worker's queue, or the queue of a session being opened (service/sessions.py)
+
+**What a vehicle is promised.** Every payload that reaches the service on a scan key whose
+``<vehicle>`` chunk is an id gets exactly one answer on ``randt/fleet/<vehicle>/pose`` or
+``.../error``: a pose, or an error. A payload dropped here is answered ``dropped`` with the
+``session`` and ``seq`` read by a bounded peek (``unknown`` and ``None`` when the payload does not
+hold readable ones). A payload on a key whose vehicle chunk is not an id has no key to answer on:
+it is counted (``randt_scans_rejected_total{reason="invalid_id"}``) and logged.
+
+**Fairness.** A vehicle that floods, or sends payloads that are expensive to reject, only fills
+its own queue and loses its own oldest payloads; the workers take one payload per vehicle in
+turn, so another vehicle's scan waits for at most one payload of each other vehicle with work
+(each costs bounded time: a decode is at most a few milliseconds for a valid 16 MiB scan, about
+a millisecond for a hostile one).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+__all__ = ["ITEM_OVERHEAD_BYTES", "Intake"]
+
+log = logging.getLogger(__name__)
+
+#: Bytes charged per queued payload on top of its length (the item's bookkeeping), so a flood of
+#: tiny payloads is bounded by the byte limits too.
+ITEM_OVERHEAD_BYTES = 256
+
+#: ``handle(vehicle, payload, received_ns)``: decode, validate and admit one payload.
+Handler = Callable[[str, bytes, int], None]
+#: ``on_drop(vehicle, payload, reason)``: answer a payload the intake dropped (``dropped``).
+DropHandler = Callable[[str, bytes, str], None]
+
+
+@dataclass
+class _Item:
+    payload: bytes
+    received_ns: int
+
+    @property
+    def cost(self) -> int:
+        return len(self.payload) + ITEM_OVERHEAD_BYTES
+
+
+@dataclass
+class _VehicleQueue:
+    items: deque[_Item] = field(default_factory=deque)
+    nbytes: int = 0
+    scheduled: bool = False  # in the ready ring, or being handled by a worker
+
+
+class Intake:
+    """Bounded per-vehicle queues of undecoded scans and the workers that drain them (module docstring).
+
+    Parameters
+    ----------
+    handle:
+        Called on a worker thread with one payload; must not raise (exceptions are logged).
+    on_drop:
+        Called with a payload dropped by the overload policy, on the thread that dropped it (the
+        callback's): must be cheap and not block (a bounded peek and an outbox put).
+    workers:
+        Worker threads.
+    max_scans, max_bytes:
+        Per vehicle: payloads and bytes (with :data:`ITEM_OVERHEAD_BYTES` each) waiting at most.
+        A vehicle with an empty queue always gets one payload in, whatever its size.
+    total_bytes:
+        All vehicles: bytes waiting at most; beyond, the vehicle with the most bytes waiting loses
+        its oldest payload.
+    """
+
+    def __init__(
+        self,
+        handle: Handler,
+        on_drop: DropHandler,
+        *,
+        workers: int,
+        max_scans: int,
+        max_bytes: int,
+        total_bytes: int,
+    ) -> None:
+        self._handle = handle
+        self._on_drop = on_drop
+        self.max_scans = max_scans
+        self.max_bytes = max_bytes
+        self.total_bytes = total_bytes
+        self._cond = threading.Condition()
+        self._queues: dict[str, _VehicleQueue] = {}
+        self._ready: deque[str] = deque()
+        self._nbytes = 0
+        self._busy = 0
+        self._stopping = False
+        self._threads = [
+            threading.Thread(target=self._run, name=f"intake-{i}", daemon=True) for i in range(workers)
+        ]
+        for t in self._threads:
+            t.start()
+
+    # -- the callback side ------------------------------------------------------------------------
+    def put(self, vehicle: str, payload: bytes, received_ns: int) -> None:
+        """Queue one payload of ``vehicle`` (O(1) and non-blocking but for the overload answers)."""
+        item = _Item(payload, received_ns)
+        dropped: list[tuple[str, _Item, str]] = []
+        with self._cond:
+            if self._stopping:
+                dropped.append((vehicle, item, "the service is stopping"))
+            else:
+                q = self._queues.get(vehicle)
+                if q is None:
+                    q = self._queues[vehicle] = _VehicleQueue()
+                q.items.append(item)
+                q.nbytes += item.cost
+                self._nbytes += item.cost
+                while len(q.items) > self.max_scans or (q.nbytes > self.max_bytes and len(q.items) > 1):
+                    dropped.append((vehicle, self._pop_oldest(q), self._reason(q)))
+                while self._nbytes > self.total_bytes:
+                    victim, vq = max(self._queues.items(), key=lambda kv: kv[1].nbytes)
+                    if not vq.items:
+                        break
+                    dropped.append(
+                        (
+                            victim,
+                            self._pop_oldest(vq),
+                            f"dropped: the service's intake held {self.total_bytes} bytes of undecoded "
+                            "scans and this vehicle's queue was the largest",
+                        )
+                    )
+                if q.items and not q.scheduled:
+                    q.scheduled = True
+                    self._ready.append(vehicle)
+                    self._cond.notify()
+        for who, gone, reason in dropped:
+            try:
+                self._on_drop(who, gone.payload, reason)
+            except Exception:
+                log.exception("answering a dropped scan of %r failed", who[:40])
+
+    def _reason(self, q: _VehicleQueue) -> str:
+        return (
+            f"dropped: the vehicle's intake queue was full ({self.max_scans} scans or {self.max_bytes} "
+            "bytes waiting to be decoded): send slower or smaller scans"
+        )
+
+    def _pop_oldest(self, q: _VehicleQueue) -> _Item:
+        item = q.items.popleft()
+        q.nbytes -= item.cost
+        self._nbytes -= item.cost
+        return item
+
+    # -- the worker side --------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._ready:
+                    if self._stopping and self._busy == 0:  # drained
+                        self._cond.notify_all()
+                        return
+                    self._cond.wait()
+                vehicle = self._ready.popleft()
+                q = self._queues[vehicle]
+                if not q.items:  # emptied by the total-bytes policy while waiting in the ring
+                    q.scheduled = False
+                    del self._queues[vehicle]
+                    continue
+                item = self._pop_oldest(q)
+                self._busy += 1
+            try:
+                self._handle(vehicle, item.payload, item.received_ns)
+            except Exception:  # never let one payload kill an intake worker
+                log.exception("intake: handling a scan of %r failed", vehicle[:40])
+            with self._cond:
+                self._busy -= 1
+                if q.items:
+                    self._ready.append(vehicle)  # to the back of the ring: round-robin
+                else:
+                    q.scheduled = False
+                    if self._queues.get(vehicle) is q:
+                        del self._queues[vehicle]
+                self._cond.notify_all()
+
+    # -- state and shutdown -----------------------------------------------------------------------
+    def depths(self) -> dict[str, int]:
+        """Payloads waiting per vehicle."""
+        with self._cond:
+            return {v: len(q.items) for v, q in self._queues.items() if q.items}
+
+    @property
+    def queued_bytes(self) -> int:
+        return self._nbytes
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until nothing is queued or being handled; whether that happened in time."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._ready or self._busy:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Refuse new payloads (answered ``dropped``), handle the queued ones, stop the workers."""
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
