@@ -21,8 +21,10 @@ by ``queue_size`` with the overload policy below) and are seq-checked once it is
 
 **Admission**: a scan that would open a session is refused ``sessions_full`` at ``max_sessions``
 running (and opening) sessions, ``vehicle_sessions_full`` at ``max_sessions_per_vehicle`` of its
-vehicle, unless a running session (of that vehicle, for the per-vehicle limit) has been idle for
-``slot_idle_s`` (nothing queued, not matching): the idlest such session then gives up its slot,
+vehicle, unless a running session has been idle for ``slot_idle_s`` (nothing queued, not
+matching), or, for the per-vehicle limit, one of that vehicle's sessions for
+``vehicle_slot_idle_s`` (a vehicle that starts a new session has moved on from the one it stopped
+feeding a second ago): the idlest such session then gives up its slot,
 saved as ``expired`` like an idle expiry, and resumes from the store with its next scan. So
 sessions that sent one scan and went quiet cannot squat the service.
 
@@ -545,16 +547,16 @@ class SessionManager:
             mine = [w for k, w in self._workers.items() if k[0] == vehicle]
             n_mine = len(mine) + sum(1 for k in self._opening if k[0] == vehicle)
             if n_mine >= per_vehicle:
-                evict = self._idlest(mine)
+                evict = self._idlest(mine, self.settings.vehicle_slot_idle_s)
                 if evict is None:
                     return (
                         ErrorCode.VEHICLE_SESSIONS_FULL,
                         f"vehicle {vehicle!r} runs its maximum of {per_vehicle} sessions "
                         "(RANDT_MAX_SESSIONS_PER_VEHICLE), none idle for "
-                        f"{self.settings.slot_idle_s:g} s: close one or send again later",
+                        f"{self.settings.vehicle_slot_idle_s:g} s: close one or send again later",
                     )
         if evict is None and 0 < self.max_sessions <= len(self._workers) + len(self._opening):
-            evict = self._idlest(list(self._workers.values()))
+            evict = self._idlest(list(self._workers.values()), self.settings.slot_idle_s)
             if evict is None:
                 return (
                     ErrorCode.SESSIONS_FULL,
@@ -572,10 +574,10 @@ class SessionManager:
             self._detach(evict.key)
         return evict
 
-    def _idlest(self, candidates: list[SessionWorker]) -> SessionWorker | None:
-        """The running session idle longest, if one has been idle for ``slot_idle_s``: nothing
+    def _idlest(self, candidates: list[SessionWorker], idle_s: float) -> SessionWorker | None:
+        """The running session idle longest, if one has been idle for ``idle_s``: nothing
         queued, not matching, no scan received for that long."""
-        limit = time.monotonic() - self.settings.slot_idle_s
+        limit = time.monotonic() - idle_s
         idle = [
             w
             for w in candidates

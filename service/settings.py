@@ -84,6 +84,12 @@ class ServiceSettings(BaseSettings):
     max_sessions_per_vehicle: int = Field(
         default=2, ge=0, description="running sessions per vehicle (then vehicle_sessions_full); 0 = no limit"
     )
+    vehicle_slot_idle_s: float = Field(
+        default=1.0,
+        gt=0,
+        description="at the per-vehicle limit, the vehicle's own session idle this long gives its "
+        "slot to the vehicle's new session (saved as expired)",
+    )
     slot_idle_s: float = Field(
         default=10.0,
         gt=0,

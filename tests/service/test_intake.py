@@ -223,7 +223,8 @@ def test_one_vehicle_cannot_hold_more_than_its_sessions(tmp_path) -> None:
         data_dir=tmp_path,
         max_sessions=8,
         max_sessions_per_vehicle=2,
-        slot_idle_s=1.0,
+        slot_idle_s=30.0,
+        vehicle_slot_idle_s=1.0,
         matcher_processes=0,
         flush_interval_s=0.2,
     )
@@ -246,9 +247,11 @@ def test_one_vehicle_cannot_hold_more_than_its_sessions(tmp_path) -> None:
             )
             == 1
         )
-        time.sleep(1.2)  # a and b idle past slot_idle_s: the vehicle's idlest (a) makes room
-        mgr.handle("greedy", good("greedy", 1, "c"), time.time_ns())
+        mgr.handle("greedy", good("greedy", 1, "b"), time.time_ns())  # b active after a
         _wait(out, 5)
+        time.sleep(1.2)  # a and b idle past vehicle_slot_idle_s: the vehicle's idlest (a) makes room
+        mgr.handle("greedy", good("greedy", 1, "c"), time.time_ns())
+        _wait(out, 6)
         assert isinstance(_answers(out)[-1], PoseMessage)
         assert sorted(s.session for s in mgr.sessions() if s.vehicle == "greedy") == ["b", "c"]
     finally:
