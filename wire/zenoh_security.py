@@ -41,10 +41,14 @@ from wire.ids import validate_id
 from wire.keys import ALL_SCANS, ROOT, error_key, pose_key, scan_key
 
 __all__ = [
+    "EXAMPLE_DIRECTORY",
+    "EXAMPLE_VEHICLES",
     "RESERVED_NAMES",
     "SERVICE_USER",
+    "TLS_ONLY",
     "Deployment",
     "access_control",
+    "example_configs",
     "make_certificates",
     "router_config",
     "service_client_config",
@@ -55,6 +59,11 @@ __all__ = [
 
 #: The user name (and certificate common name) of the service.
 SERVICE_USER = "randt-service"
+
+#: ``transport/link/protocols`` of every generated config: a session neither accepts nor opens a
+#: link that is not encrypted (a password never crosses the network in clear; ``--listen tcp/...``
+#: with such a config fails at start, "Unsupported protocol: tcp").
+TLS_ONLY = ["tls", "quic"]
 
 _ALL_SERVICE_TOKENS = f"{ROOT}/service/**"
 _ALL_MAPS = f"{ROOT}/map/**"
@@ -214,7 +223,9 @@ def service_config(
     control is :func:`access_control` (``acl``). Mode and endpoints come from randt's own settings
     (``--listen``, ``--connect``), not from this file.
     """
-    transport: dict[str, Any] = {"link": {"tls": _tls(directory, listen="service", connect=None, mtls=mtls)}}
+    transport: dict[str, Any] = {
+        "link": {"protocols": TLS_ONLY, "tls": _tls(directory, listen="service", connect=None, mtls=mtls)}
+    }
     if usrpwd:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(directory / "passwords.txt")}}
     cfg: dict[str, Any] = {"transport": transport}
@@ -229,7 +240,11 @@ def router_config(directory: Path, vehicles: Sequence[str], *, mtls: bool = True
     The router holds the access control, with the service's rights for ``randt-service``, which
     connects to it as a client (:func:`service_client_config`).
     """
-    return {"mode": "router", **service_config(directory, vehicles, mtls=mtls, service_subject=True)}
+    return {
+        "mode": "router",
+        "listen": {"endpoints": ["tls/[::]:7447"]},
+        **service_config(directory, vehicles, mtls=mtls, service_subject=True),
+    }
 
 
 def service_client_config(directory: Path, password: str, *, mtls: bool = True) -> dict[str, Any]:
@@ -243,7 +258,10 @@ def vehicle_config(
     """A vehicle's config: trust the CA, present its certificate (``mtls``), its user and password
     (none: no ``usrpwd`` section)."""
     transport: dict[str, Any] = {
-        "link": {"tls": _tls(directory, listen=None, connect=vehicle if mtls else None, mtls=mtls)}
+        "link": {
+            "protocols": TLS_ONLY,
+            "tls": _tls(directory, listen=None, connect=vehicle if mtls else None, mtls=mtls),
+        }
     }
     if password is not None:
         transport["auth"] = {"usrpwd": {"user": vehicle, "password": password}}
@@ -397,3 +415,39 @@ def write_deployment(
     for v in vehicles:
         _write_private(d.vehicle_config(v), dump(vehicle_config(directory, v, passwords[v], mtls=mtls)))
     return d
+
+
+#: Where the examples of ``docs/security/`` keep their certificates (a deployment's directory).
+EXAMPLE_DIRECTORY = Path("/etc/randt/zenoh")
+#: The vehicles of the examples.
+EXAMPLE_VEHICLES = ("car-01", "car-02")
+
+
+def example_configs() -> dict[str, dict[str, Any]]:
+    """The configs of ``docs/security/`` by file name: what :func:`write_deployment` writes for
+    :data:`EXAMPLE_VEHICLES` in :data:`EXAMPLE_DIRECTORY`, passwords shown as placeholders.
+
+    ``tests/wire/test_zenoh_security.py`` checks the committed files against this;
+    ``python -m wire.zenoh_security docs/security`` rewrites them.
+    """
+    d, vehicles = EXAMPLE_DIRECTORY, EXAMPLE_VEHICLES
+    configs = {
+        "service.json5": service_config(d, vehicles),
+        "router.json5": router_config(d, vehicles),
+        "service-client.json5": service_client_config(d, f"<{SERVICE_USER}'s password from passwords.txt>"),
+    }
+    for v in vehicles:
+        configs[f"vehicle-{v}.json5"] = vehicle_config(d, v, f"<{v}'s password from passwords.txt>")
+    return configs
+
+
+def _write_examples(directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, cfg in example_configs().items():
+        (directory / name).write_text(json.dumps(cfg, indent=2) + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    import sys
+
+    _write_examples(Path(sys.argv[1]))

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from clients.publisher import PublisherSettings, VehiclePublisher
 from core.errors import BadMessageError
 from service.runtime import Service
 from service.settings import ServiceSettings
@@ -105,6 +106,7 @@ def test_a_vehicle_cannot_publish_as_another(deployment: Deployment, scans, tmp_
         with lock:
             answers.append(decode_error(sample.payload.to_bytes()))
 
+    evil_errors: list[ErrorMessage] = []
     victim = evil = None
     try:
         victim = open_session(deployment.vehicle_config("victim"), "client", connect=(endpoint,))
@@ -114,6 +116,9 @@ def test_a_vehicle_cannot_publish_as_another(deployment: Deployment, scans, tmp_
             victim.declare_subscriber(error_key("victim"), on_error),
             victim.liveliness().declare_subscriber(
                 "randt/service/**", lambda s: tokens.append(str(s.key_expr)), history=True
+            ),
+            evil.declare_subscriber(
+                error_key("evil"), lambda s: evil_errors.append(decode_error(s.payload.to_bytes()))
             ),
         ]
         publisher = victim.declare_publisher(scan_key("victim"))
@@ -130,6 +135,9 @@ def test_a_vehicle_cannot_publish_as_another(deployment: Deployment, scans, tmp_
 
         # the attack: valid credentials of its own, the victim's key and session, seq 2^62
         evil.put(scan_key("victim"), _scan(scans, FORGED_SEQ))
+        # on its own key (which the ACL lets it use) a message that names the victim: the service
+        # checks the message's vehicle against the key, so this is refused too
+        evil.put(scan_key("evil"), _scan(scans, FORGED_SEQ))
         evil.put(pose_key("victim"), b"forged pose")
         evil.put(tile_key("default", "0_0"), b"forged tile")
         handles.append(evil.liveliness().declare_token(service_token_key("fake")))
@@ -143,6 +151,11 @@ def test_a_vehicle_cannot_publish_as_another(deployment: Deployment, scans, tmp_
         with lock:
             by_seq = {a.seq: a for a in answers}
             forged_pose_seen = b"forged pose" in raw_poses
+        assert wait_for(lambda: len(evil_errors) >= 1, 10)
+        assert [(e.vehicle, e.seq, e.code) for e in evil_errors] == [
+            ("evil", FORGED_SEQ, ErrorCode.INVALID_FIELD)
+        ]
+        assert "message says 'victim'" in evil_errors[0].reason
         if acl:
             assert sorted(by_seq) == [0, 1, 2, 3, 4, 5], answers  # nothing answered for 2^62
             assert all(isinstance(a, PoseMessage) for a in answers), answers  # no out_of_order
@@ -162,4 +175,50 @@ def test_a_vehicle_cannot_publish_as_another(deployment: Deployment, scans, tmp_
         for s in (evil, victim):
             if s is not None:
                 s.close()
+        service.stop()
+
+
+def test_the_vehicle_library_streams_over_the_secured_service(
+    deployment: Deployment, scans, tmp_path
+) -> None:
+    """``VehiclePublisher`` with ``RANDT_VEHICLE_ZENOH_CONFIG``'s setting: the victim's scans are
+    acknowledged; the same library with evil's credentials publishing as ``victim`` gets no answer."""
+    endpoint = tls_endpoint()
+    settings = ServiceSettings(
+        data_dir=tmp_path / "data",
+        listen=(endpoint,),
+        zenoh_config=deployment.service_config,
+        matcher_processes=0,
+    )
+    service = Service(settings)
+    service.start()
+    try:
+        assert service.sessions.wait_matchers(120)
+        stats = {}
+        for name, config, timeout in (("victim", "victim", 60.0), ("impostor", "evil", 5.0)):
+            publisher_settings = PublisherSettings(
+                connect=(endpoint,), zenoh_config=deployment.vehicle_config(config), answer_timeout_s=timeout
+            )
+            with VehiclePublisher("victim", f"lib-{name}", settings=publisher_settings) as pub:
+                assert pub.wait_connected(30), name
+                for i, scan in enumerate(scans[:3]):
+                    pub.publish(
+                        scan.points_xyz,
+                        scan.stamp_ns,
+                        intensity=scan.intensity,
+                        prior_pose=scan.T_world_sensor if i == 0 else None,
+                        prior_covariance=np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)
+                        if i == 0
+                        else None,
+                    )
+                pub.flush(90)
+                stats[name] = pub.close()
+        assert (stats["victim"].acknowledged, stats["victim"].rejected) == (3, 0)
+        assert (stats["impostor"].acknowledged, stats["impostor"].rejected, stats["impostor"].lost) == (
+            0,
+            0,
+            3,
+        )
+        assert service.sessions.trajectory("victim", "lib-impostor") is None
+    finally:
         service.stop()
