@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -226,8 +227,26 @@ def _acl_scenario(deployment: Deployment, tmp_path: Path, *, topology: str, acl:
         handles.append(evil.liveliness().declare_token(service_token_key("fake")))
         service.put(pose_key("victim"), b"real pose")
         service.put(tile_key("default", "0_0"), b"real tile")
-        wait_for(lambda: b"real pose" in inbox.payloads("victim pose"), 5)
-        time.sleep(1.0)  # anything forged that passes gets the same time to arrive
+
+        def arrived(who: str, *payloads: bytes) -> Callable[[], bool]:
+            return lambda: set(payloads) <= set(inbox.payloads(who))
+
+        real = [
+            arrived("service", b"real scan", b"evil's own scan"),
+            arrived("victim pose", b"real pose"),
+            arrived("victim tiles", b"real tile"),
+        ]
+        forged = [
+            arrived("service", b"forged scan", b"forged wildcard scan", b"chimera scan"),
+            arrived("victim pose", b"forged pose"),
+            arrived("victim tiles", b"forged tile"),
+            lambda: service_token_key("fake") in inbox.keys("victim tokens"),
+        ]
+        wait_for(lambda: all(c() for c in real), 20)
+        if acl:
+            time.sleep(1.0)  # what is forged gets time to arrive (it must not)
+        else:
+            wait_for(lambda: all(c() for c in forged), 20)
         replies = [r.ok.payload.to_bytes() for r in victim.get(tile_key("default", "0_0"), timeout=5) if r.ok]
         # (the liveliness subscriber, not a liveliness get: a get came back empty 1 time in 6)
         tokens = sorted(set(inbox.keys("victim tokens")))
