@@ -1,7 +1,8 @@
 """Service settings: one pydantic-settings model, every field settable as ``RANDT_<NAME>``.
 
 Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
-flags (``randt serve --help``) override the environment. Settings are built in the app factory
+flags (``randt serve --help``) override the environment. ``RANDT_ZENOH_CONFIG`` names a native
+Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here. Settings are built in the app factory
 (``service.runtime.Service``), never at import time.
 
 Every session's matcher gets two nested groups, one environment variable per field with ``__``
