@@ -194,7 +194,10 @@ def describe_setting(model: type, field: str) -> str:
     group = next(g for g in settings_groups({"_": model}) if g.name == "_")
     row = next(r for r in group.rows if r.name == field)
     value = row.default
-    shown = (", ".join(map(str, value)) or "(none)") if isinstance(value, list) else _text(value)
+    if value is None:
+        shown = "(none)"
+    else:
+        shown = (", ".join(map(str, value)) or "(none)") if isinstance(value, list) else _text(value)
     parts = [f"default: {shown}"]
     if row.env:
         parts.append(f"env var: {row.env}" + (" (a JSON list)" if isinstance(value, list) else ""))

@@ -25,23 +25,30 @@ class VehicleMode(StrEnum):
     peer = "peer"
 
 
-def _publisher_settings(mode: VehicleMode | None, connect: list[str] | None) -> PublisherSettings:
+def _publisher_settings(
+    mode: VehicleMode | None, connect: list[str] | None, zenoh_config: Path | None = None
+) -> PublisherSettings:
     """``PublisherSettings`` from the flags, falling back to ``RANDT_VEHICLE_*`` and the defaults."""
     from clients.publisher import PublisherSettings
 
     overrides: dict[str, Any] = {
         "mode": mode.value if mode else None,
         "connect": tuple(connect) if connect else None,
+        "zenoh_config": zenoh_config,
     }
     return PublisherSettings(**{k: v for k, v in overrides.items() if v is not None})
 
 
 #: The options of ``randt replay`` and ``randt simulate`` that override ``PublisherSettings`` fields.
-PUBLISHER_OPTIONS = ("connect", "mode")
+PUBLISHER_OPTIONS = ("connect", "mode", "zenoh_config")
 ConnectOption = Annotated[
     list[str] | None, typer.Option(help="Zenoh endpoint of the router or service, repeatable.")
 ]
 ModeOption = Annotated[VehicleMode | None, typer.Option(help="Zenoh mode of the vehicle.")]
+ZenohConfigOption = Annotated[
+    Path | None,
+    typer.Option(help="Native Zenoh JSON5 config file of the vehicle: TLS, password (docs/security.md)."),
+]
 
 
 def replay(
@@ -63,6 +70,7 @@ def replay(
     end: Annotated[int | None, typer.Option(help="Stop before this scan index.")] = None,
     connect: ConnectOption = None,
     mode: ModeOption = None,
+    zenoh_config: ZenohConfigOption = None,
     out: Annotated[
         Path | None,
         typer.Option(help="Write the received poses_kitti.txt, poses_tum.txt, summary.json here."),
@@ -77,7 +85,7 @@ def replay(
     """
     from clients.replay import replay as do_replay
 
-    settings = _publisher_settings(mode, connect)
+    settings = _publisher_settings(mode, connect, zenoh_config)
     results = do_replay(
         path,
         vehicle,
@@ -150,6 +158,7 @@ def simulate(
     ] = 10.0,
     connect: ConnectOption = None,
     mode: ModeOption = None,
+    zenoh_config: ZenohConfigOption = None,
     speed: Annotated[float, typer.Option(min=0.0, help="Mean speed, m/s.")] = 6.0,
     rate: Annotated[float, typer.Option(min=0.1, help="LiDAR sweeps per simulated second.")] = 10.0,
     azimuth: Annotated[
@@ -174,7 +183,7 @@ def simulate(
     """
     from clients.fleet import FleetSettings, run_fleet, summary_table
 
-    settings = _publisher_settings(mode, connect)
+    settings = _publisher_settings(mode, connect, zenoh_config)
     fleet = FleetSettings(
         n_vehicles=vehicles,
         duration_s=duration,

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from typer.core import TyperCommand
 
-from cli import config, fleet, mapping, register, serve, tiles
+from cli import config, fleet, mapping, register, security, serve, tiles
 from cli.errors import exit_code_table, exits_on_error
 
 # Plain help (rich_markup_mode=None): click's layout, no "<bool>" type column, text as written.
@@ -21,6 +21,11 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+)
+security_app = typer.Typer(
+    help="Zenoh security: TLS certificates, passwords and access control (docs/security.md).",
+    no_args_is_help=True,
     rich_markup_mode=None,
 )
 tiles_app = typer.Typer(
@@ -44,6 +49,7 @@ COMMANDS: tuple[tuple[typer.Typer, str, object, type[TyperCommand] | None], ...]
     (app, "simulate", fleet.simulate, _PUBLISHER),
     (app, "demo", fleet.demo, None),
     (app, "config", config.show_config, None),
+    (security_app, "init", security.security_init, None),
     (tiles_app, "sessions", tiles.tiles_sessions, None),
     (tiles_app, "trajectory", tiles.tiles_trajectory, None),
     (tiles_app, "maps", tiles.tiles_maps, None),
@@ -52,9 +58,10 @@ COMMANDS: tuple[tuple[typer.Typer, str, object, type[TyperCommand] | None], ...]
     (tiles_app, "export", tiles.tiles_export, None),
 )
 for _app, _name, _command, _cls in COMMANDS:
-    _full = _name if _app is app else f"tiles {_name}"
+    _full = _name if _app is app else f"{'security' if _app is security_app else 'tiles'} {_name}"
     _app.command(_name, cls=_cls)(exits_on_error(_command, _full))  # type: ignore[arg-type]
 app.add_typer(tiles_app, name="tiles")
+app.add_typer(security_app, name="security")
 
 
 @app.callback()

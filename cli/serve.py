@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from service.settings import ServiceSettings
 
 #: The options of ``randt serve`` that override the ``ServiceSettings`` field of the same name.
-SETTINGS_OPTIONS = ("data_dir", "zenoh_mode", "listen", "connect", "http_host", "http_port")
+SETTINGS_OPTIONS = ("data_dir", "zenoh_mode", "listen", "connect", "zenoh_config", "http_host", "http_port")
 
 
 class ZenohMode(StrEnum):
@@ -35,6 +35,12 @@ def serve(
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to listen on, repeatable.")] = None,
     connect: Annotated[
         list[str] | None, typer.Option(help="Zenoh endpoint to connect to, repeatable.")
+    ] = None,
+    zenoh_config: Annotated[
+        Path | None,
+        typer.Option(
+            help="Native Zenoh JSON5 config file: TLS, passwords, access control (docs/security.md)."
+        ),
     ] = None,
     http_host: Annotated[str | None, typer.Option(help="HTTP bind address.")] = None,
     http_port: Annotated[int | None, typer.Option(help="HTTP port.")] = None,
@@ -56,6 +62,7 @@ def serve(
         "zenoh_mode": zenoh_mode.value if zenoh_mode else None,
         "listen": tuple(listen) if listen else None,
         "connect": tuple(connect) if connect else None,
+        "zenoh_config": zenoh_config,
         "http_host": http_host,
         "http_port": http_port,
     }
@@ -66,7 +73,9 @@ def serve(
     app_ = create_app(settings)
     typer.echo(
         f"randt serve: zenoh {settings.zenoh_mode} listen {list(settings.listen)} connect "
-        f"{list(settings.connect)}; http://{settings.http_host}:{settings.http_port}; "
+        f"{list(settings.connect)}"
+        f"{f' config {settings.zenoh_config}' if settings.zenoh_config else ''}; "
+        f"http://{settings.http_host}:{settings.http_port}; "
         f"data {settings.data_dir}",
         err=True,
     )

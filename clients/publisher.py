@@ -45,6 +45,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -56,7 +57,7 @@ from core.errors import BadMessageError
 from wire.codes import ErrorCode
 from wire.keys import error_key, pose_key, scan_key
 from wire.messages import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
-from wire.zenoh_config import check_endpoints, zenoh_config
+from wire.zenoh_config import check_endpoints, load_config_file, zenoh_config
 
 __all__ = ["PublisherSettings", "PublisherStats", "VehiclePublisher", "default_session_id"]
 
@@ -77,6 +78,11 @@ class PublisherSettings(BaseSettings):
     mode: Literal["client", "peer"] = Field(default="client", description="Zenoh mode of the vehicle")
     connect: tuple[str, ...] = Field(default=(DEFAULT_ENDPOINT,), description="routers or peers")
     listen: tuple[str, ...] = Field(default=(), description="endpoints to listen on (peer mode)")
+    zenoh_config: Path | None = Field(
+        default=None,
+        description="native Zenoh JSON5 config file (TLS certificate, user/password: docs/security.md); "
+        "mode, connect and listen still come from these settings",
+    )
     queue_size: int = Field(default=8, ge=1, description="scans waiting to be sent; oldest dropped")
     answer_timeout_s: float = Field(default=120.0, gt=0, description="a sent scan unanswered is lost")
     retry_s: float = Field(default=1.0, gt=0, description="first wait before re-opening the session")
@@ -85,6 +91,13 @@ class PublisherSettings(BaseSettings):
     @classmethod
     def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
         return check_endpoints(value)
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _zenoh_config_file(cls, value: Path | None) -> Path | None:
+        if value is not None:
+            load_config_file(value)
+        return value
 
 
 @dataclass
@@ -383,7 +396,9 @@ class VehiclePublisher:
         """Open the Zenoh session, publisher and answer subscribers; False (logged) on failure."""
         s = self.settings
         try:
-            zs = zenoh.open(zenoh_config(s.mode, listen=s.listen, connect=s.connect))
+            zs = zenoh.open(
+                zenoh_config(s.mode, listen=s.listen, connect=s.connect, config_file=s.zenoh_config)
+            )
         except Exception as exc:  # zenoh raises ZError when no endpoint answers
             log.warning("%s: cannot open a Zenoh %s session (%s); retrying", self.vehicle, s.mode, exc)
             return False

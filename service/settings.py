@@ -1,8 +1,9 @@
 """Service settings: one pydantic-settings model, every field settable as ``RANDT_<NAME>``.
 
 Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
-flags (``randt serve --help``) override the environment. Settings are built in the app factory
-(``service.runtime.Service``), never at import time.
+flags (``randt serve --help``) override the environment. ``RANDT_ZENOH_CONFIG`` names a native
+Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here.
+Settings are built in the app factory (``service.runtime.Service``), never at import time.
 
 Every session's matcher gets two nested groups, one environment variable per field with ``__``
 between group and field:
@@ -28,7 +29,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from core.config import RegistrationSettings
 from core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from wire.ids import ID_REGEX
-from wire.zenoh_config import check_endpoints
+from wire.zenoh_config import check_endpoints, load_config_file
 
 __all__ = ["ServiceSettings"]
 
@@ -46,6 +47,12 @@ class ServiceSettings(BaseSettings):
     zenoh_mode: Literal["peer", "client"] = "peer"
     listen: tuple[str, ...] = Field(default=("tcp/127.0.0.1:7447",), description="Zenoh endpoints")
     connect: tuple[str, ...] = Field(default=(), description="routers or peers to connect to")
+    # Zenoh security (docs/security.md)
+    zenoh_config: Path | None = Field(
+        default=None,
+        description="native Zenoh JSON5 config file (TLS, mTLS, user/password, access control); "
+        "mode, listen and connect still come from these settings",
+    )
     # HTTP
     http_host: str = "127.0.0.1"
     http_port: int = Field(default=8080, ge=0, le=65535)
@@ -136,6 +143,13 @@ class ServiceSettings(BaseSettings):
     @classmethod
     def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
         return check_endpoints(value)
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _zenoh_config_file(cls, value: Path | None) -> Path | None:
+        if value is not None:
+            load_config_file(value)  # a missing or invalid file is one clear error, before anything starts
+        return value
 
     @model_validator(mode="after")
     def _reads_need_a_token(self) -> ServiceSettings:

@@ -12,6 +12,8 @@
 The key expressions come from :mod:`wire.keys`, the session's configuration from
 :mod:`wire.zenoh_config`. Peer mode listening on 127.0.0.1 is the embedded default (no router).
 Multicast scouting is off: peers and routers are reached through explicit endpoints only.
+``settings.zenoh_config`` (``--zenoh-config``) adds a native Zenoh config file: TLS, user/password
+and access control (``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -60,7 +62,9 @@ class ZenohTransport:
 
     def open(self) -> None:
         s = self.settings
-        self._session = zenoh.open(zenoh_config(s.zenoh_mode, s.listen, s.connect))
+        self._session = zenoh.open(
+            zenoh_config(s.zenoh_mode, s.listen, s.connect, config_file=s.zenoh_config)
+        )
         self._sender = threading.Thread(target=self._send_loop, name="zenoh-sender", daemon=True)
         self._sender.start()
         sess = self._session
@@ -69,7 +73,10 @@ class ZenohTransport:
             sess.liveliness().declare_token(service_token_key(s.instance)),
             sess.declare_queryable(ALL_TILES, self._tile_query),
         ]
-        log.info("zenoh %s session open (listen %s, connect %s)", s.zenoh_mode, s.listen, s.connect)
+        log.info(
+            "zenoh %s session open (listen %s, connect %s, config file %s)",
+            s.zenoh_mode, s.listen, s.connect, s.zenoh_config,
+        )  # fmt: skip
 
     def _scan_callback(self, sample: zenoh.Sample) -> None:
         try:

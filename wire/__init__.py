@@ -24,7 +24,13 @@ Contents
 :mod:`wire.zenoh_config`
     The Zenoh configuration helper (:func:`~wire.zenoh_config.zenoh_config`,
     :func:`~wire.zenoh_config.check_endpoints`). The only module that imports Zenoh, so it is not
-    imported here: ``from wire.zenoh_config import zenoh_config``.
+    imported here: ``from wire.zenoh_config import zenoh_config``. It also reads a native Zenoh
+    config file (``--zenoh-config``).
+:mod:`wire.zenoh_security`
+    A secured deployment's files (``randt security init``, ``docs/security.md``): the access
+    control derived from the key expressions (:func:`~wire.zenoh_security.access_control`), the
+    service's, router's and vehicles' Zenoh configs, TLS certificates and passwords. Not imported
+    here either (certificates need the ``cryptography`` package).
 """
 
 from __future__ import annotations

@@ -211,9 +211,10 @@ def test_every_help_shows_real_defaults_and_no_placeholders() -> None:
         ("--connect", "connect"),
         ("--http-host", "http_host"),
         ("--http-port", "http_port"),
+        ("--zenoh-config", "zenoh_config"),
     ):
         value = getattr(defaults, field)
-        shown = ", ".join(value) if isinstance(value, tuple) else str(value)
+        shown = ", ".join(value) if isinstance(value, tuple) else str(value or "")
         row = re.search(rf"^\s+{option} .*?(?=^\s+--)", serve, flags=re.M | re.S)
         assert row, (option, serve)
         text = " ".join(row[0].split())
@@ -223,6 +224,7 @@ def test_every_help_shows_real_defaults_and_no_placeholders() -> None:
         text = " ".join(helps[command].split())
         assert "default: tcp/127.0.0.1:7447; env var: RANDT_VEHICLE_CONNECT" in text, command
         assert "default: client; env var: RANDT_VEHICLE_MODE" in text, command
+        assert "default: (none); env var: RANDT_VEHICLE_ZENOH_CONFIG" in text, command
     top = " ".join(helps[""].split())
     for code in ExitCode:
         assert re.search(rf"\b{int(code)}\b", top), f"exit code {int(code)} is in randt --help"
@@ -247,6 +249,9 @@ def test_config_prints_every_settings_group_with_defaults_and_env_vars() -> None
     assert doc["service"]["env"]["max_sessions"] == "RANDT_MAX_SESSIONS"
     assert doc["publisher"]["env"]["connect"] == "RANDT_VEHICLE_CONNECT"
     assert doc["publisher"]["defaults"]["connect"] == list(PublisherSettings().connect)
+    assert doc["service"]["env"]["zenoh_config"] == "RANDT_ZENOH_CONFIG"
+    assert doc["publisher"]["env"]["zenoh_config"] == "RANDT_VEHICLE_ZENOH_CONFIG"
+    assert doc["service"]["defaults"]["zenoh_config"] is None
     assert doc["fleet"]["defaults"]["n_azimuth"] == FleetSettings().n_azimuth and not doc["fleet"]["env"]
     text = _randt("config").stdout
     assert re.search(r"^\[service\]", text, flags=re.M) and re.search(r"^\[matcher\]", text, flags=re.M)
@@ -303,3 +308,24 @@ def test_output_piped_into_a_reader_that_leaves_ends_quietly() -> None:
     err = proc.stderr.read()
     assert rc == ExitCode.BROKEN_PIPE == 141, err
     assert "error" not in err and "Traceback" not in err, err
+
+
+def test_security_init_writes_a_deployment_and_serve_refuses_a_bad_zenoh_config(tmp_path: Path) -> None:
+    """``randt security init`` (the recipe of docs/security.md) and a wrong ``--zenoh-config``."""
+    target = tmp_path / "zenoh"
+    proc = _randt("security", "init", str(target), "--vehicle", "car-01", "--host", "fleet.example.org")
+    assert proc.returncode == 0, proc.stderr
+    assert (target / "service.json5").is_file() and (target / "vehicle-car-01.json5").is_file()
+    again = _randt("security", "init", str(target), "--vehicle", "car-01")
+    assert again.returncode == ExitCode.INVALID_VALUE
+    assert "is not empty" in _one_error_line(again)
+    reserved = _randt("security", "init", str(tmp_path / "other"), "--vehicle", "ca")
+    assert reserved.returncode == ExitCode.INVALID_VALUE and "reserved" in _one_error_line(reserved)
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{transport: {link: {tls: {server_certificate: 1}}}}")
+    for config, reason in ((tmp_path / "missing.json5", "does not exist"), (bad, "unknown field")):
+        proc = _randt("serve", "--data-dir", str(tmp_path / "data"), "--zenoh-config", str(config))
+        assert proc.returncode == ExitCode.INVALID_VALUE, proc.stderr
+        line = _one_error_line(proc)
+        assert "zenoh_config" in line and reason in line, line
+    assert not (tmp_path / "data").exists()  # refused before anything started
