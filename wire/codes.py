@@ -48,6 +48,7 @@ class ErrorCode(StrEnum):
     SESSION_ERROR = "session_error"
     SESSIONS_FULL = "sessions_full"
     REGISTRATION_FAILED = "registration_failed"
+    STORAGE_ERROR = "storage_error"
     INTERNAL_ERROR = "internal_error"
 
 
@@ -78,5 +79,7 @@ SERVICE_CODES: Final[dict[ErrorCode, str]] = {
     ErrorCode.SESSION_ERROR: "the session could not be opened or resumed",
     ErrorCode.SESSIONS_FULL: "the scan would open a session beyond the service's max_sessions",
     ErrorCode.REGISTRATION_FAILED: "the matcher raised on this scan; the session goes on",
+    ErrorCode.STORAGE_ERROR: "the scan's pose could not be made durable (disk full, read-only): no pose "
+    "was published for it; the session resumes from its stored state",
     ErrorCode.INTERNAL_ERROR: "the service failed on this scan (a bug, logged) or its matcher process died",
 }
