@@ -130,7 +130,10 @@ def _worker(data_dir: str, sessions: int, seed: int, matcher_processes: int, flu
             line({"k": "error", "veh": msg.vehicle, "seq": msg.seq, "code": msg.code})
 
     settings = ServiceSettings(
-        data_dir=data_dir, flush_interval_s=flush_s, matcher_processes=matcher_processes, idle_expiry_s=3600
+        data_dir=Path(data_dir),
+        flush_interval_s=flush_s,
+        matcher_processes=matcher_processes,
+        idle_expiry_s=3600,
     )
     service = Service(settings, with_zenoh=False)
     service.start()
@@ -304,8 +307,8 @@ def _check_store(data: Path, ledger: _Ledger) -> None:
                 table = np.c_[tile.points, tile.intensity].astype("<f4").tobytes()
                 ledger.observe(name, tile.id, tile.version, _digest(table), "after restart")
         for (name, tid), version in ledger.highest.items():
-            grid = contents.maps.get(name)
-            if grid is None or tid not in grid:
+            stored_grid = contents.maps.get(name)
+            if stored_grid is None or tid not in stored_grid:
                 ledger.torn += 1
                 ledger.note(f"store: {name}/{tid} was served at version {version} but is not stored")
         stored = {

@@ -4,10 +4,19 @@ Flow of a scan::
 
     transport callback --decode+validate--> SessionManager.submit --seq check--> SessionWorker queue
           (never blocks)                        (errors go to the outbox)         (bounded, drop oldest)
-    SessionWorker thread --> matcher (a worker process, service/matchers.py) --> map tiles
-        (shared TileGrid) --> pose to the outbox
-    flusher thread (every flush_interval_s) --> dirty tiles and session state to the store,
-                                                tile updates to the outbox, idle sessions expired
+    SessionWorker thread --> matcher (a worker process, service/matchers.py) --> the pose appended
+        to the session's pose log and fsync'd (Store.append_pose) --> map tiles (shared TileGrid)
+        --> pose to the outbox
+    flusher thread (every flush_interval_s) --> dirty tiles and session snapshots to the store
+        (a snapshot drops the log records it now holds), then the saved tiles' updates to the
+        outbox; idle sessions expired
+
+**Durable before acknowledged**: a pose goes out only once it is in the session's fsync'd log (a
+session's first pose also waits for its first snapshot, which fixes its frame and holds its first
+keyframe). If the log cannot be written, the scan is answered ``storage_error`` and the session is
+dropped from memory, to resume from the store with its next scan. **Saved before seen**: tiles are
+served (HTTP, the queryable, tile updates, listings) as last saved (:class:`DurableMap`), so a
+version seen outside is on disk and never goes back or repeats with other content after a crash.
 
 Every scan a vehicle sends gets exactly one answer on its keys: a pose, or an error whose ``code``
 says why (bad message, duplicate or out-of-order sequence number, dropped by overload, failed

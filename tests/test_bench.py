@@ -66,7 +66,7 @@ def _run(script: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.mark.parametrize("name", ["register", "odometry", "service", "workers"])
+@pytest.mark.parametrize("name", ["register", "odometry", "service", "workers", "crash"])
 def test_benchmark_runs_without_pytest_or_tests(name: str) -> None:
     done = _run(REPO / "bench" / f"{name}.py")
     assert done.returncode == 0, done.stderr
