@@ -207,3 +207,31 @@ def test_kill9_cycles_lose_no_acknowledged_pose_and_reuse_no_version(tmp_path) -
         0,
         0,
     ), report.problems
+
+
+def test_extend_state_dict_brings_the_snapshot_to_the_last_logged_pose() -> None:
+    """The velocity and stamp it computes from the logged poses are the matcher's own."""
+    from core.odometry import IncrementalMatcher, extend_state_dict
+    from core.transforms import scale_motion
+
+    matcher = IncrementalMatcher()
+    snapshot = None
+    for seq in (0, 1, 2, 3, 5, 6):  # seq 4 missing: a 0.2 s gap, the velocity is per 0.1 s
+        T = make_transform(translation=(0.05 * seq, 0.0, 0.0), rotvec=(0.0, 0.0, 0.01 * seq))
+        matcher.register_scan(transform_points(np.linalg.inv(T), ROOM), stamp_s=0.1 * seq)
+        if seq == 2:
+            snapshot = matcher.state_dict()
+    assert snapshot is not None
+    full = matcher.state_dict()
+    stamps = 0.1 * np.array([0, 1, 2, 3, 5, 6])  # as the matcher got them
+    extended = extend_state_dict(snapshot, full["poses"], stamps)
+    np.testing.assert_array_equal(extended["poses"], full["poses"])
+    np.testing.assert_allclose(extended["delta"], full["delta"], atol=1e-12)
+    assert float(extended["last_stamp_s"]) == float(full["last_stamp_s"]) == 0.1 * 6
+    np.testing.assert_array_equal(extended["keyframe_points"], snapshot["keyframe_points"])
+    # over the gap: poses 3 -> 5 span two periods
+    gap = extend_state_dict(snapshot, full["poses"][:5], stamps[:5])
+    step = np.linalg.inv(full["poses"][3]) @ full["poses"][4]
+    np.testing.assert_allclose(gap["delta"], scale_motion(step, 0.5), atol=1e-9)
+    assert np.linalg.norm(gap["delta"][:3, 3]) < 0.6 * np.linalg.norm(step[:3, 3])
+    assert extend_state_dict(full, full["poses"], stamps) is full  # nothing to add
