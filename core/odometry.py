@@ -64,6 +64,7 @@ __all__ = [
     "MatcherState",
     "PosePrior",
     "ScanResult",
+    "extend_state_dict",
 ]
 
 log = logging.getLogger(__name__)
@@ -907,3 +908,56 @@ class IncrementalMatcher:
         d = T[:3, 3] - prior.T_world_sensor[:3, 3]
         cov = np.asarray(prior.covariance, dtype=np.float64)[:3, :3]
         return float(d @ np.linalg.solve(cov, d)) <= self.settings.prior_gate_chi2
+
+
+def extend_state_dict(
+    state: dict[str, np.ndarray],
+    poses: np.ndarray,
+    stamps_s: np.ndarray,
+    *,
+    settings: MatcherSettings | None = None,
+    period_s: float = 0.1,
+) -> dict[str, np.ndarray]:
+    """A saved :meth:`IncrementalMatcher.state_dict` brought forward to a longer trajectory.
+
+    A service logs every pose it publishes but snapshots the matcher less often; after a crash
+    the snapshot ends some sweeps before the last published pose. This returns the snapshot with
+    ``poses`` replaced by the whole trajectory, ``delta`` (the velocity) recomputed from its last
+    two poses exactly as :meth:`IncrementalMatcher.register_scan` advances it (per sweep period,
+    from the stamps, a gap capped at ``max_gap_s``), and ``last_stamp_s`` set to the last stamp.
+    The keyframes stay the snapshot's: the next sweep is predicted from the last published pose
+    and matched against the model of the snapshot's keyframes (its last one at most one snapshot
+    interval behind, well inside ``model_radius_m``), like a sweep after a gap; it then becomes a
+    keyframe, the spacing from the last one being due.
+
+    Parameters
+    ----------
+    state:
+        What :meth:`IncrementalMatcher.state_dict` returned (not changed).
+    poses:
+        (N, 4, 4) the whole trajectory; its first poses are the snapshot's.
+    stamps_s:
+        (N,) their stamps, seconds.
+    settings, period_s:
+        The matcher's (``max_gap_s``; the sweep period).
+
+    Returns
+    -------
+    dict
+        ``state`` itself when it already holds N poses, else an extended copy.
+    """
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    stamps_s = np.asarray(stamps_s, dtype=np.float64)
+    n_saved = np.asarray(state["poses"]).reshape(-1, 4, 4).shape[0]
+    if poses.shape[0] <= n_saved:
+        return state
+    out = dict(state)
+    out["poses"] = poses.copy()
+    out["last_stamp_s"] = np.array(stamps_s[-1])
+    if poses.shape[0] >= 2:
+        max_gap_s = (settings or MatcherSettings()).max_gap_s
+        dt = float(stamps_s[-1] - stamps_s[-2])
+        periods = min(dt, max_gap_s) / period_s if np.isfinite(dt) and dt > 0.0 else 1.0
+        motion = invert(poses[-2]) @ poses[-1]
+        out["delta"] = orthonormalize(motion if periods == 1.0 else scale_motion(motion, 1.0 / periods))
+    return out

@@ -282,6 +282,9 @@ class TileGrid:
         self._cap = int(max_points_per_voxel)
         self._lock = threading.Lock()
         self._tiles: dict[tuple[int, int], _TileState] = {}
+        #: A new tile's first version is ``version_floor + 1`` (0: versions start at 1). A store
+        #: sets it for a map whose name an earlier, deleted map had, so versions never repeat.
+        self.version_floor = 0
 
     def __repr__(self) -> str:
         return (
@@ -514,7 +517,7 @@ class TileGrid:
 
         t = self._tile_size
         if old is None:
-            merged_xyzi, merged_keys, version = new_xyzi, k, 1
+            merged_xyzi, merged_keys, version = new_xyzi, k, self.version_floor + 1
             lo, hi = new_xyz.min(axis=0), new_xyz.max(axis=0)
         else:
             # Insert after the stored points of the same voxel (arrival order within a voxel).
@@ -803,7 +806,9 @@ class TileGrid:
         )
         return entries
 
-    def write_tiles(self, directory: str | os.PathLike[str], tile_ids: Iterable[str]) -> list[str]:
+    def write_tiles(
+        self, directory: str | os.PathLike[str], tile_ids: Iterable[str], *, tiles: list[Tile] | None = None
+    ) -> list[str]:
         """Update an Autoware divided map in place: sidecar, the named tiles, metadata last.
 
         The incremental counterpart of :meth:`export_autoware` for a directory that holds an
@@ -829,6 +834,9 @@ class TileGrid:
         tile_ids:
             Ids ``"<ix>_<iy>"`` of the tiles whose content changed since the last save (as
             :meth:`insert` returns them); may be empty.
+        tiles:
+            The snapshot to write (what :meth:`tiles` returned); ``None``: take one now. A caller
+            that serves exactly what it saved passes the snapshot it keeps.
 
         Returns
         -------
@@ -848,7 +856,7 @@ class TileGrid:
         """
         if isinstance(tile_ids, str):
             raise TypeError(f"tile_ids must be a collection of tile ids, not the string {tile_ids!r}")
-        tiles = self._snapshot()
+        tiles = self._snapshot() if tiles is None else sorted(tiles, key=lambda t: (t.ix, t.iy))
         if not tiles:
             raise InvalidCloudError("the map is empty: nothing to write")
         present = {t.id for t in tiles}

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 
 from service.metrics import ServiceMetrics
-from service.sessions import SessionManager, tile_message
+from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store
 from service.transport import ZenohTransport
@@ -57,13 +57,14 @@ class Service:
             self.sessions.submit(vehicle, payload, received_ns)
 
     def tile_payload(self, map_name: str, tile_id: str) -> bytes | None:
-        """The current tile update message of one tile (the Zenoh queryable's answer)."""
-        if self.sessions is None or map_name not in self.sessions.maps:
+        """The tile update message of one tile as last saved (the Zenoh queryable's answer)."""
+        if self.sessions is None:
             return None
-        grid = self.sessions.maps[map_name]
-        if tile_id not in grid:
+        saved = self.sessions.durable_map(map_name)
+        tile = None if saved is None else saved.by_id.get(tile_id)
+        if tile is None:
             return None
-        return encode(tile_message(map_name, grid, tile_id))
+        return encode(self.sessions.tile_message(map_name, tile))
 
     def map_stats(self) -> dict[str, tuple[int, int]]:
         """``{map name: (tiles, points)}`` of the live maps (read by ``/metrics`` at each scrape)."""

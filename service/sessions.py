@@ -7,10 +7,19 @@ Flow of a scan::
     intake worker --> SessionManager.handle: decode (bounded cost) --> admission --> seq check -->
           SessionWorker queue (bounded, drop oldest), or the queue of an _Opening placeholder
           while an opener thread opens the session (store read, matcher start) outside the lock
-    SessionWorker thread --> matcher (a worker process, service/matchers.py) --> map tiles
-        (shared TileGrid) --> pose to the outbox
-    flusher thread (every flush_interval_s) --> dirty tiles and session state to the store,
-        tile updates to the outbox, idle sessions expired, counters to DATA/counters.json
+    SessionWorker thread --> matcher (a worker process, service/matchers.py) --> the pose appended
+        to the session's pose log and fsync'd (Store.append_pose) --> map tiles (shared TileGrid)
+        --> pose to the outbox
+    flusher thread (every flush_interval_s) --> dirty tiles and session snapshots to the store
+        (a snapshot drops the log records it now holds), then the saved tiles' updates to the
+        outbox; idle sessions expired; counters to DATA/counters.json
+
+**Durable before acknowledged**: a pose goes out only once it is in the session's fsync'd log (a
+session's first pose also waits for its first snapshot, which fixes its frame and holds its first
+keyframe). If the log cannot be written, the scan is answered ``storage_error`` and the session is
+dropped from memory, to resume from the store with its next scan. **Saved before seen**: tiles are
+served (HTTP, the queryable, tile updates, listings) as last saved (:class:`DurableMap`), so a
+version seen outside is on disk and never goes back or repeats with other content after a crash.
 
 **Locking**: the manager lock (``_lock``) guards the dictionaries of sessions only and is never held
 across a store read, a matcher call or a matcher warm-up: ``/status``, ``/sessions`` and other
@@ -64,8 +73,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
-from core.odometry import PosePrior
-from core.tiles import TileGrid
+from core.odometry import PosePrior, extend_state_dict
+from core.tiles import Tile, TileGrid
 from core.transforms import transform_points
 from service.intake import Intake
 from service.matchers import (
@@ -77,7 +86,7 @@ from service.matchers import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
-from service.store import SessionFrame, SessionRecord, Store, load_counters, save_counters
+from service.store import PoseLogRecord, SessionFrame, SessionRecord, Store, load_counters, save_counters
 from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
 from wire.ids import UNKNOWN_ID, session_map_name
@@ -91,10 +100,19 @@ from wire.messages import (
     decode_scan,
     peek_ids,
     peek_seq,
+    points_digest,
     tile_update_from_arrays,
 )
 
-__all__ = ["MapInUseError", "Outbox", "SessionManager", "SessionWorker", "tile_message"]
+__all__ = [
+    "DurableMap",
+    "MapInUseError",
+    "Outbox",
+    "SessionManager",
+    "SessionWorker",
+    "tile_digest",
+    "tile_message",
+]
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +183,13 @@ class SessionWorker:
         self._queue: deque[_Job] = deque()
         self._cond = threading.Condition()
         self._stopping = False
-        self.broken = False  # its matcher process died: abandon (not save) and resume from the store
+        # Its matcher process died, or a pose could not be made durable: abandon (not save) and
+        # resume from the store. The code and reason answer the scans still queued.
+        self.broken = False
+        self.broken_answer: tuple[str, str] = (
+            ErrorCode.INTERNAL_ERROR,
+            "the matcher process died; the session resumes from its last saved state",
+        )
         self.lock = threading.Lock()  # held while the matcher runs; the flusher takes it to save
         self._thread = threading.Thread(
             target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
@@ -238,13 +262,7 @@ class SessionWorker:
             self._queue.clear()
             self._stopping = True
         for job in pending:
-            m.reject(
-                job.scan.vehicle,
-                job.scan.session,
-                job.scan.seq,
-                ErrorCode.INTERNAL_ERROR,
-                "the matcher process died; the session resumes from its last saved state",
-            )
+            m.reject(job.scan.vehicle, job.scan.session, job.scan.seq, *self.broken_answer)
         self.matcher.close()
 
     def _fix_frame(self, has_prior: bool) -> None:
@@ -310,6 +328,24 @@ class SessionWorker:
             except RandtError as exc:
                 m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
                 return
+            # Durable before acknowledged: the pose is in the session's fsync'd log before it is
+            # published (and before the map holds its points).
+            try:
+                m.store.append_pose(
+                    scan.vehicle,
+                    scan.session,
+                    PoseLogRecord(
+                        index=result.index,
+                        seq=scan.seq,
+                        stamp_ns=scan.stamp_ns,
+                        stamp_s=scan.stamp_ns * 1e-9,
+                        pose=result.T_world_sensor,
+                        status=result.status,
+                    ),
+                )
+            except (OSError, RandtError) as exc:
+                self._storage_failed(scan, exc)
+                return
             changed: list[str] = []
             if result.status != "fallback":
                 world = transform_points(result.T_world_sensor, result.deskewed_xyz)
@@ -329,6 +365,11 @@ class SessionWorker:
                 info.drift_var_m2 += float(np.trace(result.covariance[:3, :3]))
         if changed:
             m.mark_tiles_dirty(info.map_name, changed)
+        if result.index == 0 and not m._save_session(self):
+            # A session's first save holds its frame, map and first keyframe: its later logged
+            # poses are resumable only on top of it, so its first pose waits for it.
+            self._storage_failed(scan, RandtError("its first snapshot could not be saved"))
+            return
         latency_ms = (time.time_ns() - job.received_ns) * 1e-6
         info.last_latency_ms = latency_ms
         cov = result.covariance
@@ -354,6 +395,47 @@ class SessionWorker:
         if not behind:
             with self.lock:
                 self.matcher.update_model()  # in-process matchers; a matcher process does it itself
+
+    def _storage_failed(self, scan: ScanMessage, exc: Exception) -> None:
+        """A pose could not be made durable: answer ``storage_error`` (no pose) and abandon the
+        session, so that its next scan resumes it from what the store holds."""
+        log.error("session %s/%s: scan %d not durable: %s", *self.key, scan.seq, exc)
+        self._manager.metrics.store_errors.inc()
+        self.broken_answer = (
+            ErrorCode.STORAGE_ERROR,
+            "the service could not store this session's poses; it resumes from its stored state",
+        )
+        self._manager.reject(
+            scan.vehicle,
+            scan.session,
+            scan.seq,
+            ErrorCode.STORAGE_ERROR,
+            f"the pose could not be made durable ({exc}): not acknowledged",
+        )
+        self.broken = True
+
+
+@dataclass(frozen=True)
+class DurableMap:
+    """What the outside may see of a map: the tiles as last saved (every version in it is on
+    disk, so it never goes back after a crash), with the live grid for its settings and cell
+    geometry only (bbox and radius queries)."""
+
+    name: str
+    grid: TileGrid
+    by_id: dict[str, Tile]
+
+    @property
+    def tile_size_m(self) -> int:
+        return self.grid.tile_size_m
+
+    @property
+    def voxel_size_m(self) -> float:
+        return self.grid.voxel_size_m
+
+    def tiles(self) -> list[Tile]:
+        """The saved tiles sorted by ``(ix, iy)``."""
+        return sorted(self.by_id.values(), key=lambda t: (t.ix, t.iy))
 
 
 class SessionManager:
@@ -396,6 +478,17 @@ class SessionManager:
             key: loaded.record for key, loaded in contents.sessions.items()
         }
         self.maps: dict[str, TileGrid] = dict(contents.maps)
+        #: Per map, the tiles as last saved: what HTTP, the queryable and tile updates serve.
+        self._durable: dict[str, dict[str, Tile]] = {}
+        self._digests: dict[tuple[str, str, int], str] = {}
+        for name, grid in self.maps.items():
+            tiles = grid.tiles()
+            try:
+                grid.version_floor = self._version_floor(name)
+            except RandtError as exc:  # damaged: continue above every version the map holds
+                log.error("%s", exc)
+                grid.version_floor = max((t.version for t in tiles), default=0)
+            self._durable[name] = {t.id: t for t in tiles}
         self._dirty_tiles: dict[str, set[str]] = {}
         self._restore_counters()
         self.intake = Intake(
@@ -662,20 +755,26 @@ class SessionManager:
         if record is not None and record.state in ("active", "expired"):
             # Active: the service restarted. Expired: the vehicle paused longer than the idle
             # expiry and came back. Either way the session resumes where it stopped.
-            _, stamps, poses, state = self.store.load_session(*key)
+            # The snapshot plus the poses logged since (Store.load_session): every pose published.
+            stored, stamps, poses, state = self.store.load_session(*key)
             assert record.map is not None  # the service saves every session with its map
+            # The matcher resumes from its snapshot, brought to the last published pose
+            # (extend_state_dict: poses, velocity and stamp; the keyframes stay the snapshot's).
+            state = extend_state_dict(state, poses, stamps, settings=self.settings.matcher)
             info = SessionState(
                 scan.vehicle,
                 scan.session,
                 record.map,
                 record.frame,
-                last_seq=record.last_seq,
-                n_scans=record.n_scans,
-                n_fallbacks=record.n_fallbacks,
+                last_seq=max(record.last_seq, stored.last_seq),
+                n_scans=stored.n_scans,
+                n_fallbacks=stored.n_fallbacks,
                 stamps_s=list(np.asarray(stamps, dtype=float)),
             )
-            log.info("session %s/%s resumed at seq %d (%d poses)", *key, record.last_seq, len(poses))
+            log.info("session %s/%s resumed at seq %d (%d poses)", *key, info.last_seq, len(poses))
         else:
+            # A new session (or one whose first save never completed: nothing was acknowledged).
+            self.store.reset_pose_log(*key)
             in_map = scan.prior_pose() is not None
             map_name = self.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
@@ -700,7 +799,43 @@ class SessionManager:
                 grid = self.maps[map_name] = TileGrid(
                     tile_size_m=self.settings.tile_size_m, voxel_size_m=self.settings.map_voxel_m
                 )
+                grid.version_floor = self._version_floor(map_name)
+                self._durable[map_name] = {}
             return grid
+
+    def _version_floor(self, map_name: str) -> int:
+        """The store's version floor of ``map_name`` (a deleted map's highest version)."""
+        try:
+            return self.store.version_floor(map_name)
+        except (OSError, RandtError) as exc:
+            # Unreadable: versions from 1 could repeat a deleted map's; refuse rather than lie.
+            raise RandtError(f"map {map_name}: cannot read its version floor: {exc}") from exc
+
+    def durable_map(self, map_name: str) -> DurableMap | None:
+        """The map as last saved (:class:`DurableMap`), ``None`` if there is no such map."""
+        with self._lock:
+            grid = self.maps.get(map_name)
+            if grid is None:
+                return None
+            return DurableMap(map_name, grid, dict(self._durable.get(map_name, {})))
+
+    def durable_maps(self) -> dict[str, DurableMap]:
+        """Every map as last saved, by name."""
+        with self._lock:
+            return {n: DurableMap(n, g, dict(self._durable.get(n, {}))) for n, g in self.maps.items()}
+
+    def tile_digest(self, map_name: str, tile: Tile) -> str:
+        """:func:`tile_digest` of a tile, cached by ``(map, tile, version)`` (versions never repeat)."""
+        key = (map_name, tile.id, tile.version)
+        with self._lock:
+            digest = self._digests.get(key)
+        if digest is None:
+            digest = tile_digest(tile)
+            with self._lock:
+                if len(self._digests) > 100_000:
+                    self._digests.clear()
+                self._digests[key] = digest
+        return digest
 
     def forget_empty_map(self, map_name: str) -> None:
         """Drop ``map_name`` if it holds no tile and no session uses it (a frame left unused)."""
@@ -733,16 +868,23 @@ class SessionManager:
             grid = self.maps.get(map_name)
             if grid is None:  # deleted since its tiles changed
                 continue
+            snapshot = grid.tiles()  # what is written, then served: one consistent set
             try:
-                self.store.save_tiles(map_name, grid, sorted(ids))
+                written = self.store.save_tiles(map_name, grid, sorted(ids), tiles=snapshot)
                 self.metrics.tiles_written.inc(len(ids))
             except (OSError, ValueError, RandtError):
                 self.metrics.store_errors.inc()
                 log.exception("saving %d tiles of map %s failed", len(ids), map_name)
                 with self._lock:
                     self._dirty_tiles.setdefault(map_name, set()).update(ids)
-            for tid in sorted(ids):
-                self.outbox(tile_message(map_name, grid, tid))
+                continue  # nothing of it is served before it is on disk
+            on_disk = set(written)
+            saved = [t for t in snapshot if t.id in on_disk]
+            with self._lock:
+                if self.maps.get(map_name) is grid:  # not deleted meanwhile
+                    self._durable.setdefault(map_name, {}).update({t.id: t for t in saved})
+            for tile in saved:
+                self.outbox(self.tile_message(map_name, tile))
         now = time.monotonic()
         for w in workers:
             if w.info.dirty:
@@ -750,7 +892,12 @@ class SessionManager:
             if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
                 self.close(*w.key, state="expired")
 
-    def _save_session(self, w: SessionWorker, state: RecordState | None = None) -> None:
+    def tile_message(self, map_name: str, tile: Tile) -> TileUpdateMessage:
+        """The :class:`~wire.messages.TileUpdateMessage` of a saved tile (with its digest)."""
+        return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
+
+    def _save_session(self, w: SessionWorker, state: RecordState | None = None) -> bool:
+        """Save a session's snapshot; whether the store now holds it (False: not saved)."""
         with w.lock:
             info = w.info
             if state is not None:
@@ -766,7 +913,7 @@ class SessionManager:
                 frame=info.frame,
             )
             if w.broken:
-                return  # its matcher died with the process: the store keeps its last good state
+                return False  # its matcher died, or its log failed: the store keeps the truth
             poses = np.array(w.matcher.poses).reshape(-1, 4, 4)
             stamps = np.array(info.stamps_s[: len(poses)], dtype=float)
             try:
@@ -774,15 +921,18 @@ class SessionManager:
             except MatcherProcessDiedError as exc:
                 log.error("session %s/%s: %s; not saved", *w.key, exc)
                 w.broken = True
-                return
+                return False
             info.dirty = False
         try:
             self.store.save_session(record, poses, stamps, matcher_state)
-            self._records[w.key] = record
+            with self._lock:
+                self._records[w.key] = record
         except (OSError, ValueError, RandtError):
             self.metrics.store_errors.inc()
             log.exception("saving session %s/%s failed", *w.key)
             info.dirty = True
+            return False
+        return True
 
     def delete_map(self, map_name: str) -> int:
         """Delete a map from memory and the store; returns how many tiles it held.
@@ -805,12 +955,16 @@ class SessionManager:
                     f"map {map_name!r} is in use by {len(users)} running session(s) "
                     f"({', '.join(users[:5])}): close them first"
                 )
-            grid = self.maps.pop(map_name, None)
+            grid = self.maps.get(map_name)
             if grid is None:
                 raise NotFoundError(f"map {map_name!r} not found", resource="map", ident=map_name)
-            self._dirty_tiles.pop(map_name, None)
             n_tiles = len(grid)
-            self.store.delete_map(map_name)
+            # Its highest version becomes the floor of a later map of the same name (first).
+            floor = max([grid.version_floor, *(t.version for t in grid.tiles())])
+            self.store.delete_map(map_name, version_floor=floor)
+            del self.maps[map_name]
+            self._durable.pop(map_name, None)
+            self._dirty_tiles.pop(map_name, None)
         log.info("map %s deleted (%d tiles)", map_name, n_tiles)
         return n_tiles
 
@@ -1015,9 +1169,19 @@ def queue_label(vehicle: str, session: str) -> str:
 
 
 def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> TileUpdateMessage:
-    """The current :class:`~wire.messages.TileUpdateMessage` of one tile."""
+    """The current :class:`~wire.messages.TileUpdateMessage` of one tile of a grid (offline use;
+    the service publishes saved tiles only: :meth:`SessionManager.tile_message`)."""
     tile = grid.get(tile_id)
     return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
+
+
+def tile_digest(tile: Tile) -> str:
+    """The digest of a tile's content: :func:`wire.messages.points_digest` of its float32
+    ``x y z intensity`` table, as its tile update carries it and its ETag names it."""
+    table = np.empty((tile.n_points, 4), dtype="<f4")
+    table[:, :3] = tile.points
+    table[:, 3] = tile.intensity
+    return points_digest(table.tobytes())
 
 
 #: Until a session has processed this many scans, overload drops its newest waiting scan rather

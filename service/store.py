@@ -11,6 +11,8 @@ Layout
     DATA/sessions/<vehicle>/<session>/matcher.npz      matcher state + the session's commit record
     DATA/sessions/<vehicle>/<session>/trajectory.tum   stamp_s tx ty tz qx qy qz qw, a line per scan
     DATA/sessions/<vehicle>/<session>/session.json     the session's record (:class:`SessionRecord`)
+    DATA/sessions/<vehicle>/<session>/poses.log        poses acknowledged since matcher.npz (appended)
+    DATA/map-versions/<map>                            version floor of a deleted map's name
 
 Map, vehicle and session names are ids (:mod:`wire.ids`: letters, digits, ``_ . -``, at most 64
 characters, starting with a letter or digit); every path is built from checked names only.
@@ -31,6 +33,18 @@ content. What spans several files is ordered:
   views of it for people and other tools (``trajectory.tum`` appears with the first scan). A crash
   between the writes leaves the matcher state and its ``last_seq`` consistent (they are in one
   file); :meth:`Store.load_session` notices views that lag behind and rewrites them.
+
+* **the pose log** (``poses.log``): the session worker appends one fixed-size record per pose
+  (:class:`PoseLogRecord`, with a CRC-32) and fsyncs it *before* the pose is published, so every
+  pose a vehicle received survives a crash (:meth:`Store.append_pose`). :meth:`Store.save_session`
+  drops from it the records its snapshot now holds (records are indexed by their pose's place in
+  the trajectory, not by ``seq``), by an atomic replace after the snapshot is written: a crash in
+  between leaves records the snapshot also holds, which loading skips. :meth:`Store.load_session`
+  returns the snapshot plus the logged poses beyond it; a torn last record (a crash during an
+  append) fails its CRC and is cut off.
+* **map version floors** (``map-versions/<map>``): :meth:`Store.delete_map` first records the
+  highest tile version the map reached, so a new map of that name continues above it and a
+  ``(tile, version)`` pair is never reused for other content (:meth:`Store.version_floor`).
 
 A crash can leave the atomic writers' temporary files (``.<name>.<random>.tmp``) behind; opening a
 :class:`Store` removes them. One process at a time may open a data directory: the store holds an
@@ -57,10 +71,12 @@ import logging
 import os
 import re
 import shutil
+import struct
 import threading
 import time
 import weakref
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -81,8 +97,8 @@ from pydantic import (
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
 from core.io.atomic import fsync_directory
-from core.io.autoware import AUTOWARE_METADATA_NAME
-from core.tiles import TileGrid, load_autoware
+from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME, read_sidecar
+from core.tiles import Tile, TileGrid, load_autoware
 from wire.ids import legacy_session_map_name, session_map_name, validate_id
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
@@ -94,11 +110,13 @@ __all__ = [
     "LOCK_FILENAME",
     "MAPS_DIRNAME",
     "MATCHER_FILENAME",
+    "POSE_LOG_FILENAME",
     "SESSIONS_DIRNAME",
     "SESSION_FILENAME",
     "TRAJECTORY_FILENAME",
     "DataDirInUseError",
     "LoadedSession",
+    "PoseLogRecord",
     "SessionFrame",
     "SessionRecord",
     "SessionState",
@@ -116,9 +134,12 @@ SESSION_FILENAME = "session.json"
 TRAJECTORY_FILENAME = "trajectory.tum"
 MATCHER_FILENAME = "matcher.npz"
 LOCK_FILENAME = ".randt-store.lock"
+POSE_LOG_FILENAME = "poses.log"
+VERSIONS_DIRNAME = "map-versions"
 
 SessionState = Literal["active", "closed", "expired"]
 SessionFrame = Literal["map", "session"]
+PoseStatus = Literal["first", "ok", "fallback"]
 ProblemKind = Literal["map", "session", "entry"]
 
 # core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
@@ -219,6 +240,67 @@ class LoadedSession(NamedTuple):
     stamps: np.ndarray
     poses: np.ndarray
     state: dict[str, np.ndarray]
+
+
+_POSE_STATUSES: tuple[PoseStatus, ...] = ("first", "ok", "fallback")
+# One pose-log record: magic, pose index, seq, stamp_ns, stamp_s, the 4x4 pose (row-major),
+# status, padding; then a CRC-32 of those bytes. Little-endian, fixed size.
+_LOG_MAGIC = b"RPL1"
+_LOG_BODY = struct.Struct("<4sQqqd16dB3x")
+_LOG_CRC = struct.Struct("<I")
+POSE_LOG_RECORD_SIZE = _LOG_BODY.size + _LOG_CRC.size
+
+
+@dataclass(frozen=True)
+class PoseLogRecord:
+    """One acknowledged pose in a session's ``poses.log`` (:meth:`Store.append_pose`).
+
+    Attributes
+    ----------
+    index:
+        The pose's place in the session's trajectory (0 for its first scan).
+    seq, stamp_ns:
+        The scan's sequence number and time stamp (ns), as the vehicle sent them.
+    stamp_s:
+        The stamp in seconds exactly as the trajectory keeps it (``stamp_ns * 1e-9``).
+    pose:
+        (4, 4) float64 ``T_frame_sensor``, the pose published.
+    status:
+        ``"first"``, ``"ok"`` or ``"fallback"``.
+    """
+
+    index: int
+    seq: int
+    stamp_ns: int
+    stamp_s: float
+    pose: np.ndarray
+    status: PoseStatus
+
+    def to_bytes(self) -> bytes:
+        pose = np.asarray(self.pose, dtype=np.float64).reshape(16)
+        body = _LOG_BODY.pack(
+            _LOG_MAGIC,
+            self.index,
+            self.seq,
+            self.stamp_ns,
+            self.stamp_s,
+            *pose.tolist(),
+            _POSE_STATUSES.index(self.status),
+        )
+        return body + _LOG_CRC.pack(zlib.crc32(body))
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> PoseLogRecord | None:
+        """The record in ``data`` (:data:`POSE_LOG_RECORD_SIZE` bytes), ``None`` if torn or damaged."""
+        body, crc = data[: _LOG_BODY.size], data[_LOG_BODY.size :]
+        if len(crc) != _LOG_CRC.size or _LOG_CRC.unpack(crc)[0] != zlib.crc32(body):
+            return None
+        magic, index, seq, stamp_ns, stamp_s, *rest = _LOG_BODY.unpack(body)
+        status = int(rest[16])
+        if magic != _LOG_MAGIC or status >= len(_POSE_STATUSES):
+            return None
+        pose = np.array(rest[:16], dtype=np.float64).reshape(4, 4)
+        return cls(index, seq, stamp_ns, stamp_s, pose, _POSE_STATUSES[status])
 
 
 @dataclass(frozen=True)
@@ -436,6 +518,8 @@ class Store:
         self._map_locks: dict[str, threading.Lock] = {}
         self._session_locks: dict[tuple[str, str], threading.RLock] = {}
         self._created: dict[tuple[str, str], datetime] = {}
+        self._saved_scans: dict[tuple[str, str], int] = {}  # n_scans of each session's last save
+        self._versions = self._root / VERSIONS_DIRNAME
         self._problems: list[StoreProblem] = []
         if first:
             self.removed_temp_files = self._remove_temp_files()
@@ -496,7 +580,7 @@ class Store:
             if entry.name.startswith(_DELETED_PREFIX) and entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
                 removed += 1
-        for top in (self._maps, self._sessions):
+        for top in (self._maps, self._sessions, self._versions):
             for dirpath, _, filenames in os.walk(top):  # does not follow symlinks
                 for name in filenames:
                     path = Path(dirpath) / name
@@ -547,7 +631,9 @@ class Store:
 
     # ------------------------------------------------------------------------------ maps
 
-    def save_tiles(self, map_name: str, grid: TileGrid, changed_ids: Iterable[str]) -> list[str]:
+    def save_tiles(
+        self, map_name: str, grid: TileGrid, changed_ids: Iterable[str], *, tiles: list[Tile] | None = None
+    ) -> list[str]:
         """Persist a map after an update, rewriting only the tiles that changed.
 
         Uses :meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`: sidecar, the changed
@@ -562,6 +648,8 @@ class Store:
             The map.
         changed_ids:
             Ids of the tiles changed since the last save (what :meth:`TileGrid.insert` returned).
+        tiles:
+            The snapshot of ``grid`` to write (:meth:`TileGrid.tiles`); ``None``: the current one.
 
         Returns
         -------
@@ -579,11 +667,11 @@ class Store:
         """
         self._check_open()
         directory = self.map_dir(map_name)
-        if len(grid) == 0:
+        if len(grid) == 0 or tiles == []:
             logger.debug("map %s is empty: nothing to save", map_name)
             return []
         with self._map_lock(map_name):
-            written = grid.write_tiles(directory, changed_ids)
+            written = grid.write_tiles(directory, changed_ids, tiles=tiles)
         logger.debug("saved map %s: %d tiles written, %d in the map", map_name, len(written), len(grid))
         return written
 
@@ -608,8 +696,36 @@ class Store:
             except NotFoundError as exc:  # the metadata exists, so a missing tile is damage
                 raise FormatError(f"map {map_name} is incomplete: {exc}") from exc
 
-    def delete_map(self, map_name: str) -> bool:
+    def version_floor(self, map_name: str) -> int:
+        """The highest tile version a deleted map of this name reached (0 if none was deleted):
+        a new map of the name numbers its tiles above it (:meth:`delete_map`).
+
+        Raises
+        ------
+        ValueError
+            Invalid ``map_name``.
+        FormatError
+            The floor's file is unreadable.
+        """
+        self._check_open()
+        path = self._versions / validate_id(map_name, "map")
+        try:
+            text = path.read_text(encoding="ascii").strip()
+        except FileNotFoundError:
+            return 0
+        except OSError as exc:
+            raise FormatError(f"cannot read {path}: {exc}") from exc
+        if not text.isdigit():
+            raise FormatError(f"{path}: not a version number: {text[:40]!r}")
+        return int(text)
+
+    def delete_map(self, map_name: str, *, version_floor: int = 0) -> bool:
         """Remove a saved map's directory; False if there was none.
+
+        First the highest tile version the map reached (the larger of ``version_floor``, the
+        versions on disk and an earlier floor) is recorded in ``map-versions/<map>``
+        (:meth:`version_floor`), so that versions of a later map of the same name never repeat
+        one served for this map's content.
 
         The directory is first renamed to ``maps/.deleted-<name>-<pid>-<ns>`` (one atomic step, so
         after a crash the map is either whole or gone) and then removed; a leftover ``.deleted-*``
@@ -623,6 +739,14 @@ class Store:
         self._check_open()
         directory = self.map_dir(map_name)
         with self._map_lock(map_name):
+            floor = max(version_floor, self.version_floor(map_name))
+            if directory.is_dir():
+                with contextlib.suppress(RandtError, OSError):
+                    saved = read_sidecar(directory, _sidecar_tile_size(directory))[1]
+                    floor = max(floor, *saved.values(), 0)
+            if floor > 0:
+                self._versions.mkdir(exist_ok=True)
+                atomic_write_bytes(self._versions / map_name, f"{floor}\n".encode("ascii"))
             if not directory.is_dir():
                 return False
             trash = self._maps / f"{_DELETED_PREFIX}{map_name}-{os.getpid()}-{time.time_ns()}"
@@ -704,6 +828,14 @@ class Store:
             )
         arrays = _checked_state(matcher_state)
         with self._session_lock(*key):
+            saved_n = self._saved_scans.get(key, -1)
+            if meta.n_scans < saved_n:
+                # An older snapshot arriving after a newer one (a flush racing a close): writing it
+                # would drop poses the newer one holds and the pose log no longer has.
+                logger.warning(
+                    "session %s/%s: not saving %d scans over a saved %d", *key, meta.n_scans, saved_n
+                )
+                return meta
             record = meta.model_copy(update={"created": self._created_time(meta), "updated": _utcnow()})
             arrays[_KEY_RECORD] = np.array(record.model_dump_json())
             arrays[_KEY_STAMPS] = stamps
@@ -718,6 +850,8 @@ class Store:
             _write_trajectory(directory / TRAJECTORY_FILENAME, stamps, poses)
             atomic_write_bytes(directory / SESSION_FILENAME, _record_json(record))
             self._created[key] = record.created
+            self._saved_scans[key] = record.n_scans
+            self._compact_pose_log(directory, record.n_scans)
         logger.debug(
             "saved session %s/%s: %d scans, last_seq %d",
             record.vehicle,
@@ -766,7 +900,81 @@ class Store:
         with self._session_lock(vehicle, session):
             loaded = _read_commit(directory / MATCHER_FILENAME, vehicle, session)
             self._repair_views(directory, loaded)
-        return loaded
+            self._saved_scans.setdefault((vehicle, session), loaded.record.n_scans)
+            records = _read_pose_log(directory / POSE_LOG_FILENAME, repair=True)
+        return _with_logged(loaded, records)
+
+    def append_pose(self, vehicle: str, session: str, record: PoseLogRecord) -> None:
+        """Append one acknowledged pose to the session's ``poses.log`` and fsync it (module docstring).
+
+        Call it before the pose is published: when it returns, the pose survives a crash.
+
+        Raises
+        ------
+        ValueError
+            Invalid names.
+        FormatError
+            The record could not be written and synced (disk full, read-only...); the file is cut
+            back to its previous length where possible, and a torn tail is cut when it is next read.
+        """
+        self._check_open()
+        directory = self.session_dir(vehicle, session)
+        path = directory / POSE_LOG_FILENAME
+        data = record.to_bytes()
+        with self._session_lock(vehicle, session):
+            try:
+                created = not path.exists()
+                if created:
+                    directory.mkdir(parents=True, exist_ok=True)
+                fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise FormatError(f"cannot open {path}: {exc}") from exc
+            try:
+                size = os.fstat(fd).st_size
+                try:
+                    if os.write(fd, data) != len(data):
+                        raise OSError(f"short write to {path}")
+                    os.fsync(fd)
+                except OSError as exc:
+                    with contextlib.suppress(OSError):
+                        os.ftruncate(fd, size)
+                    raise FormatError(f"cannot append to {path}: {exc}") from exc
+            finally:
+                os.close(fd)
+            if created:  # the new file's directory entries must be durable too
+                try:
+                    for d in (directory, directory.parent, directory.parent.parent):
+                        fsync_directory(d)
+                except OSError as exc:
+                    raise FormatError(f"cannot sync {directory}: {exc}") from exc
+
+    def reset_pose_log(self, vehicle: str, session: str) -> None:
+        """Remove a session's ``poses.log`` (a session that starts afresh: nothing in it was
+        acknowledged, since a session's first pose is published only after its first save)."""
+        self._check_open()
+        path = self.session_dir(vehicle, session) / POSE_LOG_FILENAME
+        with self._session_lock(vehicle, session):
+            if path.exists():
+                logger.warning(
+                    "session %s/%s starts afresh: removing its old %s", vehicle, session, path.name
+                )
+                path.unlink()
+                fsync_directory(path.parent)
+
+    def _compact_pose_log(self, directory: Path, n_saved: int) -> None:
+        """Drop the records of poses ``< n_saved`` (now in the snapshot) by an atomic replace."""
+        path = directory / POSE_LOG_FILENAME
+        records = _read_pose_log(path, repair=False)
+        if not records and not path.exists():
+            return
+        keep = [r for r in records if r.index >= n_saved]
+        if len(keep) == len(records) and path.stat().st_size == len(records) * POSE_LOG_RECORD_SIZE:
+            return
+        if keep:
+            atomic_write_bytes(path, b"".join(r.to_bytes() for r in keep))
+        elif path.exists():
+            path.unlink()
+            fsync_directory(directory)
 
     def list_sessions(self) -> list[SessionRecord]:
         """The records of every saved session, sorted by ``(vehicle, session)``.
@@ -1170,3 +1378,83 @@ def load_counters(data_dir: Path) -> CounterTotals:
         if kept:
             out[name] = kept
     return out
+
+
+def _sidecar_tile_size(directory: Path) -> int:
+    """The tile size a map's sidecar states (so :func:`read_sidecar` accepts it)."""
+    import yaml
+
+    doc = yaml.safe_load((directory / GRID_SIDECAR_NAME).read_text(encoding="utf-8"))
+    if not isinstance(doc, dict) or not isinstance(doc.get("tile_size_m"), int):
+        raise FormatError(f"{directory / GRID_SIDECAR_NAME}: no tile_size_m")
+    return int(doc["tile_size_m"])
+
+
+def _read_pose_log(path: Path, *, repair: bool) -> list[PoseLogRecord]:
+    """The whole records of a ``poses.log`` up to the first torn or damaged one (none if no file).
+
+    With ``repair``, what follows them (a torn tail: a crash during an append) is cut off the
+    file, so the next append continues a clean log.
+    """
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise FormatError(f"cannot read {path}: {exc}") from exc
+    records: list[PoseLogRecord] = []
+    size = POSE_LOG_RECORD_SIZE
+    for start in range(0, len(data) - size + 1, size):
+        record = PoseLogRecord.from_bytes(data[start : start + size])
+        if record is None:
+            break
+        records.append(record)
+    good = len(records) * size
+    if good != len(data):
+        logger.warning(
+            "%s: cutting %d bytes after %d whole records (a torn or damaged tail)",
+            path,
+            len(data) - good,
+            len(records),
+        )
+        if repair:
+            try:
+                with open(path, "r+b") as fh:
+                    fh.truncate(good)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                raise FormatError(f"cannot cut the torn tail of {path}: {exc}") from exc
+    return records
+
+
+def _with_logged(loaded: LoadedSession, records: list[PoseLogRecord]) -> LoadedSession:
+    """The snapshot ``loaded`` extended by the logged poses beyond it (contiguous from its end)."""
+    n = loaded.poses.shape[0]
+    extra: list[PoseLogRecord] = []
+    for r in records:
+        if r.index < n:
+            continue  # the snapshot holds it already (a crash before the log was compacted)
+        if r.index != n + len(extra):
+            logger.error(
+                "session %s/%s: %s jumps from pose %d to %d; the rest is ignored",
+                loaded.record.vehicle,
+                loaded.record.session,
+                POSE_LOG_FILENAME,
+                n + len(extra),
+                r.index,
+            )
+            break
+        extra.append(r)
+    if not extra:
+        return loaded
+    poses = np.concatenate([loaded.poses, np.stack([r.pose for r in extra])])
+    stamps = np.concatenate([loaded.stamps, np.array([r.stamp_s for r in extra], dtype=np.float64)])
+    record = loaded.record.model_copy(
+        update={
+            "n_scans": poses.shape[0],
+            "n_fallbacks": loaded.record.n_fallbacks + sum(r.status == "fallback" for r in extra),
+            "last_seq": max(loaded.record.last_seq, extra[-1].seq),
+        }
+    )
+    return LoadedSession(record=record, stamps=stamps, poses=poses, state=loaded.state)

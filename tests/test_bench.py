@@ -76,6 +76,7 @@ _SCRIPTS = [
     "faults",
     "soak",
     "reliability",
+    "crash",
 ]
 
 

@@ -32,6 +32,7 @@ addressing fields of a message that failed to decode, so its error can still rea
 from __future__ import annotations
 
 import functools
+import hashlib
 import logging
 import re
 from collections.abc import Sequence
@@ -78,6 +79,7 @@ __all__ = [
     "matrix_to_pose",
     "peek_ids",
     "peek_seq",
+    "points_digest",
     "pose_to_matrix",
     "scan_from_arrays",
     "tile_update_from_arrays",
@@ -544,6 +546,9 @@ class TileUpdateMessage(_Message):
         Number of points.
     points:
         Little-endian float32 x, y, z, intensity (16 bytes per point), map frame, metres.
+    digest:
+        :func:`points_digest` of ``points`` (16 hex digits), or ``None``: the content's name, as in
+        the tile's HTTP ETag. A service never sends one ``(tile, version)`` with two digests.
     """
 
     map: str
@@ -554,6 +559,7 @@ class TileUpdateMessage(_Message):
     bounds: Bounds
     n_points: Count
     points: bytes
+    digest: str | None = None
 
     @field_validator("map")
     @classmethod
@@ -584,6 +590,11 @@ class TileUpdateMessage(_Message):
             raise _fail(
                 ErrorCode.NONFINITE_POINTS,
                 f"points: {count} points have a non-finite value (NaN or Inf), first at index {first}",
+            )
+        if self.digest is not None and self.digest != points_digest(self.points):
+            raise _fail(
+                ErrorCode.INVALID_FIELD,
+                f"digest: {_preview(self.digest)} is not the digest of points ({points_digest(self.points)})",
             )
         return self
 
@@ -1127,4 +1138,11 @@ def tile_update_from_arrays(
         "n_points": n,
         "points": table.tobytes(),
     }
+    obj["digest"] = points_digest(obj["points"])
     return _validate(TileUpdateMessage, obj, _DEFAULT_LIMITS)
+
+
+def points_digest(points: bytes) -> str:
+    """A tile content's name: the first 16 hex digits of the SHA-256 of its ``points`` bytes
+    (float32 x y z intensity, little-endian), as :class:`TileUpdateMessage` carries them."""
+    return hashlib.sha256(points).hexdigest()[:16]

@@ -1,12 +1,15 @@
 """``/maps``: the tiled maps, their tile index, tile downloads, Autoware metadata and merged exports.
 
-Everything is served from the live :class:`~core.tiles.TileGrid` (immutable tile snapshots), not
-from files: the map in memory is at least as new as the store's copy, which trails it by up to
-``flush_interval_s``; tile versions are the same in both.
+Everything is served from the tiles *as last saved* (:meth:`SessionManager.durable_map
+<service.sessions.SessionManager.durable_map>`, immutable tile snapshots kept in memory), never
+from the live grid that runs up to ``flush_interval_s`` ahead of the store: a version seen here
+is on disk, so after a crash it neither goes back nor comes again with other content.
 
-Tile downloads carry ``ETag: W/"<version>-<format>"`` and ``Cache-Control: no-cache``; a request
-with a matching ``If-None-Match`` gets **304 Not Modified** without a body, so a client (or the
-viewer, through the browser's cache) refetches only the tiles that changed.
+Tile downloads carry a strong ``ETag: "<version>-<digest>-<format>"`` (``digest``: the first 16
+hex digits of the SHA-256 of the tile's float32 x y z intensity table, as its tile update's
+``digest``) and ``Cache-Control: no-cache``; a request whose ``If-None-Match`` holds that ETag
+gets **304 Not Modified** without a body, so a client (or the viewer, through the browser's cache)
+refetches only the tiles that changed. Weak or older ETags (``W/"7-pcd"``) never match.
 """
 
 from __future__ import annotations
@@ -29,7 +32,6 @@ from service.api.deps import (
     WRITER_RESPONSES,
     MapName,
     TileIx,
-    get_grid,
     get_manager,
     require_reader,
     require_writer,
@@ -45,7 +47,7 @@ from service.api.models import (
     TileInfo,
 )
 from service.api.views import map_summary
-from service.sessions import SessionManager
+from service.sessions import DurableMap, SessionManager
 
 __all__ = ["PduCache", "parse_bbox", "router"]
 
@@ -111,33 +113,42 @@ def parse_bbox(text: str) -> tuple[tuple[float, float], tuple[float, float]]:
     return (x0, y0), (x1, y1)
 
 
-def _etag(tile: Tile, fmt: str) -> str:
-    return f'W/"{tile.version}-{fmt}"'
+def _etag(tile: Tile, digest: str, fmt: str) -> str:
+    """The strong ETag of a saved tile in one format: version, content digest, format."""
+    return f'"{tile.version}-{digest}-{fmt}"'
 
 
 def _matches(if_none_match: str | None, etag: str) -> bool:
-    """Weak comparison of ``etag`` with an ``If-None-Match`` header (a list, or ``*``)."""
+    """Whether an ``If-None-Match`` header (a list, or ``*``) holds ``etag`` (RFC 9110: the weak
+    comparison, but our ETags are strong and name the content, so a ``W/`` one never matches)."""
     if not if_none_match:
         return False
-    bare = etag.removeprefix("W/")
     for candidate in if_none_match.split(","):
         c = candidate.strip()
-        if c == "*" or c.removeprefix("W/") == bare:
+        if c == "*" or c == etag:
             return True
     return False
+
+
+def _saved_map(mgr: SessionManager, name: str) -> DurableMap:
+    """The map ``name`` as last saved (404 if there is no such map)."""
+    saved = mgr.durable_map(name)
+    if saved is None:
+        raise NotFoundError(resource="map", ident=name)
+    return saved
 
 
 @router.get("", response_model=MapIndex)
 def list_maps(mgr: ManagerDep) -> MapIndex:
     """Every map: ``default`` (sessions with prior poses) and ``<vehicle>.<session>`` ones."""
     running = mgr.sessions()
-    return MapIndex(maps=[map_summary(n, g, running) for n, g in sorted(dict(mgr.maps).items())])
+    return MapIndex(maps=[map_summary(n, m, running) for n, m in sorted(mgr.durable_maps().items())])
 
 
 @router.get("/{map}", response_model=MapSummary, responses=_404)
 def get_map(map: MapName, mgr: ManagerDep) -> MapSummary:
     """One map: tiles, points, tile and voxel size, extent, the sessions feeding it."""
-    return map_summary(map, get_grid(mgr, map), mgr.sessions())
+    return map_summary(map, _saved_map(mgr, map), mgr.sessions())
 
 
 @router.delete(
@@ -178,7 +189,8 @@ def tile_index(
     partial map loading). PDU is computed at ``pdu_voxel_m`` (0.5 m as ``randt map``; at the
     map's own voxel every tile would score 1 by construction).
     """
-    grid = get_grid(mgr, map)
+    saved = _saved_map(mgr, map)
+    grid = saved.grid  # cell geometry only; the tiles listed are the saved ones
     query: dict[str, float] | None = None
     wanted: set[str] | None = None
     circle = (x, y, radius)
@@ -196,7 +208,7 @@ def tile_index(
         wanted = set(grid.tiles_within_radius((x, y), radius))
         query = {"x": x, "y": y, "radius": radius}
     cache: PduCache = request.app.state.pdu_cache
-    tiles = [t for t in grid.tiles() if wanted is None or t.id in wanted]
+    tiles = [t for t in saved.tiles() if wanted is None or t.id in wanted]
     return TileIndex(
         map=map,
         tile_size_m=grid.tile_size_m,
@@ -243,13 +255,13 @@ def get_tile(
     if_none_match: Annotated[str | None, Header(description="ETag(s) the client holds")] = None,
 ) -> Response:
     """One tile's points (float32 x y z intensity, map frame) as PCD, PLY or LAS, with its ETag."""
-    grid = get_grid(mgr, map)
+    saved = _saved_map(mgr, map)
     tid = tile_id(ix, iy)
-    if tid not in grid:  # tiles are never removed from a live map
-        detail = f"tile {tid!r} of map {map!r} not found (holds no points)"
+    tile = saved.by_id.get(tid)
+    if tile is None:  # tiles are never removed from a map; a new one appears once saved
+        detail = f"tile {tid!r} of map {map!r} not found (holds no points, or not saved yet)"
         raise NotFoundError(detail, resource="tile", ident=tid)
-    tile = grid.tile(ix, iy)
-    etag = _etag(tile, format)
+    etag = _etag(tile, mgr.tile_digest(map, tile), format)
     headers = {"ETag": etag, "Cache-Control": "no-cache", "X-Randt-Tile-Version": str(tile.version)}
     if _matches(if_none_match, etag):
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers=headers)
@@ -269,10 +281,10 @@ def get_metadata(map: MapName, mgr: ManagerDep) -> Response:
     Download the tiles as ``<ix>_<iy>.pcd`` next to it and Autoware's ``pointcloud_map_loader``
     loads the map (the store holds exactly this layout under ``DATA/maps/<map>/``).
     """
-    grid = get_grid(mgr, map)
-    size = grid.tile_size_m
+    saved = _saved_map(mgr, map)
+    size = saved.tile_size_m
     document: dict[str, object] = {"x_resolution": float(size), "y_resolution": float(size)}
-    for t in grid.tiles():
+    for t in saved.tiles():
         document[f"{t.id}.pcd"] = [int(t.ix) * size, int(t.iy) * size]
     text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
     return Response(
@@ -321,11 +333,11 @@ def export_map(
     One consistent snapshot of the tiles is taken when the request arrives; later inserts are
     not in this download. LAS is assembled in a temporary file first (its header holds bounds).
     """
-    grid = get_grid(mgr, map)
+    saved = _saved_map(mgr, map)
     box = parse_bbox(bbox) if bbox is not None else None
-    tiles = grid.tiles()
+    tiles = saved.tiles()
     if box is not None:
-        keep = set(grid.tiles_in_bbox(*box))
+        keep = set(saved.grid.tiles_in_bbox(*box))
         tiles = [t for t in tiles if t.id in keep]
     chunks = _chunks(tiles, box)
     n_points = sum(xyz.shape[0] for xyz, _ in chunks)

@@ -16,7 +16,7 @@ import numpy as np
 from core.errors import NotFoundError
 from core.tiles import TileGrid
 from service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
-from service.sessions import SessionManager, SessionState
+from service.sessions import DurableMap, SessionManager, SessionState
 from service.store import SessionRecord
 
 __all__ = [
@@ -138,7 +138,7 @@ def session_detail(mgr: SessionManager, found: FoundSession) -> SessionDetail:
     )
 
 
-def map_summary(name: str, grid: TileGrid, running: list[SessionState]) -> MapSummary:
+def map_summary(name: str, grid: TileGrid | DurableMap, running: list[SessionState]) -> MapSummary:
     """One map's summary: tiles, points, settings, extent and the running sessions feeding it."""
     tiles = grid.tiles()  # one snapshot: counts and extent agree
     extent = None

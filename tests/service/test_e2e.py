@@ -140,7 +140,9 @@ def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_pa
         assert len(tiles) > 10, "tile updates were published"
         grid = service.sessions.maps["default"]
         assert set(tiles) <= set(grid.tile_ids())
-        # a tile can be fetched through the queryable
+        # a tile can be fetched through the queryable; it answers the tile as saved, so save
+        # what may still be waiting (a flush under load can take longer than the sleep above)
+        service.sessions.flush()
         tid = sorted(tiles)[0]
         replies = list(listener.get(f"randt/map/default/tile/{tid}"))
         got = decode_tile_update(replies[0].ok.payload.to_bytes())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import time
@@ -186,6 +187,7 @@ def test_encode_writes_the_documented_v1_maps() -> None:
             "bounds": {"min": (1.0, 2.0, 3.0), "max": (4.0, 5.0, 6.0)},
             "n_points": 2,
             "points": f32(np.c_[xyz, [7.0, 8.0]]),
+            "digest": hashlib.sha256(f32(np.c_[xyz, [7.0, 8.0]])).hexdigest()[:16],
         }
     )
 
