@@ -2,8 +2,8 @@
 
 Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
 flags (``randt serve --help``) override the environment. ``RANDT_ZENOH_CONFIG`` names a native
-Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here. Settings are built in the app factory
-(``service.runtime.Service``), never at import time.
+Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here.
+Settings are built in the app factory (``service.runtime.Service``), never at import time.
 
 Every session's matcher gets two nested groups, one environment variable per field with ``__``
 between group and field:
