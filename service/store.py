@@ -573,26 +573,31 @@ class Store:
             raise RandtError(f"the store at {self._root} is closed")
 
     def _remove_temp_files(self) -> int:
-        """Delete leftover ``.<name>.<random>.tmp`` files under ``maps/`` and ``sessions/``, and
-        the ``maps/.deleted-*`` directories of an interrupted :meth:`delete_map`."""
+        """Delete leftover ``.<name>.<random>.tmp`` files in ``DATA`` (``counters.json``) and under
+        ``maps/``, ``sessions/`` and ``map-versions/``, and the ``maps/.deleted-*`` directories of
+        an interrupted :meth:`delete_map` (or map-name migration)."""
         removed = 0
         for entry in self._maps.iterdir():
             if entry.name.startswith(_DELETED_PREFIX) and entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
                 removed += 1
-        for top in (self._maps, self._sessions, self._versions):
-            for dirpath, _, filenames in os.walk(top):  # does not follow symlinks
-                for name in filenames:
-                    path = Path(dirpath) / name
-                    if not _TEMP_FILE_RE.match(name) or path.is_symlink() or not path.is_file():
-                        continue
-                    try:
-                        path.unlink()
-                    except OSError as exc:
-                        logger.warning("cannot remove leftover temporary file %s: %s", path, exc)
-                        continue
-                    logger.debug("removed leftover temporary file %s", path)
-                    removed += 1
+        # The data directory's own file (counters.json) is written atomically too: its leftovers
+        # sit in DATA itself, among files that may not be ours (only its own are removed).
+        ours = f".{COUNTERS_FILENAME}."
+        top_level = [(str(self._root), [e.name for e in self._root.iterdir() if e.name.startswith(ours)])]
+        walks = [(d, f) for top in (self._maps, self._sessions, self._versions) for d, _, f in os.walk(top)]
+        for dirpath, filenames in top_level + walks:  # os.walk does not follow symlinks
+            for name in filenames:
+                path = Path(dirpath) / name
+                if not _TEMP_FILE_RE.match(name) or path.is_symlink() or not path.is_file():
+                    continue
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    logger.warning("cannot remove leftover temporary file %s: %s", path, exc)
+                    continue
+                logger.debug("removed leftover temporary file %s", path)
+                removed += 1
         if removed:
             logger.warning("removed %d temporary files left by interrupted writes in %s", removed, self._root)
         else:

@@ -336,6 +336,7 @@ def test_leftover_temp_files_are_removed_on_open(tmp_path: Path, caplog: pytest.
         tempfile.mkstemp(prefix=".0_0.pcd.", suffix=".tmp", dir=map_dir),
         tempfile.mkstemp(prefix=f".{AUTOWARE_METADATA_NAME}.", suffix=".tmp", dir=map_dir),
         tempfile.mkstemp(prefix=f".{MATCHER_FILENAME}.", suffix=".tmp", dir=session_dir),
+        tempfile.mkstemp(prefix=".counters.json.", suffix=".tmp", dir=tmp_path),  # DATA's own file
     ]
     for fd, _ in leftovers:
         os.write(fd, b"half a file")
@@ -345,8 +346,8 @@ def test_leftover_temp_files_are_removed_on_open(tmp_path: Path, caplog: pytest.
         path.write_text("not ours to delete")
 
     with caplog.at_level(logging.INFO, logger="service.store"), Store(tmp_path) as store:
-        assert store.removed_temp_files == 3
-        assert "removed 3 temporary files" in caplog.text
+        assert store.removed_temp_files == 4
+        assert "removed 4 temporary files" in caplog.text
         assert not any(Path(name).exists() for _, name in leftovers)
         assert all(path.exists() for path in keep)
         contents = store.load_all()
