@@ -93,12 +93,14 @@ def answers(service: Service) -> list[PoseMessage | ErrorMessage]:
     return [m for m in list(service._sent) if isinstance(m, PoseMessage | ErrorMessage)]
 
 
-def wait_answers(service: Service, n: int, timeout: float = 120.0) -> None:
+def wait_answers(service: Service, n: int, timeout: float = 120.0) -> list[PoseMessage | ErrorMessage]:
+    """Wait until the service has sent ``n`` poses and errors; returns all it has sent."""
     deadline = time.monotonic() + timeout
     while len(answers(service)) < n:
         if time.monotonic() > deadline:
             raise TimeoutError(f"{len(answers(service))} of {n} scans answered")
         time.sleep(0.05)
+    return answers(service)
 
 
 def drive_fleet(service: Service, *, n_vehicles: int = 2, n_scans: int = 5, solo_scans: int = 3) -> Fleet:

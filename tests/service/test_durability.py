@@ -14,7 +14,6 @@ processes with SIGKILL (``bench/crash.py``).
 from __future__ import annotations
 
 import hashlib
-import time
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from core.protocol import synthetic_room
 from core.transforms import make_transform, transform_points
 from service.runtime import Service
 from service.settings import ServiceSettings
+from tests.service.api_server import wait_answers
 from wire.codes import ErrorCode
 from wire.messages import ErrorMessage, PoseMessage, decode_tile_update, encode, scan_from_arrays
 
@@ -34,16 +34,6 @@ def _scan(seq: int) -> bytes:
     T = make_transform(translation=(0.05 * seq, 0.0, 0.0))
     pts = transform_points(np.linalg.inv(T), ROOM).astype(np.float32)
     return encode(scan_from_arrays("v1", "d1", seq, seq * 100_000_000, pts))
-
-
-def _answers(svc: Service, n: int, timeout: float = 120.0) -> list[PoseMessage | ErrorMessage]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        got = [m for m in svc._sent if isinstance(m, PoseMessage | ErrorMessage)]
-        if len(got) >= n:
-            return got
-        time.sleep(0.02)
-    raise AssertionError(f"only {len(got)} of {n} answers within {timeout} s")
 
 
 def _unflushed(data_dir: object) -> Service:
@@ -58,7 +48,7 @@ def test_acknowledged_poses_survive_a_crash_and_the_session_resumes(tmp_path) ->
     first = _unflushed(tmp_path)
     for seq in range(6):
         first.sessions.submit("v1", _scan(seq))
-        _answers(first, seq + 1)  # one at a time: none dropped
+        wait_answers(first, seq + 1)  # one at a time: none dropped
     acked = [m for m in first._sent if isinstance(m, PoseMessage)]
     assert [m.seq for m in acked] == list(range(6))
     # crash: nothing stopped, nothing flushed; a new instance opens the same data directory
@@ -74,7 +64,7 @@ def test_acknowledged_poses_survive_a_crash_and_the_session_resumes(tmp_path) ->
         second.sessions.submit("v1", _scan(5))
         second.sessions.submit("v1", _scan(6))
         second.sessions.submit("v1", _scan(7))
-        answers = _answers(second, 3)
+        answers = wait_answers(second, 3)
         assert isinstance(answers[0], ErrorMessage) and answers[0].code == ErrorCode.DUPLICATE_SEQ
         for seq, m in zip((6, 7), answers[1:], strict=True):
             assert isinstance(m, PoseMessage) and m.seq == seq and m.status == "ok"
@@ -89,7 +79,7 @@ def test_a_pose_that_cannot_be_made_durable_is_answered_storage_error(tmp_path, 
     try:
         for seq in range(3):
             svc.sessions.submit("v1", _scan(seq))
-            _answers(svc, seq + 1)
+            wait_answers(svc, seq + 1)
         real = svc.store.append_pose
 
         def disk_full(*args: object, **kwargs: object) -> None:
@@ -97,12 +87,12 @@ def test_a_pose_that_cannot_be_made_durable_is_answered_storage_error(tmp_path, 
 
         monkeypatch.setattr(svc.store, "append_pose", disk_full)
         svc.sessions.submit("v1", _scan(3))
-        err = _answers(svc, 4)[-1]
+        err = wait_answers(svc, 4)[-1]
         assert isinstance(err, ErrorMessage) and err.seq == 3 and err.code == ErrorCode.STORAGE_ERROR
         assert "No space left on device" in err.reason
         monkeypatch.setattr(svc.store, "append_pose", real)
         svc.sessions.submit("v1", _scan(4))  # resumes from the store: poses 0..2
-        ok = _answers(svc, 5)[-1]
+        ok = wait_answers(svc, 5)[-1]
         assert isinstance(ok, PoseMessage) and ok.seq == 4
         stamps, _ = svc.sessions.stored_trajectory("v1", "d1")
         np.testing.assert_array_equal(stamps, np.array([0, 1, 2, 4]) * 0.1)  # no pose for seq 3

@@ -7,8 +7,6 @@ into map ``col.a.b`` (two unrelated frames fused). Names now come from
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from core.protocol import synthetic_room
@@ -16,17 +14,8 @@ from core.tiles import TileGrid
 from service.runtime import Service
 from service.settings import ServiceSettings
 from service.store import SessionRecord, Store
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
-
-
-def _answers(service: Service, n: int, timeout: float = 120.0) -> list[PoseMessage | ErrorMessage]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        out = [m for m in service._sent if isinstance(m, PoseMessage | ErrorMessage)]
-        if len(out) >= n:
-            return out
-        time.sleep(0.05)
-    raise AssertionError(f"{n} answers expected, got {len(out)}")
+from tests.service.api_server import wait_answers
+from wire.messages import PoseMessage, encode, scan_from_arrays
 
 
 def test_col_a_b_and_col_a_dot_b_keep_separate_maps(tmp_path) -> None:
@@ -40,7 +29,7 @@ def test_col_a_b_and_col_a_dot_b_keep_separate_maps(tmp_path) -> None:
         for seq in range(2):  # no priors: each session in its own frame and its own map
             mgr.submit("col.a", encode(scan_from_arrays("col.a", "b", seq, seq * 100_000_000, room)))
             mgr.submit("col", encode(scan_from_arrays("col", "a.b", seq, seq * 100_000_000, high)))
-        answers = _answers(service, 4)
+        answers = wait_answers(service, 4)
         assert all(isinstance(m, PoseMessage) for m in answers), answers
         maps = {(m.vehicle, m.session): m.map for m in answers if isinstance(m, PoseMessage)}
         assert maps == {("col.a", "b"): "col_-a.b", ("col", "a.b"): "col.a.b"}
