@@ -72,7 +72,11 @@ def test_an_environment_variable_changes_what_a_sessions_matcher_uses(
             assert time.monotonic() < deadline, out
             time.sleep(0.05)
         assert all(isinstance(m, PoseMessage) for m in out if isinstance(m, PoseMessage | ErrorMessage))
-        state = mgr.worker("v", "s").matcher.state_dict()
+        worker = mgr.worker("v", "s")
+        # the session's worker rebuilds the keyframe model after the pose is out, under its lock:
+        # read the state under it too (state_dict folds in whatever is still pending)
+        with worker.lock:
+            state = worker.matcher.state_dict()
         np.testing.assert_array_equal(state["levels"], [4.0, 2.0, 1.0])
         assert len(state["keyframe_sizes"]) == 4
     finally:
