@@ -268,8 +268,13 @@ def _disk_fault_inner(kind: str, root: Path) -> FaultResult:
                     # A read-only bind mount stacked on the data directory: the service holds files
                     # open for writing (its lock), so the directory's own mount cannot be remounted
                     # read-only (EBUSY); every path the service opens from now on is read-only.
-                    _mount("--bind", str(data_dir), str(data_dir))
-                    _mount("-o", "remount,bind,ro", str(data_dir))
+                    # Made read-only aside and moved into place in one step: remounting it where
+                    # the service writes raced with the service's own opens (EBUSY, once, in CI).
+                    staging = root / f"ro-staging-{time.monotonic_ns()}"
+                    staging.mkdir()
+                    _mount("--bind", str(data_dir), str(staging))
+                    _mount("-o", "remount,bind,ro", str(staging))
+                    _mount("--move", str(staging), str(data_dir))
 
             def lift() -> None:
                 if kind == "full_disk":
