@@ -1,27 +1,49 @@
-"""Service benchmark: simulated vehicles at 10 Hz with KITTI-sized sweeps against a real service.
+"""Service benchmark: a simulated fleet at 10 Hz per vehicle against a real service process.
 
 Run from the repository root::
 
-    python bench/service.py [--vehicles 1 2 4 8] [--seconds 6] [--markdown]
+    python bench/service.py --vehicles 1 2 4 6 8 --seconds 20 --markdown --plot docs/img/fleet.png
+    python bench/service.py --vehicles 4 --seconds 60 --markdown
 
-For each vehicle count, a fresh subprocess starts a :class:`service.runtime.Service` (Zenoh peer
-on loopback, data in a temporary directory), pre-simulates every vehicle's sweeps (HDL-64E-like,
-about 120k points each), then publishes them at 10 Hz per vehicle from one Zenoh session per
-vehicle, for ``--seconds``. It reports sustained scans per second (poses received per second of
-wall time), publish-to-pose latency p50/p99 (publish time to the pose's arrival at a subscriber),
-scans dropped by the overload policy, other errors, and the subprocess's peak RSS.
+First, the largest fleet's raw sweeps are simulated (HDL-64E-like, about 120k points, in their
+firing-time frames with per-point time offsets, as a real LiDAR gives them) and encoded as the
+vehicle library would send them: ``--link default`` with ``clients.publisher.encode_sweep`` and the
+library's default :class:`~clients.publisher.PublisherSettings` (reduced, quantized, compressed),
+``--link raw`` as full v1 messages (``wire.messages.scan_from_arrays`` + ``encode``). They are
+spooled to a file (a long run would otherwise hold gigabytes of sweeps in memory); a smaller fleet
+drives the largest one's first vehicles. The simulation is the slow part of a run (about 0.2 s a
+sweep on this machine).
 
-The target of issue 4 is 8 vehicles at 10 Hz with p99 under 200 ms and no drops on this 2-core
-machine. Every figure comes from this run: see docs/benchmarks.md for the reading.
+For each fleet size, a fresh subprocess (the *bench*) starts a fresh *service process*
+(:class:`service.runtime.Service`, a Zenoh peer on loopback, data in a temporary directory, its
+environment without the benchmarks' one-thread BLAS settings: the service sets its own), waits
+for its matcher processes to warm up, and publishes every vehicle's sweeps at 10 Hz from one Zenoh
+session per vehicle for ``--seconds``, the vehicles staggered over one period as unsynchronised
+sensors are.
+
+Reported per fleet size: poses per second of wall time; scans sent, poses, drops (overload
+policy), other errors and unanswered scans; publish-to-pose latency p50/p90/p99/max (publish call
+to the pose's arrival at a subscriber); CPU per sweep of the service's main process, of its
+matcher processes and their sum (user + system time over the run, divided by the poses); bytes on
+the wire per sweep and Mbit/s per vehicle at 10 Hz; pose error against the simulator's ground truth
+(position max and RMSE, rotation max; with per-point time offsets a pose refers to mid-sweep,
+core/odometry.py, so the truth is the sensor pose at stamp + 50 ms); peak RSS of the service's
+main process and of its largest matcher process. A fleet size *holds* when every scan got a pose,
+p99 < 200 ms and every pose is within 5 cm of the truth (issue 14).
+
+``--plot`` draws latency percentiles and drops against fleet size (matplotlib, the bench extra)
+and writes the same figures as CSV beside the image. Every figure comes from this run.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import csv
 import datetime
+import importlib
 import json
 import os
-import resource
 import shlex
 import subprocess
 import sys
@@ -29,62 +51,258 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import common
 import numpy as np
-from common import free_port, git_line, heading, machine_line, progress, table
+from common import REPO, free_port, git_line, heading, machine_line, progress, table
 
 del common
 
+#: Environment variables the benchmarks set to one thread (bench/common.py); the service process
+#: starts without them, so that what it sets itself is what is measured.
+_BENCH_THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "BLIS_NUM_THREADS",
+)
 
-def run_one(n_vehicles: int, seconds: float) -> dict[str, float | str]:
-    """One configuration, in this process (called in a fresh subprocess by :func:`main`)."""
-    import zenoh
+RATE_HZ = 10.0
+#: Targets of issue 14 (a fleet size holds when it meets all of them).
+P99_TARGET_MS = 200.0
+ERROR_TARGET_CM = 5.0
 
-    from service.runtime import Service
-    from service.settings import ServiceSettings
-    from sim.drive import simulate_fleet
+
+def _encoder(link: str) -> Any:
+    """``f(vehicle, seq, stamp_ns, xyz, intensity, offsets, prior_pose, prior_cov) -> bytes``."""
+    if link == "default":
+        # By name: encode_sweep is the vehicle library's (docs/wire-format.md), newer than v1.
+        publisher = importlib.import_module("clients.publisher")
+        encode_sweep = publisher.encode_sweep
+        settings = publisher.PublisherSettings()
+
+        def encode_default(
+            vehicle: str,
+            seq: int,
+            stamp_ns: int,
+            xyz: np.ndarray,
+            intensity: np.ndarray,
+            offsets: np.ndarray,
+            **prior: Any,
+        ) -> bytes:
+            return encode_sweep(
+                vehicle,
+                "bench",
+                seq,
+                stamp_ns,
+                xyz,
+                intensity=intensity,
+                time_offset_s=offsets,
+                settings=settings,
+                **prior,
+            )
+
+        return encode_default
+    from wire.messages import encode, scan_from_arrays
+
+    def encode_raw(
+        vehicle: str,
+        seq: int,
+        stamp_ns: int,
+        xyz: np.ndarray,
+        intensity: np.ndarray,
+        offsets: np.ndarray,
+        **prior: Any,
+    ) -> bytes:
+        return encode(
+            scan_from_arrays(
+                vehicle, "bench", seq, stamp_ns, xyz, intensity=intensity, time_offset_s=offsets, **prior
+            )
+        )
+
+    return encode_raw
+
+
+class Spool:
+    """Encoded sweeps in one file (``sweeps.bin``) with their index and ground truth beside it:
+    written once for the largest fleet, read back by every fleet size's run at publication."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self._where: dict[tuple[str, int], tuple[int, int]] = {}
+        self.truth: dict[tuple[str, int], np.ndarray] = {}
+        self._file: IO[bytes] | None = None
+
+    @classmethod
+    def load(cls, directory: Path) -> Spool:
+        spool = cls(directory)
+        index = json.loads((directory / "index.json").read_text())
+        truth = np.load(directory / "truth.npy")
+        for (vehicle, seq, start, size), T in zip(index, truth, strict=True):
+            spool._where[(vehicle, seq)] = (start, size)
+            spool.truth[(vehicle, seq)] = T
+        spool._file = open(directory / "sweeps.bin", "rb")  # noqa: SIM115 (closed by close())
+        return spool
+
+    def get(self, vehicle: str, seq: int) -> bytes:
+        assert self._file is not None
+        start, size = self._where[(vehicle, seq)]
+        return os.pread(self._file.fileno(), size, start)
+
+    def vehicles(self) -> list[str]:
+        return sorted({v for v, _ in self._where})
+
+    def n_scans(self) -> int:
+        return 1 + max(k for _, k in self._where)
+
+    def sizes(self, vehicles: list[str]) -> np.ndarray:
+        return np.array([size for (v, _), (_, size) in self._where.items() if v in vehicles], dtype=float)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+
+
+def simulate(n_vehicles: int, n_scans: int, link: str, directory: Path) -> None:
+    """Simulate every vehicle's raw sweeps, encode them for ``link`` and write a :class:`Spool`.
+
+    The fleet is :func:`sim.drive.plan_fleet`'s for ``n_vehicles`` (town seed 1, fleet seed 3);
+    a smaller fleet's run uses its first vehicles. The ground truth of each sweep is the sensor
+    pose at mid-sweep (with per-point time offsets the matcher's pose refers to it,
+    core/odometry.py); each vehicle's first sweep carries it as its prior, as GNSS/INS would.
+    """
+    from sim.drive import Motion, plan_fleet
+    from sim.drive import simulate as drive
+    from sim.lidar import Lidar64
     from sim.town import Town
-    from wire.codes import ErrorCode
-    from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
-    from wire.messages import decode_error, decode_pose, encode, scan_from_arrays
-    from wire.zenoh_config import zenoh_config
 
-    n_scans = int(seconds * 10)
     town = Town.generate(1)
-    scans: dict[str, list[bytes]] = {}
-    truth: dict[tuple[str, int], np.ndarray] = {}
-    for vehicle, scan in simulate_fleet(town, n_vehicles, n_scans=n_scans, seed=3, speed_mps=10.0):
-        prior: dict[str, Any] = {}  # prior_pose and prior_covariance on the first scan
-        truth[(vehicle, scan.index)] = scan.T_world_sensor
-        if scan.index == 0:
-            prior = dict(prior_pose=scan.T_world_sensor, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
-        scans.setdefault(vehicle, []).append(
-            encode(
-                scan_from_arrays(
-                    vehicle,
-                    "bench",
+    encode = _encoder(link)
+    lidar = Lidar64()
+    half = 0.5 / RATE_HZ
+    index: list[tuple[str, int, int, int]] = []
+    truth: list[np.ndarray] = []
+    end = 0
+    with open(directory / "sweeps.bin", "wb") as out:
+        for v in plan_fleet(town, n_vehicles, seed=3):
+            progress(f"simulating and encoding {n_scans} sweeps of {v.vehicle_id} ({link} link)")
+            motion = Motion(
+                v.route, speed_mps=10.0, start_s_m=v.start_s_m, mount_height_m=lidar.mount_height_m
+            )
+            scans = drive(
+                town,
+                v.route,
+                n_scans=n_scans,
+                rate_hz=RATE_HZ,
+                speed_mps=10.0,
+                seed=v.seed,
+                lidar=lidar,
+                deskewed=False,
+                start_s_m=v.start_s_m,
+                start_stamp_ns=v.stamp_offset_ns,
+            )
+            for scan in scans:
+                T_mid = motion.sensor_poses_at(scan.index / RATE_HZ + half)[0]
+                prior: dict[str, Any] = {}
+                if scan.index == 0:
+                    prior = dict(prior_pose=T_mid, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
+                payload = encode(
+                    v.vehicle_id,
                     scan.index,
                     scan.stamp_ns,
                     scan.points_xyz,
-                    intensity=scan.intensity,
+                    scan.intensity,
+                    scan.time_offset_s,
                     **prior,
                 )
-            )
+                out.write(payload)
+                index.append((v.vehicle_id, scan.index, end, len(payload)))
+                truth.append(T_mid)
+                end += len(payload)
+    (directory / "index.json").write_text(json.dumps(index))
+    np.save(directory / "truth.npy", np.array(truth))
+
+
+# -- the service process ---------------------------------------------------------------------------
+#: The service process's program (``python -c``): not this script, whose ``import common`` would set
+#: the benchmarks' one-thread BLAS environment before the service could show what it sets itself.
+#: It prints its pid and its matcher processes' once they are warm, runs until stdin closes, then
+#: prints how many scans it received and stops (draining and saving, as on SIGTERM).
+SERVE_PROGRAM = """
+import json, os, sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from service.runtime import Service
+from service.settings import ServiceSettings
+service = Service(ServiceSettings(data_dir=Path(sys.argv[3]), listen=(sys.argv[2],), http_port=0))
+service.start()
+if not service.sessions.wait_matchers(600):
+    raise SystemExit("matcher processes not warm after 600 s")
+pool = service.sessions.pool
+print(json.dumps({"pid": os.getpid(), "matchers": [p for p in pool.pids() if p] if pool else []}), flush=True)
+sys.stdin.read()
+received = service.metrics.registry.get_sample_value("randt_scans_received_total") or 0
+service.stop()
+print(json.dumps({"received": int(received)}), flush=True)
+"""
+
+
+def _proc_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of one process (all its threads), from /proc."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+
+def _peak_rss_mib(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+# -- one fleet size --------------------------------------------------------------------------------
+def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = REPO) -> dict[str, Any]:
+    """One fleet size, in this process (a fresh subprocess of :func:`main`)."""
+    import zenoh
+
+    from core.transforms import invert
+    from wire.codes import ErrorCode
+    from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
+    from wire.messages import decode_error, decode_pose
+    from wire.zenoh_config import zenoh_config
+
+    spool = Spool.load(spool_dir)
+    vehicles = spool.vehicles()[:n_vehicles]
+    n_scans = spool.n_scans()
+    truth = spool.truth
+    sizes = spool.sizes(vehicles)
+    with tempfile.TemporaryDirectory(prefix="randt-bench-") as tmp:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        env = {k: v for k, v in os.environ.items() if k not in _BENCH_THREAD_VARS}
+        service = subprocess.Popen(
+            [sys.executable, "-c", SERVE_PROGRAM, str(service_repo), endpoint, str(Path(tmp) / "data")],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
         )
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with tempfile.TemporaryDirectory() as data:
-        service = Service(ServiceSettings(data_dir=Path(data), listen=(endpoint,), http_port=0))
-        service.start()
-        assert service.sessions is not None and service.sessions.wait_matchers(600), "matchers not warm"
+        assert service.stdin is not None and service.stdout is not None
+        started = json.loads(service.stdout.readline())
+        main_pid = int(started["pid"])
+        matcher_pids = [int(p) for p in started["matchers"]]
+
         sent: dict[tuple[str, int], float] = {}
         got: dict[tuple[str, int], float] = {}
-        errors: dict[str, int] = {}
+        pose_of: dict[tuple[str, int], np.ndarray] = {}
         statuses: dict[str, int] = {}
-        status_of: dict[tuple[str, int], str] = {}
-        pose_of: dict[tuple[str, int], np.ndarray] = {}  # poses in the shared map's frame
-        own_frame = [0]  # poses of sessions that could not be placed (their anchor was lost)
+        errors: dict[str, int] = {}
+        not_in_map = [0]  # poses outside the shared map (a session that lost its anchor)
+        last_answer = [0.0]
         lock = threading.Lock()
 
         def on_pose(sample: zenoh.Sample) -> None:
@@ -92,14 +310,12 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float | str]:
             m = decode_pose(sample.payload.to_bytes())
             with lock:
                 got[(m.vehicle, m.seq)] = t
+                last_answer[0] = t
                 statuses[m.status] = statuses.get(m.status, 0) + 1
-                status_of[(m.vehicle, m.seq)] = m.status
                 if m.map == "default":
                     pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
                 else:
-                    own_frame[0] += 1
-
-        last_answer = [0.0]
+                    not_in_map[0] += 1
 
         def on_error(sample: zenoh.Sample) -> None:
             m = decode_error(sample.payload.to_bytes())
@@ -112,32 +328,33 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float | str]:
             listener.declare_subscriber(ALL_POSES, on_pose),
             listener.declare_subscriber(ALL_ERRORS, on_error),
         ]
-        time.sleep(1.0)
+        sessions = {v: zenoh.open(zenoh_config("peer", connect=(endpoint,))) for v in vehicles}
+        time.sleep(1.0)  # let the peers connect
 
-        def drive(vehicle: str) -> None:
-            session = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
+        def drive(vehicle: str, start: float) -> None:
             # As the vehicle library publishes (clients/publisher.py): block under congestion
             # rather than drop, so every scan reaches the service.
-            pub = session.declare_publisher(
+            pub = sessions[vehicle].declare_publisher(
                 scan_key(vehicle),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
-            start = time.monotonic()
-            for k, payload in enumerate(scans[vehicle]):
-                delay = start + 0.1 * k - time.monotonic()
+            for k in range(n_scans):
+                payload = spool.get(vehicle, k)
+                delay = start + k / RATE_HZ - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
                 with lock:
                     sent[(vehicle, k)] = time.monotonic()
                 pub.put(payload)
-            time.sleep(1.0)  # puts are asynchronous: let the last ones leave before closing
-            session.close()
 
-        matcher_pids = [p for p in service.sessions.pool.pids() if p] if service.sessions.pool else []
-        cpu0 = _cpu_seconds([os.getpid()]), _cpu_seconds(matcher_pids)
+        cpu0 = _proc_cpu_s(main_pid), sum(_proc_cpu_s(p) for p in matcher_pids)
         t0 = time.monotonic()
-        threads = [threading.Thread(target=drive, args=(v,)) for v in scans]
+        # Vehicles staggered over one period, as unsynchronised sensors are (sim.drive.plan_fleet).
+        threads = [
+            threading.Thread(target=drive, args=(v, t0 + i / (RATE_HZ * len(vehicles))))
+            for i, v in enumerate(vehicles)
+        ]
         for t in threads:
             t.start()
         for t in threads:
@@ -145,138 +362,262 @@ def run_one(n_vehicles: int, seconds: float) -> dict[str, float | str]:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             with lock:
-                answered = len(got) + sum(errors.values())
-            if answered >= len(sent):
-                break
-            time.sleep(0.1)
+                if len(got) + sum(errors.values()) >= len(sent):
+                    break
+            time.sleep(0.05)
+        cpu_main = _proc_cpu_s(main_pid) - cpu0[0]
+        cpu_matchers = sum(_proc_cpu_s(p) for p in matcher_pids) - cpu0[1]
+        rss_main = _peak_rss_mib(main_pid)
+        rss_matcher = max((_peak_rss_mib(p) for p in matcher_pids), default=float("nan"))
         with lock:
-            end = max([*got.values(), last_answer[0], t0])
-        wall = end - t0  # first publication to last answer
-        cpu_main = _cpu_seconds([os.getpid()]) - cpu0[0]
-        cpu_matchers = _cpu_seconds(matcher_pids) - cpu0[1]
-        received = int(service.metrics.registry.get_sample_value("randt_scans_received_total") or 0)
+            wall = max(last_answer[0], t0 + 1e-3) - t0  # first publication to last answer
         for s in subs:
             s.undeclare()
+        for session in sessions.values():
+            session.close()
         listener.close()
-        service.stop()
-    lat = np.array([got[k] - sent[k] for k in got if k in sent])
-    # Each vehicle's first sweep carries its true pose as a prior, so poses in the shared map are
-    # in the simulator's world frame: their position error against the ground truth, in cm.
-    err_cm = np.array([100 * np.linalg.norm(pose_of[k][:3, 3] - truth[k][:3, 3]) for k in pose_of])
-    if os.environ.get("RANDT_BENCH_SLOWEST"):
-        slow = sorted(((got[k] - sent[k]) * 1e3, k) for k in got if k in sent)[-12:]
-        print("slowest (ms, scan):", [(round(ms), k) for ms, k in slow], file=sys.stderr)
-        for v in sorted(scans):
-            seqs = sorted(k[1] for k in status_of if k[0] == v)
-            marks = [f"{q}{'F' if status_of[(v, q)] == 'fallback' else ''}" for q in seqs]
-            print(f"{v} answered with poses (F: fallback):", " ".join(marks), file=sys.stderr)
+        service.stdin.close()
+        received = json.loads(service.stdout.readline())["received"]
+        service.wait(120)
+        spool.close()
+
+    keys = [k for k in got if k in sent]
+    lat_ms = np.array([got[k] - sent[k] for k in keys]) * 1e3
+    pct = {p: float(np.percentile(lat_ms, p)) if lat_ms.size else float("nan") for p in (50, 90, 99)}
+    pos_cm, rot_deg = [], []
+    for k, T in pose_of.items():
+        D = invert(truth[k]) @ T
+        pos_cm.append(100 * float(np.linalg.norm(T[:3, 3] - truth[k][:3, 3])))
+        rot_deg.append(float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))))
+    pos = np.array(pos_cm)
+    n_answered = len(got) + sum(errors.values())
+    poses = max(len(got), 1)
+    dropped = errors.get(ErrorCode.DROPPED, 0)
+    other = sum(v for k, v in errors.items() if k != ErrorCode.DROPPED)
+    unanswered = len(sent) - n_answered
+    err_max = float(pos.max()) if pos.size else float("nan")
+    holds = (
+        dropped == 0
+        and other == 0
+        and unanswered == 0
+        and not_in_map[0] == 0
+        and pct[99] < P99_TARGET_MS
+        and err_max < ERROR_TARGET_CM
+    )
     return {
         "vehicles": n_vehicles,
+        "seconds": n_scans / RATE_HZ,
+        "link": link,
         "sent": len(sent),
+        "received": received,
         "poses": len(got),
         "fallbacks": statuses.get("fallback", 0),
-        "own_frame": own_frame[0],
-        "dropped": errors.get(ErrorCode.DROPPED, 0),
-        "other_errors": sum(v for k, v in errors.items() if k != ErrorCode.DROPPED),
+        "not_in_map": not_in_map[0],
+        "dropped": dropped,
+        "other_errors": other,
         "other_codes": ", ".join(f"{k} {v}" for k, v in sorted(errors.items()) if k != ErrorCode.DROPPED),
-        "received": received,
-        "unanswered": len(sent) - len(got) - sum(errors.values()),
-        "scans_per_s": len(got) / wall,
-        "err_p50_cm": float(np.percentile(err_cm, 50)) if err_cm.size else float("nan"),
-        "err_max_cm": float(err_cm.max()) if err_cm.size else float("nan"),
-        "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else float("nan"),
-        "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else float("nan"),
-        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        # CPU per answered scan: the service process (which also runs the bench's publishers and
-        # subscriber) and the matcher processes, from /proc over the publishing and answering.
-        "cpu_main_ms": 1e3 * cpu_main / max(len(got) + sum(errors.values()), 1),
-        "cpu_matchers_ms": 1e3 * cpu_matchers / max(len(got), 1),
+        "unanswered": unanswered,
+        "poses_per_s": len(got) / wall,
+        "p50_ms": pct[50],
+        "p90_ms": pct[90],
+        "p99_ms": pct[99],
+        "max_ms": float(lat_ms.max()) if lat_ms.size else float("nan"),
+        "cpu_main_ms": 1e3 * cpu_main / poses,
+        "cpu_matchers_ms": 1e3 * cpu_matchers / poses,
+        "cpu_total_ms": 1e3 * (cpu_main + cpu_matchers) / poses,
+        "cpu_cores_busy": (cpu_main + cpu_matchers) / wall,
+        "bytes_per_sweep": float(sizes.mean()),
+        "mbit_per_vehicle": float(sizes.mean()) * 8 * RATE_HZ / 1e6,
+        "err_max_cm": err_max,
+        "err_rmse_cm": float(np.sqrt(np.mean(pos**2))) if pos.size else float("nan"),
+        "rot_max_deg": float(max(rot_deg)) if rot_deg else float("nan"),
+        "rss_main_mib": rss_main,
+        "rss_matcher_mib": rss_matcher,
+        "holds": holds,
     }
 
 
-def _cpu_seconds(pids: list[int]) -> float:
-    """User + system CPU seconds of these processes (all their threads), from /proc."""
-    total = 0.0
-    tick = os.sysconf("SC_CLK_TCK")
-    for pid in pids:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime (fields 14, 15)
-    return total
+# -- report ------------------------------------------------------------------------------------------
+def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
+    flow_head = [
+        "vehicles",
+        "scans sent",
+        "poses",
+        "dropped",
+        "other errors",
+        "unanswered",
+        "poses/s",
+        "latency p50 / p90 / p99 / max ms",
+        "pose error max / RMSE cm",
+        "rotation error max deg",
+        "holds",
+    ]
+    flow = [
+        [
+            str(r["vehicles"]),
+            str(r["sent"]),
+            str(r["poses"]) + (f" ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""),
+            str(r["dropped"]),
+            str(r["other_errors"]) + (f" ({r['other_codes']})" if r["other_codes"] else ""),
+            str(r["unanswered"]),
+            f"{r['poses_per_s']:.1f}",
+            f"{r['p50_ms']:.0f} / {r['p90_ms']:.0f} / {r['p99_ms']:.0f} / {r['max_ms']:.0f}",
+            f"{r['err_max_cm']:.2f} / {r['err_rmse_cm']:.2f}",
+            f"{r['rot_max_deg']:.3f}",
+            "yes" if r["holds"] else "no",
+        ]
+        for r in results
+    ]
+    cost_head = [
+        "vehicles",
+        "CPU ms per sweep: service main / matchers / sum",
+        "cores busy",
+        "bytes per sweep",
+        "Mbit/s per vehicle",
+        "peak RSS MiB: main / largest matcher",
+    ]
+    cost = [
+        [
+            str(r["vehicles"]),
+            f"{r['cpu_main_ms']:.1f} / {r['cpu_matchers_ms']:.1f} / {r['cpu_total_ms']:.1f}",
+            f"{r['cpu_cores_busy']:.2f}",
+            f"{r['bytes_per_sweep']:,.0f}",
+            f"{r['mbit_per_vehicle']:.1f}",
+            f"{r['rss_main_mib']:.0f} / {r['rss_matcher_mib']:.0f}",
+        ]
+        for r in results
+    ]
+    return flow_head, flow, cost_head, cost
+
+
+def plot(results: list[dict[str, Any]], path: Path) -> None:
+    """Latency percentiles and drops against fleet size (``path``), the figures as CSV beside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = [
+        "vehicles",
+        "sent",
+        "poses",
+        "dropped",
+        "other_errors",
+        "unanswered",
+        "poses_per_s",
+        "p50_ms",
+        "p90_ms",
+        "p99_ms",
+        "max_ms",
+        "cpu_main_ms",
+        "cpu_matchers_ms",
+        "cpu_total_ms",
+        "bytes_per_sweep",
+        "mbit_per_vehicle",
+        "err_max_cm",
+        "err_rmse_cm",
+        "rot_max_deg",
+        "holds",
+    ]
+    with open(path.with_suffix(".csv"), "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(fields)
+        for r in results:
+            writer.writerow([f"{r[k]:.3f}" if isinstance(r[k], float) else r[k] for k in fields])
+    n = [r["vehicles"] for r in results]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    for key, style in (("p50_ms", "o-"), ("p90_ms", "s-"), ("p99_ms", "^-"), ("max_ms", "x--")):
+        ax1.plot(n, [r[key] for r in results], style, label=key.removesuffix("_ms"))
+    ax1.axhline(P99_TARGET_MS, color="red", linewidth=0.8, linestyle=":", label="p99 target")
+    ax1.set_yscale("log")
+    ax1.set_xlabel("vehicles at 10 Hz")
+    ax1.set_ylabel("publish-to-pose latency (ms)")
+    ax1.legend()
+    ax1.grid(True, which="both", alpha=0.3)
+    ax2.bar(n, [100 * r["dropped"] / max(r["sent"], 1) for r in results], color="tab:orange")
+    ax2.set_xlabel("vehicles at 10 Hz")
+    ax2.set_ylabel("scans dropped (%)")
+    ax2.set_xticks(n)
+    ax2.grid(True, axis="y", alpha=0.3)
+    link = results[0]["link"] if results else ""
+    seconds = results[0]["seconds"] if results else 0
+    fig.suptitle(f"Service on this machine: {seconds:g} s per fleet size, {link} link")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 8])
-    parser.add_argument("--seconds", type=float, default=6.0)
+    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 6, 8])
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument(
+        "--link",
+        choices=["default", "raw"],
+        default="default",
+        help="default: the vehicle library's encoding with its default settings; raw: full v1 sweeps",
+    )
     parser.add_argument("--markdown", action="store_true")
+    parser.add_argument("--plot", type=Path, help="latency and drops against fleet size (PNG; CSV beside it)")
+    parser.add_argument(
+        "--service-repo",
+        type=Path,
+        default=REPO,
+        help="run the service from this checkout (a before/after comparison); default: this one",
+    )
+    parser.add_argument(
+        "--sweeps",
+        type=Path,
+        help="keep the simulated sweeps in this directory and reuse them when a later run asks for "
+        "the same fleet, duration and link (default: a temporary directory)",
+    )
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.one, args.seconds)))
+        print(json.dumps(run_one(args.one, args.spool, args.link, args.service_repo)))
         return
     print(f"Command: python bench/service.py {shlex.join(sys.argv[1:])}")
     print(machine_line({}, single_threaded=False))
     print(f"{git_line()}; run on {datetime.date.today().isoformat()}")
-    print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
-    rows = []
-    for n in args.vehicles:
-        progress(f"{n} vehicle(s)")
-        out = (
-            subprocess.run(
-                [sys.executable, __file__, "--one", str(n), "--seconds", str(args.seconds)],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            .stdout.strip()
-            .splitlines()[-1]
-        )
-        r = json.loads(out)
-        rows.append(
-            [
-                str(r["vehicles"]),
-                str(r["sent"]),
-                str(r["poses"]),
-                str(r["fallbacks"]),
-                str(r["own_frame"]),
-                str(r["dropped"]),
-                str(r["other_errors"]) + (f" ({r['other_codes']})" if r["other_codes"] else ""),
-                str(r["received"]),
-                str(r["unanswered"]),
-                f"{r['scans_per_s']:.2f}",
-                f"{r['p50_ms']:.0f}",
-                f"{r['p99_ms']:.0f}",
-                f"{r['err_p50_cm']:.1f} / {r['err_max_cm']:.1f}",
-                f"{r['peak_rss_mib']:.0f}",
-                f"{r['cpu_main_ms']:.0f} / {r['cpu_matchers_ms']:.0f}",
-            ]
-        )
-    print(heading(f"{args.seconds:g} s of 10 Hz sweeps per vehicle (about 120k points each)", args.markdown))
+    results = []
+    with contextlib.ExitStack() as stack:
+        spool = args.sweeps or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-sweeps-")))
+        spool.mkdir(parents=True, exist_ok=True)
+        meta = {"vehicles": max(args.vehicles), "scans": round(args.seconds * RATE_HZ), "link": args.link}
+        meta_path = spool / "meta.json"
+        if not meta_path.exists() or json.loads(meta_path.read_text()) != meta:
+            meta_path.unlink(missing_ok=True)
+            simulate(meta["vehicles"], meta["scans"], args.link, spool)
+            meta_path.write_text(json.dumps(meta))
+        else:
+            progress(f"reusing the sweeps in {spool}")
+        print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
+        for n in args.vehicles:
+            progress(f"{n} vehicle(s), {args.seconds:g} s")
+            command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool), "--link", args.link]
+            command += ["--service-repo", str(args.service_repo)]
+            out = subprocess.run(command, capture_output=True, text=True)
+            if out.returncode != 0:
+                sys.stderr.write(out.stderr)
+                raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
+            results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    flow_head, flow, cost_head, cost = _rows(results)
+    title = f"{args.seconds:g} s of 10 Hz sweeps per vehicle, {args.link} link"
+    print(heading(f"{title}: flow, latency and accuracy", args.markdown))
+    print(table(flow_head, flow, args.markdown))
+    print(heading(f"{title}: cost", args.markdown))
+    print(table(cost_head, cost, args.markdown))
+    holding = [r["vehicles"] for r in results if r["holds"]]
     print(
-        table(
-            [
-                "vehicles",
-                "scans sent",
-                "poses",
-                "of which fallbacks",
-                "in own frame",
-                "dropped",
-                "other errors",
-                "received by service",
-                "unanswered",
-                "poses/s",
-                "p50 ms",
-                "p99 ms",
-                "position error p50 / max cm",
-                "peak RSS MiB",
-                "CPU ms per scan: service / matchers",
-            ],
-            rows,
-            args.markdown,
-        )
+        f"\nLargest fleet that holds (no drop, p99 < {P99_TARGET_MS:.0f} ms, every pose within "
+        f"{ERROR_TARGET_CM:g} cm): {max(holding) if holding else 'none'}"
     )
-    print(f"\n1-min load average at end: {os.getloadavg()[0]:.2f}")
+    print(f"1-min load average at end: {os.getloadavg()[0]:.2f}")
+    if args.plot:
+        plot(results, args.plot)
+        print(f"plot: {args.plot} (figures in {args.plot.with_suffix('.csv')})")
 
 
 if __name__ == "__main__":

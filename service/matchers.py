@@ -34,7 +34,7 @@ import threading
 import time
 import traceback
 from collections.abc import Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -46,7 +46,15 @@ from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanRe
 from core.tiles import TileGrid
 from core.transforms import transform_points
 
-__all__ = ["LocalMatcher", "MatcherPool", "MatcherProcessDiedError", "MatcherProcessError", "RemoteMatcher"]
+__all__ = [
+    "LocalMatcher",
+    "MatcherPool",
+    "MatcherProcessDiedError",
+    "MatcherProcessError",
+    "Registered",
+    "RemoteMatcher",
+    "single_threaded_blas",
+]
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +78,59 @@ def _portable(exc: Exception) -> Exception:
     except Exception:
         return MatcherProcessError(f"in matcher process pid {os.getpid()}: {type(exc).__name__}: {exc}")
     return exc
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A registered sweep and the points of it that the session's map may keep.
+
+    Attributes
+    ----------
+    result:
+        The matcher's :class:`~core.odometry.ScanResult`. From a matcher process that knows the
+        session's map, its ``deskewed_xyz`` and ``map_index`` are empty: ``map_xyz`` and
+        ``map_index`` below replace them (nothing is sent twice).
+    map_xyz:
+        (M, 3) float32 points in the map frame, ready for :meth:`core.tiles.TileGrid.insert`
+        (which stores float32): the deskewed sweep moved by the pose, cut to the points the map
+        can keep (:meth:`~core.tiles.TileGrid.candidate_mask`) when the map is known; none for
+        a ``fallback`` result (its points are not folded into the map).
+    map_index:
+        (M,) rows of the sweep as sent, for each point of ``map_xyz`` (its intensity).
+    """
+
+    result: ScanResult
+    map_xyz: np.ndarray
+    map_index: np.ndarray
+
+
+def _registered(result: ScanResult, grid: TileGrid | None) -> Registered:
+    """:class:`Registered` of a result: its points in the map frame (float32), cut to the
+    candidates of ``grid`` when given. A fallback keeps no points."""
+    if result.status == "fallback":
+        return Registered(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
+    world = transform_points(result.T_world_sensor, result.deskewed_xyz)
+    if grid is None:
+        return Registered(result, world.astype(np.float32), result.map_index)
+    keep = grid.candidate_mask(world)
+    slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
+    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep])
+
+
+def single_threaded_blas() -> None:
+    """Limit the BLAS/OpenMP thread pools of this process to one thread (for the rest of its life).
+
+    The service runs one matcher process per core next to its own threads, so the cores are
+    always busy: a multi-threaded BLAS call then has its threads spin-wait for a core (OpenBLAS
+    does), and an ``(N, 3) @ (3, 3)`` product was measured at 17 ms instead of 4 ms on this 2-core
+    machine. The service process (:meth:`service.runtime.Service.start`) and every matcher process
+    (:func:`_serve`) call this. It uses threadpoolctl, which sets the limit through each loaded
+    library's own API, so it works after numpy is imported (environment variables such as
+    ``OPENBLAS_NUM_THREADS`` are read only when the library loads).
+    """
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
 
 
 def _warm_up() -> None:
@@ -106,6 +167,7 @@ def _serve(conn: Connection) -> None:
     (the parent) stops its workers itself after draining the sessions (``quit``, or the pipe closing).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored when started from the main thread)
+    single_threaded_blas()
     try:
         _warm_up()
     except Exception:  # a failed warm-up only costs the first sweep its compile time
@@ -138,19 +200,14 @@ def _serve(conn: Connection) -> None:
             elif op == "register":
                 xyz, offsets, prior, stamp_s, behind = args
                 # The keyframe model is rebuilt after the reply (below), while the service publishes.
-                value = matchers[key].register_scan(
+                result = matchers[key].register_scan(
                     xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
                 )
                 deferred = matchers[key]
-                grid = grids.get(key)
-                if grid is not None and value.status != "fallback":
-                    # Send back only the points the map can keep (TileGrid.candidate_mask): the
-                    # service process's insert then handles about a quarter of them.
-                    world = transform_points(value.T_world_sensor, value.deskewed_xyz)
-                    keep = grid.candidate_mask(world)
-                    value = replace(
-                        value, deskewed_xyz=value.deskewed_xyz[keep], map_index=value.map_index[keep]
-                    )
+                # With the session's map known, only the points it can keep go back, already in
+                # the map frame (float32, as the map stores them): the service process's insert
+                # then handles about a quarter of the sweep and transforms nothing.
+                value = _registered(result, grids.get(key))
             elif op == "state":
                 value = matchers[key].state_dict()
             elif op == "drop":
@@ -383,6 +440,30 @@ class RemoteMatcher:
     def process_index(self) -> int:
         return self._proc.index
 
+    def register(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        behind: bool = False,
+    ) -> Registered:
+        """:meth:`IncrementalMatcher.register_scan` in the session's process, with the points the
+        session's map may keep (:class:`Registered`). Points and time offsets are sent as given
+        (float32 straight from the wire: half the bytes of float64; the matcher widens them).
+
+        The process always defers a keyframe's model rebuild until it has replied, and does it
+        then unless ``behind`` (more of the session's scans are waiting) or another request
+        arrives within :data:`NEXT_REQUEST_WAIT_S`: then the next sweep matches without the
+        newest keyframe, and the model is rebuilt once for two
+        (:meth:`IncrementalMatcher.update_model`)."""
+        registered: Registered = self._proc.call(
+            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind
+        )
+        self.poses.append(registered.result.T_world_sensor)
+        return registered
+
     def register_scan(
         self,
         points_xyz: np.ndarray,
@@ -393,18 +474,14 @@ class RemoteMatcher:
         defer_model: bool = True,
         behind: bool = False,
     ) -> ScanResult:
-        """:meth:`IncrementalMatcher.register_scan` in the session's process. The process always
-        defers a keyframe's model rebuild until it has replied (``defer_model`` is accepted for
-        the same signature), and does it then unless ``behind`` (more of the session's scans are
-        waiting) or another request arrives within :data:`NEXT_REQUEST_WAIT_S`: then the next
-        sweep matches without the newest keyframe, and the model is rebuilt once for two
-        (:meth:`IncrementalMatcher.update_model`)."""
+        """:meth:`register`'s result (``defer_model`` is accepted for
+        :meth:`IncrementalMatcher.register_scan`'s signature: the process always defers). With
+        the session's map given to :meth:`MatcherPool.open`, its ``deskewed_xyz`` is empty: the
+        map's points are in :meth:`register`'s answer."""
         del defer_model
-        result: ScanResult = self._proc.call(
-            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind
-        )
-        self.poses.append(result.T_world_sensor)
-        return result
+        return self.register(
+            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, behind=behind
+        ).result
 
     def update_model(self) -> float:
         """Nothing to do here: the process rebuilds the model right after replying."""
@@ -442,6 +519,27 @@ class LocalMatcher(IncrementalMatcher):
         return super().register_scan(
             points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
         )
+
+    def register(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        behind: bool = False,
+    ) -> Registered:
+        """:meth:`register_scan` (the model rebuild deferred: the caller runs :meth:`update_model`
+        after publishing) and every point of the sweep in the map frame (:class:`Registered`)."""
+        result = self.register_scan(
+            points_xyz,
+            time_offset_s=time_offset_s,
+            prior=prior,
+            stamp_s=stamp_s,
+            defer_model=True,
+            behind=behind,
+        )
+        return _registered(result, None)
 
     def close(self) -> None:
         """Nothing to release."""

@@ -12,6 +12,7 @@ import logging
 import time
 from collections.abc import Callable
 
+from service.matchers import single_threaded_blas
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
@@ -39,6 +40,7 @@ class Service:
 
     def start(self) -> None:
         s = self.settings
+        single_threaded_blas()  # its threads and the matcher processes share the cores
         self.store = Store(s.data_dir)
         outbox: Callable[[WireMessage], None]
         if self._with_zenoh:

@@ -68,7 +68,8 @@ class ServiceSettings(BaseSettings):
         default=-1,
         ge=-1,
         description="running sessions at most; a scan that would open one more is refused "
-        "(sessions_full): -1 = 2 per core (what 2 cores track at 10 Hz, docs/benchmarks.md), 0 = no limit",
+        "(sessions_full): -1 = 4 per core (8 on 2 cores, which track 8 vehicles at 10 Hz with the "
+        "vehicle library's reduced sweeps, docs/benchmarks.md), 0 = no limit",
     )
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
     # intake and fair admission (service/intake.py, service/sessions.py: Admission)

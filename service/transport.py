@@ -5,7 +5,9 @@
   vehicle's bounded intake queue (``service/intake.py``): no decoding, no locks held across work, no
   store or matcher, no Zenoh calls inside the callback. Intake workers decode and admit it;
 - one sender thread that publishes everything outbound (poses, errors, tile updates) from a
-  bounded queue, so neither callbacks nor session workers ever wait on the network;
+  bounded queue, so neither callbacks nor session workers ever wait on the network. Answers
+  (poses, errors) go before tile updates waiting in it: the flusher queues a burst of tile updates
+  every second (tens to hundreds of kB each), and a pose queued behind them waited for all of them;
 - a liveliness token ``randt/service/<instance>`` while the instance runs;
 - a queryable on ``randt/map/*/tile/*`` answering with the tile's current update message.
 
@@ -18,6 +20,7 @@ and access control (``docs/security.md``).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import threading
@@ -50,7 +53,12 @@ class ZenohTransport:
         self.settings = settings
         self._on_scan = on_scan
         self._tile_provider = tile_provider
-        self._out: queue.Queue[tuple[str, bytes, bool] | None] = queue.Queue(max_outbound)
+        # (rank, order, item): answers (rank 0) before tile updates (1), each in order; the stop
+        # mark (2) after everything queued before it.
+        self._out: queue.PriorityQueue[tuple[int, int, tuple[str, bytes, bool] | None]] = queue.PriorityQueue(
+            max_outbound
+        )
+        self._order = itertools.count()
         self._session: zenoh.Session | None = None
         self._sender: threading.Thread | None = None
         self._handles: list[object] = []
@@ -99,13 +107,14 @@ class ZenohTransport:
         """Queue a message for publication (drops it, counted, if the outbound queue is full)."""
         answer = isinstance(message, PoseMessage | ErrorMessage)
         try:
-            self._out.put_nowait((key_for(message), encode(message), answer))
+            item = (key_for(message), encode(message), answer)
+            self._out.put_nowait((0 if answer else 1, next(self._order), item))
         except queue.Full:
             self.dropped_outbound += 1
 
     def _send_loop(self) -> None:
         while True:
-            item = self._out.get()
+            _, _, item = self._out.get()
             if item is None:
                 return
             key, payload, answer = item
@@ -129,7 +138,7 @@ class ZenohTransport:
     def close(self) -> None:
         """Publish what is queued, then close the Zenoh session."""
         if self._sender is not None:
-            self._out.put(None)
+            self._out.put((2, next(self._order), None))
             self._sender.join(10)
         for h in self._handles:
             undeclare = getattr(h, "undeclare", None)

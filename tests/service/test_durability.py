@@ -14,6 +14,8 @@ processes with SIGKILL (``bench/crash.py``).
 from __future__ import annotations
 
 import hashlib
+import threading
+import time
 
 import numpy as np
 
@@ -225,3 +227,81 @@ def test_extend_state_dict_brings_the_snapshot_to_the_last_logged_pose() -> None
     np.testing.assert_allclose(gap["delta"], scale_motion(step, 0.5), atol=1e-9)
     assert np.linalg.norm(gap["delta"][:3, 3]) < 0.6 * np.linalg.norm(step[:3, 3])
     assert extend_state_dict(full, full["poses"], stamps) is full  # nothing to add
+
+
+def test_a_new_session_matches_on_while_its_first_snapshot_is_written(tmp_path, monkeypatch) -> None:
+    """The first snapshot is written on its own thread: the session goes on matching meanwhile,
+    but no pose goes out before the snapshot is on disk; then the held poses go out in order,
+    each with its latency counted from its own arrival."""
+    svc = _unflushed(tmp_path)
+    real = svc.store.save_session
+    release = threading.Event()
+    calls: list[int] = []
+
+    def slow_disk(record, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(record.n_scans)
+        assert release.wait(60)
+        return real(record, *args, **kwargs)
+
+    monkeypatch.setattr(svc.store, "save_session", slow_disk)
+    try:
+        for seq in range(4):
+            svc.sessions.submit("v1", _scan(seq))
+        worker = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            worker = svc.sessions.worker("v1", "d1")
+            if worker is not None and worker.info.n_scans == 4:
+                break
+            time.sleep(0.02)
+        assert worker is not None and worker.info.n_scans == 4  # all four matched and logged...
+        assert not [m for m in svc._sent if isinstance(m, PoseMessage)]  # ...none acknowledged
+        assert calls and calls[0] >= 1
+        release.set()
+        answers = wait_answers(svc, 4)
+        assert [(type(m), m.seq) for m in answers] == [(PoseMessage, seq) for seq in range(4)]
+        assert isinstance(answers[0], PoseMessage) and answers[0].status == "first"
+        latencies = [m.latency_ms for m in answers if isinstance(m, PoseMessage)]
+        assert latencies == sorted(latencies, reverse=True) and latencies[-1] > 0  # scan 0 waited longest
+        stamps, _ = svc.sessions.stored_trajectory("v1", "d1")
+        assert stamps.shape[0] >= 1  # the first snapshot is on disk
+    finally:
+        release.set()
+        svc.stop()
+
+
+def test_held_poses_are_answered_storage_error_when_the_first_snapshot_fails(tmp_path, monkeypatch) -> None:
+    svc = _unflushed(tmp_path)
+    real = svc.store.save_session
+    release = threading.Event()
+
+    def disk_full(*args: object, **kwargs: object) -> None:
+        assert release.wait(60)
+        raise FormatError("cannot write matcher.npz: [Errno 28] No space left on device")
+
+    monkeypatch.setattr(svc.store, "save_session", disk_full)
+    try:
+        for seq in range(3):
+            svc.sessions.submit("v1", _scan(seq))
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            w = svc.sessions.worker("v1", "d1")
+            if w is not None and w.info.n_scans == 3:
+                break
+            time.sleep(0.02)
+        release.set()
+        answers = wait_answers(svc, 3)
+        assert [(type(m), m.seq) for m in answers] == [(ErrorMessage, seq) for seq in range(3)]
+        assert {m.code for m in answers if isinstance(m, ErrorMessage)} == {ErrorCode.STORAGE_ERROR}
+        # the disk is back: the session starts afresh (nothing of it was acknowledged)
+        monkeypatch.setattr(svc.store, "save_session", real)
+        deadline = time.monotonic() + 30
+        while svc.sessions.worker("v1", "d1") is not None and time.monotonic() < deadline:
+            time.sleep(0.02)  # the session was abandoned without another scan
+        assert svc.sessions.worker("v1", "d1") is None
+        svc.sessions.submit("v1", _scan(3))
+        ok = wait_answers(svc, 4)[-1]
+        assert isinstance(ok, PoseMessage) and ok.seq == 3 and ok.status == "first"
+    finally:
+        release.set()
+        svc.stop()

@@ -16,7 +16,13 @@ from core.odometry import IncrementalMatcher, MatcherSettings
 from core.protocol import synthetic_room
 from core.tiles import TileGrid
 from core.transforms import invert, make_transform, transform_points
-from service.matchers import MatcherPool, MatcherProcessDiedError, MatcherProcessError, _portable
+from service.matchers import (
+    LocalMatcher,
+    MatcherPool,
+    MatcherProcessDiedError,
+    MatcherProcessError,
+    _portable,
+)
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
@@ -108,25 +114,35 @@ def test_a_killed_matcher_process_costs_its_sessions_only_unsaved_scans(tmp_path
 
 
 def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
-    """With the session's map given, the worker process sends back the candidate points only, and
-    the map built from them equals the map built from the full in-process result."""
-    sweeps = [s.astype(np.float64) for s in _sweeps(3)]
+    """With the session's map given, the worker process sends back the candidate points only, in
+    the map frame as float32, from float32 sweeps (as the wire carries them); the map built from
+    them equals the map built from the full in-process float64 result, and the in-process
+    matcher's ``register`` gives every point."""
+    sweeps = _sweeps(3)
     local = IncrementalMatcher(MatcherSettings())
-    full, reduced = TileGrid(20, 0.2), TileGrid(20, 0.2)
+    in_process = LocalMatcher(MatcherSettings())
+    full, reduced, local_grid = TileGrid(20, 0.2), TileGrid(20, 0.2), TileGrid(20, 0.2)
     pool = MatcherPool(1)
     try:
         remote = pool.open(("v", "s"), None, reduced)
         for xyz in sweeps:
-            a, b = local.register_scan(xyz), remote.register_scan(xyz)
-            assert b.deskewed_xyz.shape[0] < a.deskewed_xyz.shape[0]
-            assert full.insert(transform_points(a.T_world_sensor, a.deskewed_xyz)) == reduced.insert(
-                transform_points(b.T_world_sensor, b.deskewed_xyz)
-            )
+            a = local.register_scan(xyz.astype(np.float64))
+            b = remote.register(xyz)
+            c = in_process.register(xyz)
+            np.testing.assert_allclose(b.result.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
+            assert b.map_xyz.dtype == np.float32 and b.result.deskewed_xyz.shape[0] == 0
+            assert 0 < b.map_xyz.shape[0] == b.map_index.shape[0] < a.deskewed_xyz.shape[0]
+            # the kept rows of the sweep, in the sweep's order (their intensities follow them)
+            np.testing.assert_array_equal(b.map_index, a.map_index[np.isin(a.map_index, b.map_index)])
+            assert c.map_xyz.shape[0] == a.deskewed_xyz.shape[0]
+            world = transform_points(a.T_world_sensor, a.deskewed_xyz)
+            assert full.insert(world) == reduced.insert(b.map_xyz) == local_grid.insert(c.map_xyz)
     finally:
         pool.close()
     assert full.tile_ids() == reduced.tile_ids() and full.n_points == reduced.n_points > 1000
     for tid in full.tile_ids():
         np.testing.assert_array_equal(full.get(tid).points, reduced.get(tid).points)
+        np.testing.assert_array_equal(full.get(tid).points, local_grid.get(tid).points)
 
 
 def test_an_error_raised_in_a_matcher_process_arrives_as_itself() -> None:
