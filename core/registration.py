@@ -58,6 +58,7 @@ __all__ = [
     "RegistrationResult",
     "auto_voxel_sizes",
     "prepare_reference",
+    "reference_inlier_mask",
     "register",
     "sanitize_points",
 ]
@@ -268,10 +269,7 @@ def prepare_reference(
     else:
         pts = voxel_downsample(target_xyz, voxel)
     n_in = pts.shape[0]
-    if settings.outlier_removal == "iqr":
-        pts = pts[_algorithm1_mask(pts, finest, settings)]
-    elif settings.outlier_removal == "sor":
-        pts = pts[statistical_outlier_mask(pts)]
+    pts = pts[reference_inlier_mask(pts, settings, finest)]
     maps = VoxelGaussianMap.build_pyramid(
         pts,
         voxel_sizes_m,
@@ -279,6 +277,18 @@ def prepare_reference(
         eigenvalue_ratio=settings.eigenvalue_ratio,
     )
     return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
+
+
+def reference_inlier_mask(
+    points_xyz: np.ndarray, settings: RegistrationSettings, finest_m: float
+) -> np.ndarray:
+    """The reference's outlier removal as the settings choose: Algorithm 1 (``"iqr"``, with
+    Gaussians at the finest NDT voxel ``finest_m``), SOR, or none (all True)."""
+    if settings.outlier_removal == "iqr":
+        return _algorithm1_mask(points_xyz, finest_m, settings)
+    if settings.outlier_removal == "sor":
+        return statistical_outlier_mask(points_xyz)
+    return np.ones(points_xyz.shape[0], dtype=bool)
 
 
 def _algorithm1_mask(

@@ -231,6 +231,35 @@ class VoxelGaussianMap:
         pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
         inverse, keys, _ = voxel_groups(pts, finest)
         counts, mean, scatter = group_moments(pts, inverse, keys.size)
+        return cls.pyramid_from_moments(
+            (keys, counts, mean, scatter),
+            finest,
+            sizes,
+            min_points_per_voxel=min_points_per_voxel,
+            eigenvalue_ratio=eigenvalue_ratio,
+        )
+
+    @classmethod
+    def pyramid_from_moments(
+        cls,
+        moments: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        finest_m: float,
+        voxel_sizes_m: tuple[float, ...],
+        *,
+        min_points_per_voxel: int = 6,
+        eigenvalue_ratio: float = 0.01,
+    ) -> tuple[VoxelGaussianMap, ...]:
+        """The maps at ``voxel_sizes_m`` (each ``finest_m`` times a power of two) from the finest
+        voxels' ``(keys, counts, means, scatter matrices about the means)`` (any key order): the
+        coarser levels by the parent rule (:func:`_parent_moments`), as :meth:`build_pyramid`."""
+        sizes = tuple(float(v) for v in voxel_sizes_m)
+        powers = [round(np.log2(v / finest_m)) for v in sizes]
+        pairs = zip(sizes, powers, strict=True)
+        nested = [k >= 0 and abs(v - finest_m * 2.0**k) <= 1e-9 * v for v, k in pairs]
+        if not all(nested):
+            raise ValueError(f"voxel sizes {sizes} are not {finest_m:g} m times powers of two")
+        keys, counts, mean, scatter = moments
+        finest = finest_m
         by_power = {0: (keys, counts, mean, scatter)}
         v = finest
         for k in range(1, max(powers) + 1):
