@@ -10,7 +10,9 @@ same model is kept up to date instead, as KISS-ICP keeps its voxel hash map:
   keyframe's point winning its voxel. Evicting the oldest keyframe then removes exactly the
   voxels no newer keyframe covers, with nothing to refill.
 * **Algorithm 1** (IQR on Mahalanobis distances) judges each keyframe's points once, as they
-  join, with the keyframe's own Gaussians at the finest NDT voxel; outliers never enter.
+  join (:meth:`KeyframeModel.judge`), against the Gaussians of the fused model with them at the
+  finest NDT voxel: a far voxel that one sweep samples with three points but the window with
+  twenty keeps its points, as in the batch form; outliers never enter.
 * **Radius bound**: points farther than ``radius_m`` (in x-y) from the newest keyframe leave the
   model for good (KISS-ICP drops its far voxels the same way).
 * **NDT moments**: per finest NDT voxel the count, the sum and the scatter of the points about
@@ -31,6 +33,7 @@ import numpy as np
 
 from core.config import RegistrationSettings
 from core.kernels import group_moments
+from core.outliers import iqr_fence_mask, statistical_outlier_mask
 from core.registration import PreparedReference
 from core.voxel import VoxelGaussianMap, pack_keys, unpack_keys, voxel_coords, voxel_groups
 
@@ -99,7 +102,21 @@ class VoxelMoments:
         scatter[b] += sign * other.scatter
         assert counts.min(initial=0) >= 0, "removed points that were never added"
         keep = counts > 0
-        return VoxelMoments(self.voxel_size_m, keys[keep], counts[keep], sums[keep], scatter[keep])
+        return VoxelMoments(
+            self.voxel_size_m,
+            keys[keep],
+            counts[keep],
+            np.compress(keep, sums, axis=0),
+            np.compress(keep, scatter, axis=0),
+        )
+
+    def subset(self, keys: np.ndarray) -> VoxelMoments:
+        """The moments of the voxels among ``keys`` (ascending) that hold points here."""
+        at = np.minimum(np.searchsorted(self.keys, keys), max(self.keys.size - 1, 0))
+        hit = at[self.keys[at] == keys] if self.keys.size else at[:0]
+        return VoxelMoments(
+            self.voxel_size_m, self.keys[hit], self.counts[hit], self.sums[hit], self.scatter[hit]
+        )
 
     def gaussian_moments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(keys, counts, means, scatter about the means)``: what the NDT fit takes."""
@@ -117,10 +134,14 @@ class KeyframeModel:
     Attributes
     ----------
     voxel_m : the model voxel: one point per voxel of this size.
-    points_xyz : (M,3) float64 the model's points, world frame.
+    points_xyz : (M,3) float64 the window's points, world frame, Algorithm 1's outliers included
+        (they hold their voxels and take part in judging later keyframes, as in the batch form).
     keys : (M,) int64 their model-voxel keys (unique).
+    fine_keys : (M,) int64 their keys at the finest NDT voxel (the moments').
     tags : (M,) int64 the keyframe each point came from (ids count from 0 per session).
-    moments : the points' moments at the finest NDT voxel.
+    inlier : (M,) bool Algorithm 1's verdict when the point joined: only inliers are matched.
+    moments : the inliers' moments at the finest NDT voxel (the matching model's).
+    all_moments : every point's moments there (the Gaussians Algorithm 1 judges with).
     ids : the keyframes in the window, oldest first.
     next_id : the id the next keyframe gets.
     n_removed_outliers : points Algorithm 1 removed from the last keyframe added.
@@ -129,8 +150,11 @@ class KeyframeModel:
     voxel_m: float
     points_xyz: np.ndarray
     keys: np.ndarray
+    fine_keys: np.ndarray
     tags: np.ndarray
+    inlier: np.ndarray
     moments: VoxelMoments
+    all_moments: VoxelMoments
     ids: tuple[int, ...] = ()
     next_id: int = 0
     n_removed_outliers: int = 0
@@ -142,12 +166,63 @@ class KeyframeModel:
             np.zeros((0, 3)),
             np.zeros(0, dtype=np.int64),
             np.zeros(0, dtype=np.int64),
+            np.zeros(0, dtype=np.int64),
+            np.zeros(0, dtype=bool),
+            VoxelMoments.empty(finest_ndt_m),
             VoxelMoments.empty(finest_ndt_m),
         )
 
     @property
     def n_points(self) -> int:
-        return int(self.points_xyz.shape[0])
+        """Points matched against (Algorithm 1's inliers)."""
+        return int(np.count_nonzero(self.inlier))
+
+    @property
+    def inlier_xyz(self) -> np.ndarray:
+        """(n_points, 3) the points matched against."""
+        return np.compress(self.inlier, self.points_xyz, axis=0)
+
+    def judge(self, points_world: np.ndarray, settings: RegistrationSettings) -> np.ndarray:
+        """The reference's outlier removal on a joining keyframe's points (N,3): True for inliers.
+
+        Algorithm 1 (``outlier_removal="iqr"``) against the fused window: each point's squared
+        Mahalanobis distance to the Gaussian of its finest NDT voxel fitted to the window's points
+        (outliers included, as the batch form fits them) and the keyframe's together (no
+        Gaussian: an isolated return, an outlier), then Tukey's fences per voxel from the
+        distances of all those points (pooled fences, from every distance, below
+        ``iqr_min_points_for_voxel_quartiles`` points), as the batch form does over the whole
+        window; but only the joining points are judged: points already in the window keep the
+        verdict they got when they joined.
+        SOR judges the keyframe alone; ``"none"`` keeps all.
+        """
+        pts = np.ascontiguousarray(points_world, dtype=np.float64)
+        if settings.outlier_removal == "none":
+            return np.ones(pts.shape[0], dtype=bool)
+        if settings.outlier_removal == "sor":
+            mask: np.ndarray = statistical_outlier_mask(pts)
+            return mask
+        finest = self.moments.voxel_size_m
+        added = VoxelMoments.of_points(pts, finest)
+        keys, counts, mean, scatter = self.all_moments.subset(added.keys).merged(added, +1).gaussian_moments()
+        gmap = VoxelGaussianMap._from_moments(
+            finest, keys, counts, mean, scatter, settings.min_points_per_voxel, settings.eigenvalue_ratio
+        )
+        # The model's points in the voxels the keyframe touches take part in the quartiles.
+        at = np.minimum(np.searchsorted(added.keys, self.fine_keys), max(added.keys.size - 1, 0))
+        near = np.flatnonzero(added.keys[at] == self.fine_keys) if self.fine_keys.size else at[:0]
+        n_new = pts.shape[0]
+        pts = np.concatenate([pts, np.take(self.points_xyz, near, axis=0)])
+        point_keys = np.concatenate([pack_keys(voxel_coords(pts[:n_new], finest)), self.fine_keys[near]])
+        at = np.minimum(np.searchsorted(gmap.keys, point_keys), gmap.n_voxels - 1)
+        vidx = np.where(gmap.keys[at] == point_keys, at, -1)
+        inliers: np.ndarray = iqr_fence_mask(
+            pts,
+            gmap,
+            vidx,
+            k=settings.iqr_k,
+            min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
+        )
+        return inliers[:n_new]
 
     def add_keyframe(
         self,
@@ -164,17 +239,19 @@ class KeyframeModel:
         ----------
         points_world : (N,3) the keyframe's points in the world frame, density-equalized at
             ``voxel_m`` (at most one per model voxel; extra ones in a voxel are ignored).
-        inliers : (N,) bool Algorithm 1's verdict on them: only inliers join.
+        inliers : (N,) bool Algorithm 1's verdict on them (:meth:`judge`): every point joins
+            and wins its voxel, only inliers are matched against.
         center_xy : the new keyframe's position; points beyond ``radius_m`` of it (x-y) leave.
         max_keyframes : window length; the oldest keyframe leaves when it is full.
         """
-        new = np.ascontiguousarray(points_world[inliers], dtype=np.float64)
+        new = np.asarray(points_world, dtype=np.float64)
         cx, cy = center_xy
         r2 = float(radius_m) ** 2
-        new = new[_xy_dist2(new, cx, cy) <= r2]
-        new_keys = pack_keys(voxel_coords(new, self.voxel_m))
-        new_keys, first = np.unique(new_keys, return_index=True)
-        new = new[first]
+        near = np.flatnonzero(_xy_dist2(new, cx, cy) <= r2)
+        new_keys, first = np.unique(
+            pack_keys(voxel_coords(np.take(new, near, axis=0), self.voxel_m)), return_index=True
+        )
+        new, new_inlier = np.take(new, near[first], axis=0), np.asarray(inliers, dtype=bool)[near[first]]
         ids = self.ids
         leave = np.zeros(self.keys.size, dtype=bool)
         if len(ids) >= max_keyframes:
@@ -187,17 +264,22 @@ class KeyframeModel:
         leave |= _xy_dist2(self.points_xyz, cx, cy) > r2
         stay = ~leave
         finest = self.moments.voxel_size_m
-        moments = self.moments.merged(VoxelMoments.of_points(self.points_xyz[leave], finest), -1)
-        moments = moments.merged(VoxelMoments.of_points(new, finest), +1)
+        # np.compress, not a boolean index: 8x faster on (N,3) arrays.
+        gone = VoxelMoments.of_points(np.compress(leave, self.points_xyz, axis=0), finest)
+        gone_in = VoxelMoments.of_points(np.compress(leave & self.inlier, self.points_xyz, axis=0), finest)
+        came_in = VoxelMoments.of_points(np.compress(new_inlier, new, axis=0), finest)
         return KeyframeModel(
             voxel_m=self.voxel_m,
-            points_xyz=np.concatenate([self.points_xyz[stay], new]),
+            points_xyz=np.concatenate([np.compress(stay, self.points_xyz, axis=0), new]),
             keys=np.concatenate([self.keys[stay], new_keys]),
+            fine_keys=np.concatenate([self.fine_keys[stay], pack_keys(voxel_coords(new, finest))]),
             tags=np.concatenate([self.tags[stay], np.full(new_keys.size, self.next_id, dtype=np.int64)]),
-            moments=moments,
+            inlier=np.concatenate([self.inlier[stay], new_inlier]),
+            moments=self.moments.merged(gone_in, -1).merged(came_in, +1),
+            all_moments=self.all_moments.merged(gone, -1).merged(VoxelMoments.of_points(new, finest), +1),
             ids=(*ids, self.next_id),
             next_id=self.next_id + 1,
-            n_removed_outliers=int(inliers.size - np.count_nonzero(inliers)),
+            n_removed_outliers=int(new_inlier.size - np.count_nonzero(new_inlier)),
         )
 
     def reference(
@@ -222,10 +304,10 @@ class KeyframeModel:
             )
         except ValueError:
             maps = VoxelGaussianMap.build_pyramid(
-                self.points_xyz, voxel_sizes_m, min_points_per_voxel=n_min, eigenvalue_ratio=ratio
+                self.inlier_xyz, voxel_sizes_m, min_points_per_voxel=n_min, eigenvalue_ratio=ratio
             )
-        n = self.n_points
-        return PreparedReference(self.points_xyz, maps, n + self.n_removed_outliers, self.n_removed_outliers)
+        n_all = int(self.points_xyz.shape[0])
+        return PreparedReference(self.inlier_xyz, maps, n_all, n_all - self.n_points)
 
 
 def _xy_dist2(points_xyz: np.ndarray, cx: float, cy: float) -> np.ndarray:

