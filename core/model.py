@@ -84,6 +84,35 @@ class VoxelMoments:
         order = np.argsort(keys)
         return cls(float(voxel_size_m), keys[order], counts[order], sums[order], about_centre[order])
 
+    @classmethod
+    def of_weighted_points(
+        cls, points_xyz: np.ndarray, voxel_size_m: float, weights: list[np.ndarray]
+    ) -> list[VoxelMoments]:
+        """Moments of ``points_xyz`` (N,3) for each of ``weights`` ((N,) each: +1 a point that
+        joins, -1 one that leaves, 0 none), from one grouping; a voxel's entry may have count 0
+        (one point left, another came) and still carry sums: :meth:`merged` adds them all.
+        Sums are about the voxel centre, so they cancel to round-off when points leave."""
+        if points_xyz.shape[0] == 0:
+            return [cls.empty(voxel_size_m) for _ in weights]
+        pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
+        inverse, keys, _ = voxel_groups(pts, voxel_size_m, sort=True)
+        d = pts - (unpack_keys(keys) + 0.5)[inverse] * voxel_size_m
+        m = keys.size
+        pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        out = []
+        for w in weights:
+            w = np.asarray(w, dtype=np.float64)
+            counts = np.rint(np.bincount(inverse, weights=w, minlength=m)).astype(np.int64)
+            sums = np.stack(
+                [np.bincount(inverse, weights=w * d[:, a], minlength=m) for a in range(3)], axis=1
+            )
+            scatter = np.empty((m, 3, 3))
+            for a, b in pairs:
+                scatter[:, a, b] = np.bincount(inverse, weights=w * d[:, a] * d[:, b], minlength=m)
+                scatter[:, b, a] = scatter[:, a, b]
+            out.append(cls(float(voxel_size_m), keys, counts, sums, scatter))
+        return out
+
     def merged(self, other: VoxelMoments, sign: int) -> VoxelMoments:
         """These moments plus (``sign`` = 1) or minus (-1) ``other``'s; emptied voxels are dropped.
 
@@ -134,28 +163,30 @@ class KeyframeModel:
     Attributes
     ----------
     voxel_m : the model voxel: one point per voxel of this size.
-    points_xyz : (M,3) float64 the window's points, world frame, Algorithm 1's outliers included
-        (they hold their voxels and take part in judging later keyframes, as in the batch form).
-    keys : (M,) int64 their model-voxel keys (unique).
-    fine_keys : (M,) int64 their keys at the finest NDT voxel (the moments').
-    tags : (M,) int64 the keyframe each point came from (ids count from 0 per session).
-    inlier : (M,) bool Algorithm 1's verdict when the point joined: only inliers are matched.
+    keys : (M,) int64 the occupied model voxels' keys, ascending.
+    sums : (M,3) float64 sum of the window keyframes' points in each voxel (world frame).
+    counts : (M,) int64 how many of the window's keyframes put a point in it.
+    born : (M,) int64 the keyframe that (re)created the voxel (an evicted keyframe older than
+        that contributed to an earlier, cropped life of the voxel and subtracts nothing).
+    points_xyz : (M,3) float64 the voxels' centroids: the model's points, outliers included.
+    inlier : (M,) bool Algorithm 1's verdict on each centroid: only inliers are matched.
     moments : the inliers' moments at the finest NDT voxel (the matching model's).
-    all_moments : every point's moments there (the Gaussians Algorithm 1 judges with).
-    ids : the keyframes in the window, oldest first.
+    all_moments : every centroid's moments there (the Gaussians Algorithm 1 judges with).
+    window : ``(id, keys, points)`` of each keyframe in the window, oldest first (keys unique).
     next_id : the id the next keyframe gets.
-    n_removed_outliers : points Algorithm 1 removed from the last keyframe added.
+    n_removed_outliers : centroids Algorithm 1 judged outliers at the last keyframe.
     """
 
     voxel_m: float
-    points_xyz: np.ndarray
     keys: np.ndarray
-    fine_keys: np.ndarray
-    tags: np.ndarray
+    sums: np.ndarray
+    counts: np.ndarray
+    born: np.ndarray
+    points_xyz: np.ndarray
     inlier: np.ndarray
     moments: VoxelMoments
     all_moments: VoxelMoments
-    ids: tuple[int, ...] = ()
+    window: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
     next_id: int = 0
     n_removed_outliers: int = 0
 
@@ -163,14 +194,20 @@ class KeyframeModel:
     def empty(cls, voxel_m: float, finest_ndt_m: float) -> KeyframeModel:
         return cls(
             float(voxel_m),
+            np.zeros(0, dtype=np.int64),
             np.zeros((0, 3)),
             np.zeros(0, dtype=np.int64),
             np.zeros(0, dtype=np.int64),
-            np.zeros(0, dtype=np.int64),
+            np.zeros((0, 3)),
             np.zeros(0, dtype=bool),
             VoxelMoments.empty(finest_ndt_m),
             VoxelMoments.empty(finest_ndt_m),
         )
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """The keyframes in the window, oldest first."""
+        return tuple(kid for kid, _, _ in self.window)
 
     @property
     def n_points(self) -> int:
@@ -182,52 +219,10 @@ class KeyframeModel:
         """(n_points, 3) the points matched against."""
         return np.compress(self.inlier, self.points_xyz, axis=0)
 
-    def judge(self, points_world: np.ndarray, settings: RegistrationSettings) -> np.ndarray:
-        """The reference's outlier removal on a joining keyframe's points (N,3): True for inliers.
-
-        Algorithm 1 (``outlier_removal="iqr"``) against the fused window: each point's squared
-        Mahalanobis distance to the Gaussian of its finest NDT voxel fitted to the window's points
-        (outliers included, as the batch form fits them) and the keyframe's together (no
-        Gaussian: an isolated return, an outlier), then Tukey's fences per voxel from the
-        distances of all those points (pooled fences, from every distance, below
-        ``iqr_min_points_for_voxel_quartiles`` points), as the batch form does over the whole
-        window; but only the joining points are judged: points already in the window keep the
-        verdict they got when they joined.
-        SOR judges the keyframe alone; ``"none"`` keeps all.
-        """
-        pts = np.ascontiguousarray(points_world, dtype=np.float64)
-        if settings.outlier_removal == "none":
-            return np.ones(pts.shape[0], dtype=bool)
-        if settings.outlier_removal == "sor":
-            mask: np.ndarray = statistical_outlier_mask(pts)
-            return mask
-        finest = self.moments.voxel_size_m
-        added = VoxelMoments.of_points(pts, finest)
-        keys, counts, mean, scatter = self.all_moments.subset(added.keys).merged(added, +1).gaussian_moments()
-        gmap = VoxelGaussianMap._from_moments(
-            finest, keys, counts, mean, scatter, settings.min_points_per_voxel, settings.eigenvalue_ratio
-        )
-        # The model's points in the voxels the keyframe touches take part in the quartiles.
-        at = np.minimum(np.searchsorted(added.keys, self.fine_keys), max(added.keys.size - 1, 0))
-        near = np.flatnonzero(added.keys[at] == self.fine_keys) if self.fine_keys.size else at[:0]
-        n_new = pts.shape[0]
-        pts = np.concatenate([pts, np.take(self.points_xyz, near, axis=0)])
-        point_keys = np.concatenate([pack_keys(voxel_coords(pts[:n_new], finest)), self.fine_keys[near]])
-        at = np.minimum(np.searchsorted(gmap.keys, point_keys), gmap.n_voxels - 1)
-        vidx = np.where(gmap.keys[at] == point_keys, at, -1)
-        inliers: np.ndarray = iqr_fence_mask(
-            pts,
-            gmap,
-            vidx,
-            k=settings.iqr_k,
-            min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
-        )
-        return inliers[:n_new]
-
     def add_keyframe(
         self,
         points_world: np.ndarray,
-        inliers: np.ndarray,
+        settings: RegistrationSettings,
         *,
         center_xy: tuple[float, float],
         radius_m: float,
@@ -238,48 +233,89 @@ class KeyframeModel:
         Parameters
         ----------
         points_world : (N,3) the keyframe's points in the world frame, density-equalized at
-            ``voxel_m`` (at most one per model voxel; extra ones in a voxel are ignored).
-        inliers : (N,) bool Algorithm 1's verdict on them (:meth:`judge`): every point joins
-            and wins its voxel, only inliers are matched against.
+            ``voxel_m`` (one per model voxel; extra ones in a voxel are ignored).
+        settings : the reference's outlier removal (``outlier_removal``, Algorithm 1's fences).
         center_xy : the new keyframe's position; points beyond ``radius_m`` of it (x-y) leave.
         max_keyframes : window length; the oldest keyframe leaves when it is full.
+
+        Raises :class:`~core.errors.InvalidCloudError` when Algorithm 1 finds no voxel with a
+        Gaussian (a window too sparse to model).
         """
-        new = np.asarray(points_world, dtype=np.float64)
+        finest = self.moments.voxel_size_m
         cx, cy = center_xy
         r2 = float(radius_m) ** 2
-        near = np.flatnonzero(_xy_dist2(new, cx, cy) <= r2)
-        new_keys, first = np.unique(
-            pack_keys(voxel_coords(np.take(new, near, axis=0), self.voxel_m)), return_index=True
+        pts = np.asarray(points_world, dtype=np.float64)
+        near = np.flatnonzero(_xy_dist2(pts, cx, cy) <= r2)
+        k, first = np.unique(
+            pack_keys(voxel_coords(np.take(pts, near, axis=0), self.voxel_m)), return_index=True
         )
-        new, new_inlier = np.take(new, near[first], axis=0), np.asarray(inliers, dtype=bool)[near[first]]
-        ids = self.ids
-        leave = np.zeros(self.keys.size, dtype=bool)
-        if len(ids) >= max_keyframes:
-            evicted = ids[: len(ids) - max_keyframes + 1]
-            leave |= np.isin(self.tags, np.asarray(evicted, dtype=np.int64))
-            ids = ids[len(evicted) :]
-        if new_keys.size and self.keys.size:
-            at = np.minimum(np.searchsorted(new_keys, self.keys), new_keys.size - 1)
-            leave |= new_keys[at] == self.keys  # the newest keyframe wins its voxels
-        leave |= _xy_dist2(self.points_xyz, cx, cy) > r2
-        stay = ~leave
-        finest = self.moments.voxel_size_m
-        # np.compress, not a boolean index: 8x faster on (N,3) arrays.
-        gone = VoxelMoments.of_points(np.compress(leave, self.points_xyz, axis=0), finest)
-        gone_in = VoxelMoments.of_points(np.compress(leave & self.inlier, self.points_xyz, axis=0), finest)
-        came_in = VoxelMoments.of_points(np.compress(new_inlier, new, axis=0), finest)
+        p = np.take(pts, near[first], axis=0)
+        kid = self.next_id
+        # Every voxel before and after, the keyframe's points summed in.
+        keys = np.union1d(self.keys, k)
+        n = keys.size
+        at_old, at_new = np.searchsorted(keys, self.keys), np.searchsorted(keys, k)
+        sums, counts, born = np.zeros((n, 3)), np.zeros(n, dtype=np.int64), np.full(n, kid, dtype=np.int64)
+        sums[at_old], counts[at_old], born[at_old] = self.sums, self.counts, self.born
+        sums[at_new] += p
+        counts[at_new] += 1
+        changed = np.zeros(n, dtype=bool)
+        changed[at_new] = True
+        window = self.window
+        while len(window) >= max_keyframes:  # the oldest keyframe's points leave
+            eid, ek, ep = window[0]
+            window = window[1:]
+            at = np.minimum(np.searchsorted(keys, ek), n - 1)
+            ok = np.flatnonzero(keys[at] == ek)
+            ok = ok[born[at[ok]] <= eid]
+            sums[at[ok]] -= np.take(ep, ok, axis=0)
+            counts[at[ok]] -= 1
+            changed[at[ok]] = True
+        centroid = sums / np.maximum(counts, 1)[:, None]
+        keep = (counts > 0) & (_xy_dist2(centroid, cx, cy) <= r2)
+        changed &= keep
+        old_gone = ~keep[at_old] | changed[at_old]  # old centroids that moved or left
+        # The window's Gaussians (every centroid) after the change.
+        out_old = np.compress(old_gone, self.points_xyz, axis=0)
+        in_new = np.compress(changed, centroid, axis=0)
+        delta_all = VoxelMoments.of_weighted_points(
+            np.concatenate([out_old, in_new]),
+            finest,
+            [np.concatenate([np.full(out_old.shape[0], -1.0), np.ones(in_new.shape[0])])],
+        )[0]
+        all_moments = self.all_moments.merged(delta_all, +1)
+        # Algorithm 1 on every centroid in the finest voxels the change touched.
+        fine = pack_keys(voxel_coords(centroid, finest))
+        touched = np.unique(np.compress(changed, fine))
+        at = np.minimum(np.searchsorted(touched, fine), max(touched.size - 1, 0))
+        judged = keep & (touched[at] == fine) if touched.size else np.zeros(n, dtype=bool)
+        verdict = _judge(np.compress(judged, centroid, axis=0), fine[judged], all_moments, touched, settings)
+        inlier = np.zeros(n, dtype=bool)
+        inlier[at_old] = self.inlier
+        inlier[judged] = verdict
+        # The matched (inlier) moments: old inliers that moved, left or were judged again out,
+        # the judged inliers in.
+        out_mask = (old_gone | judged[at_old]) & self.inlier
+        out_in = np.compress(out_mask, self.points_xyz, axis=0)
+        new_in = np.compress(judged & inlier, centroid, axis=0)
+        delta_in = VoxelMoments.of_weighted_points(
+            np.concatenate([out_in, new_in]),
+            finest,
+            [np.concatenate([np.full(out_in.shape[0], -1.0), np.ones(new_in.shape[0])])],
+        )[0]
         return KeyframeModel(
             voxel_m=self.voxel_m,
-            points_xyz=np.concatenate([np.compress(stay, self.points_xyz, axis=0), new]),
-            keys=np.concatenate([self.keys[stay], new_keys]),
-            fine_keys=np.concatenate([self.fine_keys[stay], pack_keys(voxel_coords(new, finest))]),
-            tags=np.concatenate([self.tags[stay], np.full(new_keys.size, self.next_id, dtype=np.int64)]),
-            inlier=np.concatenate([self.inlier[stay], new_inlier]),
-            moments=self.moments.merged(gone_in, -1).merged(came_in, +1),
-            all_moments=self.all_moments.merged(gone, -1).merged(VoxelMoments.of_points(new, finest), +1),
-            ids=(*ids, self.next_id),
-            next_id=self.next_id + 1,
-            n_removed_outliers=int(new_inlier.size - np.count_nonzero(new_inlier)),
+            keys=keys[keep],
+            sums=np.compress(keep, sums, axis=0),
+            counts=counts[keep],
+            born=born[keep],
+            points_xyz=np.compress(keep, centroid, axis=0),
+            inlier=inlier[keep],
+            moments=self.moments.merged(delta_in, +1),
+            all_moments=all_moments,
+            window=(*window, (kid, k, p)),
+            next_id=kid + 1,
+            n_removed_outliers=int(verdict.size - np.count_nonzero(verdict)),
         )
 
     def reference(
@@ -308,6 +344,48 @@ class KeyframeModel:
             )
         n_all = int(self.points_xyz.shape[0])
         return PreparedReference(self.inlier_xyz, maps, n_all, n_all - self.n_points)
+
+
+def _judge(
+    points_xyz: np.ndarray,
+    fine_keys: np.ndarray,
+    all_moments: VoxelMoments,
+    touched: np.ndarray,
+    settings: RegistrationSettings,
+) -> np.ndarray:
+    """The reference's outlier removal on the model points of the finest voxels ``touched``
+    (``fine_keys`` their keys there): True for inliers.
+
+    Algorithm 1 (``"iqr"``): each point's Mahalanobis distance to the Gaussian of its finest NDT
+    voxel fitted to every window centroid in it (``all_moments``; no Gaussian: an isolated
+    return, an outlier), and Tukey's fences per voxel (pooled below
+    ``iqr_min_points_for_voxel_quartiles`` points, from the judged points' distances). SOR
+    judges the points given among themselves; ``"none"`` keeps all.
+    """
+    if settings.outlier_removal == "none" or points_xyz.shape[0] == 0:
+        return np.ones(points_xyz.shape[0], dtype=bool)
+    if settings.outlier_removal == "sor":
+        mask: np.ndarray = statistical_outlier_mask(points_xyz)
+        return mask
+    keys, counts, mean, scatter = all_moments.subset(touched).gaussian_moments()
+    gmap = VoxelGaussianMap.from_moments(
+        all_moments.voxel_size_m,
+        keys,
+        counts,
+        mean,
+        scatter,
+        settings.min_points_per_voxel,
+        settings.eigenvalue_ratio,
+    )
+    at = np.minimum(np.searchsorted(gmap.keys, fine_keys), gmap.n_voxels - 1)
+    vidx = np.where(gmap.keys[at] == fine_keys, at, -1)
+    return iqr_fence_mask(
+        points_xyz,
+        gmap,
+        vidx,
+        k=settings.iqr_k,
+        min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
+    )
 
 
 def _xy_dist2(points_xyz: np.ndarray, cx: float, cy: float) -> np.ndarray:
