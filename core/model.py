@@ -40,8 +40,7 @@ import numpy as np
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError
 from core.kernels import group_moments
-from core.outliers import iqr_fence_mask, statistical_outlier_mask
-from core.registration import PreparedReference
+from core.registration import PreparedReference, reference_inlier_mask
 from core.voxel import VoxelGaussianMap, pack_keys, unpack_keys, voxel_coords, voxel_groups
 
 __all__ = ["KeyframeModel", "VoxelMoments"]
@@ -178,7 +177,6 @@ class KeyframeModel:
     points_xyz : (M,3) float64 the voxels' centroids: the model's points, outliers included.
     inlier : (M,) bool Algorithm 1's verdict on each centroid: only inliers are matched.
     moments : the inliers' moments at the finest NDT voxel (the matching model's).
-    all_moments : every centroid's moments there (the Gaussians Algorithm 1 judges with).
     window : ``(id, keys, points)`` of each keyframe in the window, oldest first (keys unique).
     next_id : the id the next keyframe gets.
     n_removed_outliers : centroids Algorithm 1 judged outliers at the last keyframe.
@@ -192,7 +190,6 @@ class KeyframeModel:
     points_xyz: np.ndarray
     inlier: np.ndarray
     moments: VoxelMoments
-    all_moments: VoxelMoments
     window: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
     next_id: int = 0
     n_removed_outliers: int = 0
@@ -207,7 +204,6 @@ class KeyframeModel:
             np.zeros(0, dtype=np.int64),
             np.zeros((0, 3)),
             np.zeros(0, dtype=bool),
-            VoxelMoments.empty(finest_ndt_m),
             VoxelMoments.empty(finest_ndt_m),
         )
 
@@ -280,21 +276,17 @@ class KeyframeModel:
         keep = (counts > 0) & (_xy_dist2(centroid, cx, cy) <= r2)
         changed &= keep
         old_gone = ~keep[at_old] | changed[at_old]  # old centroids that moved or left
-        # The window's Gaussians (every centroid) after the change.
-        out_old = np.compress(old_gone, self.points_xyz, axis=0)
-        in_new = np.compress(changed, centroid, axis=0)
-        delta_all = VoxelMoments.of_weighted_points(
-            np.concatenate([out_old, in_new]),
-            finest,
-            [np.concatenate([np.full(out_old.shape[0], -1.0), np.ones(in_new.shape[0])])],
-        )[0]
-        all_moments = self.all_moments.merged(delta_all, +1)
-        # Algorithm 1 on every centroid in the finest voxels the change touched.
+        # Algorithm 1 on every centroid in the finest voxels the change touched: whole voxels,
+        # so their own Gaussians are the window's there.
         fine = pack_keys(voxel_coords(centroid, finest))
         touched = _sorted_unique(np.compress(changed, fine))[0]
         at = np.minimum(np.searchsorted(touched, fine), max(touched.size - 1, 0))
         judged = keep & (touched[at] == fine) if touched.size else np.zeros(n, dtype=bool)
-        verdict = _judge(np.compress(judged, centroid, axis=0), fine[judged], all_moments, touched, settings)
+        judged_xyz = np.compress(judged, centroid, axis=0)
+        try:
+            verdict = reference_inlier_mask(judged_xyz, settings, finest)
+        except InvalidCloudError:  # no voxel holds a Gaussian: all isolated returns, outliers
+            verdict = np.zeros(judged_xyz.shape[0], dtype=bool)
         inlier = np.zeros(n, dtype=bool)
         inlier[at_old] = self.inlier
         inlier[judged] = verdict
@@ -317,7 +309,6 @@ class KeyframeModel:
             points_xyz=np.compress(keep, centroid, axis=0),
             inlier=inlier[keep],
             moments=self.moments.merged(delta_in, +1),
-            all_moments=all_moments,
             window=(*window, (kid, k, p)),
             next_id=kid + 1,
             n_removed_outliers=int(verdict.size - np.count_nonzero(verdict)),
@@ -351,48 +342,6 @@ class KeyframeModel:
             )
         n_all = int(self.points_xyz.shape[0])
         return PreparedReference(self.inlier_xyz, maps, n_all, n_all - self.n_points)
-
-
-def _judge(
-    points_xyz: np.ndarray,
-    fine_keys: np.ndarray,
-    all_moments: VoxelMoments,
-    touched: np.ndarray,
-    settings: RegistrationSettings,
-) -> np.ndarray:
-    """The reference's outlier removal on the model points of the finest voxels ``touched``
-    (``fine_keys`` their keys there): True for inliers.
-
-    Algorithm 1 (``"iqr"``): each point's Mahalanobis distance to the Gaussian of its finest NDT
-    voxel fitted to every window centroid in it (``all_moments``; no Gaussian: an isolated
-    return, an outlier), and Tukey's fences per voxel (pooled below
-    ``iqr_min_points_for_voxel_quartiles`` points, from the judged points' distances). SOR
-    judges the points given among themselves; ``"none"`` keeps all.
-    """
-    if settings.outlier_removal == "none" or points_xyz.shape[0] == 0:
-        return np.ones(points_xyz.shape[0], dtype=bool)
-    if settings.outlier_removal == "sor":
-        mask: np.ndarray = statistical_outlier_mask(points_xyz)
-        return mask
-    keys, counts, mean, scatter = all_moments.subset(touched).gaussian_moments()
-    gmap = VoxelGaussianMap.from_moments(
-        all_moments.voxel_size_m,
-        keys,
-        counts,
-        mean,
-        scatter,
-        settings.min_points_per_voxel,
-        settings.eigenvalue_ratio,
-    )
-    at = np.minimum(np.searchsorted(gmap.keys, fine_keys), gmap.n_voxels - 1)
-    vidx = np.where(gmap.keys[at] == fine_keys, at, -1)
-    return iqr_fence_mask(
-        points_xyz,
-        gmap,
-        vidx,
-        k=settings.iqr_k,
-        min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
-    )
 
 
 def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
