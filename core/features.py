@@ -113,7 +113,7 @@ def extract_features(
         [
             # Objects reuse the isolation test's voxels: a downsampling without a second grouping.
             masked_group_centroids(points_xyz, groups, n_groups, objects),
-            voxel_downsample(points_xyz[ground], voxel_size_m * ground_voxel_factor)
+            voxel_downsample(np.compress(ground, points_xyz, axis=0), voxel_size_m * ground_voxel_factor)
             if ground.any()
             else np.zeros((0, 3)),
         ]

@@ -28,6 +28,7 @@ from core.kernels import grouped_fence_mask, mahalanobis_to_assigned
 from core.voxel import VoxelGaussianMap
 
 __all__ = [
+    "iqr_fence_mask",
     "iqr_inlier_mask",
     "iqr_inlier_mask_numpy",
     "statistical_outlier_mask",
@@ -92,6 +93,26 @@ def iqr_inlier_mask(
         min_points_per_voxel=min_points_per_voxel,
         eigenvalue_ratio=eigenvalue_ratio,
     )
+    return iqr_fence_mask(
+        points_xyz, gmap, vidx, k=k, min_points_for_voxel_quartiles=min_points_for_voxel_quartiles
+    )
+
+
+def iqr_fence_mask(
+    points_xyz: np.ndarray,
+    gmap: VoxelGaussianMap,
+    vidx: np.ndarray,
+    *,
+    k: float = 1.5,
+    min_points_for_voxel_quartiles: int = 10,
+) -> np.ndarray:
+    """Steps 2-5 of Algorithm 1 with given Gaussians: True for points inside their voxel's fences.
+
+    ``vidx`` (N,) is each point's voxel in ``gmap`` (-1: no Gaussian, an outlier). The quartiles
+    of a voxel are those of the distances of the points given in it; :func:`iqr_inlier_mask`
+    gives a cloud's own Gaussians, the incremental keyframe model (:mod:`core.model`) the fused
+    model's, judging a joining keyframe's points only.
+    """
     pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
     d = np.sqrt(mahalanobis_to_assigned(pts, vidx, gmap.means, gmap.inv_covariances))
     has = vidx >= 0

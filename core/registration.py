@@ -58,6 +58,7 @@ __all__ = [
     "RegistrationResult",
     "auto_voxel_sizes",
     "prepare_reference",
+    "reference_inlier_mask",
     "register",
     "sanitize_points",
 ]
@@ -268,10 +269,7 @@ def prepare_reference(
     else:
         pts = voxel_downsample(target_xyz, voxel)
     n_in = pts.shape[0]
-    if settings.outlier_removal == "iqr":
-        pts = pts[_algorithm1_mask(pts, finest, settings)]
-    elif settings.outlier_removal == "sor":
-        pts = pts[statistical_outlier_mask(pts)]
+    pts = np.compress(reference_inlier_mask(pts, settings, finest), pts, axis=0)
     maps = VoxelGaussianMap.build_pyramid(
         pts,
         voxel_sizes_m,
@@ -279,6 +277,18 @@ def prepare_reference(
         eigenvalue_ratio=settings.eigenvalue_ratio,
     )
     return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
+
+
+def reference_inlier_mask(
+    points_xyz: np.ndarray, settings: RegistrationSettings, finest_m: float
+) -> np.ndarray:
+    """The reference's outlier removal as the settings choose: Algorithm 1 (``"iqr"``, with
+    Gaussians at the finest NDT voxel ``finest_m``), SOR, or none (all True)."""
+    if settings.outlier_removal == "iqr":
+        return _algorithm1_mask(points_xyz, finest_m, settings)
+    if settings.outlier_removal == "sor":
+        return statistical_outlier_mask(points_xyz)
+    return np.ones(points_xyz.shape[0], dtype=bool)
 
 
 def _algorithm1_mask(
@@ -316,13 +326,25 @@ def _select_moving_points(
 MIN_COARSE_POINTS = 1500
 
 
-def _coarse_points(moving: np.ndarray, voxel_size_m: float, settings: RegistrationSettings) -> np.ndarray:
+def _coarse_points(
+    moving: np.ndarray,
+    voxel_size_m: float,
+    settings: RegistrationSettings,
+    memo: dict[float, np.ndarray] | None = None,
+) -> np.ndarray:
     """The moving points a coarse level sees: downsampled at half its voxel, halving the voxel
-    until at least :data:`MIN_COARSE_POINTS` remain (small objects keep enough shape to rotate)."""
+    until at least :data:`MIN_COARSE_POINTS` remain (small objects keep enough shape to rotate).
+
+    ``memo`` (voxel -> downsampled points) shares the downsamplings between the levels of one
+    registration: on a KITTI sweep the three coarsest levels all halve down to the same voxel.
+    """
+    memo = {} if memo is None else memo
     v = voxel_size_m * settings.source_voxel_fraction
     finest = v
     while True:
-        pts = voxel_downsample(moving, v)
+        if v not in memo:
+            memo[v] = voxel_downsample(moving, v)
+        pts = memo[v]
         if pts.shape[0] >= MIN_COARSE_POINTS or pts.shape[0] >= 0.5 * moving.shape[0]:
             return pts
         v *= 0.5
@@ -629,11 +651,12 @@ def _match_ndt(
     iterations = 0
     converged = True
     final_cache = None
+    memo: dict[float, np.ndarray] = {}
     for level, gmap in enumerate(ref.maps):
         final = level == len(ref.maps) - 1
         consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
         # Coarse levels only need to hand a good start to the next: stop at 1 % of a voxel.
-        level_moving = moving if final else _coarse_points(moving, gmap.voxel_size_m, settings)
+        level_moving = moving if final else _coarse_points(moving, gmap.voxel_size_m, settings, memo)
         out = ndt_newton(
             level_moving,
             gmap,

@@ -92,8 +92,26 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 
 def transform_points(T: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
-    """Apply ``T`` (4x4) to ``points_xyz`` (N,3); returns (N,3) float64."""
-    moved: np.ndarray = points_xyz @ T[:3, :3].T + T[:3, 3]
+    """Apply ``T`` (4x4) to ``points_xyz`` (N,3); returns (N,3) float64.
+
+    Column by column (``x R[i,0] + y R[i,1] + z R[i,2] + t[i]``), not ``points @ R.T``: an (N,3)
+    by (3,3) product goes through BLAS, whose threads on an oversubscribed machine made it 17 ms
+    mean (52 ms max) for a 110k-point keyframe against 2.6 ms for these nine fused multiply-adds
+    over columns (and 4 ms with one BLAS thread).
+    """
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    if pts.ndim != 2:
+        single: np.ndarray = pts @ R.T + t  # one point (3,): no BLAS threads for that
+        return single
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    moved = np.empty((pts.shape[0], 3))
+    for i in range(3):
+        col = moved[:, i]
+        np.multiply(x, R[i, 0], out=col)
+        col += y * R[i, 1]
+        col += z * R[i, 2]
+        col += t[i]
     return moved
 
 

@@ -231,6 +231,35 @@ class VoxelGaussianMap:
         pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
         inverse, keys, _ = voxel_groups(pts, finest)
         counts, mean, scatter = group_moments(pts, inverse, keys.size)
+        return cls.pyramid_from_moments(
+            (keys, counts, mean, scatter),
+            finest,
+            sizes,
+            min_points_per_voxel=min_points_per_voxel,
+            eigenvalue_ratio=eigenvalue_ratio,
+        )
+
+    @classmethod
+    def pyramid_from_moments(
+        cls,
+        moments: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        finest_m: float,
+        voxel_sizes_m: tuple[float, ...],
+        *,
+        min_points_per_voxel: int = 6,
+        eigenvalue_ratio: float = 0.01,
+    ) -> tuple[VoxelGaussianMap, ...]:
+        """The maps at ``voxel_sizes_m`` (each ``finest_m`` times a power of two) from the finest
+        voxels' ``(keys, counts, means, scatter matrices about the means)`` (any key order): the
+        coarser levels by the parent rule (:func:`_parent_moments`), as :meth:`build_pyramid`."""
+        sizes = tuple(float(v) for v in voxel_sizes_m)
+        powers = [round(np.log2(v / finest_m)) for v in sizes]
+        pairs = zip(sizes, powers, strict=True)
+        nested = [k >= 0 and abs(v - finest_m * 2.0**k) <= 1e-9 * v for v, k in pairs]
+        if not all(nested):
+            raise ValueError(f"voxel sizes {sizes} are not {finest_m:g} m times powers of two")
+        keys, counts, mean, scatter = moments
+        finest = finest_m
         by_power = {0: (keys, counts, mean, scatter)}
         v = finest
         for k in range(1, max(powers) + 1):
@@ -255,6 +284,23 @@ class VoxelGaussianMap:
         return tuple(levels)
 
     @classmethod
+    def from_moments(
+        cls,
+        voxel_size_m: float,
+        keys: np.ndarray,
+        counts: np.ndarray,
+        mean: np.ndarray,
+        scatter: np.ndarray,
+        min_points_per_voxel: int,
+        eigenvalue_ratio: float,
+    ) -> VoxelGaussianMap:
+        """The map of the voxels (keys ascending) holding at least ``min_points_per_voxel``
+        points, from their counts, means and scatter matrices about the means."""
+        return cls._from_moments(
+            voxel_size_m, keys, counts, mean, scatter, min_points_per_voxel, eigenvalue_ratio
+        )
+
+    @classmethod
     def _from_moments(
         cls,
         voxel_size_m: float,
@@ -273,8 +319,9 @@ class VoxelGaussianMap:
                 f"no voxel of {voxel_size_m:g} m holds {min_points_per_voxel} points: "
                 "the cloud is too sparse for this voxel size"
             )
-        keys, mean, counts = keys[keep], mean[keep], counts[keep]
-        cov = scatter[keep] / np.maximum(counts - 1.0, 1.0)[:, None, None]
+        keys, counts = keys[keep], counts[keep]
+        mean = np.compress(keep, mean, axis=0)  # np.compress: a boolean index of (M,3) is 8x slower
+        cov = np.compress(keep, scatter, axis=0) / np.maximum(counts - 1.0, 1.0)[:, None, None]
         evals, evecs = eigh3(cov)
         floor = np.maximum(evals[:, 2:3] * eigenvalue_ratio, 1e-12)
         evals = np.maximum(evals, floor)

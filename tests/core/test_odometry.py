@@ -297,8 +297,8 @@ def test_a_caller_behind_rebuilds_once_for_two_keyframes(kitti00, kitti00_run, m
     sync, sync_results = kitti00_run
     behind = IncrementalMatcher()
     rebuilds = []
-    original = behind._rebuild_model
-    monkeypatch.setattr(behind, "_rebuild_model", lambda T: rebuilds.append(1) or original(T))
+    original = behind._prepare
+    monkeypatch.setattr(behind, "_prepare", lambda store: rebuilds.append(1) or original(store))
     results = [behind.register_scan(s, defer_model=True) for s in scans]
     assert [r.status for r in results] == [r.status for r in sync_results]
     assert [r.is_keyframe for r in results] == [r.is_keyframe for r in sync_results]
@@ -379,11 +379,11 @@ def test_a_sweep_failing_after_its_pose_was_appended_leaves_the_state_equal(monk
     assert before == matcher.state
     seen_at_failure = []
 
-    def unbuildable(T_world_sensor: np.ndarray) -> None:
+    def unbuildable(store: object) -> None:
         seen_at_failure.append((len(matcher.poses), matcher.state.last_stamp_s))
         raise InvalidCloudError("model: too sparse")
 
-    monkeypatch.setattr(matcher, "_rebuild_model", unbuildable)
+    monkeypatch.setattr(matcher, "_prepare", unbuildable)
     with pytest.raises(InvalidCloudError, match="too sparse"):  # 0.6 m from the last keyframe
         matcher.register_scan(transform_points(invert(step @ step), room), stamp_s=0.2)
     assert seen_at_failure == [(3, 0.2)], "the sweep failed after its pose and stamp were recorded"
