@@ -19,7 +19,7 @@ How it works
   intensities, zstd): about 100 kB per KITTI sweep instead of 1.9 MB, 8 Mbit/s per vehicle at 10 Hz
   instead of 150 (``docs/clients.md``). ``raw=True`` (``RANDT_VEHICLE_RAW=1``) sends every point
   as float32 in a v1 scan, as before.
-- **publish() never blocks** longer than building the message (a few ms for 120k points). The
+- **publish() never blocks** longer than building the message (10-30 ms for 120k points). The
   message is validated with the wire format's own checks (:mod:`wire.messages`: a bad array raises
   ``BadMessageError`` at once, with the code the service would answer), then put into a bounded
   send queue. A full queue drops its **oldest** scan and counts it (``stats.dropped``): the newest
