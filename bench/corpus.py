@@ -101,6 +101,68 @@ def scan_doc(session: str, seq: int, /, *, n: int = 32, **override: Any) -> dict
 
 DELETE = "__delete__"
 
+_ENCODING: dict[str, Any] = {
+    "voxel_m": 0.2,
+    "xyz_quantum_m": 0.01,
+    "time_quantum_s": 1e-5,
+    "intensity_offset": 0.0,
+    "intensity_quantum": 1.0,
+    "layout": "delta-zigzag-planar",
+    "codec": "zstd",
+}
+
+
+def zstd_frame(blocks: list[tuple[str, bytes, int]]) -> bytes:
+    """A zstd frame (RFC 8878) built by hand from ``("raw", data, 0)`` and ``("rle", byte, count)``
+    blocks, so committed cases do not depend on a zstd library's compressor output. No content
+    size, no checksum, a 128 KiB window (blocks of at most 128 KiB)."""
+    out = bytearray(b"\x28\xb5\x2f\xfd\x00\x38")  # magic, descriptor 0, window log 17
+    for k, (kind, data, count) in enumerate(blocks):
+        size = len(data) if kind == "raw" else count
+        header = (size << 3) | ((0 if kind == "raw" else 1) << 1) | (k == len(blocks) - 1)
+        out += header.to_bytes(3, "little") + data
+    return bytes(out)
+
+
+def zstd_stored(body: bytes) -> bytes:
+    """``body`` as a valid zstd frame of raw (stored) blocks."""
+    step = 128 * 1024
+    chunks = [body[i : i + step] for i in range(0, len(body), step)] or [b""]
+    return zstd_frame([("raw", c, 0) for c in chunks])
+
+
+def zstd_bomb(total: int) -> bytes:
+    """A zstd frame of RLE blocks that decompresses to ``total`` zero bytes (64 MiB in 2 KiB)."""
+    step = 128 * 1024
+    return zstd_frame([("rle", b"\x00", min(step, total - i)) for i in range(0, total, step)])
+
+
+def v2_scan_doc(session: str, seq: int, /, *, n: int = 32, **override: Any) -> dict[str, Any]:
+    """A valid compact (v2) scan as a dict in wire order (docs/wire-format.md, Scan v2); bodies
+    in stored zstd frames. ``override`` as :func:`scan_doc`."""
+    from wire.packing import pack_int_columns
+
+    q = np.rint(room_points(n).astype(np.float64).T / _ENCODING["xyz_quantum_m"]).astype(np.int32)
+    doc: dict[str, Any] = {
+        "v": 2,
+        "vehicle": HOSTILE,
+        "session": session,
+        "seq": seq,
+        "stamp_ns": T0_NS + (seq % 1_000_000) * 100_000_000,
+        "n_points": n,
+        "encoding": dict(_ENCODING),
+        "xyz": zstd_stored(pack_int_columns(q)),
+        "time_offsets": None,
+        "intensity": None,
+        "prior": None,
+    }
+    for key, value in override.items():
+        if value is DELETE:
+            doc.pop(key, None)
+        else:
+            doc[key] = value
+    return doc
+
 
 def pack(obj: Any) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
@@ -139,6 +201,8 @@ def build_payload(recipe: dict[str, Any]) -> bytes:
         override: dict[str, Any] = {"points": points.tobytes()}
         if "stamp_ns" in recipe:
             override["stamp_ns"] = int(recipe["stamp_ns"])
+        if recipe.get("v2"):
+            return pack(v2_scan_doc(recipe["session"], seq, n=int(recipe.get("n", ROOM_POINTS))))
         return pack(scan_doc(recipe["session"], seq, **override))
     raise ValueError(f"unknown recipe kind {kind!r}")
 
@@ -283,7 +347,7 @@ def wire_cases() -> list[dict[str, Any]]:
         ),
         # versions
         ("v-missing", "no v", lambda s: _f(s, v=DELETE), _err("missing_field")),
-        ("v-2", "schema version 2", lambda s: _f(s, v=2), _err("unsupported_version")),
+        ("v-3", "schema version 3", lambda s: _f(s, v=3), _err("unsupported_version")),
         ("v-string", "v is the string '1'", lambda s: _f(s, v="1"), _err("invalid_field")),
         ("v-bool", "v is true", lambda s: _f(s, v=True), _err("invalid_field")),
     ]
@@ -518,6 +582,131 @@ def wire_cases() -> list[dict[str, Any]]:
             _err("invalid_field"),
         ),
     ]
+    # compact (v2) scans: bodies that lie about their size, bombs, bad encodings
+    from wire.packing import pack_int_columns
+
+    n2 = 32
+
+    def _v2(s: str, **override: Any) -> bytes:
+        return pack(v2_scan_doc(s, 0, n=n2, **override))
+
+    def _v2_enc(**change: Any) -> dict[str, Any]:
+        return {k: v for k, v in {**_ENCODING, **change}.items() if v is not DELETE}
+
+    xyz_v2 = v2_scan_doc("x", 0, n=n2)["xyz"]
+    C += [
+        (
+            "v-2-with-v1-fields",
+            "v = 2 with the fields of a v1 scan (no n_points, encoding, xyz)",
+            lambda s: _f(s, v=2),
+            _err("missing_field"),
+        ),
+        (
+            "v2-zstd-bomb",
+            "v2 scan of 32 points whose xyz body is a 2 KiB zstd frame of 64 MiB (stopped at 384 bytes)",
+            lambda s: _v2(s, xyz=zstd_bomb(64 * 1024 * 1024)),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-zstd-bomb-intensity",
+            "v2 scan whose intensity body is a zstd frame of 16 MiB",
+            lambda s: _v2(s, intensity=zstd_bomb(16 * 1024 * 1024)),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-frame-truncated",
+            "v2 xyz body cut in the middle of its zstd frame",
+            lambda s: _v2(s, xyz=xyz_v2[: len(xyz_v2) // 2]),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-not-zstd",
+            "v2 xyz body that is not a zstd frame",
+            lambda s: _v2(s, xyz=b"\x00" * 384),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-frame-trailing",
+            "v2 xyz body: a valid frame followed by 7 bytes",
+            lambda s: _v2(s, xyz=xyz_v2 + b"garbage"),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-count-too-high",
+            "v2 n_points 33 for a body of 32 points",
+            lambda s: _v2(s, n_points=33),
+            _err("invalid_compression"),
+        ),
+        (
+            "v2-count-too-low",
+            "v2 n_points 31 for a body of 32 points",
+            lambda s: _v2(s, n_points=31),
+            _err("invalid_compression"),
+        ),
+        ("v2-count-zero", "v2 n_points 0", lambda s: _v2(s, n_points=0), _err("empty_scan")),
+        (
+            "v2-count-huge",
+            "v2 n_points max_points + 1 with a 32-point body (refused before decompressing)",
+            lambda s: _v2(s, n_points=MAX_POINTS + 1),
+            _err("too_many_points"),
+        ),
+        ("v2-count-missing", "v2 without n_points", lambda s: _v2(s, n_points=DELETE), _err("missing_field")),
+        (
+            "v2-codec-lz4",
+            "v2 codec 'lz4' (not part of the format)",
+            lambda s: _v2(s, encoding=_v2_enc(codec="lz4")),
+            _err("invalid_field"),
+        ),
+        (
+            "v2-layout-unknown",
+            "v2 layout 'rows'",
+            lambda s: _v2(s, encoding=_v2_enc(layout="rows")),
+            _err("invalid_field"),
+        ),
+        (
+            "v2-quantum-zero",
+            "v2 xyz_quantum_m 0",
+            lambda s: _v2(s, encoding=_v2_enc(xyz_quantum_m=0.0)),
+            _err("invalid_field"),
+        ),
+        (
+            "v2-quantum-nan",
+            "v2 time_quantum_s NaN",
+            lambda s: _v2(s, encoding=_v2_enc(time_quantum_s=float("nan"))),
+            _err("invalid_field"),
+        ),
+        (
+            "v2-encoding-missing-codec",
+            "v2 encoding without codec",
+            lambda s: _v2(s, encoding=_v2_enc(codec=DELETE)),
+            _err("missing_field"),
+        ),
+        (
+            "v2-codec-none-short",
+            "v2 codec none with an xyz body one byte short",
+            lambda s: _v2(s, encoding=_v2_enc(codec="none"), xyz=b"\x00" * (12 * n2 - 1)),
+            _err("invalid_points"),
+        ),
+        (
+            "v2-offsets-negative",
+            "v2 time offsets decoding to -10 us",
+            lambda s: _v2(s, time_offsets=zstd_stored(b"\x01" + b"\x00" * (4 * n2 - 1))),
+            _err("invalid_points"),
+        ),
+        (
+            "v2-offsets-too-late",
+            "v2 time offsets decoding to 2 s (beyond max_time_offset_s)",
+            lambda s: _v2(s, time_offsets=zstd_stored(pack_int_columns(np.full((1, n2), 200_000)))),
+            _err("invalid_points"),
+        ),
+        ("v2-xyz-text", "v2 xyz given as a str", lambda s: _v2(s, xyz="text"), _err("invalid_field")),
+        (
+            "v2-vehicle-slash",
+            "v2 vehicle 'a/b'",
+            lambda s: _v2(s, vehicle="a/b"),
+            _err("invalid_id"),
+        ),
+    ]
     del good
     cases: list[dict[str, Any]] = []
     for name, description, payload, expect in C:
@@ -610,6 +799,13 @@ def wire_cases() -> list[dict[str, Any]]:
             [{"seq": 0}],
             {"seq": 1, "extreme": 10},
             {"answer": "pose_or_error", "codes": ["registration_failed"]},
+        ),
+        (
+            "v2-after-v1",
+            "seq 0 as a v1 scan, then seq 1 as a compact v2 scan of the same session: a pose",
+            [{"seq": 0}],
+            {"seq": 1, "v2": True},
+            {"answer": "pose"},
         ),
     ]
     for name, description, setup, final, expect in seq_cases:

@@ -26,7 +26,10 @@ class VehicleMode(StrEnum):
 
 
 def _publisher_settings(
-    mode: VehicleMode | None, connect: list[str] | None, zenoh_config: Path | None = None
+    mode: VehicleMode | None,
+    connect: list[str] | None,
+    zenoh_config: Path | None = None,
+    raw: bool = False,
 ) -> PublisherSettings:
     """``PublisherSettings`` from the flags, falling back to ``RANDT_VEHICLE_*`` and the defaults."""
     from clients.publisher import PublisherSettings
@@ -35,12 +38,13 @@ def _publisher_settings(
         "mode": mode.value if mode else None,
         "connect": tuple(connect) if connect else None,
         "zenoh_config": zenoh_config,
+        "raw": True if raw else None,  # no flag: RANDT_VEHICLE_RAW or the default (reduced)
     }
     return PublisherSettings(**{k: v for k, v in overrides.items() if v is not None})
 
 
 #: The options of ``randt replay`` and ``randt simulate`` that override ``PublisherSettings`` fields.
-PUBLISHER_OPTIONS = ("connect", "mode", "zenoh_config")
+PUBLISHER_OPTIONS = ("connect", "mode", "zenoh_config", "raw")
 ConnectOption = Annotated[
     list[str] | None, typer.Option(help="Zenoh endpoint of the router or service, repeatable.")
 ]
@@ -48,6 +52,14 @@ ModeOption = Annotated[VehicleMode | None, typer.Option(help="Zenoh mode of the 
 ZenohConfigOption = Annotated[
     Path | None,
     typer.Option(help="Native Zenoh JSON5 config file of the vehicle: TLS, password (docs/security.md)."),
+]
+RawOption = Annotated[
+    bool,
+    typer.Option(
+        "--raw",
+        help="Send every point as float32 (v1 scans, ~150 Mbit/s per vehicle) instead of the reduced, "
+        "compressed v2 scans (~8 Mbit/s; docs/clients.md). Also RANDT_VEHICLE_RAW=1.",
+    ),
 ]
 
 
@@ -71,6 +83,7 @@ def replay(
     connect: ConnectOption = None,
     mode: ModeOption = None,
     zenoh_config: ZenohConfigOption = None,
+    raw: RawOption = False,
     out: Annotated[
         Path | None,
         typer.Option(help="Write the received poses_kitti.txt, poses_tum.txt, summary.json here."),
@@ -85,7 +98,7 @@ def replay(
     """
     from clients.replay import replay as do_replay
 
-    settings = _publisher_settings(mode, connect, zenoh_config)
+    settings = _publisher_settings(mode, connect, zenoh_config, raw)
     results = do_replay(
         path,
         vehicle,
@@ -159,6 +172,7 @@ def simulate(
     connect: ConnectOption = None,
     mode: ModeOption = None,
     zenoh_config: ZenohConfigOption = None,
+    raw: RawOption = False,
     speed: Annotated[float, typer.Option(min=0.0, help="Mean speed, m/s.")] = 6.0,
     rate: Annotated[float, typer.Option(min=0.1, help="LiDAR sweeps per simulated second.")] = 10.0,
     azimuth: Annotated[
@@ -183,7 +197,7 @@ def simulate(
     """
     from clients.fleet import FleetSettings, run_fleet, summary_table
 
-    settings = _publisher_settings(mode, connect, zenoh_config)
+    settings = _publisher_settings(mode, connect, zenoh_config, raw)
     fleet = FleetSettings(
         n_vehicles=vehicles,
         duration_s=duration,
@@ -266,6 +280,7 @@ def demo(
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port (a free one if taken; 0 = any).")] = 7447,
     speed: Annotated[float, typer.Option(min=0.0, help="Mean speed of the vehicles, m/s.")] = 6.0,
     azimuth: Annotated[int, typer.Option(min=100, help="LiDAR firings per revolution.")] = 2000,
+    raw: RawOption = False,
     progress: Annotated[bool, typer.Option(help="Show the fleet's progress bar.")] = True,
 ) -> None:
     """The fleet demo: the service, a simulated fleet, errors against ground truth, then the map.
@@ -351,7 +366,7 @@ def demo(
             "--vehicles", str(vehicles), "--duration", str(duration), "--speed", str(speed),
             "--azimuth", str(azimuth), "--window", "2", "--connect", endpoint, "--mode", "client",
             "--session", f"demo-{time.strftime('%Y%m%d-%H%M%S')}", "--json-out", str(fleet_json),
-            *([] if progress else ["--no-progress"]),
+            *([] if progress else ["--no-progress"]), *(["--raw"] if raw else []),
         ]  # fmt: skip
         tic = time.monotonic()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)

@@ -8,9 +8,14 @@ Contents
 --------
 :mod:`wire.messages`
     The messages (:class:`ScanMessage`, :class:`PoseMessage`, :class:`ErrorMessage`,
-    :class:`TileUpdateMessage`), their schema version :data:`SCHEMA_VERSION`, the decoder limits
-    :class:`WireLimits`, :func:`encode`, the ``decode_*`` functions, :func:`peek_ids` /
-    :func:`peek_seq`, and the senders' helpers (:func:`scan_from_arrays`, ...).
+    :class:`TileUpdateMessage`), their schema version :data:`SCHEMA_VERSION`, the compact v2 scan
+    (:class:`CompactScanMessage`, :class:`ScanEncoding`, :data:`SCAN_V2`, :func:`encode_scan_v2`),
+    the decoder limits :class:`WireLimits`, :func:`encode`, the ``decode_*`` functions (``decode_scan``
+    reads v1 and v2), :func:`peek_ids` / :func:`peek_seq`, and the senders' helpers
+    (:func:`scan_from_arrays`, ...).
+:mod:`wire.packing`
+    The bodies of a v2 scan: the ``delta-zigzag-planar`` layout of integer columns, zstd
+    compression and bounded decompression.
 :mod:`wire.keys`
     Every key expression: :func:`scan_key`, :func:`pose_key`, :func:`error_key`, :func:`tile_key`,
     :func:`service_token_key`, the wildcards :data:`ALL_SCANS`, :data:`ALL_POSES`,
@@ -53,11 +58,15 @@ from wire.keys import (
     vehicle_of_scan_key,
 )
 from wire.messages import (
+    SCAN_V2,
+    SCAN_VERSIONS,
     SCHEMA_VERSION,
     Bounds,
+    CompactScanMessage,
     ErrorMessage,
     PoseMessage,
     Prior,
+    ScanEncoding,
     ScanMessage,
     SchemaVersion,
     TileUpdateMessage,
@@ -68,6 +77,7 @@ from wire.messages import (
     decode_scan,
     decode_tile_update,
     encode,
+    encode_scan_v2,
     matrix_to_pose,
     peek_ids,
     peek_seq,
@@ -86,14 +96,18 @@ __all__ = [
     "ID_MAX_LENGTH",
     "ID_PATTERN",
     "ID_REGEX",
+    "SCAN_V2",
+    "SCAN_VERSIONS",
     "SCHEMA_VERSION",
     "SERVICE_CODES",
     "UNKNOWN_ID",
     "Bounds",
+    "CompactScanMessage",
     "ErrorCode",
     "ErrorMessage",
     "PoseMessage",
     "Prior",
+    "ScanEncoding",
     "ScanMessage",
     "SchemaVersion",
     "TileUpdateMessage",
@@ -104,6 +118,7 @@ __all__ = [
     "decode_scan",
     "decode_tile_update",
     "encode",
+    "encode_scan_v2",
     "error_key",
     "is_valid_id",
     "key_for",

@@ -39,6 +39,7 @@ class ErrorCode(StrEnum):
     TOO_MANY_POINTS = "too_many_points"
     NONFINITE_POINTS = "nonfinite_points"
     INVALID_PRIOR = "invalid_prior"
+    INVALID_COMPRESSION = "invalid_compression"
     # the service's own refusals (service/sessions.py)
     DUPLICATE_SEQ = "duplicate_seq"
     OUT_OF_ORDER = "out_of_order"
@@ -68,6 +69,8 @@ DECODE_CODES: Final[dict[ErrorCode, str]] = {
     ErrorCode.NONFINITE_POINTS: "a point has a NaN or infinite coordinate or intensity",
     ErrorCode.INVALID_PRIOR: "the prior pose is not a finite rigid transform, or its covariance is not a "
     "finite symmetric positive semi-definite 6x6 matrix",
+    ErrorCode.INVALID_COMPRESSION: "a v2 scan's zstd body is not one valid frame, or does not decompress to "
+    "exactly the size its n_points implies (the decompressor stops there: no decompression bomb)",
 }
 
 #: The codes the service adds for scans that decode but cannot be taken, with their meaning.

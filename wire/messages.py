@@ -12,6 +12,10 @@ Decoding in one screen::
         v == SCHEMA_VERSION? --pydantic (strict)--> ids match the id pattern -->
         points: stride, count, limits, finite --> prior: rigid, PSD
 
+    a scan with v == SCAN_V2 (compact): --pydantic (strict)--> ids, encoding, n_points (limits) -->
+        each body decompressed to exactly the size n_points implies (never more) and decoded -->
+        the v1 checks above on the expanded float32 buffers --> a ScanMessage with ``encoding`` set
+
 **Bounded cost.** A payload of the maximum size can still declare millions of tiny map entries
 (16 MiB of 3-byte entries: about 3 s of CPU to unpack and peek in Python). Before anything is
 unpacked, :func:`check_structure` walks the msgpack headers (never the bodies of ``bin``/``str``
@@ -45,6 +49,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PrivateAttr,
     ValidationError,
     ValidationInfo,
     field_validator,
@@ -55,16 +60,21 @@ from pydantic_core import PydanticCustomError
 from core.errors import BadMessageError
 from wire.codes import CODE_REGEX, DECODE_CODES, ErrorCode
 from wire.ids import ID_REGEX, UNKNOWN_ID, UNSAFE_ID_SAMPLES
+from wire.packing import LAYOUT, Codec, compress, decompress, pack_int_columns, unpack_int_columns
 
 if TYPE_CHECKING:
     from core.io.clouds import PointCloud
 
 __all__ = [
+    "SCAN_V2",
+    "SCAN_VERSIONS",
     "SCHEMA_VERSION",
     "Bounds",
+    "CompactScanMessage",
     "ErrorMessage",
     "PoseMessage",
     "Prior",
+    "ScanEncoding",
     "ScanMessage",
     "SchemaVersion",
     "TileUpdateMessage",
@@ -76,6 +86,7 @@ __all__ = [
     "decode_scan",
     "decode_tile_update",
     "encode",
+    "encode_scan_v2",
     "matrix_to_pose",
     "peek_ids",
     "peek_seq",
@@ -87,8 +98,15 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: The schema version this package writes and the only one it reads (docs/wire-format.md, Versioning).
+#: The schema version of every message in the v1 layout: poses, errors, tile updates and raw scans
+#: (docs/wire-format.md, Versioning). Scans may also come as :data:`SCAN_V2`.
 SCHEMA_VERSION: Final = 1
+
+#: The version of a compact scan (:class:`CompactScanMessage`): reduced, quantized, compressed.
+SCAN_V2: Final = 2
+
+#: The versions :func:`decode_scan` reads (the other decoders read :data:`SCHEMA_VERSION` only).
+SCAN_VERSIONS: Final = (SCHEMA_VERSION, SCAN_V2)
 
 #: The type of every message's ``v``: :data:`SCHEMA_VERSION` and nothing else.
 SchemaVersion = Literal[1]
@@ -326,6 +344,9 @@ class ScanMessage(_Message):
         ``[0, max_time_offset_s]``.
     prior:
         Optional :class:`Prior` pose of the sensor at ``stamp_ns``.
+
+    A compact (v2) payload decodes to this same model, its bodies expanded to these float32 buffers,
+    with :attr:`encoding` telling how it travelled (``None`` for a v1 payload).
     """
 
     vehicle: str
@@ -336,6 +357,13 @@ class ScanMessage(_Message):
     points: bytes
     time_offsets: bytes | None = None
     prior: Prior | None = None
+
+    _encoding: ScanEncoding | None = PrivateAttr(default=None)
+
+    @property
+    def encoding(self) -> ScanEncoding | None:
+        """How the scan travelled when it was decoded from a v2 payload; ``None`` for v1 (raw)."""
+        return self._encoding
 
     @field_validator("vehicle", "session")
     @classmethod
@@ -426,6 +454,208 @@ class ScanMessage(_Message):
         from core.io.clouds import PointCloud  # lazy: vehicle clients need not load the file formats
 
         return PointCloud(xyz=self.xyz(), intensity=self.intensity(), time_offset_s=self.time_offset_s())
+
+
+class ScanEncoding(BaseModel):
+    """How a v2 scan's bodies are encoded (the ``encoding`` map; docs/wire-format.md, Scan v2).
+
+    Attributes
+    ----------
+    voxel_m:
+        Voxel edge the vehicle reduced the sweep with (first point per voxel kept), metres; ``0``: not
+        reduced. Informative: the decoder does not need it.
+    xyz_quantum_m:
+        Coordinate step, metres: ``x = q * xyz_quantum_m`` for the int32 ``q`` of the ``xyz`` body.
+    time_quantum_s:
+        Time-offset step, seconds: ``t = q * time_quantum_s``.
+    intensity_offset, intensity_quantum:
+        ``intensity = intensity_offset + u * intensity_quantum`` for the uint8 ``u`` of the
+        ``intensity`` body.
+    layout:
+        ``"delta-zigzag-planar"`` (:mod:`wire.packing`), the only one.
+    codec:
+        ``"zstd"`` (each body one zstd frame) or ``"none"``.
+    """
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
+
+    voxel_m: float = Field(ge=0.0, le=100.0)
+    xyz_quantum_m: float = Field(gt=0.0, le=1.0)
+    time_quantum_s: float = Field(gt=0.0, le=0.01)
+    intensity_offset: float = Field(ge=-1e30, le=1e30)
+    intensity_quantum: float = Field(gt=0.0, le=1e30)
+    layout: Literal["delta-zigzag-planar"]
+    codec: Literal["zstd", "none"]
+
+
+class CompactScanMessage(BaseModel):
+    """A v2 scan as it travels (docs/wire-format.md, Scan v2); :func:`decode_scan` expands it into
+    a :class:`ScanMessage`. Fields as :class:`ScanMessage`, and:
+
+    Attributes
+    ----------
+    n_points:
+        Number of points ``N`` (``1 <= N <= max_points``), checked before any body is decompressed:
+        every body must decompress to exactly the size ``N`` implies.
+    encoding:
+        :class:`ScanEncoding`.
+    xyz:
+        ``12 N`` bytes before compression: the int32 columns ``x, y, z`` (units of
+        ``xyz_quantum_m``) in the layout of ``encoding.layout``.
+    time_offsets:
+        Optional, ``4 N`` bytes: one int32 column (units of ``time_quantum_s``), same layout.
+    intensity:
+        Optional, ``N`` bytes: one uint8 per point, in point order.
+    """
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
+
+    v: Literal[2] = SCAN_V2
+    vehicle: str
+    session: str
+    seq: Count
+    stamp_ns: Count
+    n_points: Count
+    encoding: ScanEncoding
+    xyz: bytes
+    time_offsets: bytes | None = None
+    intensity: bytes | None = None
+    prior: Prior | None = None
+
+    @field_validator("vehicle", "session")
+    @classmethod
+    def _check_ids(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info)
+
+    @model_validator(mode="after")
+    def _check_count(self, info: ValidationInfo) -> CompactScanMessage:
+        limits = _limits_of(info)
+        if self.n_points == 0:
+            raise _fail(ErrorCode.EMPTY_SCAN, "n_points: the scan holds no points")
+        if self.n_points > limits.max_points:
+            raise _fail(
+                ErrorCode.TOO_MANY_POINTS,
+                f"n_points: {self.n_points} points exceed the limit of {limits.max_points}",
+            )
+        return self
+
+
+def _expand(compact: CompactScanMessage, limits: WireLimits) -> ScanMessage:
+    """Decompress and decode a v2 scan's bodies into a validated :class:`ScanMessage` (bounded:
+    each body decompresses to exactly the size ``n_points`` implies, or fails)."""
+    n, enc = compact.n_points, compact.encoding
+    q = unpack_int_columns(decompress(compact.xyz, enc.codec, 12 * n, "xyz"), 3, n)
+    with_intensity = compact.intensity is not None
+    table = np.empty((n, 4 if with_intensity else 3), dtype=_F32)
+    np.multiply(q.T, enc.xyz_quantum_m, out=table[:, :3], casting="unsafe")
+    if compact.intensity is not None:
+        u = np.frombuffer(decompress(compact.intensity, enc.codec, n, "intensity"), dtype=np.uint8)
+        table[:, 3] = enc.intensity_offset + u * enc.intensity_quantum
+    offsets = None
+    if compact.time_offsets is not None:
+        qt = unpack_int_columns(decompress(compact.time_offsets, enc.codec, 4 * n, "time_offsets"), 1, n)
+        offsets = (qt[0] * enc.time_quantum_s).astype(_F32).tobytes()  # range: ScanMessage's check
+    obj = {
+        "v": SCHEMA_VERSION,
+        "vehicle": compact.vehicle,
+        "session": compact.session,
+        "seq": compact.seq,
+        "stamp_ns": compact.stamp_ns,
+        "fields": "xyzi" if with_intensity else "xyz",
+        "points": table.tobytes(),
+        "time_offsets": offsets,
+        "prior": compact.prior,
+    }
+    scan = _validate(ScanMessage, obj, limits)
+    scan._encoding = enc
+    return scan
+
+
+def _intensity_scale(values: np.ndarray) -> tuple[float, float]:
+    """``(offset, quantum)`` mapping ``values`` onto uint8: exact for integers in [0, 255], else the
+    sweep's [min, max] in 255 steps."""
+    lo, hi = float(values.min()), float(values.max())
+    if lo >= 0.0 and hi <= 255.0 and np.array_equal(values, np.rint(values)):
+        return 0.0, 1.0
+    return lo, ((hi - lo) / 255.0 if hi > lo else 1.0)
+
+
+def encode_scan_v2(
+    scan: ScanMessage,
+    *,
+    voxel_m: float = 0.0,
+    xyz_quantum_m: float = 0.01,
+    time_quantum_s: float = 1e-5,
+    codec: Codec = "zstd",
+    level: int = 3,
+) -> bytes:
+    """Pack a validated scan as a compact v2 payload (docs/wire-format.md, Scan v2).
+
+    Points keep their order. Coordinates become int32 multiples of ``xyz_quantum_m`` (error at most
+    half a step, plus float32 rounding), time offsets multiples of ``time_quantum_s``, intensities
+    uint8 on the sweep's own scale (exact for integers in [0, 255]). Reducing the sweep is the
+    sender's business (:func:`clients.publisher.encode_sweep`); ``voxel_m`` only declares it.
+
+    Parameters
+    ----------
+    scan:
+        The sweep, as :func:`scan_from_arrays` built and validated it.
+    voxel_m, xyz_quantum_m, time_quantum_s, codec:
+        As :class:`ScanEncoding`.
+    level:
+        zstd compression level (3: the measured trade-off, docs/clients.md).
+
+    Raises
+    ------
+    BadMessageError
+        ``invalid_points``: a coordinate beyond the int32 range of ``xyz_quantum_m`` steps.
+    ValueError
+        Quanta outside :class:`ScanEncoding`'s ranges (a caller's bug).
+    """
+    table = scan.points_f32()
+    n = table.shape[0]
+    q = np.rint(table[:, :3].T.astype(np.float64) / xyz_quantum_m)  # float64 (3, n)
+    if q.min() < _INT32_MIN or q.max() > _INT32_MAX:
+        raise BadMessageError(
+            f"points: a coordinate beyond +-{2.0**31 * xyz_quantum_m:.6g} m cannot be sent in steps of "
+            f"{xyz_quantum_m} m",
+            code=ErrorCode.INVALID_POINTS,
+        )
+    intensity = scan.intensity()
+    offset, quantum = (0.0, 1.0) if intensity is None else _intensity_scale(intensity.astype(np.float64))
+    enc = ScanEncoding(
+        voxel_m=float(voxel_m),
+        xyz_quantum_m=float(xyz_quantum_m),
+        time_quantum_s=float(time_quantum_s),
+        intensity_offset=offset,
+        intensity_quantum=quantum,
+        layout=LAYOUT,
+        codec=codec,
+    )
+    bodies: dict[str, bytes | None] = {
+        "xyz": compress(pack_int_columns(q.astype(np.int32)), codec, level),
+        "time_offsets": None,
+        "intensity": None,
+    }
+    offsets = scan.time_offset_s()
+    if offsets is not None:  # validated: in [0, max_time_offset_s]
+        qt = np.rint(offsets / time_quantum_s).astype(np.int32)[None, :]
+        bodies["time_offsets"] = compress(pack_int_columns(qt), codec, level)
+    if intensity is not None:
+        u = np.clip(np.rint((intensity - offset) / quantum), 0, 255).astype(np.uint8)
+        bodies["intensity"] = compress(u.tobytes(), codec, level)
+    obj = {
+        "v": SCAN_V2,
+        "vehicle": scan.vehicle,
+        "session": scan.session,
+        "seq": scan.seq,
+        "stamp_ns": scan.stamp_ns,
+        "n_points": n,
+        "encoding": enc.model_dump(),
+        **bodies,
+        "prior": None if scan.prior is None else scan.prior.model_dump(),
+    }
+    return msgpack.packb(obj, use_bin_type=True)
 
 
 class PoseMessage(_Message):
@@ -612,7 +842,7 @@ class TileUpdateMessage(_Message):
 
 
 WireMessage = ScanMessage | PoseMessage | ErrorMessage | TileUpdateMessage
-_M = TypeVar("_M", ScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage)
+_M = TypeVar("_M", ScanMessage, CompactScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage)
 
 
 # --------------------------------------------------------------------------------------------
@@ -757,7 +987,9 @@ def encode(message: WireMessage) -> bytes:
     return msgpack.packb(message.model_dump(), use_bin_type=True)
 
 
-def _unpack(payload: bytes, limits: WireLimits) -> dict[str, Any]:
+def _unpack(
+    payload: bytes, limits: WireLimits, versions: tuple[int, ...] = (SCHEMA_VERSION,)
+) -> dict[str, Any]:
     """Size check, msgpack, top-level map and version: the steps before field validation."""
     size = memoryview(payload).nbytes
     if size > limits.max_payload_bytes:
@@ -798,9 +1030,10 @@ def _unpack(payload: bytes, limits: WireLimits) -> dict[str, Any]:
         raise BadMessageError(
             f"v: the schema version must be an integer, got {_preview(version)}", code=ErrorCode.INVALID_FIELD
         )
-    if version != SCHEMA_VERSION:
+    if version not in versions:
+        reads = " and ".join(str(v) for v in versions)
         raise BadMessageError(
-            f"v: schema version {version} is not supported (this decoder reads {SCHEMA_VERSION})",
+            f"v: schema version {version} is not supported (this decoder reads {reads})",
             code=ErrorCode.UNSUPPORTED_VERSION,
         )
     return obj
@@ -851,7 +1084,12 @@ def _decode(model: type[_M], payload: bytes, limits: WireLimits | None) -> _M:
     limits = _DEFAULT_LIMITS if limits is None else limits
     memoryview(payload)  # TypeError for objects without the buffer protocol: a caller's bug, not bad input
     try:
-        return _validate(model, _unpack(payload, limits), limits)
+        if model is not ScanMessage:
+            return _validate(model, _unpack(payload, limits), limits)
+        obj = _unpack(payload, limits, SCAN_VERSIONS)
+        if obj["v"] == SCAN_V2:
+            return _expand(_validate(CompactScanMessage, obj, limits), limits)  # type: ignore[return-value]
+        return _validate(model, obj, limits)
     except BadMessageError:
         raise
     except Exception as exc:  # a decoder bug must not take down a transport callback
@@ -862,7 +1100,7 @@ def _decode(model: type[_M], payload: bytes, limits: WireLimits | None) -> _M:
 
 
 def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage:
-    """Decode and validate a scan message.
+    """Decode and validate a scan message, v1 (raw float32) or v2 (compact, expanded here).
 
     Parameters
     ----------
@@ -875,6 +1113,8 @@ def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage
     -------
     ScanMessage
         Points stay in the unpacked ``bytes``; the array accessors are views or single conversions.
+        A v2 payload's bodies are decompressed (at most the size ``n_points`` implies) into the same
+        float32 buffers; ``encoding`` says how it travelled.
 
     Raises
     ------

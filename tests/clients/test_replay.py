@@ -23,7 +23,8 @@ from tests.data import require_data
 def test_replay_kitti00_through_a_router_matches_the_offline_map(
     restartable_router: Router, tmp_path
 ) -> None:
-    """11 poses over Zenoh, equal to ``randt map`` on the same frames (same matcher, same float32 points)."""
+    """11 poses over Zenoh, equal to ``randt map`` on the same frames (same matcher, same float32
+    points: ``--raw``; the default reduced sweeps are bench/link.py's subject)."""
     root = require_data("kitti00/velodyne/000010.bin", "kitti00/times.txt")
     seq_dir = root / "kitti00"
     offline = CliRunner().invoke(
@@ -44,7 +45,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
                 sys.executable, "-m", "cli", "replay", str(seq_dir),
                 "--vehicle", "kitti", "--session", "seq00", "--rate", "0",
                 "--connect", restartable_router.endpoint, "--mode", "client",
-                "--out", str(tmp_path / "replay"), "--no-progress",
+                "--out", str(tmp_path / "replay"), "--no-progress", "--raw",
             ],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
@@ -83,7 +84,7 @@ def test_csv_folder_of_the_randt_paper(restartable_router: Router, fake_service:
         "paper",
         session="s2",
         rate_hz=0,
-        settings=PublisherSettings(connect=(restartable_router.endpoint,)),
+        settings=PublisherSettings(connect=(restartable_router.endpoint,), raw=True),
         progress=False,
     )
     assert result.stats.acknowledged == len(files) == 2

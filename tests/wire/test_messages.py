@@ -30,6 +30,7 @@ from wire.messages import (
     decode_scan,
     decode_tile_update,
     encode,
+    encode_scan_v2,
     matrix_to_pose,
     peek_ids,
     peek_seq,
@@ -380,9 +381,16 @@ def test_malformed(payload: bytes, words: str) -> None:
 
 
 def test_unsupported_version() -> None:
-    err = rejected(pack(scan_dict(v=2)))
+    err = rejected(pack(scan_dict(v=3)))
     assert err.code == "unsupported_version"
-    assert "schema version 2" in str(err)
+    assert str(err) == "v: schema version 3 is not supported (this decoder reads 1 and 2)"
+    # v2 exists for scans only
+    pose = msgpack.unpackb(encode(ErrorMessage(vehicle="car", session="s", code="malformed", reason="r")))
+    err = rejected(pack({**pose, "v": 2}), decode_error)
+    assert (err.code, str(err)) == (
+        "unsupported_version",
+        "v: schema version 2 is not supported (this decoder reads 1)",
+    )
 
 
 @pytest.mark.parametrize("field", ["v", "vehicle", "session", "seq", "stamp_ns", "fields", "points"])
@@ -840,3 +848,260 @@ def test_fuzz_structured_messages(caplog: pytest.LogCaptureFixture) -> None:
                 obj[nested] = {**obj[nested], keys[int(rng.integers(0, 2))]: _random_value(rng)}
         _only_bad_message_errors(pack(obj))
     assert_no_decoder_bug(caplog)
+
+
+# --------------------------------------------------------------------------------------------
+# compact scans (v2): round trips, quantization bounds, hostile bodies
+# --------------------------------------------------------------------------------------------
+
+
+def _walk(n: int, seed: int = 5) -> np.ndarray:
+    """(n, 3) points a few cm apart (a sweep's native order), with far points and big jumps."""
+    rng = np.random.default_rng(seed)
+    xyz = np.cumsum(rng.normal(0.0, 0.04, size=(n, 3)), axis=0) + [5.0, -3.0, 1.0]
+    xyz[::97] = rng.uniform(-300.0, 300.0, size=(len(xyz[::97]), 3))  # far points: int16 overflows
+    xyz[5] = [299.99, -299.99, 299.99]
+    xyz[6] = [-299.99, 299.99, -299.99]  # a jump of 600 m (60 000 steps) on every axis
+    return xyz
+
+
+def v2_payload(n: int = 500, *, intensity: bool = True, offsets: bool = True, **kw: Any) -> bytes:
+    rng = np.random.default_rng(9)
+    scan = scan_from_arrays(
+        "car-07",
+        "s1",
+        4,
+        1_700_000_000_000_000_000,
+        _walk(n),
+        rng.uniform(0.0, 1.0, n) if intensity else None,
+        np.sort(rng.uniform(0.0, 0.1, n)) if offsets else None,
+    )
+    return encode_scan_v2(scan, **kw)
+
+
+def v2_dict(**overrides: Any) -> dict[str, Any]:
+    obj = msgpack.unpackb(v2_payload())
+    obj.update(overrides)
+    return {k: v for k, v in obj.items() if v is not DROP}
+
+
+def test_v2_round_trip_bounds_and_order() -> None:
+    n = 3000
+    rng = np.random.default_rng(1)
+    xyz = _walk(n)
+    intensity = rng.uniform(0.0, 0.99, n)
+    offsets = np.sort(rng.uniform(0.0, 0.1, n))
+    T = make_transform([0.01, 0.02, 1.2], [105.0, -42.0, 3.0])
+    C = np.diag([0.5, 0.5, 1.0, 1e-3, 1e-3, 5e-3])
+    sent = scan_from_arrays("car-07", "s1", 5, 17, xyz, intensity, offsets, T, C)
+    payload = encode_scan_v2(sent, voxel_m=0.2, xyz_quantum_m=0.01, time_quantum_s=1e-5)
+    got = decode_scan(payload)
+
+    assert isinstance(got, ScanMessage) and sent.encoding is None
+    assert (got.vehicle, got.session, got.seq, got.stamp_ns, got.fields, got.n_points) == (
+        "car-07",
+        "s1",
+        5,
+        17,
+        "xyzi",
+        n,
+    )
+    enc = got.encoding
+    assert enc is not None and (enc.voxel_m, enc.xyz_quantum_m, enc.time_quantum_s, enc.codec) == (
+        0.2,
+        0.01,
+        1e-5,
+        "zstd",
+    )
+    # every point in its place: within half a step (+ float32 rounding of a 300 m value, 1.5e-5 m)
+    err = np.abs(got.xyz() - xyz)
+    assert err.max() <= 0.005 + 3e-5, err.max()
+    assert err.max() > 0.004  # the bound is reached, so the test can tell a coarser step
+    assert np.abs(got.time_offset_s() - offsets).max() <= 0.5e-5 + 1e-7
+    assert np.abs(got.intensity() - intensity).max() <= 0.5 * enc.intensity_quantum + 1e-6
+    np.testing.assert_array_equal(got.prior_pose(), T)
+    np.testing.assert_array_equal(got.prior_covariance(), C)
+    # the decoded message is a plain scan: re-encoding it as v1 gives the same arrays
+    again = decode_scan(encode(got))
+    np.testing.assert_array_equal(again.xyz(), got.xyz()) and again.encoding is None
+
+
+def test_v2_without_optional_bodies_and_with_codec_none() -> None:
+    xyz = _walk(200)
+    for codec in ("zstd", "none"):
+        payload = encode_scan_v2(scan_from_arrays("car", "s", 0, 0, xyz), codec=codec)
+        got = decode_scan(payload)
+        assert got.fields == "xyz" and got.intensity() is None and got.time_offset_s() is None
+        assert np.abs(got.xyz() - xyz).max() <= 0.005 + 3e-5
+    raw = msgpack.unpackb(encode_scan_v2(scan_from_arrays("car", "s", 0, 0, xyz), codec="none"))
+    assert len(raw["xyz"]) == 12 * 200 and raw["encoding"]["layout"] == "delta-zigzag-planar"
+
+
+def test_v2_layout_is_the_documented_one() -> None:
+    """Byte for byte: differences, zigzag, byte planes column after column (docs/wire-format.md)."""
+    top = 2**31 - 128  # the largest float32 below 2^31
+    xyz = np.array([[1.0, 0.0, -2.0], [3.0, -100.0, -2.0], [-1.0, top, -(2.0**31)]])
+    raw = msgpack.unpackb(
+        encode_scan_v2(scan_from_arrays("c", "s", 0, 0, xyz), xyz_quantum_m=1.0, codec="none")
+    )
+    q = xyz.T.astype(np.int64)
+    d = np.diff(q, axis=1, prepend=0)
+    d = (d + 2**31) % 2**32 - 2**31  # int32 wrap-around
+    z = np.where(d >= 0, 2 * d, -2 * d - 1).astype(np.uint32)
+    planes = [((z[c] >> (8 * b)) & 0xFF).astype(np.uint8).tobytes() for c in range(3) for b in range(4)]
+    assert raw["xyz"] == b"".join(planes)
+    assert z[1].tolist() == [0, 199, 2 * (top + 100)]
+    assert d[2].tolist() == [-2, 0, -(2**31) + 2]  # -2^31 - (-2) = -2^31 + 2: no wrap; zigzag 2^32 - 5
+    assert z[2].tolist() == [3, 0, 2**32 - 5]
+
+
+def test_v2_integer_intensities_are_exact() -> None:
+    intensity = np.arange(200) % 256
+    got = decode_scan(encode_scan_v2(scan_from_arrays("c", "s", 0, 0, _walk(200), intensity)))
+    assert got.encoding is not None and (got.encoding.intensity_offset, got.encoding.intensity_quantum) == (
+        0.0,
+        1.0,
+    )
+    np.testing.assert_array_equal(got.intensity(), intensity)
+
+
+def test_v2_coordinates_beyond_the_int32_range_are_refused() -> None:
+    xyz = np.array([[0.0, 0.0, 0.0], [3.0e7, 0.0, 0.0]])  # 3e9 steps of 1 cm
+    with pytest.raises(BadMessageError) as info:
+        encode_scan_v2(scan_from_arrays("c", "s", 0, 0, xyz))
+    assert info.value.code == "invalid_points" and "cannot be sent in steps of 0.01 m" in str(info.value)
+    got = decode_scan(encode_scan_v2(scan_from_arrays("c", "s", 0, 0, xyz), xyz_quantum_m=1.0))
+    assert got.xyz()[1, 0] == 3.0e7
+
+
+def test_v2_wrapping_differences_decode_exactly() -> None:
+    """The extreme int32 values next to each other: differences wrap modulo 2^32 both ways."""
+    top, bottom = 2.0**31 - 128, -(2.0**31)  # float32-exact, 2^32 - 128 apart
+    xyz = np.array([[top, bottom, 0.0], [bottom, top, 0.0], [top, top, bottom]] * 3)
+    got = decode_scan(encode_scan_v2(scan_from_arrays("c", "s", 0, 0, xyz), xyz_quantum_m=1.0))
+    np.testing.assert_array_equal(got.xyz(), xyz)
+
+
+def test_invalid_compression_bomb_stops_at_the_declared_size() -> None:
+    from wire.packing import zstd
+
+    bomb = zstd.compress(b"\x00" * (64 * 1024 * 1024), level=3)  # 64 MiB in about 2 KiB
+    assert len(bomb) < 10_000
+    t0 = time.perf_counter()
+    err = rejected(pack(v2_dict(n_points=500, xyz=bomb)))
+    assert time.perf_counter() - t0 < 0.5  # it stopped after 6000 bytes
+    assert err.code == "invalid_compression"
+    assert str(err) == (
+        "xyz: the zstd frame decompresses to more than the 6000 bytes its point count implies "
+        "(stopped there: a decompression bomb?)"
+    )
+
+
+def test_invalid_compression_other_failures() -> None:
+    from wire.packing import zstd
+
+    good = v2_dict()
+    cases = [
+        (good["xyz"][: len(good["xyz"]) // 2], "xyz: the zstd frame ends after"),
+        (b"not zstd at all", "xyz: not a valid zstd frame"),
+        (good["xyz"] + b"\x00\x01", "xyz: 2 bytes after the zstd frame"),
+        (good["xyz"] + good["xyz"], "bytes after the zstd frame"),
+        (zstd.compress(b"\x00" * 100), "xyz: the zstd frame ends after 100 bytes, expected 6000"),
+    ]
+    for body, words in cases:
+        err = rejected(pack({**good, "xyz": body}))
+        assert err.code == "invalid_compression", (words, str(err))
+        assert words in str(err), str(err)
+    err = rejected(pack({**good, "intensity": zstd.compress(b"\x00" * 501)}))
+    assert err.code == "invalid_compression" and str(err).startswith("intensity: ")
+    err = rejected(pack({**good, "time_offsets": b""}))
+    assert err.code == "invalid_compression" and str(err).startswith("time_offsets: ")
+
+
+def test_v2_point_count_is_checked_before_decompressing() -> None:
+    err = rejected(pack(v2_dict(n_points=0)))
+    assert (err.code, str(err)) == ("empty_scan", "n_points: the scan holds no points")
+    err = rejected(pack(v2_dict()), limits=WireLimits(max_points=499))
+    assert (err.code, str(err)) == ("too_many_points", "n_points: 500 points exceed the limit of 499")
+    err = rejected(pack(v2_dict(n_points=DROP)))
+    assert (err.code, str(err)) == ("missing_field", "n_points: required field is missing")
+
+
+def test_v2_codec_none_body_of_the_wrong_size() -> None:
+    obj = msgpack.unpackb(v2_payload(codec="none"))
+    err = rejected(pack({**obj, "xyz": obj["xyz"][:-1]}))
+    assert (err.code, str(err)) == ("invalid_points", "xyz: 5999 bytes, expected 6000 (codec none)")
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "words"),
+    [
+        ("codec", "lz4", "encoding.codec: input should be 'zstd' or 'none', got 'lz4'"),
+        ("layout", "rows", "encoding.layout: input should be 'delta-zigzag-planar'"),
+        ("xyz_quantum_m", 0.0, "encoding.xyz_quantum_m: input should be greater than 0"),
+        ("xyz_quantum_m", 5.0, "encoding.xyz_quantum_m: input should be less than or equal to 1"),
+        ("time_quantum_s", float("nan"), "encoding.time_quantum_s: input should be a finite number"),
+        ("intensity_quantum", -1.0, "encoding.intensity_quantum: input should be greater than 0"),
+        ("voxel_m", "0.2", "encoding.voxel_m: input should be a valid number"),
+        ("codec", DROP, "encoding.codec: required field is missing"),
+    ],
+)
+def test_v2_encoding_fields_are_checked(field: str, value: Any, words: str) -> None:
+    encoding = {**v2_dict()["encoding"], field: value}
+    encoding = {k: v for k, v in encoding.items() if v is not DROP}
+    err = rejected(pack(v2_dict(encoding=encoding)))
+    assert err.code in ("invalid_field", "missing_field") and words in str(err), str(err)
+
+
+def test_v2_decoded_values_are_range_checked() -> None:
+    """Quantized time offsets decode to [0, max_time_offset_s] or the scan is refused."""
+    obj = v2_dict()
+    n = obj["n_points"]
+    from wire.packing import compress, pack_int_columns
+
+    qt = np.full((1, n), 20_000, np.int32)  # 0.2 s
+    qt[0, 7] = -3
+    obj["time_offsets"] = compress(pack_int_columns(qt), "zstd")
+    err = rejected(pack(obj))
+    assert err.code == "invalid_points"
+    assert str(err).startswith("time_offsets: 1 offsets outside [0, 1.0] s, first at index 7")
+    qt[0, 7] = 20_000
+    obj["time_offsets"] = compress(pack_int_columns(qt), "zstd")
+    assert decode_scan(pack(obj)).time_offset_s()[7] == pytest.approx(0.2)
+    err = rejected(pack(obj), limits=WireLimits(max_time_offset_s=0.1))
+    assert err.code == "invalid_points" and "[0, 0.1] s" in str(err)
+    # the declared ranges keep every decoded intensity finite in float32 (at most 2.56e32)
+    enc = {**obj["encoding"], "intensity_quantum": 1e30, "intensity_offset": 1e30}
+    got = decode_scan(pack({**obj, "encoding": enc}))
+    assert np.isfinite(got.intensity()).all() and got.intensity().max() > 1e31
+    err = rejected(pack({**obj, "encoding": {**enc, "intensity_offset": 1e31}}))
+    assert err.code == "invalid_field" and str(err).startswith("encoding.intensity_offset: ")
+
+
+def test_v2_ids_and_peeks() -> None:
+    err = rejected(pack(v2_dict(vehicle="car/1")))
+    assert err.code == "invalid_id"
+    payload = pack(v2_dict(xyz=b"junk"))
+    assert peek_ids(payload) == ("car-07", "s1") and peek_seq(payload) == 4
+
+
+def test_v2_fuzz_truncations_and_bit_flips(caplog: pytest.LogCaptureFixture) -> None:
+    payload = v2_payload(300)
+    rng = np.random.default_rng(11)
+    codes = set()
+    with caplog.at_level(logging.ERROR, logger="wire.messages"):
+        for cut in range(0, len(payload), max(1, len(payload) // 150)):
+            with pytest.raises(BadMessageError) as info:
+                decode_scan(payload[:cut])
+            codes.add(info.value.code)
+        for _ in range(400):
+            b = bytearray(payload)
+            for pos in rng.integers(0, len(b), size=3):
+                b[pos] ^= 1 << int(rng.integers(0, 8))
+            try:
+                decode_scan(bytes(b))
+            except BadMessageError as exc:
+                codes.add(exc.code)
+                assert exc.code in DECODE_CODES
+    assert not [r for r in caplog.records if "decoding a" in r.getMessage()], "a decoder bug was hit"
+    assert "invalid_compression" in codes and "malformed" in codes
