@@ -884,7 +884,7 @@ class SessionManager:
             assert record.map is not None  # the service saves every session with its map
             # The matcher resumes from its snapshot, brought to the last published pose
             # (extend_state_dict: poses, velocity and stamp; the keyframes stay the snapshot's).
-            state = extend_state_dict(state, poses, stamps, settings=self.settings.matcher)
+            state = extend_state_dict(state, poses, stamps, settings=self.settings.session_matcher())
             info = SessionState(
                 scan.vehicle,
                 scan.session,
@@ -905,10 +905,11 @@ class SessionManager:
         grid = self.map_grid(info.map_name)
         matcher: LocalMatcher | RemoteMatcher
         settings = self.settings
+        session_matcher = settings.session_matcher()
         if self.pool is not None:
-            matcher = self.pool.open(key, state or None, grid, settings.matcher, settings.registration)
+            matcher = self.pool.open(key, state or None, grid, session_matcher, settings.registration)
         else:
-            matcher = LocalMatcher(settings.matcher, settings.registration)
+            matcher = LocalMatcher(session_matcher, settings.registration)
             if state:
                 matcher.load_state_dict(state)
         # Called on an opener thread without the manager lock; _open installs the worker.

@@ -34,6 +34,11 @@ from wire.zenoh_config import check_endpoints, load_config_file
 __all__ = ["ServiceSettings"]
 
 
+#: The matcher's finest NDT level, in map voxels (:meth:`ServiceSettings.session_matcher`): 0.8 m
+#: with the default 0.2 m map voxel, what ``auto_voxel_sizes`` finds on a raw KITTI sweep.
+NDT_VOXELS_PER_MAP_VOXEL = 4.0
+
+
 class ServiceSettings(BaseSettings):
     """Everything ``randt serve`` needs; defaults run embedded on one machine, no router."""
 
@@ -131,6 +136,23 @@ class ServiceSettings(BaseSettings):
         default=MATCHER_REGISTRATION,
         description="the matcher's NDT registration; fields not given keep the matcher's defaults",
     )
+
+    def session_matcher(self) -> MatcherSettings:
+        """The matcher settings every session gets: :attr:`matcher`, with NDT levels tied to the map.
+
+        Unless levels are given (``RANDT_MATCHER__VOXEL_SIZES_M`` or
+        ``RANDT_REGISTRATION__VOXEL_SIZES_M``), the finest is :data:`NDT_VOXELS_PER_MAP_VOXEL` map
+        voxels (0.8 m with the default 0.2 m map voxel; the levels are (16r, 8r, 4r, 2r, r)). The
+        matcher alone would derive them from a session's first sweep (``auto_voxel_sizes``), and that
+        estimate depends on the sweep's point density: a sweep the vehicle library reduced to one
+        point per map voxel gives r = 2 m where its raw sweep gives 0.7-0.8 m, and coarser levels
+        put the reduced session's trajectory 4.5-5.5 cm off the raw one's (bench/link.py). Tied to
+        the map, raw and reduced sweeps match at the same scale.
+        """
+        if self.matcher.voxel_sizes_m is not None or self.registration.voxel_sizes_m is not None:
+            return self.matcher
+        r = NDT_VOXELS_PER_MAP_VOXEL * self.map_voxel_m
+        return self.matcher.model_copy(update={"voxel_sizes_m": (16 * r, 8 * r, 4 * r, 2 * r, r)})
 
     @field_validator("registration", mode="before")
     @classmethod
