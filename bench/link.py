@@ -18,13 +18,11 @@ Run from the repository root (no test dependencies)::
    map points and the matcher's time per sweep. The issue's criterion: the reduced map within 1 cm
    ATE and 0.02 PDU of the raw one, the link at most 12 Mbit/s.
 
-   The matcher fixes its NDT levels from a session's first sweep (``core.registration.
-   auto_voxel_sizes``: r from the median distance of the points from their median point), which
-   depends on the sweep's density: a reduced sweep has relatively fewer near-ground points, so r
-   comes out larger (2 m instead of 0.8 m on KITTI). The reduced sweeps are therefore mapped twice:
-   with the levels the matcher picks for them (what the service does today) and with the levels it
-   picks for the raw sweeps (``RANDT_MATCHER__VOXEL_SIZES_M``), which separates what the link
-   loses from what the scale choice changes.
+   Both are mapped with the NDT levels the service gives every session
+   (``ServiceSettings.session_matcher``: the finest level four map voxels, 0.8 m). The reduced
+   sweeps are mapped a third time with the levels the matcher alone would derive from their first
+   sweep (``core.registration.auto_voxel_sizes``, which depends on the sweep's density: r = 2 m
+   on a reduced KITTI sweep against 0.8 m raw), to show why the service ties them to the map.
 """
 
 from __future__ import annotations
@@ -49,8 +47,8 @@ from core.datasets import open_sequence
 from core.mapping import MapBuilder
 from core.metrics.cloud import pdu
 from core.metrics.trajectory import ate
-from core.odometry import MatcherSettings
 from core.shared_data import data_root
+from service.settings import ServiceSettings
 from wire.messages import decode_scan
 
 del common
@@ -118,7 +116,12 @@ def run(
 ) -> tuple[list[LinkStats], list[MapRun], np.ndarray]:
     """Encode every sweep with every setting (timed), decode and map the raw and default payloads."""
     stats = [LinkStats() for _ in SETTINGS]
-    maps = [MapRun("raw"), MapRun("default (reduced), levels from its sweep")]
+    service = ServiceSettings().session_matcher()  # the levels every service session gets
+    maps = [
+        MapRun("raw", MapBuilder(service)),
+        MapRun("default (reduced)", MapBuilder(service)),
+        MapRun("default (reduced), levels from its own sweep (matcher alone)"),
+    ]
     gt = []
     for i, sweep in enumerate(sweeps):
         for (_, settings), st in zip(SETTINGS, stats, strict=True):
@@ -141,10 +144,6 @@ def run(
             st.points.append(n)
             if st is stats[RAW]:
                 maps[0].add(payload)
-                if i == 0:  # the levels the matcher chose for the raw sweeps
-                    levels = maps[0].builder.matcher.registration.voxel_sizes_m
-                    pinned = MapBuilder(MatcherSettings(voxel_sizes_m=levels))
-                    maps.append(MapRun("default (reduced), raw sweep's levels", pinned))
             elif st is stats[DEFAULT]:
                 maps[1].add(payload)
                 maps[2].add(payload)
