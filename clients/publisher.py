@@ -439,7 +439,9 @@ class VehiclePublisher:
             deskew); within [0, 1].
         prior_pose, prior_covariance:
             (4, 4) ``T_map_sensor`` from GNSS/INS and its (6, 6) covariance (tx ty tz rx ry rz),
-            both or neither. A session whose first scan has a prior joins the shared map.
+            both or neither, at the moment the answer's pose refers to (``stamp_ns``, or the
+            sweep's middle with ``time_offset_s``). A session whose first scan has a prior joins
+            the shared map.
 
         Returns
         -------

@@ -343,7 +343,8 @@ class ScanMessage(_Message):
         Optional little-endian float32 per point: seconds after ``stamp_ns``, in
         ``[0, max_time_offset_s]``.
     prior:
-        Optional :class:`Prior` pose of the sensor at ``stamp_ns``.
+        Optional :class:`Prior` pose of the sensor at the moment the answer's pose refers to:
+        ``stamp_ns``, or the sweep's middle (``stamp_ns`` + period / 2) with ``time_offsets``.
 
     A compact (v2) payload decodes to this same model, its bodies expanded to these float32 buffers,
     with :attr:`encoding` telling how it travelled (``None`` for a v1 payload).
