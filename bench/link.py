@@ -19,7 +19,7 @@ Run from the repository root (no test dependencies)::
    ATE and 0.02 PDU of the raw one, the link at most 12 Mbit/s.
 
    Both are mapped with the NDT levels the service gives every session
-   (``ServiceSettings.session_matcher``: the finest level four map voxels, 0.8 m). The reduced
+   (``ServiceSettings.session_matcher``: the finest level five map voxels, 1 m). The reduced
    sweeps are mapped a third time with the levels the matcher alone would derive from their first
    sweep (``core.registration.auto_voxel_sizes``, which depends on the sweep's density: r = 2 m
    on a reduced KITTI sweep against 0.8 m raw), to show why the service ties them to the map.
