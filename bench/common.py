@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import os
 
-for _var in (
+#: The environment variables that limit BLAS/OpenMP libraries to one thread.
+THREAD_VARS = (
     "OMP_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
     "MKL_NUM_THREADS",
     "VECLIB_MAXIMUM_THREADS",
     "NUMEXPR_NUM_THREADS",
     "BLIS_NUM_THREADS",
-):
+)
+for _var in THREAD_VARS:
     os.environ[_var] = "1"
 
 import platform  # noqa: E402

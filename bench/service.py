@@ -55,20 +55,10 @@ from typing import IO, Any
 
 import common
 import numpy as np
-from common import REPO, free_port, git_line, heading, machine_line, progress, table
+from common import REPO, THREAD_VARS, free_port, git_line, heading, machine_line, progress, table
 
 del common
 
-#: Environment variables the benchmarks set to one thread (bench/common.py); the service process
-#: starts without them, so that what it sets itself is what is measured.
-_BENCH_THREAD_VARS = (
-    "OMP_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-    "BLIS_NUM_THREADS",
-)
 
 RATE_HZ = 10.0
 #: Targets of issue 14 (a fleet size holds when it meets all of them).
@@ -283,7 +273,7 @@ def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = RE
     sizes = spool.sizes(vehicles)
     with tempfile.TemporaryDirectory(prefix="randt-bench-") as tmp:
         endpoint = f"tcp/127.0.0.1:{free_port()}"
-        env = {k: v for k, v in os.environ.items() if k not in _BENCH_THREAD_VARS}
+        env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}  # the service sets its own
         service = subprocess.Popen(
             [sys.executable, "-c", SERVE_PROGRAM, str(service_repo), endpoint, str(Path(tmp) / "data")],
             stdin=subprocess.PIPE,

@@ -284,23 +284,6 @@ class VoxelGaussianMap:
         return tuple(levels)
 
     @classmethod
-    def from_moments(
-        cls,
-        voxel_size_m: float,
-        keys: np.ndarray,
-        counts: np.ndarray,
-        mean: np.ndarray,
-        scatter: np.ndarray,
-        min_points_per_voxel: int,
-        eigenvalue_ratio: float,
-    ) -> VoxelGaussianMap:
-        """The map of the voxels (keys ascending) holding at least ``min_points_per_voxel``
-        points, from their counts, means and scatter matrices about the means."""
-        return cls._from_moments(
-            voxel_size_m, keys, counts, mean, scatter, min_points_per_voxel, eigenvalue_ratio
-        )
-
-    @classmethod
     def _from_moments(
         cls,
         voxel_size_m: float,
