@@ -128,6 +128,11 @@ class ServiceSettings(BaseSettings):
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
+    ndt_levels_from_map: bool = Field(
+        default=True,
+        description="every session's NDT levels from map_voxel_m (finest 5 map voxels); false: each "
+        "session derives them from its first sweep, as `randt map` does (ServiceSettings.session_matcher)",
+    )
     # wire limits
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
@@ -144,15 +149,17 @@ class ServiceSettings(BaseSettings):
         """The matcher settings every session gets: :attr:`matcher`, with NDT levels tied to the map.
 
         Unless levels are given (``RANDT_MATCHER__VOXEL_SIZES_M`` or
-        ``RANDT_REGISTRATION__VOXEL_SIZES_M``), the finest is :data:`NDT_VOXELS_PER_MAP_VOXEL` map
-        voxels (1 m with the default 0.2 m map voxel; the levels are (16r, 8r, 4r, 2r, r)). The
-        matcher alone would derive them from a session's first sweep (``auto_voxel_sizes``), and that
-        estimate depends on the sweep's point density: a sweep the vehicle library reduced to one
-        point per map voxel gives r = 2 m where its raw sweep gives 0.7-0.8 m, and coarser levels
-        put the reduced session's trajectory 4.5-5.5 cm off the raw one's (bench/link.py). Tied to
-        the map, raw and reduced sweeps match at the same scale.
+        ``RANDT_REGISTRATION__VOXEL_SIZES_M``) or ``ndt_levels_from_map`` is off, the finest is
+        :data:`NDT_VOXELS_PER_MAP_VOXEL` map voxels (1 m with the default 0.2 m map voxel; the
+        levels are (16r, 8r, 4r, 2r, r)). The matcher alone would derive them from a session's
+        first sweep (``auto_voxel_sizes``), and that estimate depends on the sweep's point density:
+        a sweep the vehicle library reduced to one point per map voxel gives r = 2 m where its raw
+        sweep gives 0.7-0.8 m, and coarser levels put the reduced session's trajectory 3.3-4.7 cm
+        off the raw one's (bench/link.py). Tied to the map, raw and reduced sweeps match at the
+        same scale.
         """
-        if self.matcher.voxel_sizes_m is not None or self.registration.voxel_sizes_m is not None:
+        given = self.matcher.voxel_sizes_m is not None or self.registration.voxel_sizes_m is not None
+        if given or not self.ndt_levels_from_map:
             return self.matcher
         r = NDT_VOXELS_PER_MAP_VOXEL * self.map_voxel_m
         return self.matcher.model_copy(update={"voxel_sizes_m": (16 * r, 8 * r, 4 * r, 2 * r, r)})

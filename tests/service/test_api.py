@@ -434,7 +434,17 @@ def test_tile_etag_changes_when_the_tile_grows(served) -> None:
         f"/maps/default/tiles/{tile.ix}/{tile.iy}", headers={"If-None-Match": first.headers["etag"]}
     )
     assert r.status_code == 200 and r.headers["etag"].startswith(f'"{tile.version + 1}-')
-    assert len(r.content) == len(first.content) + 16  # one more float32 x y z intensity row
+    # one more float32 x y z intensity row (16 bytes) and a header counting one more point
+    before, after = _pcd_header_and_body(first.content), _pcd_header_and_body(r.content)
+    assert int(after[0]["POINTS"]) == int(before[0]["POINTS"]) + 1
+    assert len(after[1]) == len(before[1]) + 16
+
+
+def _pcd_header_and_body(content: bytes) -> tuple[dict[str, str], bytes]:
+    """A binary PCD's header fields and its data bytes."""
+    head, _, body = content.partition(b"DATA binary\n")
+    fields = dict(line.split(" ", 1) for line in head.decode().splitlines() if " " in line)
+    return fields, body
 
 
 def test_close_session_needs_the_token(served) -> None:

@@ -81,3 +81,17 @@ def test_an_environment_variable_changes_what_a_sessions_matcher_uses(
         assert len(state["keyframe_sizes"]) == 4
     finally:
         mgr.stop()
+
+
+def test_every_session_matches_at_ndt_levels_tied_to_the_map_voxel(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Finest level 5 map voxels unless levels are given or the tie is switched off (then the
+    matcher derives them from a session's first sweep, as `randt map` does)."""
+    for var in ("RANDT_MATCHER__VOXEL_SIZES_M", "RANDT_REGISTRATION__VOXEL_SIZES_M"):
+        monkeypatch.delenv(var, raising=False)
+    np.testing.assert_allclose(ServiceSettings().session_matcher().voxel_sizes_m, (16, 8, 4, 2, 1))
+    np.testing.assert_allclose(
+        ServiceSettings(map_voxel_m=0.1).session_matcher().voxel_sizes_m, (8, 4, 2, 1, 0.5)
+    )
+    assert ServiceSettings(ndt_levels_from_map=False).session_matcher().voxel_sizes_m is None
+    monkeypatch.setenv("RANDT_MATCHER__VOXEL_SIZES_M", "[4, 2]")
+    assert ServiceSettings().session_matcher().voxel_sizes_m == (4.0, 2.0)
