@@ -91,12 +91,7 @@ def scan_doc(session: str, seq: int, /, *, n: int = 32, **override: Any) -> dict
         "time_offsets": None,
         "prior": None,
     }
-    for key, value in override.items():
-        if value is DELETE:
-            doc.pop(key, None)
-        else:
-            doc[key] = value
-    return doc
+    return _overridden(doc, override)
 
 
 DELETE = "__delete__"
@@ -110,6 +105,16 @@ _ENCODING: dict[str, Any] = {
     "layout": "delta-zigzag-planar",
     "codec": "zstd",
 }
+
+
+def _overridden(doc: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` with the ``override`` fields set, those given as :data:`DELETE` removed."""
+    for key, value in override.items():
+        if value is DELETE:
+            doc.pop(key, None)
+        else:
+            doc[key] = value
+    return doc
 
 
 def zstd_frame(blocks: list[tuple[str, bytes, int]]) -> bytes:
@@ -156,12 +161,7 @@ def v2_scan_doc(session: str, seq: int, /, *, n: int = 32, **override: Any) -> d
         "intensity": None,
         "prior": None,
     }
-    for key, value in override.items():
-        if value is DELETE:
-            doc.pop(key, None)
-        else:
-            doc[key] = value
-    return doc
+    return _overridden(doc, override)
 
 
 def pack(obj: Any) -> bytes:

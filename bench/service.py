@@ -41,7 +41,6 @@ import argparse
 import contextlib
 import csv
 import datetime
-import importlib
 import json
 import os
 import shlex
@@ -50,6 +49,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -66,39 +66,15 @@ P99_TARGET_MS = 200.0
 ERROR_TARGET_CM = 5.0
 
 
-def _encoder(link: str) -> Any:
-    """``f(vehicle, seq, stamp_ns, xyz, intensity, offsets, prior_pose, prior_cov) -> bytes``."""
-    if link == "default":
-        # By name: encode_sweep is the vehicle library's (docs/wire-format.md), newer than v1.
-        publisher = importlib.import_module("clients.publisher")
-        encode_sweep = publisher.encode_sweep
-        settings = publisher.PublisherSettings()
+def _encoder(link: str) -> Callable[..., bytes]:
+    """``f(vehicle, seq, stamp_ns, xyz, intensity, offsets, **prior) -> bytes``: the payload the
+    vehicle library sends (``clients.publisher.encode_sweep``), with its defaults (``default``) or
+    every point as a v1 scan (``raw``)."""
+    from clients.publisher import PublisherSettings, encode_sweep
 
-        def encode_default(
-            vehicle: str,
-            seq: int,
-            stamp_ns: int,
-            xyz: np.ndarray,
-            intensity: np.ndarray,
-            offsets: np.ndarray,
-            **prior: Any,
-        ) -> bytes:
-            return encode_sweep(
-                vehicle,
-                "bench",
-                seq,
-                stamp_ns,
-                xyz,
-                intensity=intensity,
-                time_offset_s=offsets,
-                settings=settings,
-                **prior,
-            )
+    settings = PublisherSettings(raw=link == "raw")
 
-        return encode_default
-    from wire.messages import encode, scan_from_arrays
-
-    def encode_raw(
+    def encoder(
         vehicle: str,
         seq: int,
         stamp_ns: int,
@@ -107,13 +83,12 @@ def _encoder(link: str) -> Any:
         offsets: np.ndarray,
         **prior: Any,
     ) -> bytes:
-        return encode(
-            scan_from_arrays(
-                vehicle, "bench", seq, stamp_ns, xyz, intensity=intensity, time_offset_s=offsets, **prior
-            )
-        )
+        return encode_sweep(
+            vehicle, "bench", seq, stamp_ns, xyz,
+            intensity=intensity, time_offset_s=offsets, settings=settings, **prior,
+        )  # fmt: skip
 
-    return encode_raw
+    return encoder
 
 
 class Spool:
