@@ -14,6 +14,7 @@ processes with SIGKILL (``bench/crash.py``).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import threading
 import time
 
@@ -245,8 +246,10 @@ def test_a_new_session_matches_on_while_its_first_snapshot_is_written(tmp_path, 
 
     monkeypatch.setattr(svc.store, "save_session", slow_disk)
     try:
+        # arrivals 100 ms apart (stamped as the transport stamps them): scan 0 arrived first
+        arrived_ns = [time.time_ns() - (4 - seq) * 100_000_000 for seq in range(4)]
         for seq in range(4):
-            svc.sessions.submit("v1", _scan(seq))
+            svc.sessions.submit("v1", _scan(seq), arrived_ns[seq])
         worker = None
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -257,12 +260,17 @@ def test_a_new_session_matches_on_while_its_first_snapshot_is_written(tmp_path, 
         assert worker is not None and worker.info.n_scans == 4  # all four matched and logged...
         assert not [m for m in svc._sent if isinstance(m, PoseMessage)]  # ...none acknowledged
         assert calls and calls[0] >= 1
+        released_ns = time.time_ns()
         release.set()
         answers = wait_answers(svc, 4)
         assert [(type(m), m.seq) for m in answers] == [(PoseMessage, seq) for seq in range(4)]
         assert isinstance(answers[0], PoseMessage) and answers[0].status == "first"
         latencies = [m.latency_ms for m in answers if isinstance(m, PoseMessage)]
-        assert latencies == sorted(latencies, reverse=True) and latencies[-1] > 0  # scan 0 waited longest
+        # each counts its own wait, the hold included: at least from its arrival to the release
+        for seq, latency in enumerate(latencies):
+            assert latency >= (released_ns - arrived_ns[seq]) / 1e6, (seq, latencies)
+        # scan 0 waited longest: 100 ms apart on arrival, the answers a few ms apart at most
+        assert all(a - b > 50.0 for a, b in itertools.pairwise(latencies)), latencies
         stamps, _ = svc.sessions.stored_trajectory("v1", "d1")
         assert stamps.shape[0] >= 1  # the first snapshot is on disk
     finally:

@@ -96,7 +96,10 @@ def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_pa
             session.declare_subscriber(f"randt/fleet/{vehicle}/pose", on_pose),
             session.declare_subscriber(f"randt/fleet/{vehicle}/error", on_error),
         ]
-        pub = session.declare_publisher(f"randt/fleet/{vehicle}/scan")
+        # BLOCK, as the vehicle library sends: the default (DROP) may discard a 1.9 MB put
+        pub = session.declare_publisher(
+            f"randt/fleet/{vehicle}/scan", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         wait_until = time.monotonic() + 30
         while not pub.matching_status.matching and time.monotonic() < wait_until:
             time.sleep(0.05)
