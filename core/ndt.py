@@ -22,7 +22,7 @@ where ``S`` is the rotation-rotation block ``S_ij = (a_i q_j + a_j q_i)/2 - (a.q
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -77,6 +77,26 @@ class NdtEvaluation:
     hessian: np.ndarray
     gauss_newton_hessian: np.ndarray
     n_pairs: int
+
+
+def about_origin(ev: NdtEvaluation, pivot: np.ndarray) -> NdtEvaluation:
+    """``ev`` (derivatives w.r.t. a left perturbation about ``pivot``) re-expressed about the
+    target frame's origin, as :func:`ndt_derivatives` with ``pivot=None`` gives them.
+
+    To first order a perturbation ``(t', r)`` about the origin is ``(t' + r x pivot, r)`` about
+    ``pivot``: ``J = [[I, -[pivot]x], [0, I]]``, ``g' = J^T g`` and ``H' = J^T H J``. The two
+    parametrizations differ at second order by a term proportional to the gradient, which is
+    zero at a converged pose (Test: tests/core/test_ndt.py::test_about_origin_matches_the_origin_evaluation).
+    """
+    px, py, pz = (float(v) for v in pivot)
+    J = np.eye(6)
+    J[:3, 3:] = -np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]])
+    return replace(
+        ev,
+        gradient=J.T @ ev.gradient,
+        hessian=J.T @ ev.hessian @ J,
+        gauss_newton_hessian=J.T @ ev.gauss_newton_hessian @ J,
+    )
 
 
 #: Pairs whose term ``exp(-d2 m / 2)`` is below ``exp(-_PRUNE)`` (1e-13) are dropped before the
@@ -338,6 +358,7 @@ class NewtonOutcome:
     converged: bool
     evaluation: NdtEvaluation
     cache: NeighborCache  # the points' cells and neighbour voxels, valid for further evaluations
+    pivot: np.ndarray  # (3,) the point ``evaluation``'s rotations are about (:func:`about_origin`)
 
 
 def _descent_direction(ev: NdtEvaluation) -> np.ndarray:
@@ -368,7 +389,9 @@ def ndt_newton(
     ``max_step_m`` (default: a quarter voxel, a trust region where the voxel Gaussians still
     describe the cost; PCL and Autoware clamp to 0.1 m) and ``max_step_rad``, then halved until
     the cost decreases (Armijo backtracking, up to 8 halvings). Converged when a step moves less than
-    ``translation_eps_m`` and ``rotation_eps_rad``.
+    ``translation_eps_m`` and ``rotation_eps_rad``; a proposed step that small is taken without
+    evaluating the cost after it, so ``evaluation`` is the one made within that tolerance of the
+    returned pose (one evaluation fewer per level).
     """
     if max_step_m is None:
         max_step_m = 0.25 * gmap.voxel_size_m
@@ -391,6 +414,12 @@ def ndt_newton(
             max_step_rad / max(float(np.linalg.norm(step[3:])), 1e-15),
         )
         step *= scale
+        if np.linalg.norm(step[:3]) < translation_eps_m and np.linalg.norm(step[3:]) < rotation_eps_rad:
+            # A step below the tolerance: take it and stop without evaluating there (``ev``
+            # stays the one a tolerance away): the evaluation would only confirm the step.
+            T = apply_update_about(step, T, pivot)
+            converged = True
+            break
         slope = float(ev.gradient @ step)
         # Full step first, evaluated with derivatives (reused when accepted, the common case);
         # then Armijo backtracking on the cheaper cost alone.
@@ -418,4 +447,4 @@ def ndt_newton(
         ):
             converged = True
             break
-    return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev, cache=cache)
+    return NewtonOutcome(T=T, iterations=it, converged=converged, evaluation=ev, cache=cache, pivot=pivot)

@@ -35,7 +35,9 @@ from core.grid import PointGrid
 from core.icp import icp_point_to_plane, icp_point_to_point
 from core.kernels import best_voxel
 from core.ndt import (
+    NdtEvaluation,
     NeighborCache,
+    about_origin,
     apply_update_about,
     ndt_constants,
     ndt_derivatives,
@@ -574,6 +576,7 @@ class _Match:
     iterations: int
     converged: bool
     final_cache: NeighborCache | None  # the finest NDT level's neighbour cache, reused by the judge
+    final_evaluation: NdtEvaluation | None = None  # the finest level's derivatives at ``T``
 
 
 @dataclass(frozen=True)
@@ -637,22 +640,35 @@ def _match(
     levels: tuple[float, ...],
     T: np.ndarray,
     settings: RegistrationSettings,
+    coarsest_voxel_m: float | None = None,
 ) -> _Match:
-    """The solver from ``T``: NDT for ``randt`` and ``ndt``, ICP for the ICP baselines."""
+    """The solver from ``T``: NDT for ``randt`` and ``ndt``, ICP for the ICP baselines; levels
+    coarser than ``coarsest_voxel_m`` skipped (the finest always kept)."""
+    first = 0
+    if coarsest_voxel_m is not None:
+        first = min(sum(v > coarsest_voxel_m * (1 + 1e-9) for v in levels), len(levels) - 1)
     if settings.method in ("randt", "ndt"):
-        return _match_ndt(moving, ref, T, settings)
-    return _match_icp(moving, ref, levels, T, settings)
+        return _match_ndt(moving, ref, T, settings, first)
+    return _match_icp(moving, ref, levels[first:], T, settings)
 
 
 def _match_ndt(
-    moving: np.ndarray, ref: PreparedReference, T: np.ndarray, settings: RegistrationSettings
+    moving: np.ndarray,
+    ref: PreparedReference,
+    T: np.ndarray,
+    settings: RegistrationSettings,
+    first_level: int = 0,
 ) -> _Match:
-    """Newton on the NDT cost (:func:`core.ndt.ndt_newton`), level by level from the previous pose."""
+    """Newton on the NDT cost (:func:`core.ndt.ndt_newton`), level by level from the previous
+    pose, from level ``first_level`` (0: the coarsest) on."""
     iterations = 0
     converged = True
     final_cache = None
+    final_evaluation = None
     memo: dict[float, np.ndarray] = {}
     for level, gmap in enumerate(ref.maps):
+        if level < first_level:
+            continue
         final = level == len(ref.maps) - 1
         consts = ndt_constants(gmap.voxel_size_m, settings.outlier_ratio)
         # Coarse levels only need to hand a good start to the next: stop at 1 % of a voxel.
@@ -670,7 +686,8 @@ def _match_ndt(
         T, iterations = out.T, iterations + out.iterations
         converged = converged and out.converged
         final_cache = out.cache if final else None
-    return _Match(T, iterations, converged, final_cache)
+        final_evaluation = about_origin(out.evaluation, out.pivot) if final else None
+    return _Match(T, iterations, converged, final_cache, final_evaluation)
 
 
 def _match_icp(
@@ -721,10 +738,12 @@ def _judge(
     ref: PreparedReference,
     settings: RegistrationSettings,
     final_cache: NeighborCache | None,
+    evaluation: NdtEvaluation | None = None,
 ) -> _Judgement:
     """Fitness as Autoware reports it (TP, NVTL), the inlier ratio, the covariance from the NDT
     Hessian and the point-to-plane information the degeneracy test reads; never the initial guess
-    dressed up as a result (no overlap raises)."""
+    dressed up as a result (no overlap raises). ``evaluation``: the finest level's derivatives at
+    ``T`` when the solver has them (computed here otherwise)."""
     finest_map = ref.maps[-1]
     consts = ndt_constants(finest_map.voxel_size_m, settings.outlier_ratio)
     n_neighbors = settings.n_neighbors
@@ -735,7 +754,7 @@ def _judge(
             "no moving point lies near a reference voxel at the final pose: the clouds do not "
             "overlap from this initial guess"
         )
-    ev = ndt_derivatives(moving, T, finest_map, consts, n_neighbors, cache=final_cache)
+    ev = evaluation or ndt_derivatives(moving, T, finest_map, consts, n_neighbors, cache=final_cache)
     H = ev.hessian
     if np.linalg.eigvalsh(H).min() <= 0:
         H = ev.gauss_newton_hessian
@@ -774,6 +793,7 @@ def register(
     settings: RegistrationSettings | None = None,
     method: Method | None = None,
     reference: PreparedReference | None = None,
+    coarsest_voxel_m: float | None = None,
 ) -> RegistrationResult:
     """Align ``source_xyz`` to ``target_xyz``; returns a :class:`RegistrationResult`.
 
@@ -787,6 +807,9 @@ def register(
     settings : algorithm settings; ``method`` overrides ``settings.method`` with that method's
         defaults (:meth:`RegistrationSettings.for_method`).
     reference : a :class:`PreparedReference` to reuse across calls (incremental matching).
+    coarsest_voxel_m : NDT levels coarser than this are skipped (the finest always runs): an
+        initial guess known to be within a fraction of a level's voxel needs no coarser ones.
+        ``None`` runs every level.
 
     Raises
     ------
@@ -805,7 +828,7 @@ def register(
     with clock("moving"):
         moving = _moving_points(inputs.source_xyz, settings, inputs.levels[-1])
     with clock("match"):
-        match = _match(moving, ref, inputs.levels, T, settings)
+        match = _match(moving, ref, inputs.levels, T, settings, coarsest_voxel_m)
     T, iterations, svd_accepted = match.T, match.iterations, False
     if settings.svd_refinement:
         with clock("svd"):
@@ -815,7 +838,9 @@ def register(
         if not np.all(np.isfinite(T)):
             raise RegistrationFailedError("registration produced a non-finite transform")
         T = orthonormalize(T)
-        judged = _judge(moving, T, ref, settings, match.final_cache)
+        # Newton's last evaluation, within its tolerance of the pose (unless the SVD step moved it).
+        evaluation = None if svd_accepted else match.final_evaluation
+        judged = _judge(moving, T, ref, settings, match.final_cache, evaluation)
     result = RegistrationResult(
         T_target_source=T,
         converged=bool(match.converged),

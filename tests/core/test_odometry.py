@@ -393,3 +393,76 @@ def test_a_sweep_failing_after_its_pose_was_appended_leaves_the_state_equal(monk
     r = matcher.register_scan(transform_points(invert(step @ step), room), stamp_s=0.2)
     assert r.index == 2 and r.status == "ok"
     assert matcher.state != before, "the equality sees a sweep's changes"
+
+
+def _levels_per_sweep(matcher: IncrementalMatcher, scans, monkeypatch, stamps=None) -> list[list[float]]:
+    """The NDT levels each sweep's registrations ran (a spy on the solver), by sweep."""
+    import core.odometry as odometry
+    import core.registration as registration
+
+    runs: list[list[float]] = []
+    solver, register = registration.ndt_newton, odometry.register
+
+    def spy_solver(moving, gmap, *args, **kwargs):  # type: ignore[no-untyped-def]
+        runs[-1].append(gmap.voxel_size_m)
+        return solver(moving, gmap, *args, **kwargs)
+
+    def spy_register(*args, **kwargs):  # type: ignore[no-untyped-def]
+        runs.append([])
+        return register(*args, **kwargs)
+
+    monkeypatch.setattr(registration, "ndt_newton", spy_solver)
+    monkeypatch.setattr(odometry, "register", spy_register)
+    by_sweep = []
+    for k, s in enumerate(scans):
+        n = len(runs)
+        matcher.register_scan(s, stamp_s=None if stamps is None else stamps[k])
+        by_sweep.append([v for run in runs[n:] for v in run])
+    return by_sweep
+
+
+def test_adaptive_levels_skip_the_coarse_levels_a_good_prediction_does_not_need(kitti00, monkeypatch) -> None:
+    """KITTI 00: after three matches from the prediction (corrections of centimetres), a sweep
+    runs only the levels within LEVEL_MARGIN x its largest recent correction (here the two finest,
+    1.6 and 0.8 m) instead of all five, and the poses stay those of every level to 2 mm."""
+    from core.odometry import LEVEL_MARGIN
+
+    scans, P_gt = kitti00
+    every = IncrementalMatcher(MatcherSettings(adaptive_levels=False))
+    for s in scans:
+        every.register_scan(s)
+    adaptive = IncrementalMatcher()
+    levels = _levels_per_sweep(adaptive, scans, monkeypatch)
+    all_levels = list(adaptive.registration.voxel_sizes_m or ())
+    assert len(all_levels) == 5 and all_levels[-1] == pytest.approx(0.8)
+    assert levels[0] == []  # the first sweep is the first keyframe
+    assert all(levels[k] == all_levels for k in (1, 2, 3, 4))  # too few corrections known yet
+    corrections = adaptive._state.recent_corrections
+    assert 0 < max(corrections) * LEVEL_MARGIN < 1.6  # centimetres: the two finest levels do
+    assert all(levels[k] == all_levels[-2:] for k in range(5, 11)), levels
+    moved = np.linalg.norm(np.array(adaptive.poses)[:, :3, 3] - np.array(every.poses)[:, :3, 3], axis=1)
+    assert moved.max() < 0.002, moved
+    e_adaptive, e_every = _f2f(adaptive.poses), _f2f(every.poses)
+    gt = _f2f(P_gt)
+    err = [
+        np.mean([transform_error(a, b)[0] for a, b in zip(e, gt, strict=True)]) for e in (e_adaptive, e_every)
+    ]
+    assert abs(err[0] - err[1]) < 0.001, err
+
+
+def test_after_a_gap_every_level_runs_again(kitti00, monkeypatch) -> None:
+    """A sweep after dropped ones (stamps 0.2 s apart) runs every level, and so do the next ones
+    until three corrections are known again; the state_dict carries the corrections."""
+    scans, _ = kitti00
+    stamps = [0.1 * k for k in range(11)]
+    kept = [k for k in range(11) if k != 7]  # sweep 7 dropped upstream
+    matcher = IncrementalMatcher()
+    levels = _levels_per_sweep(matcher, [scans[k] for k in kept], monkeypatch, [stamps[k] for k in kept])
+    all_levels = list(matcher.registration.voxel_sizes_m or ())
+    by_index = dict(zip(kept, levels, strict=True))
+    assert by_index[6] == all_levels[-2:]
+    assert all(by_index[k] == all_levels for k in (8, 9, 10)), levels  # 8 follows the gap
+    resumed = IncrementalMatcher()
+    resumed.load_state_dict(matcher.state_dict())
+    assert list(resumed._state.recent_corrections) == list(matcher._state.recent_corrections)
+    assert len(matcher._state.recent_corrections) == 2  # sweeps 9 and 10
