@@ -45,6 +45,7 @@ __all__ = [
     "group_min",
     "group_moments",
     "group_voxels",
+    "group_weighted_moments",
     "grouped_fence_mask",
     "isolated_points",
     "mahalanobis_to_assigned",
@@ -583,6 +584,44 @@ def group_moments(
         scatter[g, 2, 0] = scatter[g, 0, 2]
         scatter[g, 2, 1] = scatter[g, 1, 2]
     return counts, means, scatter
+
+
+@nb.njit(cache=True, nogil=True)
+def group_weighted_moments(
+    points: np.ndarray, inverse: np.ndarray, centres: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per group, weighted moments about the group's centre, in one pass: ``(sum w (m,),
+    sum w d (m,3), sum w d d^T (m,3,3))`` with ``d = p - centres[group]`` (a weight of -1 takes a
+    point out, so the sums of points that came and left cancel to round-off).
+
+    Reference: numpy:bincount
+    Test: tests/core/test_kernels.py::test_group_weighted_moments_match_bincount
+    """
+    m = centres.shape[0]
+    wsum = np.zeros(m)
+    sums = np.zeros((m, 3))
+    scatter = np.zeros((m, 3, 3))
+    for i in range(points.shape[0]):
+        g = inverse[i]
+        w = weights[i]
+        d0 = points[i, 0] - centres[g, 0]
+        d1 = points[i, 1] - centres[g, 1]
+        d2 = points[i, 2] - centres[g, 2]
+        wsum[g] += w
+        sums[g, 0] += w * d0
+        sums[g, 1] += w * d1
+        sums[g, 2] += w * d2
+        scatter[g, 0, 0] += w * d0 * d0
+        scatter[g, 0, 1] += w * d0 * d1
+        scatter[g, 0, 2] += w * d0 * d2
+        scatter[g, 1, 1] += w * d1 * d1
+        scatter[g, 1, 2] += w * d1 * d2
+        scatter[g, 2, 2] += w * d2 * d2
+    for g in range(m):
+        scatter[g, 1, 0] = scatter[g, 0, 1]
+        scatter[g, 2, 0] = scatter[g, 0, 2]
+        scatter[g, 2, 1] = scatter[g, 1, 2]
+    return wsum, sums, scatter
 
 
 @nb.njit(cache=True, nogil=True)

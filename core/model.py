@@ -39,7 +39,7 @@ import numpy as np
 
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError
-from core.kernels import group_moments
+from core.kernels import group_moments, group_weighted_moments
 from core.registration import PreparedReference, reference_inlier_mask
 from core.voxel import VoxelGaussianMap, pack_keys, unpack_keys, voxel_coords, voxel_groups
 
@@ -102,21 +102,13 @@ class VoxelMoments:
             return [cls.empty(voxel_size_m) for _ in weights]
         pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
         inverse, keys, _ = voxel_groups(pts, voxel_size_m, sort=True)
-        d = pts - (unpack_keys(keys) + 0.5)[inverse] * voxel_size_m
-        m = keys.size
-        pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        centres = (unpack_keys(keys) + 0.5) * voxel_size_m
         out = []
         for w in weights:
-            w = np.asarray(w, dtype=np.float64)
-            counts = np.rint(np.bincount(inverse, weights=w, minlength=m)).astype(np.int64)
-            sums = np.stack(
-                [np.bincount(inverse, weights=w * d[:, a], minlength=m) for a in range(3)], axis=1
+            wsum, sums, scatter = group_weighted_moments(
+                pts, inverse, centres, np.ascontiguousarray(w, dtype=np.float64)
             )
-            scatter = np.empty((m, 3, 3))
-            for a, b in pairs:
-                scatter[:, a, b] = np.bincount(inverse, weights=w * d[:, a] * d[:, b], minlength=m)
-                scatter[:, b, a] = scatter[:, a, b]
-            out.append(cls(float(voxel_size_m), keys, counts, sums, scatter))
+            out.append(cls(float(voxel_size_m), keys, np.rint(wsum).astype(np.int64), sums, scatter))
         return out
 
     def merged(self, other: VoxelMoments, sign: int) -> VoxelMoments:

@@ -20,7 +20,14 @@ from core.ndt import (
 )
 from core.registration import register
 from core.transforms import invert, make_transform, transform_error, transform_points
-from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap, pack_keys, voxel_coords, voxel_downsample
+from core.voxel import (
+    NEIGHBOR_OFFSETS,
+    VoxelGaussianMap,
+    pack_keys,
+    unpack_keys,
+    voxel_coords,
+    voxel_downsample,
+)
 from tests.data import require_data
 
 
@@ -335,6 +342,27 @@ def test_group_centroids_match_bincount(kitti_clouds) -> None:
     got = kernels.masked_group_centroids(points, inverse, n, mask)
     assert 0 < got.shape[0] < n
     np.testing.assert_allclose(got, expected_masked, rtol=1e-12, atol=1e-9)
+
+
+def test_group_weighted_moments_match_bincount(kitti_clouds) -> None:
+    """Weighted count, sums and scatter about each voxel's centre against weighted np.bincount
+    passes over the same grouping (the form core.model used before the kernel)."""
+    points = kitti_clouds[0]
+    inverse, keys, *_ = kernels.group_voxels(points, 1.0)
+    n = keys.size
+    centres = (unpack_keys(keys) + 0.5) * 1.0
+    w = np.random.default_rng(3).choice([-1.0, 0.0, 1.0], size=points.shape[0])
+    wsum, sums, scatter = kernels.group_weighted_moments(points, inverse, centres, w)
+    d = points - centres[inverse]
+    np.testing.assert_allclose(wsum, np.bincount(inverse, weights=w, minlength=n), atol=1e-9)
+    for a in range(3):
+        np.testing.assert_allclose(
+            sums[:, a], np.bincount(inverse, weights=w * d[:, a], minlength=n), rtol=1e-10, atol=1e-9
+        )
+        for b in range(3):
+            expected = np.bincount(inverse, weights=w * d[:, a] * d[:, b], minlength=n)
+            np.testing.assert_allclose(scatter[:, a, b], expected, rtol=1e-10, atol=1e-9)
+    assert np.abs(wsum).max() > 2  # the weights do not all cancel: the test can fail
 
 
 def test_group_min_matches_minimum_at() -> None:
