@@ -26,13 +26,14 @@ served (HTTP, the queryable, tile updates, listings) as last saved (:class:`Dura
 version seen outside is on disk and never goes back or repeats with other content after a crash.
 
 **Map folding**: a scan's map points (the matcher process sends only those the map can keep, in
-the map frame) are inserted into the map's tiles before its pose goes out, unless more of the
-session's scans are waiting: then they wait, and the points of several scans are inserted
-together (by the next scan that finds the queue empty, or by the flusher before it saves tiles).
-An insert pays per point and per tile touched (about 60 tiles of 20 m per sweep), and a vehicle's
-consecutive sweeps touch the same tiles: folded eight at a time, a sweep cost about 15 ms of the
-service process instead of about 22 ms (profiled on this 2-core machine, loaded). Tiles are served
-as saved, so nothing outside sees the difference.
+the map frame) wait with the session, and the points of ``fold_scans`` scans (10) are inserted
+into the map's tiles together, by the scan that makes them that many, by the flusher before it
+saves tiles, or when the session closes. An insert pays per point and per tile touched (about 60
+tiles of 20 m per sweep, each copied: a tile is an immutable version), and a vehicle's
+consecutive sweeps touch the same tiles, so a tile is copied once per fold instead of once per
+sweep. Tiles are served as saved (every ``flush_interval_s``, before which every session folds),
+so nothing outside sees the difference; ``fold_scans=1`` folds every scan before its pose goes
+out.
 
 **Locking**: the manager lock (``_lock``) guards the dictionaries of sessions only and is never held
 across a store read, a matcher call or a matcher warm-up: ``/status``, ``/sessions`` and other
@@ -395,10 +396,9 @@ class SessionWorker:
                 info.drift_var_m2 = float(np.trace(np.asarray(prior.covariance)[:3, :3]))
             elif np.all(np.isfinite(result.covariance[:3, :3])):
                 info.drift_var_m2 += float(np.trace(result.covariance[:3, :3]))
-        # Fold into the map now, unless more of this session's scans wait: then their points are
-        # folded together, by the next scan that finds the queue empty or by the flusher before
-        # it saves tiles (module docstring, Map folding).
-        if not behind:
+        # Fold into the map every fold_scans scans; the flusher folds before it saves tiles
+        # (module docstring, Map folding).
+        if len(self._unfolded) >= self._manager.settings.fold_scans:
             self.fold()
         cov = result.covariance
         answer = PoseMessage(

@@ -128,6 +128,12 @@ class ServiceSettings(BaseSettings):
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
+    fold_scans: int = Field(
+        default=10,
+        ge=1,
+        description="a session's map points enter the map's tiles every this many scans, and before "
+        "every save (tiles are served as saved, so no one outside sees the difference)",
+    )
     ndt_levels_from_map: bool = Field(
         default=True,
         description="every session's NDT levels from map_voxel_m (finest 5 map voxels); false: each "

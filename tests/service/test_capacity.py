@@ -1,6 +1,6 @@
 """Issue 14's service-side defaults for a fleet on one small node: eight vehicles are admitted, BLAS
 runs on one thread in the service, a pose never waits behind a burst of tile updates, and a session
-that falls behind folds its scans into the map together."""
+folds its scans into the map together, every fold_scans scans."""
 
 from __future__ import annotations
 
@@ -90,18 +90,29 @@ def _room_scan(seq: int) -> bytes:
     return encode(scan_from_arrays("v1", "d1", seq, seq * 100_000_000, pts, **prior))
 
 
-def test_a_session_that_falls_behind_folds_its_scans_together_into_the_same_map(tmp_path) -> None:
-    """Scans processed while more wait are folded into the map together (one insert, one version
-    step), which leaves exactly the map that folding them one by one leaves."""
+def test_a_session_folds_its_scans_into_the_map_every_fold_scans_scans(tmp_path) -> None:
+    """With ``fold_scans=4`` a session's map points wait until its fourth scan and then enter the
+    map together (one insert, one version step); the map saved after 8 scans is exactly the one
+    folding every scan (``fold_scans=1``) leaves, through fewer tile versions."""
     maps = []
-    for name, one_by_one in (("a", True), ("b", False)):
-        svc = Service(ServiceSettings(data_dir=tmp_path / name, matcher_processes=0), with_zenoh=False)
+    for name, fold_scans in (("a", 1), ("b", 4)):
+        settings = ServiceSettings(  # no flusher run meanwhile: it folds before it saves
+            data_dir=tmp_path / name, matcher_processes=0, fold_scans=fold_scans, flush_interval_s=3600
+        )
+        svc = Service(settings, with_zenoh=False)
         svc.start()
         try:
+            live_points = []
             for seq in range(8):
                 svc.sessions.submit("v1", _room_scan(seq))
-                if one_by_one:
-                    wait_answers(svc, seq + 1)
+                wait_answers(svc, seq + 1)
+                grid = svc.sessions.maps.get("default")
+                live_points.append(0 if grid is None else grid.n_points)
+            if fold_scans == 1:
+                assert all(n > 0 for n in live_points)
+            else:  # nothing until the 4th scan, then the 4 scans' points at once; again at the 8th
+                assert live_points[:3] == [0, 0, 0] and live_points[3] > 0, live_points
+                assert live_points[4:7] == [live_points[3]] * 3 and live_points[7] > live_points[3]
             answers = wait_answers(svc, 8)
             assert [(type(m), m.seq) for m in answers] == [(PoseMessage, seq) for seq in range(8)]
             svc.sessions.flush()
@@ -112,5 +123,5 @@ def test_a_session_that_falls_behind_folds_its_scans_together_into_the_same_map(
     assert a is not None and b is not None and sorted(a.by_id) == sorted(b.by_id)
     for tid in a.by_id:
         np.testing.assert_array_equal(a.by_id[tid].points, b.by_id[tid].points)
-    # b was behind: fewer inserts, so its tiles went through fewer versions
+    assert max(t.version for t in b.by_id.values()) <= 2  # two folds
     assert sum(t.version for t in b.by_id.values()) < sum(t.version for t in a.by_id.values())
