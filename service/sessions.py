@@ -11,10 +11,9 @@ Flow of a scan::
         the map's candidate points in the map frame out) --> the pose appended to the session's
         pose log and fsync'd (Store.append_pose) --> map tiles (shared TileGrid) --> pose to the
         outbox (held until the session's first snapshot is on disk)
-    flusher thread (every flush_interval_s) --> dirty tiles, and the snapshots of sessions not
-        saved for snapshot_interval_s, to the store (a snapshot drops the log records it now
-        holds), then the saved tiles' updates to the outbox; idle sessions expired; counters to
-        DATA/counters.json
+    flusher thread (every flush_interval_s) --> dirty tiles and session snapshots to the store
+        (a snapshot drops the log records it now holds), then the saved tiles' updates to the
+        outbox; idle sessions expired; counters to DATA/counters.json
 
 **Durable before acknowledged**: a pose goes out only once it is in the session's fsync'd log (a
 session's first poses also wait for its first snapshot, which fixes its frame and holds its first
@@ -177,8 +176,6 @@ class SessionState:
     last_status: str = ""
     last_latency_ms: float = float("nan")
     dirty: bool = False
-    #: When its snapshot was last saved (monotonic; the flusher saves one every snapshot_interval_s).
-    snapshot_at: float = field(default_factory=time.monotonic)
     state: RecordState = "active"
     #: Variance (m^2) of the position accumulated since the last prior pose: the prior's own
     #: variance, plus the trace of each registration's translational covariance (a random walk).
@@ -982,16 +979,13 @@ class SessionManager:
         with self._lock:
             self._dirty_tiles.setdefault(map_name, set()).update(tile_ids)
 
-    def flush(self, *, all_snapshots: bool = True) -> None:
-        """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions.
-
-        ``all_snapshots``: save every changed session's snapshot; the flusher's periodic call
-        passes False and saves only those older than ``snapshot_interval_s``."""
+    def flush(self) -> None:
+        """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions."""
         with self._flush_lock:
-            self._flush(all_snapshots)
+            self._flush()
             self._save_counters()
 
-    def _flush(self, all_snapshots: bool = True) -> None:
+    def _flush(self) -> None:
         with self._lock:
             running = list(self._workers.values())
         for w in running:  # what sessions that were behind processed goes into this save
@@ -1022,8 +1016,7 @@ class SessionManager:
                 self.outbox(self.tile_message(map_name, tile))
         now = time.monotonic()
         for w in workers:
-            due = all_snapshots or now - w.info.snapshot_at >= self.settings.snapshot_interval_s
-            if w.info.dirty and due:
+            if w.info.dirty:
                 self._save_session(w)
             if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
                 self.close(*w.key, state="expired")
@@ -1059,7 +1052,6 @@ class SessionManager:
                 w.broken = True
                 return False
             info.dirty = False
-            info.snapshot_at = time.monotonic()
         try:
             self.store.save_session(record, poses, stamps, matcher_state)
             with self._lock:
@@ -1145,7 +1137,7 @@ class SessionManager:
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.settings.flush_interval_s):
             try:
-                self.flush(all_snapshots=False)
+                self.flush()
             except Exception:  # keep flushing whatever one failure was
                 log.exception("flush failed")
 

@@ -128,13 +128,6 @@ class ServiceSettings(BaseSettings):
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
-    snapshot_interval_s: float = Field(
-        default=3.0,
-        gt=0,
-        description="a running session's matcher snapshot is saved at most this often (its poses "
-        "are in the fsync'd log meanwhile; a restart resumes from the snapshot plus the log, with "
-        "the snapshot's keyframes: at 10 m/s they are at most 30 m behind)",
-    )
     fold_scans: int = Field(
         default=10,
         ge=1,

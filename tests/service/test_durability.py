@@ -313,35 +313,3 @@ def test_held_poses_are_answered_storage_error_when_the_first_snapshot_fails(tmp
     finally:
         release.set()
         svc.stop()
-
-
-def test_the_flusher_saves_a_running_sessions_snapshot_every_snapshot_interval(tmp_path) -> None:
-    """The flusher (every 0.1 s here) saves tiles at every run but a running session's snapshot
-    only once snapshot_interval_s has passed since the last; the poses in between are in the log
-    (load_session has them all). An explicit flush saves every snapshot."""
-    for interval, expect_saved in ((3600.0, False), (0.2, True)):
-        settings = ServiceSettings(
-            data_dir=tmp_path / str(interval),
-            flush_interval_s=0.1,
-            snapshot_interval_s=interval,
-            matcher_processes=0,
-        )
-        svc = Service(settings, with_zenoh=False)
-        svc.start()
-        try:
-            for seq in range(5):
-                svc.sessions.submit("v1", _scan(seq))
-                wait_answers(svc, seq + 1)
-            time.sleep(1.0)  # several flusher runs
-            record = next(r for r in svc.store.list_sessions() if r.session == "d1")
-            stored = svc.store.load_session("v1", "d1")[0]
-            assert stored.n_scans == stored.last_seq + 1 == 5  # the log holds every pose
-            if expect_saved:
-                assert record.n_scans == 5, record
-            else:  # only the first snapshot (saved before the first pose went out)
-                assert record.n_scans < 5, record
-                svc.sessions.flush()
-                record = next(r for r in svc.store.list_sessions() if r.session == "d1")
-                assert record.n_scans == 5, record
-        finally:
-            svc.stop()
