@@ -11,8 +11,10 @@ Each pair loader returns ``(source_xyz, target_xyz, T_target_source_reference)``
 
 from __future__ import annotations
 
+import csv
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +26,18 @@ from core.io import read_cloud
 __all__ = [
     "DATA_DIR_ENV_VAR",
     "PAIRS",
+    "LoopPair",
     "Pair",
     "argoverse2",
     "bunny",
     "car",
     "data_root",
+    "kitti00_loop_pairs",
+    "kitti00_loops_velodyne",
     "kitti00_velodyne",
     "require",
     "small_gicp",
+    "threedmatch",
 ]
 
 DATA_DIR_ENV_VAR = "RANDT_SHARED_DATA"
@@ -89,8 +95,9 @@ def argoverse2() -> Pair:
     return b, a, np.loadtxt(d / "T_a_b.txt")
 
 
-def bunny() -> Pair:
-    """bun045 (source) into bun000's frame; bun.conf: p_world = R(q)^T p + t, bun000 is the world."""
+def bunny(source: str = "bun045") -> Pair:
+    """Bunny scan ``source`` (bun045 by default; bun315 is 45 deg the other way) into bun000's frame;
+    bun.conf: p_world = R(q)^T p + t, bun000 is the world."""
     d = require("objects/bunny/bun.conf") / "objects/bunny"
     poses = {}
     for line in (d / "bun.conf").read_text().splitlines():
@@ -102,8 +109,16 @@ def bunny() -> Pair:
             T[:3, :3] = Rotation.from_quat(q).as_matrix().T
             T[:3, 3] = t
             poses[parts[1]] = T
-    T_ref = np.linalg.inv(poses["bun000.ply"]) @ poses["bun045.ply"]
-    return read_cloud(d / "bun045.ply").xyz, read_cloud(d / "bun000.ply").xyz, T_ref
+    if f"{source}.ply" not in poses:
+        raise NotFoundError(f"bunny scan {source!r}: not in {d / 'bun.conf'} (known: {sorted(poses)})")
+    T_ref = np.linalg.inv(poses["bun000.ply"]) @ poses[f"{source}.ply"]
+    return read_cloud(d / f"{source}.ply").xyz, read_cloud(d / "bun000.ply").xyz, T_ref
+
+
+def threedmatch() -> Pair:
+    """The 3DMatch-style indoor fragment pair (2.5 cm voxels, 17.8 deg apart): p_ref = gt p_src."""
+    d = require("pairs/3dmatch/gt.npy") / "pairs/3dmatch"
+    return np.load(d / "src.npy"), np.load(d / "ref.npy"), np.load(d / "gt.npy")
 
 
 def car() -> Pair:
@@ -119,6 +134,50 @@ def kitti00_velodyne(frame: int) -> np.ndarray:
     """(N,3) points of KITTI odometry sequence 00's velodyne scan ``frame``."""
     d = require(f"kitti00/velodyne/{frame:06d}.bin") / "kitti00/velodyne"
     return read_cloud(d / f"{frame:06d}.bin").xyz
+
+
+def kitti00_loops_velodyne(frame: int) -> np.ndarray:
+    """(N,3) points of KITTI 00 sweep ``frame`` of the revisit set ``kitti00_loops/``."""
+    d = require(f"kitti00_loops/velodyne/{frame:06d}.bin") / "kitti00_loops/velodyne"
+    return read_cloud(d / f"{frame:06d}.bin").xyz
+
+
+@dataclass(frozen=True)
+class LoopPair:
+    """A KITTI 00 revisit: frames ``i`` and ``j`` (p_i = T p_j in LiDAR frames)."""
+
+    i: int
+    j: int
+    gt_distance_m: float
+    #: the ICP-refined relative pose (good to a few cm where ``icp_inlier_fraction`` is high)
+    T_icp: np.ndarray
+    #: the relative pose from KITTI's ground truth (off by 0.7-1.1 m at these revisits)
+    T_gt: np.ndarray
+    icp_inlier_fraction: float
+
+
+def kitti00_loop_pairs() -> list[LoopPair]:
+    """The 21 revisit pairs of ``kitti00_loops/loop_pairs.csv``, in the file's order."""
+    path = require("kitti00_loops/loop_pairs.csv") / "kitti00_loops/loop_pairs.csv"
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+
+    def pose(row: dict[str, str], prefix: str) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :] = np.array([float(row[f"{prefix}{k}"]) for k in range(12)]).reshape(3, 4)
+        return T
+
+    return [
+        LoopPair(
+            int(r["i"]),
+            int(r["j"]),
+            float(r["gt_dist_m"]),
+            pose(r, "T_icp_velo_i_from_j_"),
+            pose(r, "T_gt_velo_i_from_j_"),
+            float(r["icp_inlier_frac_0.3m"]),
+        )
+        for r in rows
+    ]
 
 
 #: The shared pairs with reference transforms, name -> loader, in the benchmarks' order.

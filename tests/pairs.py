@@ -14,6 +14,9 @@ argoverse2 = skip_if_missing(shared_data.argoverse2)
 bunny = skip_if_missing(shared_data.bunny)
 car = skip_if_missing(shared_data.car)
 kitti00_velodyne = skip_if_missing(shared_data.kitti00_velodyne)
+threedmatch = skip_if_missing(shared_data.threedmatch)
+kitti00_loops_velodyne = skip_if_missing(shared_data.kitti00_loops_velodyne)
+kitti00_loop_pairs = skip_if_missing(shared_data.kitti00_loop_pairs)
 
 #: name -> (loader, translation tolerance m, rotation tolerance deg, perturbation scale m).
 #: Issue 2's bounds are the best peer's accuracy (small_gicp pair 2 cm / 0.3 deg, Argoverse 2 cm /

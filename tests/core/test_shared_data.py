@@ -9,6 +9,7 @@ import pytest
 
 from core import shared_data
 from core.errors import NotFoundError
+from tests import pairs
 from tests.data import require_data
 
 
@@ -37,3 +38,23 @@ def test_kitti_pair_loader_reads_the_scan() -> None:
     assert xyz.ndim == 2 and xyz.shape[1] == 3 and xyz.shape[0] > 100_000  # an HDL-64E sweep
     assert np.isfinite(xyz).all()
     assert list(shared_data.PAIRS) == ["small_gicp", "argoverse2", "bunny", "car"]
+
+
+def test_the_revisit_pairs_load_with_poses_that_are_rigid_and_agree_with_the_sweeps() -> None:
+    loops = pairs.kitti00_loop_pairs()
+    assert len(loops) == 21
+    first = loops[0]
+    assert (first.i, first.j) == (120, 1576)
+    for loop in loops:
+        for T in (loop.T_icp, loop.T_gt):
+            assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4)
+        # the ICP pose and KITTI's own disagree by at most the README's 1.1 m at these revisits
+        assert np.linalg.norm(loop.T_icp[:3, 3] - loop.T_gt[:3, 3]) < 1.2
+    assert pairs.kitti00_loops_velodyne(first.j).shape[1] == 3
+
+
+def test_3dmatch_and_bun315_pairs_are_large_rotations() -> None:
+    for loader in (pairs.threedmatch, lambda: pairs.bunny("bun315")):
+        _, _, T = loader()
+        angle = np.degrees(np.arccos((np.trace(T[:3, :3]) - 1) / 2))
+        assert angle > 15
