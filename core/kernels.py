@@ -1217,3 +1217,112 @@ def within_xy_radius(points: np.ndarray, cx: float, cy: float, radius2: float) -
             out[m, 2] = points[i, 2]
             m += 1
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def consistency_graph(a: np.ndarray, b: np.ndarray, bound: float) -> np.ndarray:
+    """Pairwise consistency of correspondences ``a[i] <-> b[i]`` (n,3 each): ``adj[i, j]`` when a
+    rigid motion can keep both, ``| |a_i - a_j| - |b_i - b_j| | <= bound`` (no self loops).
+
+    The numpy form builds two (n,n,3) difference arrays (430 MB at n = 3000); this one writes the
+    (n,n) booleans directly.
+
+    Reference: numpy:linalg.norm
+    Test: tests/core/test_kernels.py::test_consistency_graph_and_core_numbers_match_numpy
+    """
+    n = a.shape[0]
+    adj = np.zeros((n, n), dtype=np.bool_)
+    for i in range(n):
+        for j in range(i + 1, n):
+            da = math.sqrt((a[i, 0] - a[j, 0]) ** 2 + (a[i, 1] - a[j, 1]) ** 2 + (a[i, 2] - a[j, 2]) ** 2)
+            db = math.sqrt((b[i, 0] - b[j, 0]) ** 2 + (b[i, 1] - b[j, 1]) ** 2 + (b[i, 2] - b[j, 2]) ** 2)
+            if abs(da - db) <= bound:
+                adj[i, j] = True
+                adj[j, i] = True
+    return adj
+
+
+@nb.njit(cache=True, nogil=True)
+def core_numbers(adj: np.ndarray) -> np.ndarray:
+    """Core number of every vertex of the graph ``adj`` ((n,n) bool, symmetric): the largest k
+    such that the vertex belongs to a subgraph where every vertex has degree >= k. Peeling the
+    vertex of least degree each time (Batagelj & Zaversnik 2003), O(n^2) on a dense matrix.
+
+    Reference: numpy:sum
+    Test: tests/core/test_kernels.py::test_consistency_graph_and_core_numbers_match_numpy
+    """
+    n = adj.shape[0]
+    degree = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        for j in range(n):
+            if adj[i, j]:
+                degree[i] += 1
+    removed = np.zeros(n, dtype=np.bool_)
+    core = np.zeros(n, dtype=np.int64)
+    k = 0
+    for _ in range(n):
+        v = -1
+        for u in range(n):
+            if not removed[u] and (v < 0 or degree[u] < degree[v]):
+                v = u
+        k = max(k, degree[v])
+        core[v] = k
+        removed[v] = True
+        for u in range(n):
+            if adj[v, u] and not removed[u]:
+                degree[u] -= 1
+    return core
+
+
+@nb.njit(cache=True, nogil=True)
+def spfh_histograms(points: np.ndarray, normals: np.ndarray, neighbors: np.ndarray, bins: int) -> np.ndarray:
+    """Simplified point feature histograms (n, 3*bins) in percent of each point's pairs.
+
+    ``neighbors`` (n,k) holds each point's neighbour rows (``n`` marks a missing one). For a pair,
+    the source is the point whose normal is closer to the connecting line (PCL's rule); with the
+    Darboux frame ``u = n_s, v = u x d, w = u x v`` (``d`` the unit line from source to target),
+    ``alpha = v.n_t`` and ``phi = u.d`` are binned over [-1, 1] and
+    ``theta = atan2(w.n_t, u.n_t)`` over [-pi, pi] (Rusu et al., ICRA 2009).
+
+    Reference: core.global_registration:spfh_reference
+    Test: tests/core/test_global_registration.py::test_spfh_kernel_matches_the_numpy_reference
+    """
+    n, k = neighbors.shape
+    out = np.zeros((n, 3 * bins))
+    for i in range(n):
+        count = 0
+        for c in range(k):
+            j = neighbors[i, c]
+            if j >= n or j == i:
+                continue
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            dz = points[j, 2] - points[i, 2]
+            length = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if length == 0.0:
+                continue
+            dx, dy, dz = dx / length, dy / length, dz / length
+            a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
+            b0, b1, b2 = normals[j, 0], normals[j, 1], normals[j, 2]
+            if abs(a0 * dx + a1 * dy + a2 * dz) < abs(b0 * dx + b1 * dy + b2 * dz):
+                a0, a1, a2, b0, b1, b2 = b0, b1, b2, a0, a1, a2
+                dx, dy, dz = -dx, -dy, -dz
+            v0, v1, v2 = a1 * dz - a2 * dy, a2 * dx - a0 * dz, a0 * dy - a1 * dx
+            vn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            if vn > 1e-12:
+                v0, v1, v2 = v0 / vn, v1 / vn, v2 / vn
+            w0, w1, w2 = a1 * v2 - a2 * v1, a2 * v0 - a0 * v2, a0 * v1 - a1 * v0
+            alpha = v0 * b0 + v1 * b1 + v2 * b2
+            phi = a0 * dx + a1 * dy + a2 * dz
+            theta = math.atan2(w0 * b0 + w1 * b1 + w2 * b2, a0 * b0 + a1 * b1 + a2 * b2)
+            h0 = min(max(int((alpha + 1.0) * 0.5 * bins), 0), bins - 1)
+            h1 = min(max(int((phi + 1.0) * 0.5 * bins), 0), bins - 1)
+            h2 = min(max(int((theta + math.pi) / (2.0 * math.pi) * bins), 0), bins - 1)
+            out[i, h0] += 1.0
+            out[i, bins + h1] += 1.0
+            out[i, 2 * bins + h2] += 1.0
+            count += 1
+        if count > 0:
+            for b in range(3 * bins):
+                out[i, b] *= 100.0 / count
+    return out

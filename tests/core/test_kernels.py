@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from core import kernels
 from core.io import read_cloud
@@ -408,3 +409,40 @@ def test_every_kernel_names_an_existing_reference_and_test(name: str) -> None:
     path = Path(__file__).resolve().parents[2] / test.group(1)
     defined = {n.name for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.FunctionDef)}
     assert test.group(2) in defined, f"{name}: {test.group(1)} defines no {test.group(2)}"
+
+
+def _core_numbers_reference(adj: np.ndarray) -> np.ndarray:
+    """Core numbers by definition: the k-core is what is left after repeatedly deleting every
+    vertex of degree < k; a vertex's core number is the largest k whose core holds it."""
+    n = adj.shape[0]
+    core = np.zeros(n, dtype=np.int64)
+    for k in range(1, n):
+        alive = np.ones(n, dtype=bool)
+        while True:
+            degree = adj[:, alive].sum(axis=1)
+            drop = alive & (degree < k)
+            if not drop.any():
+                break
+            alive &= ~drop
+        if not alive.any():
+            break
+        core[alive] = k
+    return core
+
+
+def test_consistency_graph_and_core_numbers_match_numpy() -> None:
+    rng = np.random.default_rng(4)
+    a = rng.uniform(-10, 10, (120, 3))
+    R = Rotation.from_euler("zyx", [40, 5, -3], degrees=True).as_matrix()
+    b = a @ R.T + [3.0, -2.0, 1.0]
+    b[60:] = rng.uniform(-10, 10, (60, 3))  # half the correspondences are outliers
+    adj = kernels.consistency_graph(a, b, 0.2)
+    da = np.linalg.norm(a[:, None] - a[None], axis=2)
+    db = np.linalg.norm(b[:, None] - b[None], axis=2)
+    expected = np.abs(da - db) <= 0.2
+    np.fill_diagonal(expected, False)
+    assert np.array_equal(adj, expected)
+    # the 60 inliers are a clique: their core number is at least 59, the outliers' is far lower
+    core = kernels.core_numbers(adj)
+    assert np.array_equal(core, _core_numbers_reference(adj))
+    assert core[:60].min() >= 59 and core[60:].max() < 20
