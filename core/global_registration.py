@@ -129,6 +129,7 @@ def _neighbors(tree: cKDTree, points: np.ndarray, radius: float, k: int) -> tupl
     """(N,k) neighbour indices and distances within ``radius``; missing ones have index N."""
     k = min(k, tree.n)
     dist, idx = tree.query(points, k=k, distance_upper_bound=radius)
+    dist, idx = np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.int64)
     if k == 1:
         dist, idx = dist[:, None], idx[:, None]
     return idx, dist
@@ -207,7 +208,7 @@ def fpfh(points: np.ndarray, normals: np.ndarray, tree: cKDTree, radius: float, 
     rows = np.nonzero(valid)[0]
     weights = csr_matrix((1.0 / np.maximum(dist[valid], 1e-12), (rows, idx[valid])), shape=(n, n))
     counts = valid.sum(axis=1).astype(np.float64)
-    features = spfh + (weights @ spfh) / np.maximum(counts, 1.0)[:, None]
+    features = np.asarray(spfh + (weights @ spfh) / np.maximum(counts, 1.0)[:, None], dtype=np.float64)
     per_angle = features.reshape(n, 3, FPFH_BINS)
     totals = per_angle.sum(axis=2, keepdims=True)
     per_angle *= 100.0 / np.maximum(totals, 1e-12)
