@@ -58,8 +58,21 @@ def register(
     output: Annotated[
         Path | None, typer.Option(help="Write SOURCE moved into TARGET's frame (.pcd or .ply).")
     ] = None,
+    global_: Annotated[
+        bool,
+        typer.Option(
+            "--global",
+            help="No initial guess: features, a robust solver, then NDT refinement "
+            "(core.global_registration); exit 15 when the pose is not to be trusted.",
+        ),
+    ] = False,
 ) -> None:
     """Register SOURCE to TARGET and print T_target_source, fitness and time."""
+    if global_:
+        if init is not None or method is not MethodChoice.randt:
+            raise typer.BadParameter("--global takes no --init and refines with --method randt only")
+        _register_global(source, target, voxel, as_json, output)
+        return
     from dataclasses import replace
 
     import numpy as np
@@ -92,6 +105,42 @@ def register(
     if not result.converged:
         typer.echo("randt: warning: registration did not converge", err=True)
         raise typer.Exit(ExitCode.NOT_CONVERGED)
+
+
+def _register_global(
+    source: Path, target: Path, voxel: list[float] | None, as_json: bool, output: Path | None
+) -> None:
+    """``randt register --global``: :func:`core.global_registration.register_global`."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from core.config import RegistrationSettings
+    from core.global_registration import GlobalSettings, register_global
+    from core.io import read_cloud, write_cloud
+    from core.transforms import transform_points
+
+    src = read_cloud(input_file(source))
+    tgt = read_cloud(input_file(target))
+    settings = GlobalSettings(
+        registration=RegistrationSettings(**({"voxel_sizes_m": tuple(voxel)} if voxel else {}))
+    )
+    result = register_global(src.xyz, tgt.xyz, settings)
+    if output is not None:
+        write_cloud(output, replace(src, xyz=transform_points(result.T_target_source, src.xyz)))
+    if as_json:
+        typer.echo(json.dumps(result.to_dict()))
+    else:
+        with np.printoptions(precision=6, suppress=True):
+            typer.echo(f"T_target_source =\n{result.T_target_source}")
+        typer.echo(
+            f"confident {result.confident}  consistent correspondences {result.n_inliers} of "
+            f"{result.n_correspondences}  overlap {result.overlap:.2f}  NDT refinement kept "
+            f"{result.refined}\ntime {result.time_s:.3f} s  feature voxel {result.voxel_m:g} m"
+        )
+    if not result.confident:
+        typer.echo(f"randt: warning: the pose is not to be trusted: {result.reason}", err=True)
+        raise typer.Exit(ExitCode.NOT_CONFIDENT)
 
 
 def demo_register(

@@ -124,6 +124,24 @@ class GlobalResult:
     time_s: float
     stage_times_s: dict[str, float] = field(default_factory=dict)
 
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready: matrices as nested lists (``randt register --global --json``)."""
+        return {
+            "T_target_source": self.T_target_source.tolist(),
+            "T_coarse": self.T_coarse.tolist(),
+            "confident": self.confident,
+            "reason": self.reason,
+            "voxel_m": self.voxel_m,
+            "n_source_points": self.n_source_points,
+            "n_target_points": self.n_target_points,
+            "n_correspondences": self.n_correspondences,
+            "n_inliers": self.n_inliers,
+            "overlap": self.overlap,
+            "refined": self.refined,
+            "time_s": self.time_s,
+            "stage_times_s": dict(self.stage_times_s),
+        }
+
 
 def _neighbors(tree: cKDTree, points: np.ndarray, radius: float, k: int) -> tuple[np.ndarray, np.ndarray]:
     """(N,k) neighbour indices and distances within ``radius``; missing ones have index N."""

@@ -13,7 +13,7 @@ import pytest
 from core.io import read_cloud
 from core.transforms import transform_error
 from tests.data import require_data
-from tests.pairs import car
+from tests.pairs import bunny, car
 
 
 def _randt(*args: str) -> subprocess.CompletedProcess[str]:
@@ -190,3 +190,22 @@ def test_eval_converts_kitti_ground_truth_to_the_lidar_frame_of_randt_map(tmp_pa
     m = re.search(r"RPE \(1 frame\) translation rmse ([\d.]+) m", found.stdout)
     assert m and float(m[1]) == pytest.approx(0.12, abs=0.01)
     assert rpe(_randt(*args, "--no-calib", "--json")) == pytest.approx(1.17, abs=0.02)
+
+
+def test_register_global_places_bun315_with_no_guess_and_exits_15_when_not_confident(tmp_path) -> None:
+    """bun315 is 45 deg from bun000; two sweeps of different KITTI streets have no common place."""
+    root = require_data("objects/bunny/bun315.ply", "kitti00_loops/velodyne/000120.bin")
+    d = root / "objects/bunny"
+    proc = _randt("register", str(d / "bun315.ply"), str(d / "bun000.ply"), "--global", "--json")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    _, _, T_ref = bunny("bun315")
+    err_m, err_deg = transform_error(np.array(doc["T_target_source"]), T_ref)
+    assert doc["confident"] and err_m < 0.0005 and err_deg < 0.2
+    v = root / "kitti00_loops/velodyne"
+    proc = _randt("register", str(v / "000404.bin"), str(v / "000120.bin"), "--global")
+    assert proc.returncode == 15
+    assert "not to be trusted" in proc.stderr and "consistent correspondences" in proc.stderr
+    assert "T_target_source" in proc.stdout
+    proc = _randt("register", str(d / "bun315.ply"), str(d / "bun000.ply"), "--global", "--method", "ndt")
+    assert proc.returncode != 0 and "--global" in proc.stderr
