@@ -80,7 +80,7 @@ DESCRIPTIONS: dict[ExitCode, str] = {
     ExitCode.PORT_IN_USE: "serve: the HTTP port or a Zenoh listen port is in use (nothing started)",
     ExitCode.DATA_DIR_IN_USE: "serve/demo: the data directory is in use by another process",
     ExitCode.WRONG_INPUT: "a directory where a file is expected, or a folder holding no scan files",
-    ExitCode.NOT_CONFIDENT: "register --global: a pose was found but is not to be trusted (printed, with why)",
+    ExitCode.NOT_CONFIDENT: "register --global: the pose found is not to be trusted (printed, with why)",
     ExitCode.INTERRUPTED: "interrupted (Ctrl-C)",
     ExitCode.BROKEN_PIPE: "the reader of the output went away (output piped into `head`): no message",
 }
