@@ -122,9 +122,8 @@ def _register_global(
 
     src = read_cloud(input_file(source))
     tgt = read_cloud(input_file(target))
-    settings = GlobalSettings(
-        registration=RegistrationSettings(**({"voxel_sizes_m": tuple(voxel)} if voxel else {}))
-    )
+    refine = RegistrationSettings(voxel_sizes_m=tuple(voxel)) if voxel else RegistrationSettings()
+    settings = GlobalSettings(registration=refine)
     result = register_global(src.xyz, tgt.xyz, settings)
     if output is not None:
         write_cloud(output, replace(src, xyz=transform_points(result.T_target_source, src.xyz)))
