@@ -77,6 +77,9 @@ _SCRIPTS = [
     "soak",
     "reliability",
     "crash",
+    "link",
+    "fleet_map",
+    "global_registration",
 ]
 
 
