@@ -112,11 +112,14 @@ def local(src: np.ndarray, tgt: np.ndarray, v: float) -> Outcome:
 def kiss_matcher(src: np.ndarray, tgt: np.ndarray, v: float) -> Outcome:
     import kiss_matcher as km
 
+    # KISS-Matcher refuses voxels below about 1 cm ("Too small voxel size"): an object scan (the
+    # bunny, v = 4 mm) is scaled to a 1 m voxel first, and the translation scaled back.
+    scale = 1.0 / v if v < 0.05 else 1.0
     t0 = time.perf_counter()
-    matcher = km.KISSMatcher(km.KISSMatcherConfig(v))
-    sol = matcher.estimate(src.astype(np.float32), tgt.astype(np.float32))
+    matcher = km.KISSMatcher(km.KISSMatcherConfig(v * scale))
+    sol = matcher.estimate((src * scale).astype(np.float32), (tgt * scale).astype(np.float32))
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = np.asarray(sol.rotation), np.asarray(sol.translation).reshape(3)
+    T[:3, :3], T[:3, 3] = np.asarray(sol.rotation), np.asarray(sol.translation).reshape(3) / scale
     return Outcome(T, time.perf_counter() - t0)
 
 

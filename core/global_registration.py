@@ -69,12 +69,19 @@ class GlobalSettings(BaseModel):
     voxel_fraction: float = Field(
         default=1.0, gt=0, le=4, description="with voxel_m None: v = this x the finest NDT level"
     )
+    max_points: int = Field(
+        default=3000,
+        ge=100,
+        description="with voxel_m None: v grows until neither cloud keeps many more voxels than "
+        "this (two KITTI sweeps: 0.35 s instead of 0.45 s at 5-6k, every real pair still placed)",
+    )
     max_range_m: float | None = Field(
         default=None, gt=0, description="points farther from the sensor are ignored; None keeps all"
     )
     normal_radius_voxels: float = Field(default=2.0, gt=0, description="normal neighbourhood / v")
     feature_radius_voxels: float = Field(default=5.0, gt=0, description="FPFH neighbourhood / v")
-    max_neighbors: int = Field(default=48, ge=8, description="neighbours per point, nearest first")
+    max_neighbors: int = Field(default=48, ge=8, description="FPFH neighbours per point, nearest first")
+    normal_neighbors: int = Field(default=24, ge=5, description="normal neighbours per point, nearest first")
     noise_bound_voxels: float = Field(
         default=1.0, gt=0, description="correspondence noise bound / v (consistency and GNC-TLS)"
     )
@@ -85,6 +92,9 @@ class GlobalSettings(BaseModel):
         default=12, ge=3, description="fewer consistent correspondences than this: not confident"
     )
     refine: bool = Field(default=True, description="NDT refinement from the coarse pose")
+    refine_coarsest_voxels: float = Field(
+        default=2.0, gt=0, description="the refinement skips NDT levels coarser than this x v"
+    )
     max_refine_shift_voxels: float = Field(
         default=4.0, gt=0, description="refinement moving the coarse pose farther: not confident"
     )
@@ -354,6 +364,11 @@ def register_global(
     t0 = lap("scale", t0)
     src = voxel_downsample(src_all, v)
     dst = voxel_downsample(dst_all, v)
+    larger = max(src.shape[0], dst.shape[0])
+    if s.voxel_m is None and larger > s.max_points:
+        # A surface's voxel count falls as 1 / v^2: one coarser voxel brings both near the budget.
+        v *= float(np.sqrt(larger / s.max_points))
+        src, dst = voxel_downsample(src_all, v), voxel_downsample(dst_all, v)
     if min(src.shape[0], dst.shape[0]) < 10:
         raise InvalidCloudError(
             f"global registration: {src.shape[0]} source and {dst.shape[0]} target voxels of {v:g} m; "
@@ -361,8 +376,8 @@ def register_global(
         )
     t0 = lap("downsample", t0)
     src_tree, dst_tree = cKDTree(src), cKDTree(dst)
-    src_n = _normals(src, src_tree, s.normal_radius_voxels * v, s.max_neighbors)
-    dst_n = _normals(dst, dst_tree, s.normal_radius_voxels * v, s.max_neighbors)
+    src_n = _normals(src, src_tree, s.normal_radius_voxels * v, s.normal_neighbors)
+    dst_n = _normals(dst, dst_tree, s.normal_radius_voxels * v, s.normal_neighbors)
     t0 = lap("normals", t0)
     radius = s.feature_radius_voxels * v
     src_f = fpfh(src, src_n, src_tree, radius, s.max_neighbors)
@@ -396,7 +411,12 @@ def register_global(
         reason = f"{inliers.size} consistent correspondences, fewer than {s.min_inliers}"
     elif s.refine:
         try:
-            refined = register(src_all, dst_all, T_coarse, settings=s.registration)
+            # The coarse pose is within a few v: NDT levels coarser than refine_coarsest_voxels * v
+            # have nothing to find.
+            refined = register(
+                src_all, dst_all, T_coarse, settings=s.registration,
+                coarsest_voxel_m=s.refine_coarsest_voxels * v,
+            )  # fmt: skip
         except RegistrationFailedError as exc:
             reason = f"NDT refinement failed: {exc}"
         else:
