@@ -5,11 +5,11 @@ tests/pairs.py's for the shared pairs; for the others what :func:`core.registrat
 reaches when started near the reference (measured 2026-11-24):
 
 - 3DMatch: from the ground truth itself the local registration ends 12 cm / 1.8 deg away (the
-  fragments overlap partially and the NDT cost slides along it); global: 4.2 cm / 2.4 deg.
+  fragments overlap partially and the NDT cost slides along it); global: 12 cm / 1.8 deg.
 - KITTI 00 frames 0 -> 10: started from 7.0, 7.6 or 8.6 m forward, the local registration lands
   on the same pose (7.498 m forward) within 0.1 mm; global: the same pose.
 - The 21 KITTI 00 revisits against the ICP-refined pose of the data set (good to a few cm):
-  global 0.9-6.6 cm / 0.05-0.41 deg.
+  global 0.9-6.6 cm / 0.05-0.41 deg (bench/global_registration.py prints each).
 """
 
 from __future__ import annotations
