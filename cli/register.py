@@ -16,6 +16,8 @@ from core.errors import FormatError, RandtError
 if TYPE_CHECKING:
     import numpy as np
 
+    from core.io.clouds import PointCloud
+
 
 class MethodChoice(StrEnum):
     randt = "randt"
@@ -73,14 +75,10 @@ def register(
             raise typer.BadParameter("--global takes no --init and refines with --method randt only")
         _register_global(source, target, voxel, as_json, output)
         return
-    from dataclasses import replace
-
-    import numpy as np
 
     from core.config import RegistrationSettings
-    from core.io import read_cloud, write_cloud
+    from core.io import read_cloud
     from core.registration import register as do_register
-    from core.transforms import transform_points
 
     init_T = _read_init(None if init is None else input_file(init))
     src = read_cloud(input_file(source))
@@ -89,54 +87,60 @@ def register(
         method.value, **({"voxel_sizes_m": tuple(voxel)} if voxel else {})
     )
     result = do_register(src.xyz, tgt.xyz, init_T, settings=settings)
-    if output is not None:
-        write_cloud(output, replace(src, xyz=transform_points(result.T_target_source, src.xyz)))
-    if as_json:
-        typer.echo(json.dumps(result.to_dict()))
-    else:
-        with np.printoptions(precision=6, suppress=True):
-            typer.echo(f"T_target_source =\n{result.T_target_source}")
-        typer.echo(
-            f"method {result.method}  converged {result.converged}  iterations {result.iterations}\n"
-            f"fitness (NVTL) {result.fitness:.4f}  transform probability "
-            f"{result.transform_probability:.4f}  inlier ratio {result.inlier_ratio:.3f}\n"
-            f"time {result.time_s:.3f} s  voxels {', '.join(f'{v:g}' for v in result.voxel_sizes_m)} m"
-        )
+    _report(
+        src, result.T_target_source, output, result.to_dict() if as_json else None,
+        f"method {result.method}  converged {result.converged}  iterations {result.iterations}\n"
+        f"fitness (NVTL) {result.fitness:.4f}  transform probability "
+        f"{result.transform_probability:.4f}  inlier ratio {result.inlier_ratio:.3f}\n"
+        f"time {result.time_s:.3f} s  voxels {', '.join(f'{v:g}' for v in result.voxel_sizes_m)} m",
+    )  # fmt: skip
     if not result.converged:
         typer.echo("randt: warning: registration did not converge", err=True)
         raise typer.Exit(ExitCode.NOT_CONVERGED)
+
+
+def _report(
+    src: PointCloud, T: np.ndarray, output: Path | None, as_json: dict[str, object] | None, summary: str
+) -> None:
+    """What both registrations print: SOURCE moved to ``output`` if given, then the JSON object
+    (``as_json``) or the matrix and ``summary``."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from core.io import write_cloud
+    from core.transforms import transform_points
+
+    if output is not None:
+        write_cloud(output, replace(src, xyz=transform_points(T, src.xyz)))
+    if as_json is not None:
+        typer.echo(json.dumps(as_json))
+        return
+    with np.printoptions(precision=6, suppress=True):
+        typer.echo(f"T_target_source =\n{T}")
+    typer.echo(summary)
 
 
 def _register_global(
     source: Path, target: Path, voxel: list[float] | None, as_json: bool, output: Path | None
 ) -> None:
     """``randt register --global``: :func:`core.global_registration.register_global`."""
-    from dataclasses import replace
-
-    import numpy as np
 
     from core.config import RegistrationSettings
     from core.global_registration import GlobalSettings, register_global
-    from core.io import read_cloud, write_cloud
-    from core.transforms import transform_points
+    from core.io import read_cloud
 
     src = read_cloud(input_file(source))
     tgt = read_cloud(input_file(target))
     refine = RegistrationSettings(voxel_sizes_m=tuple(voxel)) if voxel else RegistrationSettings()
     settings = GlobalSettings(registration=refine)
     result = register_global(src.xyz, tgt.xyz, settings)
-    if output is not None:
-        write_cloud(output, replace(src, xyz=transform_points(result.T_target_source, src.xyz)))
-    if as_json:
-        typer.echo(json.dumps(result.to_dict()))
-    else:
-        with np.printoptions(precision=6, suppress=True):
-            typer.echo(f"T_target_source =\n{result.T_target_source}")
-        typer.echo(
-            f"confident {result.confident}  consistent correspondences {result.n_inliers} of "
-            f"{result.n_correspondences}  overlap {result.overlap:.2f}  NDT refinement kept "
-            f"{result.refined}\ntime {result.time_s:.3f} s  feature voxel {result.voxel_m:g} m"
-        )
+    _report(
+        src, result.T_target_source, output, result.to_dict() if as_json else None,
+        f"confident {result.confident}  consistent correspondences {result.n_inliers} of "
+        f"{result.n_correspondences}  overlap {result.overlap:.2f}  NDT refinement kept "
+        f"{result.refined}\ntime {result.time_s:.3f} s  feature voxel {result.voxel_m:g} m",
+    )  # fmt: skip
     if not result.confident:
         typer.echo(f"randt: warning: the pose is not to be trusted: {result.reason}", err=True)
         raise typer.Exit(ExitCode.NOT_CONFIDENT)
