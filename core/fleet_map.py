@@ -36,6 +36,7 @@ from core.errors import InvalidRequestError
 from core.global_registration import GlobalSettings, register_global
 from core.place import PlaceIndex, PlaceSettings, scan_context
 from core.pose_graph import PoseGraph, PoseGraphSettings
+from core.registration import sanitize_points
 from core.transforms import invert, rotation_angle_deg, umeyama
 from core.voxel import voxel_downsample
 
@@ -161,14 +162,28 @@ class FleetMapper:
         T = np.asarray(T_session_sensor, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InvalidRequestError(f"keyframe of {session!r}: a finite 4x4 pose is needed")
+        # Everything is checked before anything is kept: a refused keyframe leaves no trace.
+        xyz, _ = sanitize_points(points_sensor, name=f"keyframe of {session!r}", min_points=10)
+        if gnss is not None:
+            position = np.asarray(gnss[0], dtype=np.float64).reshape(-1)
+            cov = np.asarray(gnss[1], dtype=np.float64)
+            if position.shape != (3,) or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+                raise InvalidRequestError(
+                    f"GNSS fix of {session!r}: a position (3,) and a 3x3 covariance are needed, got "
+                    f"{position.shape} and {cov.shape}"
+                )
+            if not np.all(np.isfinite(position)) or np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
+                raise InvalidRequestError(
+                    f"GNSS fix of {session!r}: the position must be finite and the covariance "
+                    "positive definite"
+                )
+            gnss = (position, cov)
         s = self.sessions.setdefault(session, _Session(session))
         travel = 0.0
         if s.keyframes:
             prev = s.keyframes[-1]
             travel = prev.travel_m + float(np.linalg.norm(T[:3, 3] - prev.T_odom[:3, 3]))
-        pts = voxel_downsample(
-            np.asarray(points_sensor, dtype=np.float64)[:, :3], self.settings.keyframe_voxel_m
-        )
+        pts = voxel_downsample(xyz, self.settings.keyframe_voxel_m)
         kf = _Keyframe(T, pts, scan_context(pts, self.settings.place), travel, gnss)
         s.keyframes.append(kf)
         key = (session, len(s.keyframes) - 1)
@@ -224,11 +239,8 @@ class FleetMapper:
         kf = s.keyframes[k]
         key = (s.name, k)
         self.graph.add_node(key, s.T_world_session @ kf.T_odom)
-        if k == 0:
-            if kf.gnss is None and not any(
-                f.gnss is not None for f in s.keyframes
-            ):  # no absolute reference of its own: a gauge until loops tie it
-                self.graph.anchor(key)
+        if k == 0:  # a gauge for a session without GNSS, its roll and pitch for every session
+            self.graph.anchor(key)
         else:
             prev = s.keyframes[k - 1]
             rel = invert(prev.T_odom) @ kf.T_odom

@@ -5,8 +5,11 @@ Nodes are keyframe poses ``T_world_sensor`` (any hashable key, e.g. ``(session, 
     odometry  -> between two keyframes of a session: the matcher's relative pose and covariance
     gnss      -> unary, on a keyframe's position (GNSS) with its 3x3 covariance, Huber kernel (a
                  multipath jump of many sigmas weighs linearly, not quadratically)
-    prior     -> unary, on a whole pose (GNSS/INS with heading, or the weak anchor that gives a
-                 session without any absolute reference a gauge until a loop ties it in)
+    prior     -> unary, on a whole pose: GNSS/INS with heading, or a session's anchor on its first
+                 keyframe: position and heading free (1000 m, 3 rad: a gauge until GNSS or a loop
+                 ties the session in), roll and pitch within 0.1 rad of where they are (an
+                 odometry frame starts level; GNSS positions along a straight street cannot tell
+                 the roll about it, and without this the graph is indeterminate there)
     loop      -> between keyframes of the same or different sessions, from a verified
                  registration, with a Cauchy kernel sized in metres (a correction of
                  ``loop_kernel_m`` weighs half; a wrong loop tens of metres off pulls little)
@@ -54,7 +57,10 @@ class PoseGraphSettings(BaseModel):
     anchor_sigma_m: float = Field(
         default=1000.0, gt=0, description="the weak anchor of a session with no absolute reference"
     )
-    anchor_sigma_rad: float = Field(default=3.0, gt=0)
+    anchor_yaw_sigma_rad: float = Field(default=3.0, gt=0)
+    anchor_tilt_sigma_rad: float = Field(
+        default=0.1, gt=0, description="roll and pitch of a session's first keyframe: it starts level"
+    )
     relinearize_threshold: float = Field(default=0.01, gt=0, description="iSAM2: relinearize above")
 
 
@@ -186,10 +192,12 @@ class PoseGraph:
         self._pending.add(g.PriorFactorPose3(self._id(key), g.Pose3(T), noise))
 
     def anchor(self, key: Hashable) -> None:
-        """The weak prior of a session with no absolute reference: its first keyframe where it is,
-        give or take :attr:`PoseGraphSettings.anchor_sigma_m` (a gauge, not information)."""
+        """A session's anchor on its first keyframe (module docstring): where it is, give or take
+        :attr:`PoseGraphSettings.anchor_sigma_m` and the yaw sigma (a gauge, not information),
+        level within the tilt sigma."""
         s = self.settings
-        cov = np.diag([s.anchor_sigma_m**2] * 3 + [s.anchor_sigma_rad**2] * 3)
+        tilt, yaw = s.anchor_tilt_sigma_rad**2, s.anchor_yaw_sigma_rad**2
+        cov = np.diag([s.anchor_sigma_m**2] * 3 + [tilt, tilt, yaw])
         self.add_prior(key, self._estimate[self._id(key)], cov)
 
     # ----------------------------------------------------------------- solve

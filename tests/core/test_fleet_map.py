@@ -1,0 +1,45 @@
+"""FleetMapper's input checks and placement on real sweeps, without the simulator (fast).
+
+The end-to-end fleet, with GNSS, loops and a session without GNSS, is tests/sim/test_scenarios.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.errors import InvalidCloudError, InvalidRequestError
+from core.fleet_map import FleetMapper
+from tests import pairs
+
+
+def test_a_bad_keyframe_is_refused_whole_and_names_what_was_wrong() -> None:
+    mapper = FleetMapper()
+    points = pairs.kitti00_loops_velodyne(120)
+    with pytest.raises(InvalidRequestError, match="finite 4x4 pose"):
+        mapper.add_keyframe("a", np.full((4, 4), np.nan), points)
+    with pytest.raises(InvalidCloudError, match="keyframe of 'a'"):
+        mapper.add_keyframe("a", np.eye(4), np.full((20, 3), np.nan))
+    with pytest.raises(InvalidRequestError, match="position \\(3,\\) and a 3x3 covariance"):
+        mapper.add_keyframe("a", np.eye(4), points, gnss=(np.zeros(2), np.eye(3)))
+    with pytest.raises(InvalidRequestError, match="positive definite"):
+        mapper.add_keyframe("a", np.eye(4), points, gnss=(np.zeros(3), -np.eye(3)))
+    assert mapper.sessions == {}  # nothing was kept
+
+
+def test_a_gnss_session_is_placed_once_its_fixes_span_the_alignment_distance() -> None:
+    """Four keyframes 15 m apart along x with fixes in a world rotated 90 deg and shifted: the
+    session is placed by the fit, its keyframes at the fixes."""
+    mapper = FleetMapper()
+    points = pairs.kitti00_loops_velodyne(120)
+    world = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    for k in range(4):
+        T = np.eye(4)
+        T[0, 3] = 15.0 * k
+        fix = world @ T[:3, 3] + [100.0, 50.0, 0.0]
+        mapper.add_keyframe("a", T, points, gnss=(fix, np.eye(3) * 0.01))
+        assert mapper.placed_sessions() == ([] if k < 3 else ["a"])  # 45 m >= 40 m at the 4th
+    poses = mapper.poses()
+    assert len(poses) == 4
+    assert np.allclose(poses[("a", 3)][:3, 3], [100.0, 95.0, 0.0], atol=0.05)
+    assert np.allclose(poses[("a", 3)][:3, :3], world, atol=1e-3)
