@@ -17,7 +17,8 @@ same pose from 7.0 m, 8.6 m and the ground truth's relative pose (``kitti00/pose
 truth says 8.6 m, the scans 7.5-7.6 m). Two independent local registrations from the same guesses
 land 2.9 cm / 0.05 deg (small_gicp GICP) and 6.1 cm / 0.10 deg (Open3D point-to-plane) from it.
 
-Methods, one thread each (``bench/common.py``), each from the identity:
+Methods, one thread each (``bench/common.py``; KISS-Matcher's TBB pool is sized to one thread by
+:func:`kiss_matcher_one_thread`), each from the identity:
 
 - **RANDT global** (``core.global_registration.register_global``, defaults: its own ``v`` is
   :func:`case_scale_m`, grown when a cloud keeps more than 3000 voxels);
@@ -250,6 +251,25 @@ def open3d_icp(src: np.ndarray, tgt: np.ndarray, v: float, coarse: Outcome) -> O
     return Outcome(np.asarray(result.transformation), coarse.time_s + time.perf_counter() - t0)
 
 
+def kiss_matcher_one_thread(case: Case) -> int | None:
+    """Run KISS-Matcher once pinned to one CPU; returns the process's thread count after it.
+
+    KISS-Matcher parallelizes with TBB, which ignores OMP_NUM_THREADS and sizes its thread pool
+    from the CPU affinity at its first use (two threads here otherwise, and a different 3DMatch
+    pose). Its first call runs pinned to one CPU, so every later call has one thread; the process
+    is unpinned afterwards so the scheduler may still move it off a busy core.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    allowed = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {min(allowed)})
+    try:
+        kiss_matcher(case.source, case.target, case_scale_m(case.source, case.target))
+    finally:
+        os.sched_setaffinity(0, allowed)
+    return len(os.listdir("/proc/self/task")) if os.path.isdir("/proc/self/task") else None
+
+
 Method = Callable[[np.ndarray, np.ndarray, float], Outcome]
 METHODS: dict[str, Method] = {
     "RANDT global": ours,
@@ -295,6 +315,8 @@ def main() -> None:
     o3d.utility.random.seed(0)
     all_cases = cases(args.quick)
     ours(all_cases[0].source, all_cases[0].target, 0.0)  # compile our kernels outside the timings
+    threads = kiss_matcher_one_thread(all_cases[0])
+    print(f"threads in this process after KISS-Matcher's pinned first call (TBB): {threads or '?'}")
     rows: list[list[str]] = []
     verdicts: dict[str, list[str]] = {m: [] for m in ROWS}
     times: dict[str, list[float]] = {m: [] for m in ROWS}
