@@ -34,6 +34,7 @@ __all__ = [
     "car",
     "data_root",
     "kitti00_loop_pairs",
+    "kitti00_loops_poses",
     "kitti00_loops_velodyne",
     "kitti00_velodyne",
     "require",
@@ -192,3 +193,23 @@ PAIRS: dict[str, Callable[[], Pair]] = {
     "bunny": bunny,
     "car": car,
 }
+
+
+def kitti00_loops_poses() -> dict[int, np.ndarray]:
+    """LiDAR poses in the world (4x4, ``p_world = T @ p_lidar``) of the 26 ``kitti00_loops/`` sweeps.
+
+    From ``poses_gt.txt`` (KITTI's left-camera poses, world = camera at frame 0) and
+    ``calib_Tr_velo_to_cam.txt``: a LiDAR pose is ``inv(Tr) @ P_cam @ Tr``, so the world is the
+    LiDAR at frame 0 (z up). Keyed by frame index.
+    """
+    d = require("kitti00_loops/poses_gt.txt", "kitti00_loops/calib_Tr_velo_to_cam.txt") / "kitti00_loops"
+    Tr = np.eye(4)
+    Tr[:3, :] = np.loadtxt(d / "calib_Tr_velo_to_cam.txt", comments="#").reshape(3, 4)
+    Tr_inv = np.linalg.inv(Tr)
+    rows = np.atleast_2d(np.loadtxt(d / "poses_gt.txt", comments="#"))
+    out: dict[int, np.ndarray] = {}
+    for row in rows:
+        P = np.eye(4)
+        P[:3, :] = row[2:14].reshape(3, 4)
+        out[int(row[0])] = Tr_inv @ P @ Tr
+    return out

@@ -17,6 +17,7 @@ kitti00_velodyne = skip_if_missing(shared_data.kitti00_velodyne)
 threedmatch = skip_if_missing(shared_data.threedmatch)
 kitti00_loops_velodyne = skip_if_missing(shared_data.kitti00_loops_velodyne)
 kitti00_loop_pairs = skip_if_missing(shared_data.kitti00_loop_pairs)
+kitti00_loops_poses = skip_if_missing(shared_data.kitti00_loops_poses)
 
 #: name -> (loader, translation tolerance m, rotation tolerance deg, perturbation scale m).
 #: Issue 2's bounds are the best peer's accuracy (small_gicp pair 2 cm / 0.3 deg, Argoverse 2 cm /

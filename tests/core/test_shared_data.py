@@ -58,3 +58,17 @@ def test_3dmatch_and_bun315_pairs_are_large_rotations() -> None:
         _, _, T = loader()
         angle = np.degrees(np.arccos((np.trace(T[:3, :3]) - 1) / 2))
         assert angle > 15
+
+
+def test_the_revisit_sweeps_lidar_poses_give_the_listed_relative_poses() -> None:
+    poses = pairs.kitti00_loops_poses()
+    assert sorted(poses) == [120, 129, 172, 198, 199, 202, 404, 492, 493, 496, 508, 512, 528, 539, 558,
+                             1576, 1615, 1634, 3421, 3426, 3493, 3495, 3534, 4235, 4236, 4237]  # fmt: skip
+    for loop in pairs.kitti00_loop_pairs():
+        T = np.linalg.inv(poses[loop.i]) @ poses[loop.j]  # p_i = T p_j
+        assert np.allclose(T, loop.T_gt, atol=1e-6)
+        assert abs(np.linalg.norm(T[:3, 3]) - loop.gt_distance_m) < 0.04
+    # inv(Tr) @ P_cam @ Tr: the world is the LiDAR at frame 0, z up; the car drives on level roads
+    assert all(T[2, 2] > 0.99 for T in poses.values())
+    step = np.linalg.inv(poses[120]) @ poses[129]  # 9 frames on, forward along the LiDAR's x
+    assert 3.0 < step[0, 3] < 5.0 and abs(step[1, 3]) < 1.0
