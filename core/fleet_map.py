@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from core.errors import InvalidRequestError
 from core.global_registration import GlobalSettings, register_global
-from core.place import PlaceIndex, PlaceSettings, scan_context
+from core.place import PlaceIndex, PlaceSettings, query_descriptors
 from core.pose_graph import PoseGraph, PoseGraphSettings
 from core.registration import sanitize_points
 from core.transforms import invert, rotation_angle_deg, umeyama
@@ -119,7 +119,9 @@ class LoopRecord:
 class _Keyframe:
     T_odom: np.ndarray
     points: np.ndarray
-    descriptor: np.ndarray
+    #: Scan Context of the sweep, then of it seen from ahead and behind (core.place): [0] is
+    #: stored, the stack is queried
+    descriptors: np.ndarray
     travel_m: float
     gnss: tuple[np.ndarray, np.ndarray] | None
 
@@ -184,7 +186,7 @@ class FleetMapper:
             prev = s.keyframes[-1]
             travel = prev.travel_m + float(np.linalg.norm(T[:3, 3] - prev.T_odom[:3, 3]))
         pts = voxel_downsample(xyz, self.settings.keyframe_voxel_m)
-        kf = _Keyframe(T, pts, scan_context(pts, self.settings.place), travel, gnss)
+        kf = _Keyframe(T, pts, query_descriptors(pts, self.settings.place), travel, gnss)
         s.keyframes.append(kf)
         key = (session, len(s.keyframes) - 1)
         if s.placed:
@@ -250,7 +252,7 @@ class FleetMapper:
             self.graph.add_odometry((s.name, k - 1), key, rel, np.diag([st**2] * 3 + [sr**2] * 3))
         if kf.gnss is not None:
             self.graph.add_gnss(key, kf.gnss[0], kf.gnss[1])
-        self.index.add(key, kf.descriptor)
+        self.index.add(key, kf.descriptors[0])
 
     # ------------------------------------------------------------------ loops
     def _excluded(self, s: _Session, k: int) -> set[Hashable]:
@@ -270,7 +272,7 @@ class FleetMapper:
         excluded = self._excluded(s, k)
         key = (s.name, k)
         candidate: tuple[Key, str] | None = None
-        found = self.index.query(s.keyframes[k].descriptor, exclude=excluded)
+        found = self.index.query(s.keyframes[k].descriptors, exclude=excluded)
         if found:
             candidate = (cast(Key, found[0].key), "place")
         else:
@@ -295,7 +297,7 @@ class FleetMapper:
         placed = set(self.graph.poses())
         excluded = {key for key in self.index.keys() if key not in placed}  # noqa: SIM118
         found = self.index.query(
-            s.keyframes[k].descriptor, exclude=excluded, max_distance=self.settings.placement_max_distance
+            s.keyframes[k].descriptors, exclude=excluded, max_distance=self.settings.placement_max_distance
         )
         if not found:
             return None
