@@ -40,7 +40,7 @@ from core.registration import sanitize_points
 from core.transforms import invert, rotation_angle_deg, umeyama
 from core.voxel import voxel_downsample
 
-__all__ = ["FleetMapSettings", "FleetMapper", "LoopRecord"]
+__all__ = ["FleetMapSettings", "FleetMapper", "LoopRecord", "level"]
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +205,7 @@ class FleetMapper:
             span = float(np.linalg.norm(odo.max(axis=0) - odo.min(axis=0)))
             if span >= self.settings.gnss_alignment_m:
                 T, _ = umeyama(odo, np.array([f[1] for f in fixes]))
-                self._place(s, _level(T), "gnss")
+                self._place(s, level(T), "gnss")
                 return
         if not any(o.placed for o in self.sessions.values()):
             return
@@ -341,7 +341,7 @@ class FleetMapper:
         return [name for name, s in self.sessions.items() if s.placed]
 
 
-def _level(T: np.ndarray) -> np.ndarray:
+def level(T: np.ndarray) -> np.ndarray:
     """A GNSS fit's rotation reduced to its yaw: positions along a nearly straight, level drive
     leave roll and pitch unobservable, and the odometry frame is already gravity-aligned."""
     yaw = float(np.arctan2(T[1, 0], T[0, 0]))

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.fleet_map import FleetMapper, FleetMapSettings, Key, LoopRecord
+from core.fleet_map import FleetMapper, FleetMapSettings, Key, LoopRecord, level
 from core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
 from core.transforms import invert, transform_error, umeyama
 from core.voxel import voxel_downsample
@@ -173,7 +173,7 @@ def run_mapping_fleet(
         if pairs is None:
             continue
         Tw, _ = umeyama(pairs[0], pairs[1])
-        Tw = _yaw_only(Tw)
+        Tw = level(Tw)  # the mapper's own GNSS placement
         odometry_only.update({k: Tw @ T for k, T in odo_poses.items() if k[0] == name})
     graph = mapper.poses()
     loop_truth = [
@@ -208,11 +208,3 @@ def _first_fixes(
         if float(np.linalg.norm(odo.max(axis=0) - odo.min(axis=0))) >= span_m:
             return odo, np.array([f[1] for f in fixes[:n]])
     return None
-
-
-def _yaw_only(T: np.ndarray) -> np.ndarray:
-    yaw = float(np.arctan2(T[1, 0], T[0, 0]))
-    out = np.eye(4)
-    out[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    out[:3, 3] = T[:3, 3]
-    return out
