@@ -31,6 +31,10 @@ core/odometry.py, so the truth is the sensor pose at stamp + 50 ms); peak RSS of
 main process and of its largest matcher process. A fleet size *holds* when every scan got a pose,
 p99 < 200 ms and every pose is within 5 cm of the truth (issue 14).
 
+``--graph both`` runs each fleet size twice, the service's pose graph off then on (service/graph.py,
+``RANDT_GRAPH``), and prints the ratio of their latencies (issue 15: at most +10 % by the mean);
+the cost table then also gives the graph process's CPU per sweep, its keyframes and loops.
+
 ``--plot`` draws latency percentiles and drops against fleet size (matplotlib, the bench extra)
 and writes the same figures as CSV beside the image. Every figure comes from this run.
 """
@@ -209,9 +213,23 @@ if not service.sessions.wait_matchers(600):
 pool = service.sessions.pool
 print(json.dumps({"pid": os.getpid(), "matchers": [p for p in pool.pids() if p] if pool else []}), flush=True)
 sys.stdin.read()
-received = service.metrics.registry.get_sample_value("randt_scans_received_total") or 0
+value = service.metrics.registry.get_sample_value
+received = value("randt_scans_received_total") or 0
+graph = service.sessions.graph
+stats = {}
+if graph is not None:
+    graph.wait_idle(300)
+    proc = graph._proc
+    if proc is not None and proc.pid:
+        with open(f"/proc/{proc.pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        stats["cpu_s"] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    stats["keyframes"] = value("randt_graph_keyframes_total", {"result": "added"}) or 0
+    stats["loops"] = value("randt_graph_loops_total", {"result": "accepted"}) or 0
+    stats["verified"] = stats["loops"] + (value("randt_graph_loops_total", {"result": "refused"}) or 0)
+    stats["dropped"] = value("randt_graph_queue_dropped_total") or 0
 service.stop()
-print(json.dumps({"received": int(received)}), flush=True)
+print(json.dumps({"received": int(received), "graph": stats}), flush=True)
 """
 
 
@@ -231,8 +249,11 @@ def _peak_rss_mib(pid: int) -> float:
 
 
 # -- one fleet size --------------------------------------------------------------------------------
-def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = REPO) -> dict[str, Any]:
-    """One fleet size, in this process (a fresh subprocess of :func:`main`)."""
+def run_one(
+    n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = REPO, graph: bool = True
+) -> dict[str, Any]:
+    """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
+    graph on or off (``RANDT_GRAPH``)."""
     import zenoh
 
     from core.transforms import invert
@@ -249,6 +270,7 @@ def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = RE
     with tempfile.TemporaryDirectory(prefix="randt-bench-") as tmp:
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}  # the service sets its own
+        env["RANDT_GRAPH"] = "true" if graph else "false"
         service = subprocess.Popen(
             [sys.executable, "-c", SERVE_PROGRAM, str(service_repo), endpoint, str(Path(tmp) / "data")],
             stdin=subprocess.PIPE,
@@ -342,7 +364,8 @@ def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = RE
             session.close()
         listener.close()
         service.stdin.close()
-        received = json.loads(service.stdout.readline())["received"]
+        final = json.loads(service.stdout.readline())
+        received, graph_stats = final["received"], final["graph"]
         service.wait(120)
         spool.close()
 
@@ -371,6 +394,13 @@ def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = RE
     )
     return {
         "vehicles": n_vehicles,
+        "graph": graph,
+        "graph_keyframes": int(graph_stats.get("keyframes", 0)),
+        "graph_loops": int(graph_stats.get("loops", 0)),
+        "graph_verified": int(graph_stats.get("verified", 0)),
+        "graph_dropped": int(graph_stats.get("dropped", 0)),
+        "cpu_graph_ms": 1e3 * graph_stats.get("cpu_s", 0.0) / poses,
+        "mean_ms": float(lat_ms.mean()) if lat_ms.size else float("nan"),
         "seconds": n_scans / RATE_HZ,
         "link": link,
         "sent": len(sent),
@@ -406,13 +436,14 @@ def run_one(n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = RE
 def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
     flow_head = [
         "vehicles",
+        "graph",
         "scans sent",
         "poses",
         "dropped",
         "other errors",
         "unanswered",
         "poses/s",
-        "latency p50 / p90 / p99 / max ms",
+        "latency mean / p50 / p90 / p99 / max ms",
         "pose error max / RMSE cm",
         "rotation error max deg",
         "holds",
@@ -420,13 +451,14 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
     flow = [
         [
             str(r["vehicles"]),
+            "on" if r["graph"] else "off",
             str(r["sent"]),
             str(r["poses"]) + (f" ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""),
             str(r["dropped"]),
             str(r["other_errors"]) + (f" ({r['other_codes']})" if r["other_codes"] else ""),
             str(r["unanswered"]),
             f"{r['poses_per_s']:.1f}",
-            f"{r['p50_ms']:.0f} / {r['p90_ms']:.0f} / {r['p99_ms']:.0f} / {r['max_ms']:.0f}",
+            " / ".join(f"{r[k]:.0f}" for k in ("mean_ms", "p50_ms", "p90_ms", "p99_ms", "max_ms")),
             f"{r['err_max_cm']:.2f} / {r['err_rmse_cm']:.2f}",
             f"{r['rot_max_deg']:.3f}",
             "yes" if r["holds"] else "no",
@@ -435,7 +467,9 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
     ]
     cost_head = [
         "vehicles",
+        "graph",
         "CPU ms per sweep: service main / matchers / sum",
+        "graph process: CPU ms per sweep, keyframes, loops accepted / verified, dropped",
         "cores busy",
         "bytes per sweep",
         "Mbit/s per vehicle",
@@ -444,7 +478,12 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
     cost = [
         [
             str(r["vehicles"]),
+            "on" if r["graph"] else "off",
             f"{r['cpu_main_ms']:.1f} / {r['cpu_matchers_ms']:.1f} / {r['cpu_total_ms']:.1f}",
+            f"{r['cpu_graph_ms']:.1f}, {r['graph_keyframes']}, {r['graph_loops']} / {r['graph_verified']}, "
+            f"{r['graph_dropped']}"
+            if r["graph"]
+            else "",
             f"{r['cpu_cores_busy']:.2f}",
             f"{r['bytes_per_sweep']:,.0f}",
             f"{r['mbit_per_vehicle']:.1f}",
@@ -523,6 +562,13 @@ def main() -> None:
         default="default",
         help="default: the vehicle library's encoding with its default settings; raw: full v1 sweeps",
     )
+    parser.add_argument(
+        "--graph",
+        choices=["on", "off", "both"],
+        default="on",
+        help="the service's pose graph (RANDT_GRAPH); both: each fleet size with it off, then on, "
+        "and the ratio of their latencies",
+    )
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--plot", type=Path, help="latency and drops against fleet size (PNG; CSV beside it)")
     parser.add_argument(
@@ -541,7 +587,7 @@ def main() -> None:
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.one, args.spool, args.link, args.service_repo)))
+        print(json.dumps(run_one(args.one, args.spool, args.link, args.service_repo, args.graph == "on")))
         return
     print(f"Command: python bench/service.py {shlex.join(sys.argv[1:])}")
     print(machine_line({}, single_threaded=False))
@@ -559,21 +605,31 @@ def main() -> None:
         else:
             progress(f"reusing the sweeps in {spool}")
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
+        graphs = ["off", "on"] if args.graph == "both" else [args.graph]
         for n in args.vehicles:
-            progress(f"{n} vehicle(s), {args.seconds:g} s")
-            command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool), "--link", args.link]
-            command += ["--service-repo", str(args.service_repo)]
-            out = subprocess.run(command, capture_output=True, text=True)
-            if out.returncode != 0:
-                sys.stderr.write(out.stderr)
-                raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
-            results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            for graph in graphs:
+                progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}")
+                command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
+                command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
+                out = subprocess.run(command, capture_output=True, text=True)
+                if out.returncode != 0:
+                    sys.stderr.write(out.stderr)
+                    raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
+                results.append(json.loads(out.stdout.strip().splitlines()[-1]))
     flow_head, flow, cost_head, cost = _rows(results)
     title = f"{args.seconds:g} s of 10 Hz sweeps per vehicle, {args.link} link"
     print(heading(f"{title}: flow, latency and accuracy", args.markdown))
     print(table(flow_head, flow, args.markdown))
     print(heading(f"{title}: cost", args.markdown))
     print(table(cost_head, cost, args.markdown))
+    if args.graph == "both":
+        print("\nPer-sweep latency, pose graph on against off (issue 15: at most +10 % by the mean):")
+        for off, on in zip(results[0::2], results[1::2], strict=True):
+            print(
+                f"- {on['vehicles']} vehicle(s): mean {on['mean_ms']:.1f} / {off['mean_ms']:.1f} ms = "
+                f"{on['mean_ms'] / off['mean_ms']:.3f}x; p50 {on['p50_ms'] / off['p50_ms']:.3f}x, "
+                f"p99 {on['p99_ms'] / off['p99_ms']:.3f}x"
+            )
     holding = [r["vehicles"] for r in results if r["holds"]]
     print(
         f"\nLargest fleet that holds (no drop, p99 < {P99_TARGET_MS:.0f} ms, every pose within "

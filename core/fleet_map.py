@@ -198,6 +198,17 @@ class FleetMapper:
         return key
 
     # -------------------------------------------------------------- placement
+    def place(self, session: str, T_world_session: np.ndarray) -> None:
+        """Place ``session`` where its frame is known (a session in its own map: the identity),
+        before or after its first keyframes; its keyframes then enter the graph as they come."""
+        T = np.asarray(T_world_session, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InvalidRequestError(f"placement of {session!r}: a finite 4x4 pose is needed")
+        s = self.sessions.setdefault(session, _Session(session))
+        if s.placed:
+            raise InvalidRequestError(f"session {session!r} is placed already")
+        self._place(s, T, "given")
+
     def _try_to_place(self, s: _Session) -> None:
         fixes = [(kf.T_odom[:3, 3], kf.gnss[0]) for kf in s.keyframes if kf.gnss is not None]
         if len(fixes) >= self.settings.gnss_min_fixes:

@@ -45,6 +45,7 @@ from core.errors import RandtError
 from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
+from core.voxel import voxel_downsample
 
 __all__ = [
     "LocalMatcher",
@@ -97,24 +98,35 @@ class Registered:
         a ``fallback`` result (its points are not folded into the map).
     map_index:
         (M,) rows of the sweep as sent, for each point of ``map_xyz`` (its intensity).
+    keyframe_xyz:
+        When asked for (``keyframe_voxel_m``): the sweep's mappable points, deskewed, in the
+        sensor frame, voxel-downsampled (float32), for the pose graph (service/graph.py); else
+        ``None``, and always ``None`` for a fallback.
     """
 
     result: ScanResult
     map_xyz: np.ndarray
     map_index: np.ndarray
+    keyframe_xyz: np.ndarray | None = None
 
 
-def _registered(result: ScanResult, grid: TileGrid | None) -> Registered:
+def _registered(
+    result: ScanResult, grid: TileGrid | None, keyframe_voxel_m: float | None = None
+) -> Registered:
     """:class:`Registered` of a result: its points in the map frame (float32), cut to the
-    candidates of ``grid`` when given. A fallback keeps no points."""
+    candidates of ``grid`` when given, and the keyframe's points when ``keyframe_voxel_m`` is
+    given. A fallback keeps no points."""
     if result.status == "fallback":
         return Registered(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
+    keyframe = None
+    if keyframe_voxel_m is not None and len(result.deskewed_xyz):
+        keyframe = voxel_downsample(result.deskewed_xyz, keyframe_voxel_m).astype(np.float32)
     world = transform_points(result.T_world_sensor, result.deskewed_xyz)
     if grid is None:
-        return Registered(result, world.astype(np.float32), result.map_index)
+        return Registered(result, world.astype(np.float32), result.map_index, keyframe)
     keep = grid.candidate_mask(world)
     slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
-    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep])
+    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep], keyframe)
 
 
 def single_threaded_blas() -> None:
@@ -198,7 +210,7 @@ def _serve(conn: Connection) -> None:
                 grids[key] = None if grid_params is None else TileGrid(*grid_params)
                 value: Any = None
             elif op == "register":
-                xyz, offsets, prior, stamp_s, behind = args
+                xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
                 # The keyframe model is rebuilt after the reply (below), while the service publishes.
                 result = matchers[key].register_scan(
                     xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
@@ -207,7 +219,7 @@ def _serve(conn: Connection) -> None:
                 # With the session's map known, only the points it can keep go back, already in
                 # the map frame (float32, as the map stores them): the service process's insert
                 # then handles about a quarter of the sweep and transforms nothing.
-                value = _registered(result, grids.get(key))
+                value = _registered(result, grids.get(key), keyframe_voxel_m)
             elif op == "state":
                 value = matchers[key].state_dict()
             elif op == "drop":
@@ -448,9 +460,11 @@ class RemoteMatcher:
         prior: PosePrior | None = None,
         stamp_s: float | None = None,
         behind: bool = False,
+        keyframe_voxel_m: float | None = None,
     ) -> Registered:
         """:meth:`IncrementalMatcher.register_scan` in the session's process, with the points the
-        session's map may keep (:class:`Registered`). Points and time offsets are sent as given
+        session's map may keep (:class:`Registered`; with ``keyframe_voxel_m``, the keyframe's
+        points too). Points and time offsets are sent as given
         (float32 straight from the wire: half the bytes of float64; the matcher widens them).
 
         The process always defers a keyframe's model rebuild until it has replied, and does it
@@ -459,7 +473,7 @@ class RemoteMatcher:
         newest keyframe, and the model is rebuilt once for two
         (:meth:`IncrementalMatcher.update_model`)."""
         registered: Registered = self._proc.call(
-            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind
+            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
@@ -528,9 +542,11 @@ class LocalMatcher(IncrementalMatcher):
         prior: PosePrior | None = None,
         stamp_s: float | None = None,
         behind: bool = False,
+        keyframe_voxel_m: float | None = None,
     ) -> Registered:
         """:meth:`register_scan` (the model rebuild deferred: the caller runs :meth:`update_model`
-        after publishing) and every point of the sweep in the map frame (:class:`Registered`)."""
+        after publishing) and every point of the sweep in the map frame (:class:`Registered`;
+        with ``keyframe_voxel_m``, the keyframe's points too)."""
         result = self.register_scan(
             points_xyz,
             time_offset_s=time_offset_s,
@@ -539,7 +555,7 @@ class LocalMatcher(IncrementalMatcher):
             defer_model=True,
             behind=behind,
         )
-        return _registered(result, None)
+        return _registered(result, None, keyframe_voxel_m)
 
     def close(self) -> None:
         """Nothing to release."""

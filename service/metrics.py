@@ -69,6 +69,11 @@ class ServiceMetrics:
         every enqueue and dequeue, removed when the session closes.
     sessions_active, tiles_written, store_errors:
         Running session workers; tile files written; failed writes to the store.
+    graph_keyframes, graph_loops, graph_update_seconds, graph_queue_dropped:
+        The pose graph (service/graph.py): keyframes it took (``result``: ``added`` or ``refused``),
+        loop verifications (``result``: ``accepted``, ``refused``), the graph process's time per
+        keyframe (place recognition, verification, iSAM2), keyframes dropped because its queue was
+        full.
     """
 
     def __init__(self) -> None:
@@ -103,6 +108,19 @@ class ServiceMetrics:
         self.sessions_active = Gauge("randt_sessions_active", "Sessions with a running worker", registry=r)
         self.tiles_written = Counter("randt_tiles_written", "Tile files written to the store", registry=r)
         self.store_errors = Counter("randt_store_errors", "Failed writes to the store", registry=r)
+        self.graph_keyframes = Counter(
+            "randt_graph_keyframes", "Keyframes offered to the pose graph", ["result"], registry=r
+        )
+        self.graph_loops = Counter("randt_graph_loops", "Loop verifications", ["result"], registry=r)
+        self.graph_update_seconds = Histogram(
+            "randt_graph_update_seconds",
+            "Pose graph time per keyframe (place recognition, verification, iSAM2)",
+            buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.35, 0.5, 1.0, 2.0, 5.0),
+            registry=r,
+        )
+        self.graph_queue_dropped = Counter(
+            "randt_graph_queue_dropped", "Keyframes dropped: the pose graph's queue was full", registry=r
+        )
         self._map_collector: _MapCollector | None = None
 
     #: The counters whose totals persist across restarts (DATA/counters.json, service/store.py).

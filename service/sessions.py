@@ -89,6 +89,7 @@ import numpy as np
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
 from core.odometry import PosePrior, extend_state_dict
 from core.tiles import Tile, TileGrid
+from service.graph import ServiceGraph
 from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
@@ -331,9 +332,14 @@ class SessionWorker:
         # More of this session's scans wait: the keyframe model may lag one keyframe rather than
         # delay them (IncrementalMatcher.update_model).
         behind = self.depth() > 0
+        graph = m.graph
         with self.lock:
             if self.info.n_scans == 0:
                 self._fix_frame(prior is not None)
+            # The pose graph's next keyframe: the matcher returns its points (service/graph.py).
+            keyframe_voxel_m = None
+            if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
+                keyframe_voxel_m = graph.settings.keyframe_voxel_m
             try:
                 # float32 views of the payload (the matcher widens them; a matcher process gets
                 # half the bytes of float64); the keyframe model is rebuilt after the pose is out.
@@ -345,6 +351,7 @@ class SessionWorker:
                     prior=prior,
                     stamp_s=scan.stamp_ns * 1e-9,
                     behind=behind,
+                    keyframe_voxel_m=keyframe_voxel_m,
                 )
                 result = registered.result
             except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
@@ -429,6 +436,18 @@ class SessionWorker:
             self._first_save.start()
         else:
             self._publish(answer, job.received_ns)
+        if graph is not None and registered.keyframe_xyz is not None and len(registered.keyframe_xyz) >= 10:
+            graph.offer(
+                scan.vehicle,
+                scan.session,
+                map_name=info.map_name,
+                seq=scan.seq,
+                index=result.index,
+                stamp_s=scan.stamp_ns * 1e-9,
+                T_live=result.T_world_sensor,
+                points=registered.keyframe_xyz,
+                gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
+            )
         if not behind:
             with self.lock:
                 self.matcher.update_model()  # in-process matchers; a matcher process does it itself
@@ -595,6 +614,18 @@ class SessionManager:
             cores = os.cpu_count() or 1
             n_procs = cores if cores > 1 else 0
         self.pool: MatcherPool | None = MatcherPool(n_procs) if n_procs > 0 else None
+        #: The shared map's pose graph (service/graph.py); its process starts with the first keyframe.
+        self.graph: ServiceGraph | None = (
+            ServiceGraph(
+                settings.fleet_map,
+                outbox,
+                self.metrics,
+                keyframe_m=settings.graph_keyframe_m,
+                queue_size=settings.graph_queue,
+            )
+            if settings.graph
+            else None
+        )
         contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
         for problem in contents.problems:
             log.error("store: skipped %s %s: %s", problem.kind, problem.name, problem.message)
@@ -1156,6 +1187,8 @@ class SessionManager:
             self._save_session(w)
         if self.pool is not None:
             self.pool.close()
+        if self.graph is not None:
+            self.graph.close()
 
     # -- status ---------------------------------------------------------------------------------
     @property

@@ -27,6 +27,7 @@ from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from core.config import RegistrationSettings
+from core.fleet_map import FleetMapSettings
 from core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from wire.ids import ID_REGEX
 from wire.zenoh_config import check_endpoints, load_config_file
@@ -140,6 +141,19 @@ class ServiceSettings(BaseSettings):
         "session derives them from its first sweep, as `randt map` does (ServiceSettings.session_matcher)",
     )
     # wire limits
+    # pose graph (service/graph.py, docs/mapping.md)
+    graph: bool = Field(
+        default=True,
+        description="pose graphs, one per map (loop closure, GNSS fusion), in a process of its own; "
+        "corrections on randt/fleet/<vehicle>/correction (docs/mapping.md)",
+    )
+    graph_keyframe_m: float = Field(default=10.0, gt=0, description="travel between graph keyframes")
+    graph_queue: int = Field(
+        default=64, ge=1, description="keyframes waiting for the graph process; beyond, the oldest is dropped"
+    )
+    fleet_map: FleetMapSettings = Field(
+        default_factory=FleetMapSettings, description="the pose graph's settings (core.fleet_map)"
+    )
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
     # every session's matcher (module docstring: RANDT_MATCHER__<FIELD>, RANDT_REGISTRATION__<FIELD>)

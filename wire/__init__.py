@@ -8,8 +8,9 @@ Contents
 --------
 :mod:`wire.messages`
     The messages (:class:`ScanMessage`, :class:`PoseMessage`, :class:`ErrorMessage`,
-    :class:`TileUpdateMessage`), their schema version :data:`SCHEMA_VERSION`, the compact v2 scan
-    (:class:`CompactScanMessage`, :class:`ScanEncoding`, :data:`SCAN_V2`, :func:`encode_scan_v2`),
+    :class:`TileUpdateMessage`, :class:`CorrectionMessage`), their schema version
+    :data:`SCHEMA_VERSION`, the compact v2 scan (:class:`CompactScanMessage`,
+    :class:`ScanEncoding`, :data:`SCAN_V2`, :func:`encode_scan_v2`),
     the decoder limits :class:`WireLimits`, :func:`encode`, the ``decode_*`` functions (``decode_scan``
     reads v1 and v2), :func:`peek_ids` / :func:`peek_seq`, and the senders' helpers
     (:func:`scan_from_arrays`, ...).
@@ -18,8 +19,9 @@ Contents
     compression and bounded decompression.
 :mod:`wire.keys`
     Every key expression: :func:`scan_key`, :func:`pose_key`, :func:`error_key`, :func:`tile_key`,
-    :func:`service_token_key`, the wildcards :data:`ALL_SCANS`, :data:`ALL_POSES`,
-    :data:`ALL_ERRORS`, :data:`ALL_TILES`, and :func:`key_for` (the key of a message).
+    :func:`correction_key`, :func:`service_token_key`, the wildcards :data:`ALL_SCANS`,
+    :data:`ALL_POSES`, :data:`ALL_ERRORS`, :data:`ALL_TILES`, :data:`ALL_CORRECTIONS`, and
+    :func:`key_for` (the key of a message).
 :mod:`wire.ids`
     The id rule for vehicles, sessions, maps and service instances: :data:`ID_REGEX`,
     :func:`is_valid_id`, :func:`validate_id`.
@@ -43,10 +45,12 @@ from __future__ import annotations
 from wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
 from wire.ids import ID_MAX_LENGTH, ID_PATTERN, ID_REGEX, UNKNOWN_ID, is_valid_id, validate_id
 from wire.keys import (
+    ALL_CORRECTIONS,
     ALL_ERRORS,
     ALL_POSES,
     ALL_SCANS,
     ALL_TILES,
+    correction_key,
     error_key,
     key_for,
     map_tiles_key,
@@ -63,6 +67,7 @@ from wire.messages import (
     SCHEMA_VERSION,
     Bounds,
     CompactScanMessage,
+    CorrectionMessage,
     ErrorMessage,
     PoseMessage,
     Prior,
@@ -72,6 +77,8 @@ from wire.messages import (
     TileUpdateMessage,
     WireLimits,
     WireMessage,
+    correction_from_arrays,
+    decode_correction,
     decode_error,
     decode_pose,
     decode_scan,
@@ -87,6 +94,7 @@ from wire.messages import (
 )
 
 __all__ = [
+    "ALL_CORRECTIONS",
     "ALL_ERRORS",
     "ALL_POSES",
     "ALL_SCANS",
@@ -103,6 +111,7 @@ __all__ = [
     "UNKNOWN_ID",
     "Bounds",
     "CompactScanMessage",
+    "CorrectionMessage",
     "ErrorCode",
     "ErrorMessage",
     "PoseMessage",
@@ -113,6 +122,9 @@ __all__ = [
     "TileUpdateMessage",
     "WireLimits",
     "WireMessage",
+    "correction_from_arrays",
+    "correction_key",
+    "decode_correction",
     "decode_error",
     "decode_pose",
     "decode_scan",

@@ -4,6 +4,8 @@
   :data:`ALL_SCANS`;
 - ``randt/fleet/<vehicle>/pose``: service → all, :func:`pose_key` (:data:`ALL_POSES`);
 - ``randt/fleet/<vehicle>/error``: service → vehicle, :func:`error_key` (:data:`ALL_ERRORS`);
+- ``randt/fleet/<vehicle>/correction``: service → all, the pose graph's corrections of a vehicle's
+  keyframes, :func:`correction_key` (:data:`ALL_CORRECTIONS`);
 - ``randt/map/<map>/tile/<ix>_<iy>``: service → all, and a get answered by the service's queryable
   on :data:`ALL_TILES`, :func:`tile_key` (:func:`map_tiles_key` for one map's tiles);
 - ``randt/service/<instance>``: the liveliness token of a running service, :func:`service_token_key`.
@@ -18,14 +20,23 @@ from __future__ import annotations
 
 from typing import Final
 
-from wire.messages import ErrorMessage, PoseMessage, ScanMessage, TileUpdateMessage, WireMessage
+from wire.messages import (
+    CorrectionMessage,
+    ErrorMessage,
+    PoseMessage,
+    ScanMessage,
+    TileUpdateMessage,
+    WireMessage,
+)
 
 __all__ = [
+    "ALL_CORRECTIONS",
     "ALL_ERRORS",
     "ALL_POSES",
     "ALL_SCANS",
     "ALL_TILES",
     "ROOT",
+    "correction_key",
     "error_key",
     "key_for",
     "map_tiles_key",
@@ -60,6 +71,11 @@ def error_key(vehicle: str) -> str:
     return f"{_FLEET}/{vehicle}/error"
 
 
+def correction_key(vehicle: str) -> str:
+    """``randt/fleet/<vehicle>/correction``: optimized poses of a vehicle's keyframes (service → all)."""
+    return f"{_FLEET}/{vehicle}/correction"
+
+
 def tile_key(map_name: str, tile: str) -> str:
     """``randt/map/<map>/tile/<ix>_<iy>``: a tile's updates, and the key to get it by.
 
@@ -84,6 +100,8 @@ ALL_SCANS: Final = scan_key("*")
 ALL_POSES: Final = pose_key("*")
 #: Every vehicle's errors.
 ALL_ERRORS: Final = error_key("*")
+#: Every vehicle's keyframe corrections.
+ALL_CORRECTIONS: Final = correction_key("*")
 #: Every tile of every map: the service's tile queryable.
 ALL_TILES: Final = tile_key("*", "*")
 
@@ -104,6 +122,8 @@ def key_for(message: WireMessage) -> str:
         return error_key(message.vehicle)
     if isinstance(message, TileUpdateMessage):
         return tile_key(message.map, message.tile)
+    if isinstance(message, CorrectionMessage):
+        return correction_key(message.vehicle)
     raise TypeError(f"no key expression for {type(message).__name__}")
 
 

@@ -71,6 +71,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "Bounds",
     "CompactScanMessage",
+    "CorrectionMessage",
     "ErrorMessage",
     "PoseMessage",
     "Prior",
@@ -81,6 +82,8 @@ __all__ = [
     "WireLimits",
     "WireMessage",
     "check_structure",
+    "correction_from_arrays",
+    "decode_correction",
     "decode_error",
     "decode_pose",
     "decode_scan",
@@ -842,8 +845,108 @@ class TileUpdateMessage(_Message):
         return self.points_f32()[:, 3]
 
 
-WireMessage = ScanMessage | PoseMessage | ErrorMessage | TileUpdateMessage
-_M = TypeVar("_M", ScanMessage, CompactScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage)
+class CorrectionMessage(_Message):
+    """Optimized poses of a session's keyframes, on ``randt/fleet/<vehicle>/correction``.
+
+    The pose graph (docs/mapping.md) moves keyframes when a loop closes or a GNSS fix arrives; the
+    per-sweep answers are never rewritten. A client corrects any pose it holds with the keyframe at
+    or before it: ``T_corrected = pose[k] @ inv(live[k]) @ T_answered`` (or interpolates between two
+    keyframes, as ``GET /sessions/{vehicle}/{session}/trajectory?corrected=true`` does).
+
+    Attributes
+    ----------
+    vehicle, session:
+        The session whose keyframes moved.
+    map:
+        The map (frame) the optimized poses are in: the shared map, also for a session without
+        priors once it is placed there (its answers stay in its own frame: ``live`` to ``pose`` is
+        then the frame change as well as the correction).
+    revision:
+        The graph's revision (increases with every optimization that moved a keyframe).
+    n_keyframes:
+        Keyframes in this message (only those that moved since the last message).
+    seq:
+        ``n_keyframes`` little-endian uint64: the ``seq`` of each keyframe's scan.
+    pose:
+        ``16 * n_keyframes`` little-endian float64: each keyframe's optimized ``T_map_sensor``,
+        row-major.
+    live:
+        ``16 * n_keyframes`` little-endian float64: each keyframe's pose as answered (the live
+        estimate), row-major.
+    """
+
+    vehicle: str
+    session: str
+    map: str
+    revision: int = Field(ge=1, le=_INT64_MAX)
+    n_keyframes: Count
+    seq: bytes
+    pose: bytes
+    live: bytes
+
+    @field_validator("vehicle", "session", "map")
+    @classmethod
+    def _check_ids(cls, value: str, info: ValidationInfo) -> str:
+        return _check_id(value, info)
+
+    @model_validator(mode="after")
+    def _check_sizes(self) -> CorrectionMessage:
+        n = self.n_keyframes
+        for name, size in (("seq", 8), ("pose", 128), ("live", 128)):
+            got = len(getattr(self, name))
+            if got != size * n:
+                raise _fail(
+                    ErrorCode.INVALID_FIELD,
+                    f"{name}: {got} bytes, expected {size * n} ({n} keyframes of {size} bytes)",
+                )
+        for name in ("pose", "live"):
+            values = np.frombuffer(getattr(self, name), dtype="<f8").reshape(-1, 16)
+            for k, row in enumerate(values):
+                problem = _rigid_problem(row.tolist())
+                if problem is not None:
+                    raise _fail(ErrorCode.INVALID_FIELD, f"{name}[{k}]: {problem}")
+        return self
+
+    def seqs(self) -> np.ndarray:
+        """(N,) uint64 seq of each keyframe's scan."""
+        return np.frombuffer(self.seq, dtype="<u8")
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) float64 optimized ``T_map_sensor`` (a new array)."""
+        return np.frombuffer(self.pose, dtype="<f8").reshape(-1, 4, 4).copy()
+
+    def live_poses(self) -> np.ndarray:
+        """(N, 4, 4) float64 poses as answered (a new array)."""
+        return np.frombuffer(self.live, dtype="<f8").reshape(-1, 4, 4).copy()
+
+
+def correction_from_arrays(
+    vehicle: str,
+    session: str,
+    map_name: str,
+    revision: int,
+    seqs: np.ndarray,
+    poses: np.ndarray,
+    live: np.ndarray,
+) -> CorrectionMessage:
+    """A :class:`CorrectionMessage` from ``(N,)`` seqs and two ``(N, 4, 4)`` pose stacks."""
+    seqs = np.asarray(seqs, dtype="<u8").reshape(-1)
+    return CorrectionMessage(
+        vehicle=vehicle,
+        session=session,
+        map=map_name,
+        revision=revision,
+        n_keyframes=int(seqs.size),
+        seq=seqs.tobytes(),
+        pose=np.ascontiguousarray(poses, dtype="<f8").reshape(-1, 16).tobytes(),
+        live=np.ascontiguousarray(live, dtype="<f8").reshape(-1, 16).tobytes(),
+    )
+
+
+WireMessage = ScanMessage | PoseMessage | ErrorMessage | TileUpdateMessage | CorrectionMessage
+_M = TypeVar(
+    "_M", ScanMessage, CompactScanMessage, PoseMessage, ErrorMessage, TileUpdateMessage, CorrectionMessage
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1140,6 +1243,11 @@ def decode_error(payload: bytes, limits: WireLimits | None = None) -> ErrorMessa
 def decode_tile_update(payload: bytes, limits: WireLimits | None = None) -> TileUpdateMessage:
     """Decode and validate a tile update (errors as :func:`decode_scan`; ``max_points`` not applied)."""
     return _decode(TileUpdateMessage, payload, limits)
+
+
+def decode_correction(payload: bytes, limits: WireLimits | None = None) -> CorrectionMessage:
+    """Decode and validate a keyframe correction (errors as :func:`decode_scan`)."""
+    return _decode(CorrectionMessage, payload, limits)
 
 
 # --------------------------------------------------------------------------------------------

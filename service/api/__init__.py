@@ -7,7 +7,7 @@ module             paths                                                        
 ``sessions``       ``/sessions``, ``/sessions/{vehicle}/{session}[/trajectory]``  read
                    ``POST /sessions/{vehicle}/{session}/close``                 token
 ``maps``           ``/maps``, ``/maps/{map}[/tiles[/{ix}/{iy}]|/metadata.yaml|    read
-                   /export]``
+                   /export|/graph]``
 ``metrics``        ``/metrics``                                                 read
 ``viewer``         ``/`` and ``/static/*``                                      open
 ``docs``           ``/docs`` (Swagger UI from ``/static/vendor/swagger-ui``)    open

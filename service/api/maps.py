@@ -40,6 +40,9 @@ from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, la
 from service.api.models import (
     DeletedMap,
     ErrorBody,
+    GraphEdge,
+    GraphKeyframe,
+    MapGraph,
     MapIndex,
     MapSummary,
     TileBoundsModel,
@@ -169,6 +172,50 @@ def delete_map(map: MapName, mgr: ManagerDep) -> DeletedMap:
     ``default`` map.
     """
     return DeletedMap(map=map, tiles=mgr.delete_map(map))
+
+
+@router.get("/{map}/graph", response_model=MapGraph, responses=_404)
+def get_graph(map: MapName, mgr: ManagerDep) -> MapGraph:
+    """The map's pose graph (docs/mapping.md): every keyframe with its live and optimized pose,
+    and every loop verification (accepted ones are the graph's loop edges). 404 when the map has
+    no graph (no keyframe yet, or the service runs with ``graph`` off)."""
+    graph = mgr.graph
+    state = None if graph is None else graph.snapshot(map)
+    if state is None:
+        raise NotFoundError(f"map {map!r} has no pose graph", resource="map", ident=map)
+    keyframes = [
+        GraphKeyframe(
+            vehicle=vehicle,
+            session=session,
+            seq=kf.seq,
+            index=kf.index,
+            stamp_s=kf.stamp_s,
+            live=kf.live.tolist(),
+            pose=None if kf.optimized is None else kf.optimized.tolist(),
+        )
+        for (vehicle, session) in sorted(state.keyframes)
+        for kf in state.session_keyframes((vehicle, session))
+    ]
+    return MapGraph(
+        map=map,
+        revision=state.revision,
+        sessions=[f"{v}/{s}" for v, s in sorted(state.keyframes)],
+        placed=[f"{v}/{s}" for v, s in sorted(state.placed)],
+        keyframes=keyframes,
+        loops=[
+            GraphEdge(
+                a=loop.a,
+                b=loop.b,
+                source=loop.source,  # type: ignore[arg-type]
+                confident=loop.confident,
+                accepted=loop.accepted,
+                reason=loop.reason,
+                n_inliers=loop.n_inliers,
+            )
+            for loop in state.loops
+        ],
+        refused_keyframes=state.n_refused,
+    )
 
 
 @router.get("/{map}/tiles", response_model=TileIndex, responses={**_404, **_422})

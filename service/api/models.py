@@ -134,7 +134,42 @@ class TrajectoryJson(BaseModel):
     id: str
     frame: Literal["map", "session"]
     map: str | None
+    corrected: bool = Field(
+        default=False, description="the poses moved with the pose graph's keyframes (corrected=true)"
+    )
     poses: list[TrajectoryPose]
+
+
+class GraphKeyframe(BaseModel):
+    vehicle: str
+    session: str
+    seq: int = Field(description="the keyframe scan's seq")
+    index: int = Field(description="the scan's place in its session (0 = first processed)")
+    stamp_s: float
+    live: list[list[float]] = Field(description="4x4 pose as answered (the live estimate)")
+    pose: list[list[float]] | None = Field(
+        description="4x4 optimized T_map_sensor; null while the session is not placed in the graph"
+    )
+
+
+class GraphEdge(BaseModel):
+    a: tuple[str, str, int] = Field(description="(vehicle, session, seq) of the source keyframe")
+    b: tuple[str, str, int] = Field(description="(vehicle, session, seq) of the target keyframe")
+    source: Literal["place", "proximity", "placement"]
+    confident: bool = Field(description="global registration passed verification (and the graph's gate)")
+    accepted: bool = Field(description="the loop is a factor of the graph")
+    reason: str = Field(description="why not accepted; empty when accepted")
+    n_inliers: int
+
+
+class MapGraph(BaseModel):
+    map: str
+    revision: int = Field(description="increases with every optimization that moved a keyframe")
+    sessions: list[str] = Field(description="<vehicle>/<session> of every session with keyframes")
+    placed: list[str] = Field(description="sessions placed in the graph's frame")
+    keyframes: list[GraphKeyframe]
+    loops: list[GraphEdge] = Field(description="every verification, accepted or not")
+    refused_keyframes: int
 
 
 class TileBoundsModel(BaseModel):

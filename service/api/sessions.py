@@ -86,21 +86,34 @@ def get_trajectory(
     format: Annotated[
         Literal["json", "kitti", "tum"], Query(description="json, kitti (3x4 rows) or tum")
     ] = "json",
+    corrected: Annotated[
+        bool,
+        Query(description="move the poses with the pose graph's optimized keyframes (docs/mapping.md)"),
+    ] = False,
 ) -> TrajectoryJson | PlainTextResponse:
     """The session's poses (``T_frame_sensor``) in scan order, as JSON, KITTI or TUM text.
 
     KITTI and TUM are written by the same writers as ``randt map`` (``core.io``); KITTI has no
-    stamps, TUM has ``stamp tx ty tz qx qy qz qw`` per line.
+    stamps, TUM has ``stamp tx ty tz qx qy qz qw`` per line. With ``corrected=true``, each pose is
+    moved with the correction of the graph keyframes around it (interpolated); the JSON says
+    whether it was (``corrected``: false while the session is not placed in a graph).
     """
     found = find_session(mgr, vehicle, session)
     stamps, poses = load_trajectory(mgr, found)
+    frame = found.info.frame if found.info is not None else found.record.frame  # type: ignore[union-attr]
+    map_name = found.info.map_name if found.info is not None else found.record.map  # type: ignore[union-attr]
+    was_corrected = False
+    if corrected and mgr.graph is not None:
+        poses, graph_map = mgr.graph.corrected(vehicle, session, poses)
+        if graph_map is not None:
+            was_corrected, map_name = True, graph_map
+            frame = "map" if graph_map == mgr.settings.default_map else frame
     if format == "json":
-        frame = found.info.frame if found.info is not None else found.record.frame  # type: ignore[union-attr]
-        map_name = found.info.map_name if found.info is not None else found.record.map  # type: ignore[union-attr]
         return TrajectoryJson(
             id=found.id,
             frame="map" if frame == "map" else "session",
             map=map_name,
+            corrected=was_corrected,
             poses=[
                 TrajectoryPose(stamp_s=float(t), pose=p.tolist()) for t, p in zip(stamps, poses, strict=True)
             ],

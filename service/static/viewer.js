@@ -4,7 +4,10 @@
 //   GET maps                                  the map list (the selector)
 //   GET maps/<map>/tiles                      tile index: ids, versions, bounds, PDU  (every 3 s)
 //   GET maps/<map>/tiles/<ix>/<iy>?format=pcd only tiles whose version changed
-//   GET sessions?state=active + .../trajectory vehicles in this map                 (every 2 s)
+//   GET sessions?state=active + .../trajectory?corrected=true  vehicles in this map (every 2 s):
+//                                             trajectories as the pose graph corrected them
+//   GET maps/<map>/graph                      the pose graph's accepted loops, drawn as edges
+//                                             between their keyframes (every 2 s; 404: none)
 // Frames: the map frame is z up; three.js's camera is told so (camera.up = +z).
 // window.randtViewer exposes counters (tiles, points, vehicles, errors) for tests and curious users.
 
@@ -24,7 +27,10 @@ const state = {
   token: sessionStorage.getItem("randt-token") || "",
   colorBy: "height",
 };
-window.randtViewer = { ready: false, tiles: 0, points: 0, vehicles: 0, trajectoryPoses: 0, errors: [] };
+window.randtViewer = {
+  ready: false, tiles: 0, points: 0, vehicles: 0, trajectoryPoses: 0, correctedTrajectories: 0, loopEdges: 0,
+  errors: [],
+};
 
 // ------------------------------------------------------------------ scene
 const view = document.getElementById("view");
@@ -286,9 +292,13 @@ async function pollVehicles() {
   const sessions = (await api("sessions?state=active")).filter((s) => s.map === state.map);
   const seen = new Set();
   let poses = 0;
+  let corrected = 0;
   for (const s of sessions) {
     seen.add(s.id);
-    const traj = await api(`sessions/${encodeURIComponent(s.vehicle)}/${encodeURIComponent(s.session)}/trajectory?format=json`);
+    const traj = await api(
+      `sessions/${encodeURIComponent(s.vehicle)}/${encodeURIComponent(s.session)}/trajectory?format=json&corrected=true`,
+    );
+    corrected += traj.corrected ? 1 : 0;
     const pts = traj.poses.map((p) => new THREE.Vector3(p.pose[0][3], p.pose[1][3], p.pose[2][3]));
     poses += pts.length;
     if (pts.length === 0) continue;
@@ -313,6 +323,7 @@ async function pollVehicles() {
     v.line.geometry = new THREE.BufferGeometry().setFromPoints(pts);
     v.marker.position.copy(pts[pts.length - 1]);
     v.summary = s;
+    v.corrected = traj.corrected;
     v.position = pts[pts.length - 1];
   }
   for (const [id, v] of state.vehicles) {
@@ -331,12 +342,57 @@ async function pollVehicles() {
       sw.className = "swatch";
       sw.style.background = `#${new THREE.Color(v.color).getHexString()}`;
       const p = v.position;
-      li.append(sw, `${id}: ${v.summary.scans} scans, (${p.x.toFixed(1)}, ${p.y.toFixed(1)}) m, queue ${v.summary.queue_depth}`);
+      const how = v.corrected ? ", corrected by the pose graph" : "";
+      li.append(sw, `${id}: ${v.summary.scans} scans, (${p.x.toFixed(1)}, ${p.y.toFixed(1)}) m, queue ${v.summary.queue_depth}${how}`);
       return li;
     }));
   }
   window.randtViewer.vehicles = state.vehicles.size;
   window.randtViewer.trajectoryPoses = poses;
+  window.randtViewer.correctedTrajectories = corrected;
+  await pollGraph();
+}
+
+// ------------------------------------------------------------------ pose graph
+// Accepted loops of the selected map's pose graph, as segments between their two keyframes'
+// optimized positions (a map without a graph answers 404: nothing drawn).
+const loopMaterial = new THREE.LineBasicMaterial({ color: 0xff2bd6 });
+let loopLines = null;
+async function pollGraph() {
+  const map = state.map;
+  let graph = null;
+  try {
+    graph = await api(`maps/${encodeURIComponent(map)}/graph`);
+  } catch (err) {
+    if (!String(err).includes("404")) throw err;
+  }
+  if (loopLines) {
+    fleetGroup.remove(loopLines);
+    loopLines.geometry.dispose();
+    loopLines = null;
+  }
+  const where = new Map();
+  for (const k of graph ? graph.keyframes : []) {
+    if (k.pose) where.set(`${k.vehicle}/${k.session}/${k.seq}`, k.pose);
+  }
+  const ends = [];
+  for (const loop of graph ? graph.loops : []) {
+    const a = where.get(loop.a.join("/"));
+    const b = where.get(loop.b.join("/"));
+    if (!loop.accepted || !a || !b) continue;
+    ends.push(new THREE.Vector3(a[0][3], a[1][3], a[2][3] + 2), new THREE.Vector3(b[0][3], b[1][3], b[2][3] + 2));
+  }
+  if (ends.length) {
+    loopLines = new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(ends), loopMaterial);
+    fleetGroup.add(loopLines);
+  }
+  window.randtViewer.loopEdges = ends.length / 2;
+  const info = document.getElementById("graph-info");
+  if (info) {
+    info.textContent = graph
+      ? `pose graph: ${graph.keyframes.length} keyframes, ${ends.length / 2} loops (magenta), revision ${graph.revision}`
+      : "pose graph: none for this map yet";
+  }
 }
 
 // ------------------------------------------------------------------ wiring
@@ -367,6 +423,8 @@ function clearMap() {
   state.tiles.clear();
   for (const v of state.vehicles.values()) fleetGroup.remove(v.line, v.marker);
   state.vehicles.clear();
+  if (loopLines) fleetGroup.remove(loopLines);
+  loopLines = null;
   state.framed = false;
 }
 

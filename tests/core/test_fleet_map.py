@@ -43,3 +43,26 @@ def test_a_gnss_session_is_placed_once_its_fixes_span_the_alignment_distance() -
     assert len(poses) == 4
     assert np.allclose(poses[("a", 3)][:3, 3], [100.0, 95.0, 0.0], atol=0.05)
     assert np.allclose(poses[("a", 3)][:3, :3], world, atol=1e-3)
+
+
+def test_a_session_placed_where_its_frame_is_known_enters_the_graph_at_once() -> None:
+    """``place`` (the service's sessions, whose poses are in their map's frame): keyframes go
+    into the graph as they come, at their odometry poses moved by the placement; a second
+    placement, or one that is not a finite pose, is refused."""
+    mapper = FleetMapper()
+    points = pairs.kitti00_loops_velodyne(120)
+    where = np.eye(4)
+    where[:3, 3] = [5.0, -3.0, 0.0]
+    mapper.place("a", where)
+    assert mapper.placed_sessions() == ["a"]
+    for k in range(3):
+        T = np.eye(4)
+        T[0, 3] = 10.0 * k
+        mapper.add_keyframe("a", T, points)
+        assert len(mapper.poses()) == k + 1
+    assert np.allclose(mapper.poses()[("a", 2)][:3, 3], [25.0, -3.0, 0.0], atol=1e-6)
+    with pytest.raises(InvalidRequestError, match="placed already"):
+        mapper.place("a", np.eye(4))
+    with pytest.raises(InvalidRequestError, match="finite 4x4 pose"):
+        mapper.place("b", np.full((4, 4), np.inf))
+    assert "b" not in mapper.sessions

@@ -1105,3 +1105,33 @@ def test_v2_fuzz_truncations_and_bit_flips(caplog: pytest.LogCaptureFixture) -> 
                 assert exc.code in DECODE_CODES
     assert not [r for r in caplog.records if "decoding a" in r.getMessage()], "a decoder bug was hit"
     assert "invalid_compression" in codes and "malformed" in codes
+
+
+def test_correction_round_trip_and_its_checks() -> None:
+    from wire.keys import correction_key, key_for
+    from wire.messages import correction_from_arrays, decode_correction
+
+    poses = np.stack([make_transform(np.array([0.0, 0.0, 0.1 * k]), np.array([k, 2.0, 0.0])) for k in range(3)])
+    live = poses.copy()
+    live[:, 0, 3] += 0.5
+    message = correction_from_arrays("car-1", "d1", "default", 7, np.array([0, 10, 20]), poses, live)
+    back = decode_correction(encode(message))
+    assert back == message and key_for(back) == correction_key("car-1") == "randt/fleet/car-1/correction"
+    np.testing.assert_array_equal(back.seqs(), [0, 10, 20])
+    np.testing.assert_array_equal(back.poses(), poses)
+    np.testing.assert_array_equal(back.live_poses(), live)
+    good = message.model_dump()
+    # a size that does not match n_keyframes, and a pose that is not rigid, are named
+    short = pack({**good, "seq": good["seq"][:8]})
+    error = rejected(short, decode_correction)
+    assert error.code == "invalid_field" and "seq: 8 bytes, expected 24" in str(error)
+    bent = poses.copy()
+    bent[1, :3, :3] *= 1.5
+    skewed = pack({**good, "pose": bent.astype("<f8").tobytes()})
+    error = rejected(skewed, decode_correction)
+    assert error.code == "invalid_field" and "pose[1]: rotation block is not a rotation" in str(error)
+    nan = live.copy()
+    nan[2, 0, 3] = np.nan
+    error = rejected(pack({**good, "live": nan.astype("<f8").tobytes()}), decode_correction)
+    assert "live[2]: has 1 non-finite entries" in str(error)
+    assert rejected(pack({**good, "map": "a/b"}), decode_correction).code == "invalid_id"

@@ -1,0 +1,506 @@
+"""The pose graphs in the service: loop closure and GNSS fusion beside the live answers.
+
+Flow of a keyframe::
+
+    SessionWorker, after a pose is durable --> ServiceGraph.offer: every ``graph_keyframe_m`` of
+        travel (and a session's first sweep), the sweep's points (sensor frame, float32), its
+        live pose and its prior's position --> bounded queue (``graph_queue``, oldest dropped)
+    sender thread --> the graph process (one, niced: the matchers come first) -->
+        one core.fleet_map.FleetMapper per map: placement, place recognition, global
+        registration, iSAM2 (docs/mapping.md)
+    graph process --> after each keyframe: the keyframes that moved since last reported (more
+        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the new loop verifications, the placed sessions
+    receiver thread --> GraphState (per session: each keyframe's live and optimized pose) -->
+        one CorrectionMessage per session that moved, to the outbox (``randt/fleet/<vehicle>/
+        correction``), and what ``GET /maps/{map}/graph`` and ``trajectory?corrected=true`` serve
+
+Why a process: one keyframe costs the graph about 0.3 s when it verifies a loop candidate (FPFH,
+matching, the clique, GNC, NDT), mostly Python glue between numpy calls; on a thread it would hold
+the GIL against the session threads and push up every vehicle's per-sweep latency. The process
+runs at a lower priority (``GRAPH_NICE``) so that on a busy machine the matchers win.
+
+A session's keyframes go to the graph of its map, where it is placed at once: its poses are in
+its map's frame already (a session with priors lives in the shared map ``default_map``, anchored
+by its first prior; one without has its own map). Each prior's position enters the graph as a
+GNSS factor. Placing a session without priors into the shared map live is not done yet
+(``FleetMapper`` does it offline, by two agreeing registrations). The per-sweep answers are never
+rewritten: a client corrects the poses it holds with the newest keyframe poses
+(:class:`wire.messages.CorrectionMessage`).
+
+The graph lives in memory: a restarted service starts an empty graph, and a session resumed from
+the store joins it with its next keyframe (its earlier keyframes are not replayed).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from core.errors import RandtError
+from core.fleet_map import FleetMapper, FleetMapSettings
+from core.transforms import rotation_angle_deg
+from service.matchers import _sigint_ignored_by_children, single_threaded_blas
+from service.metrics import ServiceMetrics
+from wire.messages import CorrectionMessage, correction_from_arrays
+
+__all__ = [
+    "GRAPH_NICE",
+    "MOVE_TOL_DEG",
+    "MOVE_TOL_M",
+    "GraphLoop",
+    "GraphState",
+    "ServiceGraph",
+    "correct_trajectory",
+]
+
+log = logging.getLogger(__name__)
+
+SessionKey = tuple[str, str]
+
+#: A keyframe is reported again once its optimized pose moved this much since last reported.
+MOVE_TOL_M = 0.01
+MOVE_TOL_DEG = 0.05
+#: The graph process's niceness (added to the service's).
+GRAPH_NICE = 10
+
+
+# ----------------------------------------------------------------------- the graph process
+def _moved(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(
+        np.linalg.norm(a[:3, 3] - b[:3, 3]) > MOVE_TOL_M
+        or rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) > MOVE_TOL_DEG
+    )
+
+
+class _ProcessMap:
+    """One map's graph inside the graph process: the mapper and what was last reported of it."""
+
+    def __init__(self, settings: FleetMapSettings) -> None:
+        self.mapper = FleetMapper(settings)
+        self.meta: dict[tuple[str, int], tuple[str, str, int, int]] = {}  # vehicle, session, seq, index
+        self.reported: dict[tuple[str, int], np.ndarray] = {}
+        self.sent: list[bool] = []  # each loop record's ``accepted`` as last sent
+        self.revision = 0
+
+    def add(self, message: tuple[Any, ...]) -> tuple[Any, ...]:
+        """One keyframe in; the ``update`` message out (raises on a refused keyframe)."""
+        _, map_name, vehicle, session, seq, index, T_live, points, gnss = message
+        mapper = self.mapper
+        name = f"{vehicle}/{session}"
+        if name not in mapper.sessions:
+            mapper.place(name, np.eye(4))  # a session's poses are in its map's frame already
+        key = mapper.add_keyframe(name, T_live, points, gnss)
+        self.meta[key] = (vehicle, session, seq, index)
+        self.reported.setdefault(key, T_live)
+        moved = []
+        for k, P in mapper.poses().items():
+            if _moved(P, self.reported[k]):
+                self.reported[k] = P
+                moved.append((*self.meta[k], P))
+        if moved:
+            self.revision += 1
+        # Records from the first that changed (a placement vote is accepted once a second agrees).
+        start = next(
+            (i for i, (r, was) in enumerate(zip(mapper.loops, self.sent, strict=False)) if r.accepted != was),
+            len(self.sent),
+        )
+        loops = [
+            {
+                "a": self.meta[r.a][:3],
+                "b": self.meta[r.b][:3],
+                "source": r.source,
+                "confident": r.confident,
+                "accepted": r.accepted,
+                "reason": r.reason,
+                "n_inliers": r.n_inliers,
+            }
+            for r in mapper.loops[start:]
+        ]
+        self.sent = [r.accepted for r in mapper.loops]
+        processed = (vehicle, session, index)
+        return ("update", map_name, self.revision, moved, start, loops, mapper.placed_sessions(), processed)
+
+
+def _graph_main(conn: Connection, settings: FleetMapSettings) -> None:
+    """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
+    single_threaded_blas()
+    with contextlib.suppress(OSError):
+        os.nice(GRAPH_NICE)
+    maps: dict[str, _ProcessMap] = {}
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the service is gone
+            return
+        if message[0] == "quit":
+            return
+        map_name, vehicle, session, seq = message[1], message[2], message[3], message[4]
+        t0 = time.perf_counter()
+        try:
+            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(settings))
+            update = graph.add(message)
+        except Exception as exc:  # bad input (or a bug): this keyframe is refused, the graph goes on
+            if not isinstance(exc, RandtError):
+                log.exception("graph process: keyframe %s/%s seq %d failed", vehicle, session, seq)
+            reason = f"{type(exc).__name__}: {exc}"
+            conn.send(("refused", map_name, vehicle, session, seq, reason, time.perf_counter() - t0))
+            continue
+        conn.send((*update, time.perf_counter() - t0))
+
+
+# ------------------------------------------------------------------------- service side
+@dataclass
+class _Keyframe:
+    seq: int
+    index: int
+    stamp_s: float
+    live: np.ndarray
+    optimized: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class GraphLoop:
+    """One loop verification between two keyframes ``(vehicle, session, seq)``."""
+
+    a: tuple[str, str, int]
+    b: tuple[str, str, int]
+    source: str
+    confident: bool
+    accepted: bool
+    reason: str
+    n_inliers: int
+
+
+@dataclass
+class GraphState:
+    """What the service knows of the graph: read by HTTP, written by the receiver thread."""
+
+    map: str
+    revision: int = 0
+    keyframes: dict[SessionKey, dict[int, _Keyframe]] = field(default_factory=dict)
+    loops: list[GraphLoop] = field(default_factory=list)
+    placed: set[SessionKey] = field(default_factory=set)
+    n_refused: int = 0
+
+    def session_keyframes(self, key: SessionKey) -> list[_Keyframe]:
+        return sorted(self.keyframes.get(key, {}).values(), key=lambda k: k.index)
+
+
+def correct_trajectory(
+    poses: np.ndarray, indices: np.ndarray, live: np.ndarray, optimized: np.ndarray
+) -> np.ndarray:
+    """Per-sweep poses moved with their keyframes' corrections.
+
+    ``poses`` (N, 4, 4) are the live per-sweep poses; the keyframes are sweeps ``indices`` (K,)
+    (increasing) with live poses ``live`` and optimized poses ``optimized`` (K, 4, 4). Each
+    keyframe's correction ``C_k = optimized_k @ inv(live_k)`` is interpolated between the two
+    keyframes around a sweep (translation linearly, rotation by slerp, over the sweep index) and
+    applied on the left; sweeps before the first or after the last keyframe take its correction.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if len(indices) == 0 or len(poses) == 0:
+        return poses.copy()
+    C = optimized @ np.linalg.inv(live)
+    n = len(poses)
+    at = np.clip(np.arange(n, dtype=np.float64), indices[0], indices[-1])
+    if len(indices) == 1:
+        out = C[0] @ poses
+        return out
+    t = np.interp(at, indices.astype(np.float64), np.arange(len(indices), dtype=np.float64))
+    lo = np.minimum(np.floor(t).astype(int), len(indices) - 2)
+    w = (t - lo)[:, None]
+    trans = (1 - w) * C[lo, :3, 3] + w * C[lo + 1, :3, 3]
+    rotations = Rotation.from_matrix(C[:, :3, :3])
+    rot = Slerp(np.arange(len(indices), dtype=np.float64), rotations)(t).as_matrix()
+    Ci = np.tile(np.eye(4), (n, 1, 1))
+    Ci[:, :3, :3] = rot
+    Ci[:, :3, 3] = trans
+    return Ci @ poses
+
+
+class ServiceGraph:
+    """The service's pose graphs, one per map, in a process of their own (module docstring)."""
+
+    def __init__(
+        self,
+        settings: FleetMapSettings,
+        outbox: Callable[[CorrectionMessage], None],
+        metrics: ServiceMetrics,
+        *,
+        keyframe_m: float = 10.0,
+        queue_size: int = 64,
+    ) -> None:
+        self.settings = settings
+        self.keyframe_m = keyframe_m
+        self._outbox = outbox
+        self._metrics = metrics
+        self._states: dict[str, GraphState] = {}
+        self._session_map: dict[SessionKey, str] = {}
+        self._lock = threading.Lock()  # guards the states
+        self._last: dict[SessionKey, np.ndarray] = {}  # last offered keyframe's live pose
+        self._queue_size = queue_size
+        self._queued: list[tuple[Any, ...]] = []
+        self._counted_loops: dict[str, int] = {}  # loop records counted in the metrics, per map
+        self._offered = 0  # keyframes queued (dropped ones subtracted) ...
+        self._done = 0  # ... and answered by the process: wait_idle
+        self._cond = threading.Condition()
+        self._closed = False
+        self._proc: multiprocessing.process.BaseProcess | None = None
+        self._conn: Connection | None = None
+        self._sender: threading.Thread | None = None
+        self._receiver: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        """The graph process has been started (with the first keyframe) and is alive."""
+        return self._proc is not None and self._proc.is_alive()
+
+    def _start(self) -> None:
+        """Start the process and its two threads with the first keyframe (under ``_cond``): a
+        service that never sees one never pays for it."""
+        if self._proc is not None:
+            return
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_graph_main, args=(child, self.settings), name="randt-graph", daemon=True
+        )
+        with _sigint_ignored_by_children():
+            self._proc.start()
+        child.close()
+        self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
+        self._receiver = threading.Thread(target=self._receive_loop, name="graph-receiver", daemon=True)
+        self._sender.start()
+        self._receiver.start()
+
+    # -- input (session threads) -------------------------------------------------------------
+    def wants_keyframe(self, vehicle: str, session: str, poses: list[np.ndarray]) -> bool:
+        """Whether a session's next sweep should be a keyframe, from its poses so far: its first
+        sweep, or the one expected to reach ``keyframe_m`` from the last keyframe (the last
+        pose's distance plus the last step), so that the matcher returns its points
+        (``keyframe_voxel_m``)."""
+        last_kf = self._last.get((vehicle, session))
+        if last_kf is None or not poses:
+            return True
+        step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
+        return float(np.linalg.norm(poses[-1][:3, 3] - last_kf[:3, 3])) + step >= self.keyframe_m
+
+    def offer(
+        self,
+        vehicle: str,
+        session: str,
+        *,
+        map_name: str,
+        seq: int,
+        index: int,
+        stamp_s: float,
+        T_live: np.ndarray,
+        points: np.ndarray,
+        gnss: tuple[np.ndarray, np.ndarray] | None,
+    ) -> None:
+        """Queue a keyframe of a session in map ``map_name``: a durable pose ``T_live`` (sweep
+        ``index``), its points (sensor frame, deskewed) and GNSS fix. Never blocks: when
+        ``graph_queue`` keyframes wait, the oldest is dropped (counted, logged)."""
+        key = (vehicle, session)
+        self._last[key] = T_live
+        with self._lock:
+            self._session_map[key] = map_name
+            st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
+            st.keyframes.setdefault(key, {})[index] = _Keyframe(seq, index, stamp_s, T_live.copy())
+        item = ("keyframe", map_name, vehicle, session, seq, index, T_live, points, gnss)
+        with self._cond:
+            if self._closed:
+                return
+            self._start()
+            if len(self._queued) >= self._queue_size:
+                dropped = self._queued.pop(0)
+                self._offered -= 1
+                self._metrics.graph_queue_dropped.inc()
+                log.warning("pose graph behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
+                self._forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
+            self._queued.append(item)
+            self._offered += 1
+            self._cond.notify()
+
+    def _forget_keyframe(self, map_name: str, key: SessionKey, seq: int) -> None:
+        with self._lock:
+            st = self._states.get(map_name)
+            kfs = {} if st is None else st.keyframes.get(key, {})
+            for index in [i for i, kf in kfs.items() if kf.seq == seq]:
+                del kfs[index]
+
+    def _send_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queued and not self._closed:
+                    self._cond.wait()
+                if not self._queued:
+                    return
+                item = self._queued.pop(0)
+            assert self._conn is not None
+            try:
+                self._conn.send(item)
+            except (OSError, ValueError):
+                log.error("the graph process is gone: the pose graph stops")
+                return
+
+    # -- output (receiver thread) ------------------------------------------------------------
+    def _receive_loop(self) -> None:
+        assert self._conn is not None
+        while True:
+            try:
+                message = self._conn.recv()
+            except (EOFError, OSError):
+                return
+            try:
+                self._apply(message)
+            except Exception:  # a bug must not stop the graph's output
+                log.exception("pose graph: an update could not be applied")
+            with self._cond:
+                self._done += 1
+                self._cond.notify_all()
+
+    def _apply(self, message: tuple[Any, ...]) -> None:
+        m = self._metrics
+        if message[0] == "refused":
+            _, map_name, vehicle, session, seq, reason, elapsed = message
+            log.warning("pose graph refused keyframe %s/%s seq %d: %s", vehicle, session, seq, reason)
+            m.graph_keyframes.labels("refused").inc()
+            m.graph_update_seconds.observe(elapsed)
+            self._forget_keyframe(map_name, (vehicle, session), seq)
+            with self._lock:
+                self._states[map_name].n_refused += 1
+            return
+        _, map_name, revision, moved, start, loops, placed, processed, elapsed = message
+        m.graph_keyframes.labels("added").inc()
+        m.graph_update_seconds.observe(elapsed)
+        by_session: dict[SessionKey, list[_Keyframe]] = {}
+        with self._lock:
+            st = self._states[map_name]
+            for vehicle, session, _seq, index, P in moved:
+                kf = st.keyframes.get((vehicle, session), {}).get(index)
+                if kf is None:
+                    continue
+                kf.optimized = P
+                by_session.setdefault((vehicle, session), []).append(kf)
+            del st.loops[start:]
+            counted = self._counted_loops.get(map_name, 0)
+            for loop in loops:
+                record = GraphLoop(
+                    a=tuple(loop["a"]),
+                    b=tuple(loop["b"]),
+                    source=loop["source"],
+                    confident=loop["confident"],
+                    accepted=loop["accepted"],
+                    reason=loop["reason"],
+                    n_inliers=loop["n_inliers"],
+                )
+                if len(st.loops) >= counted:
+                    m.graph_loops.labels("accepted" if record.accepted else "refused").inc()
+                st.loops.append(record)
+            self._counted_loops[map_name] = max(counted, len(st.loops))
+            st.placed = {(name.split("/", 1)[0], name.split("/", 1)[1]) for name in placed}
+            st.revision = revision
+            # The keyframes of a placed session up to this one are in the graph: those it has not
+            # moved (within MOVE_TOL_*) are where they were answered.
+            key = (processed[0], processed[1])
+            if key in st.placed:
+                for kf in st.keyframes.get(key, {}).values():
+                    if kf.optimized is None and kf.index <= processed[2]:
+                        kf.optimized = kf.live
+        for (vehicle, session), kfs in by_session.items():
+            kfs.sort(key=lambda k: k.index)
+            self._outbox(
+                correction_from_arrays(
+                    vehicle,
+                    session,
+                    map_name,
+                    max(revision, 1),
+                    np.array([k.seq for k in kfs]),
+                    np.stack([k.optimized for k in kfs if k.optimized is not None]),
+                    np.stack([k.live for k in kfs]),
+                )
+            )
+
+    # -- reads (HTTP) ------------------------------------------------------------------------
+    def corrected(self, vehicle: str, session: str, poses: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """``(poses, map)``: a session's live per-sweep poses moved with its keyframes
+        (:func:`correct_trajectory`) and the map whose frame they are in; the live poses
+        unchanged and ``None`` while the session is not placed in a graph."""
+        key = (vehicle, session)
+        with self._lock:
+            map_name = self._session_map.get(key)
+            st = None if map_name is None else self._states.get(map_name)
+            placed = st is not None and key in st.placed
+            kfs = [] if st is None else [k for k in st.session_keyframes(key) if k.optimized is not None]
+        kfs = [k for k in kfs if k.index < len(poses)]
+        if not placed or not kfs:
+            return np.asarray(poses, dtype=np.float64).copy(), None
+        indices = np.array([k.index for k in kfs])
+        live = np.stack([k.live for k in kfs])
+        opt = np.stack([k.optimized for k in kfs if k.optimized is not None])
+        return correct_trajectory(poses, indices, live, opt), map_name
+
+    def maps(self) -> list[str]:
+        """Maps with a graph (a keyframe was offered to it)."""
+        with self._lock:
+            return sorted(self._states)
+
+    def snapshot(self, map_name: str) -> GraphState | None:
+        """A consistent copy of one map's graph state (keyframes copied shallowly), or ``None``."""
+        with self._lock:
+            st = self._states.get(map_name)
+            if st is None:
+                return None
+            return GraphState(
+                st.map,
+                st.revision,
+                {k: dict(v) for k, v in st.keyframes.items()},
+                list(st.loops),
+                set(st.placed),
+                st.n_refused,
+            )
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Wait until the process has answered every queued keyframe (tests and benchmarks)."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._done < self._offered:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self.running:
+                    return False
+                self._cond.wait(min(left, 0.5))
+        return True
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop feeding the process and stop it (what is still queued is not processed)."""
+        with self._cond:
+            self._closed = True
+            self._queued.clear()
+            self._cond.notify()
+        if self._proc is None or self._conn is None:
+            return
+        if self._sender is not None:
+            self._sender.join(timeout)
+        with contextlib.suppress(OSError, ValueError):
+            self._conn.send(("quit",))
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout)
+        if self._receiver is not None:
+            self._receiver.join(timeout)
+        self._conn.close()
