@@ -18,7 +18,8 @@ at most ``max_points_per_voxel`` points per voxel. The policy is **keep the firs
   points in it are dropped;
 * a point identical (after float32 rounding) to one already stored, or to an earlier point of the
   same batch, is dropped, so re-inserting the same data never changes the map;
-* stored points are never moved, replaced or deleted.
+* stored points are never moved, replaced or deleted by an insert; only :meth:`TileGrid.refold`
+  (the pose graph moved the keyframes behind a tile) replaces a tile's whole content.
 
 Why this policy: it is *stable* — a tile's content only changes where the map gains coverage, so
 revisiting a mapped street does not rewrite its tiles, bump their versions and republish them
@@ -73,7 +74,7 @@ import os
 import re
 import threading
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -369,6 +370,58 @@ class TileGrid:
             n_added,
             len(changed),
         )
+        return [tile_id(ix, iy) for ix, iy in sorted(changed)]
+
+    def refold(
+        self, tile_ids: Iterable[str], points_xyz: np.ndarray, intensity: np.ndarray | None = None
+    ) -> list[str]:
+        """Replace the content of the tiles ``tile_ids`` by the points given that fall in them,
+        equalized as an insert into empty tiles would (the pose graph moved the keyframes whose
+        points make these tiles: the service re-folds them, docs/mapping.md).
+
+        Each replaced tile's version advances by one. A listed tile that no given point falls in
+        keeps its content (an empty tile is never written); points outside the listed tiles are
+        ignored. Returns the ids of the tiles replaced, sorted by ``(ix, iy)``.
+
+        Raises
+        ------
+        InvalidCloudError
+            As :meth:`insert`; a malformed tile id is a ``ValueError``.
+        """
+        wanted = {parse_tile_id(tid) for tid in tile_ids}
+        xyz, inten = _validated_float32(points_xyz, intensity)
+        if not wanted or xyz.shape[0] == 0:
+            return []
+        t = float(self._tile_size)
+        local = xyz.astype(np.float64)
+        txy = np.floor(local[:, :2] / t).astype(np.int64)
+        wanted_arr = np.array(sorted(wanted), dtype=np.int64)
+        tkeys = ((txy[:, 0] + _TILE_OFFSET) << 31) | (txy[:, 1] + _TILE_OFFSET)
+        wkeys = ((wanted_arr[:, 0] + _TILE_OFFSET) << 31) | (wanted_arr[:, 1] + _TILE_OFFSET)
+        keep = np.isin(tkeys, wkeys)
+        if not np.any(keep):
+            return []
+        xyz, inten, local, txy, tkeys = xyz[keep], inten[keep], local[keep], txy[keep], tkeys[keep]
+        xyzi = np.column_stack([xyz, inten])
+        local[:, :2] -= txy * t
+        vkeys = pack_keys(voxel_coords(local, self._voxel))
+        order = np.argsort(tkeys, kind="stable")
+        sorted_tkeys = tkeys[order]
+        starts = np.flatnonzero(np.r_[True, sorted_tkeys[1:] != sorted_tkeys[:-1]])
+        ends = np.r_[starts[1:], order.size]
+        changed: list[tuple[int, int]] = []
+        with self._lock:
+            for start, end in zip(starts.tolist(), ends.tolist(), strict=True):
+                idx = order[start:end]
+                ix, iy = (int(v) for v in txy[idx[0]])
+                fresh = self._merged(ix, iy, None, xyzi[idx], vkeys[idx])
+                if fresh is None:
+                    continue
+                old = self._tiles.get((ix, iy))
+                version = self.version_floor + 1 if old is None else old.tile.version + 1
+                tile = replace(fresh.tile, version=version)
+                self._tiles[(ix, iy)] = _TileState(tile, fresh.xyzi, fresh.keys)
+                changed.append((ix, iy))
         return [tile_id(ix, iy) for ix, iy in sorted(changed)]
 
     def candidate_mask(self, points_xyz: np.ndarray) -> np.ndarray:

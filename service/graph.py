@@ -50,6 +50,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from core.errors import RandtError
 from core.fleet_map import FleetMapper, FleetMapSettings
+from core.tiles import TileGrid, tile_id
 from core.transforms import rotation_angle_deg
 from service.matchers import _sigint_ignored_by_children, single_threaded_blas
 from service.metrics import ServiceMetrics
@@ -72,31 +73,97 @@ SessionKey = tuple[str, str]
 #: A keyframe is reported again once its optimized pose moved this much since last reported.
 MOVE_TOL_M = 0.01
 MOVE_TOL_DEG = 0.05
+#: A keyframe's points are re-folded into the map's tiles once it moved this much from where they
+#: were folded (half the default map voxel).
+REFOLD_TOL_M = 0.1
+REFOLD_TOL_DEG = 0.2
 #: The graph process's niceness (added to the service's).
 GRAPH_NICE = 10
 
 
 # ----------------------------------------------------------------------- the graph process
-def _moved(a: np.ndarray, b: np.ndarray) -> bool:
+def _far(a: np.ndarray, b: np.ndarray, tol_m: float, tol_deg: float) -> bool:
     return bool(
-        np.linalg.norm(a[:3, 3] - b[:3, 3]) > MOVE_TOL_M
-        or rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) > MOVE_TOL_DEG
+        np.linalg.norm(a[:3, 3] - b[:3, 3]) > tol_m or rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) > tol_deg
     )
 
 
-class _ProcessMap:
-    """One map's graph inside the graph process: the mapper and what was last reported of it."""
+def _moved(a: np.ndarray, b: np.ndarray) -> bool:
+    return _far(a, b, MOVE_TOL_M, MOVE_TOL_DEG)
 
-    def __init__(self, settings: FleetMapSettings) -> None:
+
+@dataclass(frozen=True)
+class MapGeometry:
+    """What the graph process needs of a map to re-fold its tiles (the service's settings)."""
+
+    tile_size_m: int
+    voxel_size_m: float
+    max_points_per_voxel: int
+
+
+class _ProcessMap:
+    """One map's graph inside the graph process: the mapper, what was last reported of it, and
+    each keyframe's points (sensor frame, with intensity) for re-folding the map's tiles."""
+
+    def __init__(self, settings: FleetMapSettings, geometry: MapGeometry) -> None:
         self.mapper = FleetMapper(settings)
+        self.geometry = geometry
         self.meta: dict[tuple[str, int], tuple[str, str, int, int]] = {}  # vehicle, session, seq, index
         self.reported: dict[tuple[str, int], np.ndarray] = {}
         self.sent: list[bool] = []  # each loop record's ``accepted`` as last sent
         self.revision = 0
+        self.cloud: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
+        self.folded: dict[tuple[str, int], np.ndarray] = {}  # the pose its points are in the tiles at
+        self.tiles_of: dict[tuple[str, int], set[tuple[int, int]]] = {}
+
+    def _tiles(self, T: np.ndarray, xyz: np.ndarray) -> set[tuple[int, int]]:
+        xy = xyz.astype(np.float64) @ T[:2, :3].T + T[:2, 3]
+        cells = np.unique(np.floor(xy / self.geometry.tile_size_m).astype(np.int64), axis=0)
+        return {(int(a), int(b)) for a, b in cells}
+
+    def _refold(
+        self, poses: dict[tuple[str, int], np.ndarray]
+    ) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+        """The tiles to re-fold once keyframes moved more than ``REFOLD_TOL_*`` from where their
+        points were folded, with every keyframe's points that fall in them at its optimized pose."""
+        due = [
+            k
+            for k, P in poses.items()
+            if k in self.folded and _far(P, self.folded[k], REFOLD_TOL_M, REFOLD_TOL_DEG)
+        ]
+        if not due:
+            return None
+        tiles: set[tuple[int, int]] = set()
+        for k in due:
+            tiles |= self.tiles_of[k] | self._tiles(poses[k], self.cloud[k][0])
+        contributors = [k for k in self.cloud if k in poses and self.tiles_of[k] & tiles]
+        xyz = np.concatenate(
+            [
+                (self.cloud[k][0] @ poses[k][:3, :3].T + poses[k][:3, 3]).astype(np.float32)
+                for k in contributors
+            ]
+        )
+        intensity = np.concatenate([self.cloud[k][1] for k in contributors])
+        for k in contributors:
+            self.folded[k] = poses[k]
+            self.tiles_of[k] = self._tiles(poses[k], self.cloud[k][0])
+        # Equalized here, off the service's GIL: the service swaps the tiles in.
+        g = self.geometry
+        grid = TileGrid(g.tile_size_m, g.voxel_size_m, g.max_points_per_voxel)
+        ids = sorted(tile_id(ix, iy) for ix, iy in tiles)
+        grid.refold(ids, xyz, intensity)
+        kept = grid.tiles()
+        if not kept:
+            return None
+        return (
+            [t.id for t in kept],
+            np.concatenate([t.points for t in kept]),
+            np.concatenate([t.intensity for t in kept]),
+        )
 
     def add(self, message: tuple[Any, ...]) -> tuple[Any, ...]:
         """One keyframe in; the ``update`` message out (raises on a refused keyframe)."""
-        _, map_name, vehicle, session, seq, index, T_live, points, gnss = message
+        _, map_name, vehicle, session, seq, index, T_live, points, intensity, gnss = message
         mapper = self.mapper
         name = f"{vehicle}/{session}"
         if name not in mapper.sessions:
@@ -104,8 +171,14 @@ class _ProcessMap:
         key = mapper.add_keyframe(name, T_live, points, gnss)
         self.meta[key] = (vehicle, session, seq, index)
         self.reported.setdefault(key, T_live)
+        xyz = np.asarray(points, dtype=np.float32)
+        self.cloud[key] = (xyz, np.zeros(len(xyz), np.float32) if intensity is None else intensity)
+        self.folded[key] = T_live
+        self.tiles_of[key] = self._tiles(T_live, xyz)
+        poses = mapper.poses()
+        refold = self._refold(poses)
         moved = []
-        for k, P in mapper.poses().items():
+        for k, P in poses.items():
             if _moved(P, self.reported[k]):
                 self.reported[k] = P
                 moved.append((*self.meta[k], P))
@@ -130,10 +203,11 @@ class _ProcessMap:
         ]
         self.sent = [r.accepted for r in mapper.loops]
         processed = (vehicle, session, index)
-        return ("update", map_name, self.revision, moved, start, loops, mapper.placed_sessions(), processed)
+        placed = mapper.placed_sessions()
+        return ("update", map_name, self.revision, moved, start, loops, placed, processed, refold)
 
 
-def _graph_main(conn: Connection, settings: FleetMapSettings) -> None:
+def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeometry) -> None:
     """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
     single_threaded_blas()
@@ -150,7 +224,7 @@ def _graph_main(conn: Connection, settings: FleetMapSettings) -> None:
         map_name, vehicle, session, seq = message[1], message[2], message[3], message[4]
         t0 = time.perf_counter()
         try:
-            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(settings))
+            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(settings, geometry))
             update = graph.add(message)
         except Exception as exc:  # bad input (or a bug): this keyframe is refused, the graph goes on
             if not isinstance(exc, RandtError):
@@ -240,10 +314,17 @@ class ServiceGraph:
         outbox: Callable[[CorrectionMessage], None],
         metrics: ServiceMetrics,
         *,
+        geometry: MapGeometry | None = None,
+        on_refold: Callable[[str, list[str], np.ndarray, np.ndarray], None] | None = None,
         keyframe_m: float = 10.0,
         queue_size: int = 64,
     ) -> None:
         self.settings = settings
+        self.geometry = geometry or MapGeometry(20, 0.2, 1)
+        self._on_refold = on_refold
+        #: Per session, the correction of its newest optimized keyframe (``optimized @ inv(live)``):
+        #: what its new sweeps' points are moved by before they are folded into the map.
+        self._correction: dict[SessionKey, tuple[int, np.ndarray]] = {}
         self.keyframe_m = keyframe_m
         self._outbox = outbox
         self._metrics = metrics
@@ -276,7 +357,7 @@ class ServiceGraph:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
-            target=_graph_main, args=(child, self.settings), name="randt-graph", daemon=True
+            target=_graph_main, args=(child, self.settings, self.geometry), name="randt-graph", daemon=True
         )
         with _sigint_ignored_by_children():
             self._proc.start()
@@ -309,10 +390,12 @@ class ServiceGraph:
         stamp_s: float,
         T_live: np.ndarray,
         points: np.ndarray,
-        gnss: tuple[np.ndarray, np.ndarray] | None,
+        intensity: np.ndarray | None = None,
+        gnss: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         """Queue a keyframe of a session in map ``map_name``: a durable pose ``T_live`` (sweep
-        ``index``), its points (sensor frame, deskewed) and GNSS fix. Never blocks: when
+        ``index``), its points (sensor frame, deskewed) with their intensity, and its GNSS fix.
+        The points also make the map's tiles when the graph re-folds them. Never blocks: when
         ``graph_queue`` keyframes wait, the oldest is dropped (counted, logged)."""
         key = (vehicle, session)
         self._last[key] = T_live
@@ -320,7 +403,7 @@ class ServiceGraph:
             self._session_map[key] = map_name
             st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
             st.keyframes.setdefault(key, {})[index] = _Keyframe(seq, index, stamp_s, T_live.copy())
-        item = ("keyframe", map_name, vehicle, session, seq, index, T_live, points, gnss)
+        item = ("keyframe", map_name, vehicle, session, seq, index, T_live, points, intensity, gnss)
         with self._cond:
             if self._closed:
                 return
@@ -384,7 +467,7 @@ class ServiceGraph:
             with self._lock:
                 self._states[map_name].n_refused += 1
             return
-        _, map_name, revision, moved, start, loops, placed, processed, elapsed = message
+        _, map_name, revision, moved, start, loops, placed, processed, refold, elapsed = message
         m.graph_keyframes.labels("added").inc()
         m.graph_update_seconds.observe(elapsed)
         by_session: dict[SessionKey, list[_Keyframe]] = {}
@@ -396,6 +479,9 @@ class ServiceGraph:
                     continue
                 kf.optimized = P
                 by_session.setdefault((vehicle, session), []).append(kf)
+                newest = self._correction.get((vehicle, session))
+                if newest is None or newest[0] <= index:
+                    self._correction[(vehicle, session)] = (index, P @ np.linalg.inv(kf.live))
             del st.loops[start:]
             counted = self._counted_loops.get(map_name, 0)
             for loop in loops:
@@ -421,6 +507,8 @@ class ServiceGraph:
                 for kf in st.keyframes.get(key, {}).values():
                     if kf.optimized is None and kf.index <= processed[2]:
                         kf.optimized = kf.live
+        if refold is not None and self._on_refold is not None:
+            self._on_refold(map_name, *refold)
         for (vehicle, session), kfs in by_session.items():
             kfs.sort(key=lambda k: k.index)
             self._outbox(
@@ -435,7 +523,15 @@ class ServiceGraph:
                 )
             )
 
-    # -- reads (HTTP) ------------------------------------------------------------------------
+    # -- reads -------------------------------------------------------------------------------
+    def correction(self, vehicle: str, session: str) -> np.ndarray | None:
+        """The correction of the session's newest optimized keyframe (``optimized @ inv(live)``),
+        or ``None`` while the graph has moved none of its keyframes: a new sweep's points are
+        folded into the map moved by it, so the map follows the graph."""
+        with self._lock:
+            found = self._correction.get((vehicle, session))
+        return None if found is None else found[1]
+
     def corrected(self, vehicle: str, session: str, poses: np.ndarray) -> tuple[np.ndarray, str | None]:
         """``(poses, map)``: a session's live per-sweep poses moved with its keyframes
         (:func:`correct_trajectory`) and the map whose frame they are in; the live poses

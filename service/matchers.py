@@ -45,7 +45,7 @@ from core.errors import RandtError
 from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
-from core.voxel import voxel_downsample
+from core.voxel import pack_keys, voxel_coords
 
 __all__ = [
     "LocalMatcher",
@@ -98,16 +98,18 @@ class Registered:
         a ``fallback`` result (its points are not folded into the map).
     map_index:
         (M,) rows of the sweep as sent, for each point of ``map_xyz`` (its intensity).
-    keyframe_xyz:
+    keyframe_xyz, keyframe_index:
         When asked for (``keyframe_voxel_m``): the sweep's mappable points, deskewed, in the
-        sensor frame, voxel-downsampled (float32), for the pose graph (service/graph.py); else
-        ``None``, and always ``None`` for a fallback.
+        sensor frame, the first of each voxel (real points, float32), for the pose graph and the
+        re-folding of the map (service/graph.py), and their rows in the sweep as sent (their
+        intensity); else ``None``, and always ``None`` for a fallback.
     """
 
     result: ScanResult
     map_xyz: np.ndarray
     map_index: np.ndarray
     keyframe_xyz: np.ndarray | None = None
+    keyframe_index: np.ndarray | None = None
 
 
 def _registered(
@@ -118,15 +120,18 @@ def _registered(
     given. A fallback keeps no points."""
     if result.status == "fallback":
         return Registered(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
-    keyframe = None
+    keyframe = keyframe_index = None
     if keyframe_voxel_m is not None and len(result.deskewed_xyz):
-        keyframe = voxel_downsample(result.deskewed_xyz, keyframe_voxel_m).astype(np.float32)
+        keys = pack_keys(voxel_coords(result.deskewed_xyz, keyframe_voxel_m))
+        _, first = np.unique(keys, return_index=True)
+        keyframe = result.deskewed_xyz[first].astype(np.float32)
+        keyframe_index = result.map_index[first]
     world = transform_points(result.T_world_sensor, result.deskewed_xyz)
     if grid is None:
-        return Registered(result, world.astype(np.float32), result.map_index, keyframe)
+        return Registered(result, world.astype(np.float32), result.map_index, keyframe, keyframe_index)
     keep = grid.candidate_mask(world)
     slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
-    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep], keyframe)
+    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep], keyframe, keyframe_index)
 
 
 def single_threaded_blas() -> None:

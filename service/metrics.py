@@ -69,11 +69,11 @@ class ServiceMetrics:
         every enqueue and dequeue, removed when the session closes.
     sessions_active, tiles_written, store_errors:
         Running session workers; tile files written; failed writes to the store.
-    graph_keyframes, graph_loops, graph_update_seconds, graph_queue_dropped:
+    graph_keyframes, graph_loops, graph_update_seconds, graph_queue_dropped, graph_tiles_refolded:
         The pose graph (service/graph.py): keyframes it took (``result``: ``added`` or ``refused``),
         loop verifications (``result``: ``accepted``, ``refused``), the graph process's time per
         keyframe (place recognition, verification, iSAM2), keyframes dropped because its queue was
-        full.
+        full, tiles re-folded because the graph moved the keyframes behind them.
     """
 
     def __init__(self) -> None:
@@ -116,6 +116,11 @@ class ServiceMetrics:
             "randt_graph_update_seconds",
             "Pose graph time per keyframe (place recognition, verification, iSAM2)",
             buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.35, 0.5, 1.0, 2.0, 5.0),
+            registry=r,
+        )
+        self.graph_tiles_refolded = Counter(
+            "randt_graph_tiles_refolded",
+            "Tiles re-folded because the pose graph moved their keyframes",
             registry=r,
         )
         self.graph_queue_dropped = Counter(

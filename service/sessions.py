@@ -89,7 +89,7 @@ import numpy as np
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
 from core.odometry import PosePrior, extend_state_dict
 from core.tiles import Tile, TileGrid
-from service.graph import ServiceGraph
+from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
@@ -339,7 +339,8 @@ class SessionWorker:
             # The pose graph's next keyframe: the matcher returns its points (service/graph.py).
             keyframe_voxel_m = None
             if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
-                keyframe_voxel_m = graph.settings.keyframe_voxel_m
+                # the map's voxel: the points also re-fold the map's tiles (the graph thins them)
+                keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
             try:
                 # float32 views of the payload (the matcher widens them; a matcher process gets
                 # half the bytes of float64); the keyframe model is rebuilt after the pose is out.
@@ -390,7 +391,13 @@ class SessionWorker:
                 return
             if registered.map_xyz.shape[0]:  # none for a fallback
                 inten = None if intensity is None else intensity[registered.map_index]
-                self._unfolded.append((registered.map_xyz, inten))
+                map_xyz = registered.map_xyz
+                C = None if graph is None else graph.correction(scan.vehicle, scan.session)
+                if C is not None:  # the map follows the pose graph (service/graph.py)
+                    map_xyz = (map_xyz @ C[:3, :3].T.astype(np.float32) + C[:3, 3].astype(np.float32)).astype(
+                        np.float32
+                    )
+                self._unfolded.append((map_xyz, inten))
             info = self.info
             info.n_scans += 1
             info.n_fallbacks += result.status == "fallback"
@@ -446,6 +453,9 @@ class SessionWorker:
                 stamp_s=scan.stamp_ns * 1e-9,
                 T_live=result.T_world_sensor,
                 points=registered.keyframe_xyz,
+                intensity=None
+                if intensity is None or registered.keyframe_index is None
+                else intensity[registered.keyframe_index],
                 gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
             )
         if not behind:
@@ -620,6 +630,8 @@ class SessionManager:
                 settings.fleet_map,
                 outbox,
                 self.metrics,
+                geometry=MapGeometry(settings.tile_size_m, settings.map_voxel_m, 1),
+                on_refold=self.refold_tiles,
                 keyframe_m=settings.graph_keyframe_m,
                 queue_size=settings.graph_queue,
             )
@@ -644,6 +656,11 @@ class SessionManager:
                 log.error("%s", exc)
                 grid.version_floor = max((t.version for t in tiles), default=0)
             self._durable[name] = {t.id: t for t in tiles}
+        #: Tiles the store held at start: points of sessions the (in-memory) pose graph never saw,
+        #: so it never re-folds them (refold_tiles).
+        self._tiles_before_graph: dict[str, set[str]] = {
+            name: set(g.tile_ids()) for name, g in self.maps.items()
+        }
         self._dirty_tiles: dict[str, set[str]] = {}
         self._restore_counters()
         self.intake = Intake(
@@ -1005,6 +1022,24 @@ class SessionManager:
                 and map_name != self.settings.default_map
             ):
                 del self.maps[map_name]
+
+    def refold_tiles(
+        self, map_name: str, tile_ids: list[str], xyz: np.ndarray, intensity: np.ndarray
+    ) -> None:
+        """Replace tiles of ``map_name`` by the pose graph's re-fold of them (its keyframes'
+        points at their optimized poses, equalized in the graph process: service/graph.py);
+        saved and published by the next flush like any change. Tiles the store held when the
+        service started are left as they are (the graph never saw their points)."""
+        with self._lock:
+            grid = self.maps.get(map_name)
+            frozen = self._tiles_before_graph.get(map_name, set())
+        if grid is None:
+            return
+        wanted = [t for t in tile_ids if t not in frozen]
+        changed = grid.refold(wanted, xyz, intensity)
+        if changed:
+            self.metrics.graph_tiles_refolded.inc(len(changed))
+            self.mark_tiles_dirty(map_name, changed)
 
     def mark_tiles_dirty(self, map_name: str, tile_ids: list[str]) -> None:
         with self._lock:

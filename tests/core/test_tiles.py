@@ -616,3 +616,32 @@ def test_candidate_mask_refuses_coordinates_beyond_the_key_range() -> None:
     grid = TileGrid(20, 0.2, 1)
     with pytest.raises(InvalidCloudError, match="voxels along an axis"):
         grid.candidate_mask(np.array([[0.0, 0.0, 1e6]]))
+
+
+def test_refold_replaces_only_the_listed_tiles_and_advances_their_versions() -> None:
+    """The pose graph moved the keyframes behind tiles 0_0 and 1_0: their content is replaced by
+    the given points (equalized as into empty tiles), other tiles and points elsewhere untouched."""
+    rng = np.random.default_rng(4)
+    grid = TileGrid(tile_size_m=20, voxel_size_m=0.5)
+    first = rng.uniform([0, 0, 0], [60, 20, 3], (6000, 3))
+    grid.insert(first, np.full(len(first), 7.0))
+    before = {t.id: t for t in grid.tiles()}
+    assert set(before) == {"0_0", "1_0", "2_0"}
+    moved = first + [0.7, -0.3, 0.0]  # the same structure, 0.76 m away
+    intensity = np.arange(len(moved), dtype=np.float32)
+    changed = grid.refold(["0_0", "1_0", "5_5"], moved, intensity)
+    assert changed == ["0_0", "1_0"]  # 5_5: no point falls in it, nothing written
+    after = {t.id: t for t in grid.tiles()}
+    assert after["2_0"] is before["2_0"]  # unlisted: untouched, although moved points fall in it
+    reference = TileGrid(tile_size_m=20, voxel_size_m=0.5)
+    inside = (moved[:, 0] < 40) & (moved[:, 1] >= 0) & (moved[:, 1] < 20) & (moved[:, 0] >= 0)
+    reference.insert(moved[inside], intensity[inside])
+    for tid in ("0_0", "1_0"):
+        assert after[tid].version == before[tid].version + 1
+        ref = reference.get(tid)
+        np.testing.assert_array_equal(after[tid].points, ref.points)
+        np.testing.assert_array_equal(after[tid].intensity, ref.intensity)
+    # nothing listed, or no point: nothing changes
+    assert grid.refold([], moved) == [] and grid.refold(["0_0"], np.empty((0, 3))) == []
+    with pytest.raises(ValueError):
+        grid.refold(["zero"], moved)
