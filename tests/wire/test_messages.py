@@ -1111,7 +1111,9 @@ def test_correction_round_trip_and_its_checks() -> None:
     from wire.keys import correction_key, key_for
     from wire.messages import correction_from_arrays, decode_correction
 
-    poses = np.stack([make_transform(np.array([0.0, 0.0, 0.1 * k]), np.array([k, 2.0, 0.0])) for k in range(3)])
+    poses = np.stack(
+        [make_transform(np.array([0.0, 0.0, 0.1 * k]), np.array([k, 2.0, 0.0])) for k in range(3)]
+    )
     live = poses.copy()
     live[:, 0, 3] += 0.5
     message = correction_from_arrays("car-1", "d1", "default", 7, np.array([0, 10, 20]), poses, live)
