@@ -10,10 +10,12 @@ import pytest
 
 from wire.codes import ErrorCode
 from wire.keys import (
+    ALL_CORRECTIONS,
     ALL_ERRORS,
     ALL_POSES,
     ALL_SCANS,
     ALL_TILES,
+    correction_key,
     error_key,
     key_for,
     map_tiles_key,
@@ -24,7 +26,13 @@ from wire.keys import (
     tile_of_key,
     vehicle_of_scan_key,
 )
-from wire.messages import ErrorMessage, PoseMessage, scan_from_arrays, tile_update_from_arrays
+from wire.messages import (
+    ErrorMessage,
+    PoseMessage,
+    correction_from_arrays,
+    scan_from_arrays,
+    tile_update_from_arrays,
+)
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
 
@@ -33,6 +41,7 @@ TEMPLATES = {
     "scan_key": scan_key("<vehicle>"),
     "pose_key": pose_key("<vehicle>"),
     "error_key": error_key("<vehicle>"),
+    "correction_key": correction_key("<vehicle>"),
     "tile_key": tile_key("<map>", "<ix>_<iy>"),
     "service_token_key": service_token_key("<instance>"),
 }
@@ -55,6 +64,7 @@ def test_every_documented_key_has_its_helper_and_back() -> None:
         "scan_key": "randt/fleet/<vehicle>/scan",
         "pose_key": "randt/fleet/<vehicle>/pose",
         "error_key": "randt/fleet/<vehicle>/error",
+        "correction_key": "randt/fleet/<vehicle>/correction",
         "tile_key": "randt/map/<map>/tile/<ix>_<iy>",
         "service_token_key": "randt/service/<instance>",
     }
@@ -66,6 +76,7 @@ def test_the_documented_wildcards() -> None:
     assert wildcards == {ALL_SCANS, ALL_TILES}
     assert ALL_SCANS == "randt/fleet/*/scan" and ALL_TILES == "randt/map/*/tile/*"
     assert ALL_POSES == "randt/fleet/*/pose" and ALL_ERRORS == "randt/fleet/*/error"
+    assert ALL_CORRECTIONS == "randt/fleet/*/correction"
     assert map_tiles_key("default") == "randt/map/default/tile/*"
 
 
@@ -73,6 +84,7 @@ def test_helpers_with_the_doc_examples() -> None:
     assert scan_key("car-07") == "randt/fleet/car-07/scan"
     assert pose_key("car-07") == "randt/fleet/car-07/pose"
     assert error_key("bad") == "randt/fleet/bad/error"
+    assert correction_key("car-07") == "randt/fleet/car-07/correction"
     assert tile_key("default", "5_-3") == "randt/map/default/tile/5_-3"
     assert service_token_key("randt-1") == "randt/service/randt-1"
 
@@ -98,6 +110,10 @@ def test_key_for_each_message() -> None:
     assert key_for(pose) == "randt/fleet/car-07/pose"
     assert key_for(error) == "randt/fleet/car-07/error"
     assert key_for(tile) == "randt/map/default/tile/5_-3"
+    correction = correction_from_arrays(
+        "car-07", "s1", "default", 1, np.zeros(1), np.eye(4)[None], np.eye(4)[None]
+    )
+    assert key_for(correction) == "randt/fleet/car-07/correction"
     with pytest.raises(TypeError, match="no key expression for dict"):
         key_for({"v": 1})  # type: ignore[arg-type]
 
