@@ -9,7 +9,9 @@ Flow of a keyframe::
         one core.fleet_map.FleetMapper per map: placement, place recognition, global
         registration, iSAM2 (docs/mapping.md)
     graph process --> after each keyframe: the keyframes that moved since last reported (more
-        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the new loop verifications, the placed sessions
+        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the new loop verifications, the placed sessions;
+        at most every ``graph_refold_s``, in a pause between keyframes: the tiles of the keyframes
+        that moved, re-folded (SessionManager.refold_tiles swaps them in)
     receiver thread --> GraphState (per session: each keyframe's live and optimized pose) -->
         one CorrectionMessage per session that moved, to the outbox (``randt/fleet/<vehicle>/
         correction``), and what ``GET /maps/{map}/graph`` and ``trajectory?corrected=true`` serve
@@ -79,6 +81,9 @@ REFOLD_TOL_M = 0.1
 REFOLD_TOL_DEG = 0.2
 #: The graph process's niceness (added to the service's).
 GRAPH_NICE = 10
+#: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
+#: last one is this many re-fold periods old (``graph_refold_s``).
+REFOLD_STARVE_PERIODS = 3.0
 
 
 # ----------------------------------------------------------------------- the graph process
@@ -115,6 +120,9 @@ class _ProcessMap:
         self.cloud: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
         self.folded: dict[tuple[str, int], np.ndarray] = {}  # the pose its points are in the tiles at
         self.tiles_of: dict[tuple[str, int], set[tuple[int, int]]] = {}
+        self.poses: dict[tuple[str, int], np.ndarray] = {}  # the optimized poses after the last keyframe
+        #: Keyframes moved since the last re-fold (it checks which moved far enough).
+        self.refold_pending = False
 
     def _tiles(self, T: np.ndarray, xyz: np.ndarray) -> set[tuple[int, int]]:
         xy = xyz.astype(np.float64) @ T[:2, :3].T + T[:2, 3]
@@ -161,8 +169,16 @@ class _ProcessMap:
             np.concatenate([t.intensity for t in kept]),
         )
 
+    def refold(self) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+        """The pending re-fold (:meth:`_refold` at the newest optimized poses), if any."""
+        if not self.refold_pending:
+            return None
+        self.refold_pending = False
+        return self._refold(self.poses)
+
     def add(self, message: tuple[Any, ...]) -> tuple[Any, ...]:
-        """One keyframe in; the ``update`` message out (raises on a refused keyframe)."""
+        """One keyframe in; the ``update`` message out (raises on a refused keyframe). Re-folding
+        the tiles is left to :meth:`refold`, which the process runs in a pause (``_graph_main``)."""
         _, map_name, vehicle, session, seq, index, T_live, points, intensity, gnss = message
         mapper = self.mapper
         name = f"{vehicle}/{session}"
@@ -175,8 +191,7 @@ class _ProcessMap:
         self.cloud[key] = (xyz, np.zeros(len(xyz), np.float32) if intensity is None else intensity)
         self.folded[key] = T_live
         self.tiles_of[key] = self._tiles(T_live, xyz)
-        poses = mapper.poses()
-        refold = self._refold(poses)
+        poses = self.poses = mapper.poses()
         moved = []
         for k, P in poses.items():
             if _moved(P, self.reported[k]):
@@ -184,6 +199,7 @@ class _ProcessMap:
                 moved.append((*self.meta[k], P))
         if moved:
             self.revision += 1
+            self.refold_pending = True
         # Records from the first that changed (a placement vote is accepted once a second agrees).
         start = next(
             (i for i, (r, was) in enumerate(zip(mapper.loops, self.sent, strict=False)) if r.accepted != was),
@@ -204,23 +220,53 @@ class _ProcessMap:
         self.sent = [r.accepted for r in mapper.loops]
         processed = (vehicle, session, index)
         placed = mapper.placed_sessions()
-        return ("update", map_name, self.revision, moved, start, loops, placed, processed, refold)
+        return ("update", map_name, self.revision, moved, start, loops, placed, processed)
 
 
-def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeometry) -> None:
-    """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring)."""
+def _send_refolds(conn: Connection, maps: dict[str, _ProcessMap]) -> None:
+    """Re-fold every map with moved keyframes and send each map's tiles (``refold`` messages)."""
+    for map_name, graph in maps.items():
+        t0 = time.perf_counter()
+        try:
+            refold = graph.refold()
+        except Exception:  # a bug: the tiles stay as they are, the graph goes on
+            log.exception("graph process: re-folding map %s failed", map_name)
+            continue
+        if refold is not None:
+            conn.send(("refold", map_name, *refold, time.perf_counter() - t0))
+
+
+def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeometry, refold_s: float) -> None:
+    """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring).
+
+    Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
+    seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
+    old), and at once on a ``sync`` request."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
     single_threaded_blas()
     with contextlib.suppress(OSError):
         os.nice(GRAPH_NICE)
     maps: dict[str, _ProcessMap] = {}
+    last_refold = time.monotonic()
     while True:
         try:
+            if any(g.refold_pending for g in maps.values()):
+                due_in = last_refold + refold_s - time.monotonic()
+                starving = due_in <= -(REFOLD_STARVE_PERIODS - 1.0) * refold_s
+                if starving or not conn.poll(max(due_in, 0.0)):
+                    _send_refolds(conn, maps)
+                    last_refold = time.monotonic()
+                    continue
             message = conn.recv()
         except (EOFError, OSError):  # the service is gone
             return
         if message[0] == "quit":
             return
+        if message[0] == "sync":  # tests and benchmarks: the map as the graph has it now
+            _send_refolds(conn, maps)
+            last_refold = time.monotonic()
+            conn.send(("synced", message[1]))
+            continue
         map_name, vehicle, session, seq = message[1], message[2], message[3], message[4]
         t0 = time.perf_counter()
         try:
@@ -318,8 +364,10 @@ class ServiceGraph:
         on_refold: Callable[[str, list[str], np.ndarray, np.ndarray], None] | None = None,
         keyframe_m: float = 10.0,
         queue_size: int = 64,
+        refold_s: float = 5.0,
     ) -> None:
         self.settings = settings
+        self.refold_s = refold_s
         self.geometry = geometry or MapGeometry(20, 0.2, 1)
         self._on_refold = on_refold
         #: Per session, the correction of its newest optimized keyframe (``optimized @ inv(live)``):
@@ -337,6 +385,8 @@ class ServiceGraph:
         self._counted_loops: dict[str, int] = {}  # loop records counted in the metrics, per map
         self._offered = 0  # keyframes queued (dropped ones subtracted) ...
         self._done = 0  # ... and answered by the process: wait_idle
+        self._syncs = 0  # sync requests sent (wait_idle) ...
+        self._synced = 0  # ... and answered
         self._cond = threading.Condition()
         self._closed = False
         self._proc: multiprocessing.process.BaseProcess | None = None
@@ -357,7 +407,10 @@ class ServiceGraph:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
-            target=_graph_main, args=(child, self.settings, self.geometry), name="randt-graph", daemon=True
+            target=_graph_main,
+            args=(child, self.settings, self.geometry, self.refold_s),
+            name="randt-graph",
+            daemon=True,
         )
         with _sigint_ignored_by_children():
             self._proc.start()
@@ -408,8 +461,9 @@ class ServiceGraph:
             if self._closed:
                 return
             self._start()
-            if len(self._queued) >= self._queue_size:
-                dropped = self._queued.pop(0)
+            keyframes = [i for i, queued in enumerate(self._queued) if queued[0] == "keyframe"]
+            if len(keyframes) >= self._queue_size:
+                dropped = self._queued.pop(keyframes[0])
                 self._offered -= 1
                 self._metrics.graph_queue_dropped.inc()
                 log.warning("pose graph behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
@@ -448,16 +502,28 @@ class ServiceGraph:
                 message = self._conn.recv()
             except (EOFError, OSError):
                 return
+            if message[0] == "synced":
+                with self._cond:
+                    self._synced = max(self._synced, message[1])
+                    self._cond.notify_all()
+                continue
             try:
                 self._apply(message)
             except Exception:  # a bug must not stop the graph's output
                 log.exception("pose graph: an update could not be applied")
-            with self._cond:
-                self._done += 1
-                self._cond.notify_all()
+            if message[0] != "refold":
+                with self._cond:
+                    self._done += 1
+                    self._cond.notify_all()
 
     def _apply(self, message: tuple[Any, ...]) -> None:
         m = self._metrics
+        if message[0] == "refold":
+            _, map_name, tile_ids, xyz, intensity, elapsed = message
+            m.graph_refold_seconds.observe(elapsed)
+            if self._on_refold is not None:
+                self._on_refold(map_name, tile_ids, xyz, intensity)
+            return
         if message[0] == "refused":
             _, map_name, vehicle, session, seq, reason, elapsed = message
             log.warning("pose graph refused keyframe %s/%s seq %d: %s", vehicle, session, seq, reason)
@@ -467,7 +533,7 @@ class ServiceGraph:
             with self._lock:
                 self._states[map_name].n_refused += 1
             return
-        _, map_name, revision, moved, start, loops, placed, processed, refold, elapsed = message
+        _, map_name, revision, moved, start, loops, placed, processed, elapsed = message
         m.graph_keyframes.labels("added").inc()
         m.graph_update_seconds.observe(elapsed)
         by_session: dict[SessionKey, list[_Keyframe]] = {}
@@ -507,8 +573,6 @@ class ServiceGraph:
                 for kf in st.keyframes.get(key, {}).values():
                     if kf.optimized is None and kf.index <= processed[2]:
                         kf.optimized = kf.live
-        if refold is not None and self._on_refold is not None:
-            self._on_refold(map_name, *refold)
         for (vehicle, session), kfs in by_session.items():
             kfs.sort(key=lambda k: k.index)
             self._outbox(
@@ -571,15 +635,28 @@ class ServiceGraph:
             )
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
-        """Wait until the process has answered every queued keyframe (tests and benchmarks)."""
+        """Wait until the process has answered every queued keyframe and re-folded the tiles of
+        those that moved (tests and benchmarks: the map as the graph has it now)."""
         deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._done < self._offered:
+
+        def wait(done: Callable[[], bool]) -> bool:
+            while not done():
                 left = deadline - time.monotonic()
                 if left <= 0 or not self.running:
                     return False
                 self._cond.wait(min(left, 0.5))
-        return True
+            return True
+
+        with self._cond:
+            if self._proc is None:
+                return True
+            if not wait(lambda: self._done >= self._offered):
+                return False
+            self._syncs += 1
+            token = self._syncs
+            self._queued.append(("sync", token))
+            self._cond.notify_all()
+            return wait(lambda: self._synced >= token)
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop feeding the process and stop it (what is still queued is not processed)."""

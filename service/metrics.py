@@ -69,11 +69,13 @@ class ServiceMetrics:
         every enqueue and dequeue, removed when the session closes.
     sessions_active, tiles_written, store_errors:
         Running session workers; tile files written; failed writes to the store.
-    graph_keyframes, graph_loops, graph_update_seconds, graph_queue_dropped, graph_tiles_refolded:
+    graph_keyframes, graph_loops, graph_update_seconds, graph_refold_seconds, graph_queue_dropped,
+    graph_tiles_refolded:
         The pose graph (service/graph.py): keyframes it took (``result``: ``added`` or ``refused``),
         loop verifications (``result``: ``accepted``, ``refused``), the graph process's time per
-        keyframe (place recognition, verification, iSAM2), keyframes dropped because its queue was
-        full, tiles re-folded because the graph moved the keyframes behind them.
+        keyframe (place recognition, verification, iSAM2) and per re-fold of a map's tiles (at most
+        every ``graph_refold_s``), keyframes dropped because its queue was full, tiles re-folded
+        because the graph moved the keyframes behind them.
     """
 
     def __init__(self) -> None:
@@ -116,6 +118,12 @@ class ServiceMetrics:
             "randt_graph_update_seconds",
             "Pose graph time per keyframe (place recognition, verification, iSAM2)",
             buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.35, 0.5, 1.0, 2.0, 5.0),
+            registry=r,
+        )
+        self.graph_refold_seconds = Histogram(
+            "randt_graph_refold_seconds",
+            "Pose graph time per re-fold of a map's tiles (its moved keyframes' points, equalized)",
+            buckets=(0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0),
             registry=r,
         )
         self.graph_tiles_refolded = Counter(

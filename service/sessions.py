@@ -634,6 +634,7 @@ class SessionManager:
                 on_refold=self.refold_tiles,
                 keyframe_m=settings.graph_keyframe_m,
                 queue_size=settings.graph_queue,
+                refold_s=settings.graph_refold_s,
             )
             if settings.graph
             else None

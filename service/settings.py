@@ -151,6 +151,12 @@ class ServiceSettings(BaseSettings):
     graph_queue: int = Field(
         default=64, ge=1, description="keyframes waiting for the graph process; beyond, the oldest is dropped"
     )
+    graph_refold_s: float = Field(
+        default=5.0,
+        ge=0,
+        description="at most this often, in a pause between keyframes, the graph process re-folds the "
+        "tiles of keyframes it moved (0: after every keyframe)",
+    )
     fleet_map: FleetMapSettings = Field(
         default_factory=FleetMapSettings, description="the pose graph's settings (core.fleet_map)"
     )
