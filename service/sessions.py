@@ -215,7 +215,7 @@ class SessionWorker:
         self._first_saved: bool | None = True
         self._first_save: threading.Thread | None = None
         # Map points of scans processed while behind, waiting to be folded in together (_fold).
-        self._unfolded: list[tuple[np.ndarray, np.ndarray | None]] = []
+        self._unfolded: list[tuple[str, np.ndarray, np.ndarray | None]] = []  # map, xyz, intensity
         self._fold_lock = threading.Lock()
         self._thread = threading.Thread(
             target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
@@ -392,12 +392,14 @@ class SessionWorker:
             if registered.map_xyz.shape[0]:  # none for a fallback
                 inten = None if intensity is None else intensity[registered.map_index]
                 map_xyz = registered.map_xyz
-                C = None if graph is None else graph.correction(scan.vehicle, scan.session)
-                if C is not None:  # the map follows the pose graph (service/graph.py)
+                C, fold_map = None, self.info.map_name
+                if graph is not None:  # the map follows the pose graph (service/graph.py)
+                    C, fold_map = graph.fold_target(scan.vehicle, scan.session, fold_map)
+                if C is not None:
                     map_xyz = (map_xyz @ C[:3, :3].T.astype(np.float32) + C[:3, 3].astype(np.float32)).astype(
                         np.float32
                     )
-                self._unfolded.append((map_xyz, inten))
+                self._unfolded.append((fold_map, map_xyz, inten))
             info = self.info
             info.n_scans += 1
             info.n_fallbacks += result.status == "fallback"
@@ -457,6 +459,8 @@ class SessionWorker:
                 if intensity is None or registered.keyframe_index is None
                 else intensity[registered.keyframe_index],
                 gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
+                # a session without priors (its own map) may join the shared map
+                join=m.settings.default_map if info.frame == "session" else None,
             )
         if not behind:
             with self.lock:
@@ -472,16 +476,20 @@ class SessionWorker:
         with self._fold_lock:
             with self.lock:
                 batch, self._unfolded = self._unfolded, []
-                grid, map_name = self.grid, self.info.map_name
-            if not batch:
-                return
-            xyz = np.concatenate([x for x, _ in batch]) if len(batch) > 1 else batch[0][0]
-            inten = None
-            if any(i is not None for _, i in batch):
-                inten = np.concatenate([np.zeros(len(x), np.float32) if i is None else i for x, i in batch])
-            changed = grid.insert(xyz, inten)
-        if changed:
-            self._manager.mark_tiles_dirty(map_name, changed)
+                own_grid, own_map = self.grid, self.info.map_name
+            # (a session without priors folds into the shared map once it joined it)
+            for map_name in dict.fromkeys(name for name, _, _ in batch):
+                part = [(x, i) for name, x, i in batch if name == map_name]
+                grid = own_grid if map_name == own_map else self._manager.map_grid(map_name)
+                xyz = np.concatenate([x for x, _ in part]) if len(part) > 1 else part[0][0]
+                inten = None
+                if any(i is not None for _, i in part):
+                    inten = np.concatenate(
+                        [np.zeros(len(x), np.float32) if i is None else i for x, i in part]
+                    )
+                changed = grid.insert(xyz, inten)
+                if changed:
+                    self._manager.mark_tiles_dirty(map_name, changed)
 
     def _publish(self, pose: PoseMessage, received_ns: int) -> None:
         """Send a durable pose, or hold it while the session's first snapshot is being written

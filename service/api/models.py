@@ -170,6 +170,11 @@ class MapGraph(BaseModel):
     keyframes: list[GraphKeyframe]
     loops: list[GraphEdge] = Field(description="every verification, accepted or not")
     refused_keyframes: int
+    joined: dict[str, list[list[float]]] = Field(
+        default_factory=dict,
+        description="sessions without priors the graph placed into this map: <vehicle>/<session> -> "
+        "4x4 T_map_session, where their own frame (the frame of their answers) lies in this map",
+    )
 
 
 class TileBoundsModel(BaseModel):

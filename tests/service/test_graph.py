@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from core.transforms import invert, transform_error, umeyama
 from service.graph import GraphState, correct_trajectory
@@ -30,6 +31,7 @@ from wire.messages import (
     CorrectionMessage,
     ErrorMessage,
     PoseMessage,
+    ScanMessage,
     TileUpdateMessage,
     decode_correction,
     encode,
@@ -84,6 +86,28 @@ class LoopDrive:
     town: Town
 
 
+def _feed(server: LiveServer, scans: list[tuple[str, ScanMessage]]) -> None:
+    """Send ``(vehicle, scan)`` in order, one at a time: each once the previous one is answered
+    and its matcher has begun rebuilding the keyframe model (see :func:`loop_drive`)."""
+    mgr, out = server.service.sessions, server.service._sent
+    assert mgr is not None
+
+    def n_answered() -> int:
+        return sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out))
+
+    start = n_answered()
+    deadline = time.monotonic() + 300
+    for i, (vehicle, scan) in enumerate(scans):
+        while n_answered() < start + i:
+            assert time.monotonic() < deadline, "the service stopped answering"
+            time.sleep(0.002)
+        time.sleep(2 * NEXT_REQUEST_WAIT_S)  # the matcher process has begun its model rebuild
+        mgr.submit(vehicle, encode(scan))
+    while n_answered() < start + len(scans):
+        assert time.monotonic() < deadline, "not every scan was answered in 300 s"
+        time.sleep(0.1)
+
+
 @pytest.fixture(scope="module")
 def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
     """The drive, fed to a real uvicorn server (``with_zenoh=False``: the session manager takes the
@@ -107,21 +131,9 @@ def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
         assert mgr is not None
         out = server.service._sent
 
-        def n_answered() -> int:
-            return sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out))
-
-        deadline = time.monotonic() + 300
-        for scan in scans:
-            while n_answered() < scan.index:
-                assert time.monotonic() < deadline, "the service stopped answering"
-                time.sleep(0.002)
-            time.sleep(2 * NEXT_REQUEST_WAIT_S)  # the matcher process has begun its model rebuild
-            mgr.submit(
-                "car", encode(scan_from_arrays("car", "d1", scan.index, scan.stamp_ns, scan.points_xyz))
-            )
-        while n_answered() < len(scans):
-            assert time.monotonic() < deadline, "not every scan was answered in 300 s"
-            time.sleep(0.1)
+        _feed(
+            server, [("car", scan_from_arrays("car", "d1", s.index, s.stamp_ns, s.points_xyz)) for s in scans]
+        )
         assert mgr.graph is not None and mgr.graph.wait_idle(300)
         trajectory = mgr.trajectory("car", "d1")
         assert trajectory is not None
@@ -302,3 +314,104 @@ def test_the_map_follows_the_graph(loop_drive) -> None:
     # Measured: 0.9 cm and 38 cm (with the graph off, RANDT_GRAPH=false: 1.2 cm and 60 cm,
     # docs/mapping.md).
     assert p50 < 0.03 and p90 < 0.5, f"map points from the true surfaces: median {p50:.3f} m, p90 {p90:.3f} m"
+
+
+# ---------------------------------------------------------------- a session without priors joins
+@dataclass
+class JoinDrive:
+    truth: dict[str, dict[int, np.ndarray]]
+    out: list
+    server: LiveServer
+    town: Town
+
+
+@pytest.fixture(scope="module")
+def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
+    """Two vehicles on one 400 m loop, sweeps interleaved: ``gnss`` carries a prior on its first
+    sweep (it maps the shared map, ``default``), ``nognss`` none (it starts in a map of its own)
+    and starts 100 m behind, so from its 10th second it drives streets ``gnss`` has mapped."""
+    town = Town.generate(0)
+    route = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    n = int(0.8 * route.route.length_m)
+    lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
+    drives = {
+        "gnss": list(simulate(town, route.route, n_scans=n, seed=1, lidar=lidar, start_s_m=route.start_s_m)),
+        "nognss": list(
+            simulate(
+                town, route.route, n_scans=n, seed=2, lidar=lidar, start_stamp_ns=50_000_000,
+                start_s_m=(route.start_s_m - 100.0) % route.route.length_m,
+            )
+        ),
+    }  # fmt: skip
+    prior = {"prior_covariance": np.diag([1e-4] * 3 + [1e-5] * 3)}
+    scans = [
+        (v, scan_from_arrays(v, "d1", s.index, s.stamp_ns, s.points_xyz, **(
+            {"prior_pose": s.T_world_sensor, **prior} if v == "gnss" and s.index == 0 else {}
+        )))
+        for pair in zip(drives["gnss"], drives["nognss"], strict=True)
+        for v, s in zip(("gnss", "nognss"), pair, strict=True)
+    ]  # fmt: skip
+    with live_server(tmp_path_factory.mktemp("join") / "data") as server:
+        _feed(server, scans)
+        mgr = server.service.sessions
+        assert mgr is not None and mgr.graph is not None and mgr.graph.wait_idle(300)
+        mgr.flush()
+        truth = {v: {s.index: s.T_world_sensor for s in d} for v, d in drives.items()}
+        yield JoinDrive(truth, list(server.service._sent), server, town)
+
+
+def test_a_session_without_priors_joins_the_shared_map(join_drive) -> None:
+    truth, server = join_drive.truth, join_drive.server
+    mgr = server.service.sessions
+    assert mgr is not None and mgr.graph is not None
+    # Placed by two agreeing registrations against the shared map's keyframes: its own frame (its
+    # first sweep's) lies in the shared map where that sweep truly was.
+    joined = mgr.graph.joined("nognss", "d1")
+    assert joined is not None and joined[0] == "default"
+    dt, dr = transform_error(joined[1], truth["nognss"][0])
+    assert dt < 0.1 and dr < 0.5, f"T_map_session {dt:.3f} m, {dr:.3f} deg from the truth"  # measured 4 mm
+    state = mgr.graph.snapshot("default")
+    assert state is not None and state.placed == {("gnss", "d1"), ("nognss", "d1")}
+    accepted = [loop for loop in state.loops if loop.accepted]
+    assert any(loop.a[0] != loop.b[0] for loop in accepted)
+    for loop in state.loops:  # no false loop or placement enters the graph (votes may be wrong)
+        gap = np.linalg.norm(truth[loop.a[0]][loop.a[2]][:3, 3] - truth[loop.b[0]][loop.b[2]][:3, 3])
+        assert not loop.accepted or gap < 10.0, f"{loop} accepted between places {gap:.0f} m apart"
+    # Its answers stay in its own frame; corrected, its whole trajectory is in the shared map.
+    live = mgr.trajectory("nognss", "d1")
+    assert live is not None
+    corrected, graph_map = mgr.graph.corrected("nognss", "d1", live[1])
+    assert graph_map == "default"
+    err = np.array([np.linalg.norm(T[:3, 3] - truth["nognss"][i][:3, 3]) for i, T in enumerate(corrected)])
+    assert err.mean() < 0.1 and err.max() < 0.25, (
+        f"mean {err.mean():.3f} m, max {err.max():.3f} m"
+    )  # 2 / 4 cm
+    fixed = httpx.get(f"{server.url}/sessions/nognss/d1/trajectory?corrected=true", timeout=30).json()
+    assert fixed["map"] == "default" and fixed["corrected"] is True
+    graph = httpx.get(f"{server.url}/maps/default/graph", timeout=30).json()
+    assert set(graph["joined"]) == {"nognss/d1"}
+    np.testing.assert_allclose(graph["joined"]["nognss/d1"], joined[1], atol=1e-9)
+    # Corrections for it name the shared map and carry its keyframes' poses in it.
+    corrections = [m for m in join_drive.out if isinstance(m, CorrectionMessage) and m.vehicle == "nognss"]
+    shared = [m for m in corrections if m.map == "default"]
+    assert shared, {m.map for m in corrections}
+    last = shared[-1]  # (a seq is its scan's index here: every scan was answered)
+    for seq, pose in zip(last.seqs(), last.poses(), strict=True):
+        dt = float(np.linalg.norm(pose[:3, 3] - truth["nognss"][int(seq)][:3, 3]))
+        assert dt < 0.25, f"keyframe seq {seq} corrected {dt:.2f} m from the truth"
+
+
+def test_the_joined_session_maps_into_the_shared_map(join_drive) -> None:
+    """The shared map covers the joined session's drive, the stretch only it drove included (its
+    keyframes re-folded in after it joined, its later sweeps folded in directly)."""
+    truth, mgr = join_drive.truth, join_drive.server.service.sessions
+    assert mgr is not None
+    xyz = np.concatenate([t.points for t in mgr.maps["default"].tiles()]).astype(np.float64)
+    d = join_drive.town.surface_distance(xyz)
+    assert np.quantile(d, 0.9) < 0.1, f"p90 {np.quantile(d, 0.9):.3f} m from the true surfaces"  # 2.2 cm
+    own = np.stack([T[:2, 3] for T in truth["gnss"].values()])
+    other = np.stack([T[:2, 3] for T in truth["nognss"].values()])
+    only_it = other[cKDTree(own).query(other)[0] > 30.0]
+    assert len(only_it) >= 10, "the joined session drove no street of its own: the test lost its point"
+    near = cKDTree(xyz[:, :2]).query(other)[0]
+    assert near.max() < 5.0, f"the shared map has no point within {near.max():.1f} m of a place it drove"
