@@ -308,13 +308,13 @@ def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeome
             conn.send(("refused", map_name, vehicle, session, seq, reason, time.perf_counter() - t0))
             continue
         conn.send((*update, time.perf_counter() - t0))
-        if join is None or join == map_name:
+        shared = None if join is None or join == map_name else maps.get(join)
+        if shared is None:  # (no session with priors has made the shared map's graph yet)
             continue
         # A session without priors, in a map of its own: the same keyframe, unplaced, in the shared
         # map's graph, which places it once two registrations against its keyframes agree.
         t0 = time.perf_counter()
         try:
-            shared = maps.get(join) or maps.setdefault(join, _ProcessMap(join, settings, geometry))
             update = shared.add(message, joining=True)
         except Exception:  # (it was taken by its own map's graph: a bug)
             log.exception(
