@@ -181,6 +181,9 @@ class SessionState:
     #: Variance (m^2) of the position accumulated since the last prior pose: the prior's own
     #: variance, plus the trace of each registration's translational covariance (a random walk).
     drift_var_m2: float = 0.0
+    #: The shared map the pose graph placed this session (one without priors) into: its points
+    #: fold there from then on (service/graph.py); ``None`` otherwise.
+    joined_map: str | None = None
 
 
 class SessionWorker:
@@ -640,6 +643,7 @@ class SessionManager:
                 self.metrics,
                 geometry=MapGeometry(settings.tile_size_m, settings.map_voxel_m, 1),
                 on_refold=self.refold_tiles,
+                on_join=self._joined,
                 keyframe_m=settings.graph_keyframe_m,
                 queue_size=settings.graph_queue,
                 refold_s=settings.graph_refold_s,
@@ -1050,6 +1054,20 @@ class SessionManager:
             self.metrics.graph_tiles_refolded.inc(len(changed))
             self.mark_tiles_dirty(map_name, changed)
 
+    def _joined(self, vehicle: str, session: str, map_name: str, T_map_session: np.ndarray) -> None:
+        """The pose graph placed a session without priors into ``map_name`` (service/graph.py)."""
+        with self._lock:
+            w = self._workers.get((vehicle, session))
+        if w is not None:
+            w.info.joined_map = map_name
+        log.info(
+            "session %s/%s joined map %s at x %.2f y %.2f z %.2f m",
+            vehicle,
+            session,
+            map_name,
+            *T_map_session[:3, 3],
+        )
+
     def mark_tiles_dirty(self, map_name: str, tile_ids: list[str]) -> None:
         with self._lock:
             self._dirty_tiles.setdefault(map_name, set()).update(tile_ids)
@@ -1152,7 +1170,7 @@ class SessionManager:
             users = sorted(
                 f"{w.info.vehicle}/{w.info.session}"
                 for w in self._workers.values()
-                if w.info.map_name == map_name
+                if map_name in (w.info.map_name, w.info.joined_map)
             )
             if users:
                 raise MapInUseError(

@@ -90,6 +90,12 @@ class SessionSummary(BaseModel):
     session: str
     map: str | None
     frame: Literal["map", "session"]
+    joined: str | None = Field(
+        default=None,
+        description="the shared map the pose graph placed this session (one without priors) into: "
+        "its points fold there, its corrections name it; its answers stay in its own frame (running "
+        "sessions only)",
+    )
     state: Literal["active", "idle", "closed", "expired"] = Field(
         description="active: a worker is running; idle: stored as active, resumes with its next "
         "scan (after a restart); closed / expired: finished"

@@ -51,6 +51,7 @@ def session_summary(
             session=info.session,
             map=info.map_name,
             frame="map" if info.frame == "map" else "session",
+            joined=info.joined_map,
             state="active",
             scans=info.n_scans,
             fallbacks=info.n_fallbacks,
@@ -153,5 +154,7 @@ def map_summary(name: str, grid: TileGrid | DurableMap, running: list[SessionSta
         tile_size_m=grid.tile_size_m,
         voxel_size_m=grid.voxel_size_m,
         extent=extent,
-        sessions=sorted(session_id(s.vehicle, s.session) for s in running if s.map_name == name),
+        sessions=sorted(
+            session_id(s.vehicle, s.session) for s in running if name in (s.map_name, s.joined_map)
+        ),
     )

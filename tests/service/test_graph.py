@@ -390,6 +390,10 @@ def test_a_session_without_priors_joins_the_shared_map(join_drive) -> None:
     assert fixed["map"] == "default" and fixed["corrected"] is True
     graph = httpx.get(f"{server.url}/maps/default/graph", timeout=30).json()
     assert set(graph["joined"]) == {"nognss/d1"}
+    detail = httpx.get(f"{server.url}/sessions/nognss/d1", timeout=30).json()
+    assert (detail["map"], detail["frame"], detail["joined"]) == ("nognss.d1", "session", "default")
+    assert httpx.get(f"{server.url}/sessions/gnss/d1", timeout=30).json()["joined"] is None
+    assert httpx.get(f"{server.url}/maps/default", timeout=30).json()["sessions"] == ["gnss/d1", "nognss/d1"]
     np.testing.assert_allclose(graph["joined"]["nognss/d1"], joined[1], atol=1e-9)
     # Corrections for it name the shared map and carry its keyframes' poses in it.
     corrections = [m for m in join_drive.out if isinstance(m, CorrectionMessage) and m.vehicle == "nognss"]
