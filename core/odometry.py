@@ -535,6 +535,7 @@ class IncrementalMatcher:
         T_pred = self._predict(index, prior_T, periods)
         prepare = self._preparer(sweep.xyz, sweep.time_offset_s if index > 0 else None, times)
         xyz, feats = prepare(self._state.delta)
+        fell_back = self._state.fallback_run  # sweeps since the last match, before this one
         if index == 0:
             if sweep.time_offset_s is not None:
                 self._state.first_raw = (xyz, sweep.time_offset_s)
@@ -545,7 +546,7 @@ class IncrementalMatcher:
             outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
-        self._advance(T, index, periods, stamp_s)
+        self._advance(T, index, periods, stamp_s, fell_back if outcome.status == "ok" else 0)
         if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
             self._deskew_first_keyframe(T)
         keep_map = ~outcome.feats.noise_mask
@@ -730,11 +731,20 @@ class IncrementalMatcher:
                 break  # the prediction's match passed and looks like the recent ones: no retries
         return best, _Outcome(T_pred, "fallback", message, converged, fitness, cov, inliers, xyz, feats)
 
-    def _advance(self, T: np.ndarray, index: int, periods: float, stamp_s: float | None) -> None:
-        """Append the pose; the velocity from the last two poses (per period), the stamp kept."""
+    def _advance(
+        self, T: np.ndarray, index: int, periods: float, stamp_s: float | None, fell_back: int = 0
+    ) -> None:
+        """Append the pose; the velocity (per period) from the last matched pose, the stamp kept.
+
+        ``fell_back``: the sweeps that fell back just before this matched one. Their poses are
+        predictions, so the velocity is measured from the last match before them, over the
+        periods since (one per fallback): after 20 blocked sweeps while the vehicle stood still,
+        the match 20 m behind the prediction is no velocity of 20 m per period.
+        """
         st = self._state
         if index > 0:
-            st.delta = orthonormalize(self._per_period(invert(st.poses[-1]) @ T, periods))
+            back = min(fell_back, len(st.poses) - 1)
+            st.delta = orthonormalize(self._per_period(invert(st.poses[-1 - back]) @ T, periods + back))
         st.poses.append(T)
         if stamp_s is not None:
             st.last_stamp_s = float(stamp_s)
@@ -955,11 +965,15 @@ class IncrementalMatcher:
     ) -> str | None:
         """Why a registration result is not accepted, or None when it is.
 
-        The correction limit grows with the time since the last sweep (``periods``): the
-        prediction's error grows with the gap it extrapolates over.
+        The correction limit grows with the time since the last sweep (``periods``) and with every
+        sweep that fell back since the last match (``fallback_run``): the prediction's error grows
+        with the time it extrapolates over, and a fallback's pose is a prediction. So a session
+        whose sensor was blocked while the vehicle stood still finds its track again once the
+        sweeps are good (the match that moved the prediction 20 m after 20 blocked sweeps was
+        refused at the old 2 m limit forever, with 83 % inliers).
         """
         s = self.settings
-        limit = s.max_correction_m * max(1.0, periods)
+        limit = s.max_correction_m * (max(1.0, periods) + self._state.fallback_run)
         correction = float(np.linalg.norm((invert(T_pred) @ res.T_target_source)[:3, 3]))
         if res.inlier_ratio < s.min_inlier_ratio:
             return f"inlier ratio {res.inlier_ratio:.2f} below {s.min_inlier_ratio}"

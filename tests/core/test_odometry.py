@@ -231,6 +231,33 @@ def test_deskew_follows_a_corner_onset() -> None:
     assert err_m < 0.10 and err_deg < 0.3, (err_m, err_deg)
 
 
+def test_a_session_blocked_while_standing_finds_its_track_again() -> None:
+    """The sensor is blocked for 1.5 s (a tarp 2-4 m away) while the vehicle stands still; the
+    prediction drives on at 12 m/s, so when the sweeps are good again the match lies 18 m behind
+    it. That match is accepted (the correction limit grows with every fallback) and the velocity
+    is measured from the last match before the blockage, so tracking resumes at once. Before,
+    the 2 m limit refused the match forever and the session flew off along its last velocity."""
+    from sim.drive import Route, simulate
+    from sim.town import Town
+
+    town = Town.generate(1)
+    route = Route.loop(town, 3, length_m=1000.0)
+    scans = list(simulate(town, route, n_scans=45, speed_mps=12.0, seed=1))
+    rng = np.random.default_rng(0)
+    tarp = rng.normal(size=(3000, 3))
+    tarp *= rng.uniform(2.0, 4.0, (3000, 1)) / np.linalg.norm(tarp, axis=1, keepdims=True)
+    fed = [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans[:20]]
+    fed += [(tarp, scans[19].T_world_sensor)] * 15
+    fed += [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans[20:]]
+    matcher = IncrementalMatcher()
+    statuses = [matcher.register_scan(xyz, stamp_s=0.1 * i).status for i, (xyz, _) in enumerate(fed)]
+    assert statuses[20:35] == ["fallback"] * 15
+    assert statuses[35:] == ["ok"] * 25, statuses[35:]
+    gt = [T for _, T in fed]
+    err_m, err_deg = transform_error(invert(matcher.poses[0]) @ matcher.poses[-1], invert(gt[0]) @ gt[-1])
+    assert err_m < 0.05 and err_deg < 0.1, (err_m, err_deg)
+
+
 def _gapped_run(use_stamps: bool) -> tuple[int, float, float, int]:
     """50 simulated sweeps at 12 m/s with runs of sweeps missing, as an overloaded service sheds
     them (drop-oldest): returns (fallbacks, final translation error m, rotation deg, sweeps fed)."""
