@@ -25,8 +25,10 @@ the matchers win; when it falls behind, its queue drops the oldest keyframes.
 A session's keyframes go to the graph of its map, where it is placed at once: its poses are in
 its map's frame already (a session with priors lives in the shared map ``default_map``, anchored
 by its first prior; one without has its own map). Each prior's position enters the graph as a
-GNSS factor. Placing a session without priors into the shared map live is not done yet
-(``FleetMapper`` does it offline, by two agreeing registrations). The per-sweep answers are never
+GNSS factor. A session without priors also offers its keyframes, unplaced, to the shared map's
+graph; once two registrations against it agree, FleetMapper places it there and the session
+*joins* that map: it lives in that graph from then on, its points fold into that map, and
+``on_join`` tells the session manager. The per-sweep answers are never
 rewritten: a client corrects the poses it holds with the newest keyframe poses
 (:class:`wire.messages.CorrectionMessage`).
 
@@ -188,10 +190,9 @@ class _ProcessMap:
         the tiles is left to :meth:`refold`, which the process runs in a pause (``_graph_main``).
 
         A session's first keyframe places it at the identity: its poses are in its map's frame
-        already. With ``joining``,
-        the keyframe is of a session without priors that lives in a map of its own: it enters
-        unplaced, and FleetMapper places it once two registrations against this map agree (its
-        points are then folded into this map's tiles by the next re-fold)."""
+        already. With ``joining``, the keyframe is of a session without priors that lives in a map
+        of its own: it enters unplaced, and FleetMapper places it once two registrations against
+        this map agree (its points are then folded into this map's tiles by the next re-fold)."""
         _, _, vehicle, session, seq, index, T_live, points, intensity, gnss, _ = message
         mapper = self.mapper
         name = f"{vehicle}/{session}"
@@ -612,8 +613,7 @@ class ServiceGraph:
                 for moving in old.keyframes.pop(key, {}).values():
                     moving.optimized = None
                     st.keyframes.setdefault(key, {})[moving.index] = moving
-                joins.append((key, T_map_session))
-                log.info("session %s/%s joined map %s", *key, map_name)
+                joins.append((key, T_map_session))  # (logged by on_join)
             for vehicle, session, _seq, index, P in moved:
                 if self._session_map.get((vehicle, session)) != map_name:
                     continue  # a session that joined another map, or still joining this one
