@@ -34,7 +34,7 @@ from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
 from core.config import RegistrationSettings
-from core.errors import InvalidCloudError, RegistrationFailedError
+from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from core.kernels import consistency_graph, core_numbers, eigh3, spfh_histograms
 from core.registration import auto_voxel_sizes, register, sanitize_points
 from core.transforms import rotation_angle_deg, transform_points, umeyama
@@ -417,7 +417,8 @@ def register_global(
                 src_all, dst_all, T_coarse, settings=s.registration,
                 coarsest_voxel_m=s.refine_coarsest_voxels * v,
             )  # fmt: skip
-        except RegistrationFailedError as exc:
+        except (RegistrationFailedError, DegenerateProblemError) as exc:
+            # a corridor's refinement may not constrain every axis: a reason, not a crash
             reason = f"NDT refinement failed: {exc}"
         else:
             T_ref = refined.T_target_source

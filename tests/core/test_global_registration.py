@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from core import kernels
-from core.errors import InvalidCloudError
+from core.errors import DegenerateProblemError, InvalidCloudError
 from core.global_registration import FPFH_BINS, GlobalSettings, register_global, spfh_reference
 from core.registration import register
 from core.transforms import make_transform, transform_error
@@ -119,6 +119,24 @@ def test_a_rotated_and_shifted_copy_is_recovered_exactly_and_nans_are_dropped() 
     result = register_global(noisy, target)
     dt, dr = transform_error(result.T_target_source, T)
     assert result.confident and dt < 1e-4 and dr < 0.05
+
+
+def test_a_degenerate_refinement_is_a_reason_not_an_exception(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The NDT refinement of a corridor may not constrain every axis (DegenerateProblemError,
+    seen on simulated street sweeps): the result is not confident and says why; it used to
+    propagate and refuse the fleet map's keyframe that asked for the verification."""
+    import core.global_registration as gr
+
+    def degenerate(*args: object, **kwargs: object) -> None:
+        raise DegenerateProblemError("the geometry does not constrain 1 degree(s) of freedom (mostly tx)")
+
+    source, _, _ = pairs.bunny("bun000")
+    T = make_transform(euler_deg=(0.0, 0.0, 30.0), translation=(0.1, 0.0, 0.0))
+    monkeypatch.setattr(gr, "register", degenerate)
+    result = register_global(source, source @ T[:3, :3].T + T[:3, 3])
+    assert not result.confident
+    assert result.reason.startswith("NDT refinement failed: the geometry does not constrain")
+    assert result.n_inliers >= GlobalSettings().min_inliers  # the coarse stage found it
 
 
 def test_bad_input_is_named() -> None:
