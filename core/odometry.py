@@ -11,6 +11,9 @@ One :class:`IncrementalMatcher` per driving session, fed one sweep at a time. Th
     match     -> core.registration.register(features, model, T_pred) with Algorithm 1 and 3
     guard     -> failed, low-fitness or prior-inconsistent results fall back to the prediction,
                  flagged on the scan's result, never silently accepted
+    relocalize-> a lost session (3 fallbacks in a row, no prior) is searched for with no
+                 prediction, every 5th sweep: its keyframes nearest by Scan Context (core.place),
+                 global registration against their points (core.global_registration), the match
     set model -> a new keyframe when the sensor moved or turned enough (the paper's Set): its
                  points join the fused model, which is density-equalized and bounded in size
 
@@ -36,8 +39,10 @@ from scipy.spatial.transform import Rotation
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
 from core.features import Features, extract_features
+from core.global_registration import GlobalSettings, register_global
 from core.model import KeyframeModel
 from core.ndt import ndt_constants, ndt_cost
+from core.place import query_descriptors, scan_context, scan_context_distance
 from core.registration import (
     PreparedReference,
     RegistrationResult,
@@ -93,6 +98,15 @@ CORRECTION_REACH_M = 30.0
 
 #: After this many fallbacks in a row a session counts as lost: only its prediction is matched.
 LOST_AFTER_FALLBACKS = 3
+
+#: A lost session tries to relocalize (global registration against its model, no prediction) on
+#: its LOST_AFTER_FALLBACKS-th fallback and then on every RELOCALIZE_EVERY-th: one costs about
+#: 0.1-0.2 s, several sweeps' matching, so it is not tried on every sweep of a long blockage.
+RELOCALIZE_EVERY = 5
+#: Keyframes (the nearest by Scan Context) a relocalization tries, and the range of the points
+#: its global registration uses.
+RELOCALIZE_CANDIDATES = 2
+RELOCALIZE_RANGE_M = 60.0
 
 #: Keyframes that may wait for the model (``defer_model``) while a sweep is matched: one.
 MAX_PENDING_KEYFRAMES = 1
@@ -174,6 +188,11 @@ class MatcherSettings(BaseModel):
     )
     prior_gate_chi2: float = Field(
         default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
+    )
+    relocalize: bool = Field(
+        default=True,
+        description="a lost session (without a prior) tries global registration of its sweep against "
+        "its model, with no prediction (RELOCALIZE_EVERY)",
     )
 
 
@@ -645,7 +664,9 @@ class IncrementalMatcher:
         """Match against the model from the prediction (then its hypotheses), deskew again with the
         velocity found, and accept the best gated match or fall back to the prediction (or prior)."""
         best, outcome = self._try_hypotheses(xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
-        if best is not None and has_times and self.settings.redeskew:
+        if best is None and prior_T is None and self._relocalization_due():
+            best = self._relocalize(xyz, feats)
+        if best is not None and best[0] >= 0 and has_times and self.settings.redeskew:
             best = self._redeskew(best, prepare, T_pred, prior_T, prior, periods)
         if best is not None:
             attempt, res, best_xyz, best_feats, _ = best
@@ -660,7 +681,15 @@ class IncrementalMatcher:
                 res.T_target_source, "ok", "", res.converged, res.fitness, res.covariance,
                 res.inlier_ratio, best_xyz, best_feats,
             )  # fmt: skip
-            if attempt:
+            if attempt < 0:
+                outcome = replace(outcome, message="relocalized")
+                log.warning(
+                    "scan %d: relocalized %.1f m from the prediction after %d fallbacks",
+                    index,
+                    float(np.linalg.norm(res.T_target_source[:3, 3] - T_pred[:3, 3])),
+                    self._state.fallback_run,
+                )
+            elif attempt:
                 log.info("scan %d: matched from yaw hypothesis %d", index, attempt)
         else:
             self._state.recent_corrections.clear()
@@ -730,6 +759,63 @@ class IncrementalMatcher:
             if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio):
                 break  # the prediction's match passed and looks like the recent ones: no retries
         return best, _Outcome(T_pred, "fallback", message, converged, fitness, cov, inliers, xyz, feats)
+
+    def _relocalization_due(self) -> bool:
+        """Whether this sweep, whose prediction's match failed, tries :meth:`_relocalize`: on the
+        sweep that makes the session lost and on every :data:`RELOCALIZE_EVERY`-th after."""
+        run = self._state.fallback_run + 1  # counting this sweep's fallback
+        return (
+            self.settings.relocalize
+            and self._state.model is not None
+            and run >= LOST_AFTER_FALLBACKS
+            and (run - LOST_AFTER_FALLBACKS) % RELOCALIZE_EVERY == 0
+        )
+
+    def _relocalize(self, xyz: np.ndarray, feats: Features) -> _Match | None:
+        """Find the sweep among the model's keyframes with no prediction.
+
+        The window's keyframes are ranked by Scan Context distance to the sweep
+        (:mod:`core.place`; each keyframe seen from its own pose); the :data:`RELOCALIZE_CANDIDATES`
+        nearest are tried in turn: global registration (:func:`core.global_registration.
+        register_global`) of the sweep against the keyframe's points, then the usual NDT match
+        against the model from there. A keyframe, not the fused model, is the target: global
+        registration wants two clouds of like extent and density (in the simulated town a sweep
+        1.7 s and a 90 degree turn past the last keyframe registers to it within 1 cm, and not to
+        the model). Accepted only when the global registration is confident and the match keeps
+        ``min_inlier_ratio``; attempt -1 marks it. None when no candidate passes: the session stays
+        lost."""
+        st = self._state
+        keyframes = list(st.keyframes)
+        try:
+            query = query_descriptors(xyz)
+            described = [scan_context(transform_points(invert(T), pts)) for T, pts in keyframes]
+        except RandtError as exc:
+            log.info("relocalization: no descriptor: %s", exc)
+            return None
+        distance = np.min([scan_context_distance(q, np.stack(described))[0] for q in query], axis=0)
+        order = np.argsort(distance, kind="stable")[:RELOCALIZE_CANDIDATES]
+        for i in order:
+            T_kf, pts = keyframes[int(i)]
+            try:
+                found = register_global(
+                    xyz, transform_points(invert(T_kf), pts), GlobalSettings(max_range_m=RELOCALIZE_RANGE_M)
+                )
+            except RandtError as exc:
+                log.info("relocalization against keyframe %d failed: %s", int(i), exc)
+                continue
+            if not found.confident:
+                log.info("relocalization against keyframe %d not confident: %s", int(i), found.reason)
+                continue
+            init = T_kf @ found.T_target_source
+            try:
+                res = register(feats.matching_xyz, None, init, settings=self.registration, reference=st.model)
+            except RandtError as exc:
+                log.info("relocalization's match failed: %s", exc)
+                continue
+            if res.inlier_ratio >= self.settings.min_inlier_ratio:
+                return (-1, res, xyz, feats, init)
+            log.info("relocalization's match keeps %.2f inliers", res.inlier_ratio)
+        return None
 
     def _advance(
         self, T: np.ndarray, index: int, periods: float, stamp_s: float | None, fell_back: int = 0
