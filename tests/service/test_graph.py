@@ -19,7 +19,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from core.transforms import invert, transform_error, umeyama
-from service.graph import GraphState, correct_trajectory
+from service.graph import MAX_TILE_SPAN, GraphState, MapGeometry, _ProcessMap, correct_trajectory
 from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
 from sim.drive import plan_fleet, simulate
@@ -63,6 +63,27 @@ def test_correct_trajectory_moves_keyframes_exactly_and_interpolates_between() -
     # before the first and after the last keyframe: their correction
     tail = correct_trajectory(np.concatenate([poses, poses[-1:]]), indices, live, optimized)
     np.testing.assert_allclose(tail[-1], C[2] @ poses[-1], atol=1e-12)
+
+
+def test_the_tiles_a_keyframe_touches_are_counted_exactly() -> None:
+    """The re-fold's tile sets (counted over the bounding box) equal those of sorting the points'
+    tile cells, across negative coordinates, tile edges and far-flung points (the sorting path)."""
+    from core.fleet_map import FleetMapSettings
+    from core.transforms import make_transform
+
+    pm = _ProcessMap(
+        "m", FleetMapSettings(), MapGeometry(tile_size_m=20, voxel_size_m=0.5, max_points_per_voxel=1)
+    )
+    rng = np.random.default_rng(3)
+    for i in range(20):
+        xyz = (rng.normal(size=(2000, 3)) * rng.uniform(1, 60)).astype(np.float32)
+        xyz[:10, :2] = rng.integers(-5, 5, (10, 2)) * 20.0  # points on tile edges
+        if i == 0:
+            xyz[0, 0] = 20.0 * MAX_TILE_SPAN  # a far-flung point: the sorting path
+        T = make_transform(euler_deg=(0.0, 0.0, rng.uniform(-180, 180)), translation=rng.normal(size=3) * 100)
+        xy = xyz.astype(np.float64) @ T[:2, :3].T + T[:2, 3]
+        expected = {(int(a), int(b)) for a, b in np.unique(np.floor(xy / 20).astype(np.int64), axis=0)}
+        assert pm._tiles(T, xyz) == expected, i
 
 
 def test_correct_trajectory_with_one_or_no_keyframe() -> None:
