@@ -265,6 +265,13 @@ def _lowest_priority() -> None:
     except (AttributeError, OSError):  # not Linux, or refused
         with contextlib.suppress(OSError):
             os.nice(GRAPH_NICE)
+        return
+    # A policy is a thread's own: threads started before this call (the worker pools the imports
+    # start: BLAS, TBB) kept the normal one.
+    with contextlib.suppress(OSError):
+        for tid in os.listdir("/proc/self/task"):
+            with contextlib.suppress(OSError, ValueError):
+                os.sched_setscheduler(int(tid), os.SCHED_IDLE, os.sched_param(0))
 
 
 def _send_refolds(conn: Connection, maps: dict[str, _ProcessMap]) -> None:

@@ -230,6 +230,18 @@ def test_live_graph_closes_the_loop_and_corrects_the_trajectory(loop_drive) -> N
     assert total(metrics.graph_loops, "accepted") == len(accepted)
 
 
+def test_every_thread_of_the_graph_process_runs_at_the_lowest_priority(loop_drive) -> None:
+    """SCHED_IDLE is a thread's own policy: the worker threads the imports start before the
+    process lowers itself (BLAS, TBB) must be lowered too, or they compete with the matchers."""
+    import os
+
+    graph = loop_drive.server.service.sessions.graph
+    assert graph is not None and graph._proc is not None and graph._proc.pid is not None
+    tids = [int(t) for t in os.listdir(f"/proc/{graph._proc.pid}/task")]
+    assert len(tids) >= 1
+    assert {tid: os.sched_getscheduler(tid) for tid in tids} == dict.fromkeys(tids, os.SCHED_IDLE)
+
+
 def test_corrections_are_published_and_replay_to_the_graph_state(loop_drive) -> None:
     scans, out, corrected, state = loop_drive.scans, loop_drive.out, loop_drive.corrected, loop_drive.state
     poses = {m.seq: m for m in out if isinstance(m, PoseMessage)}
