@@ -432,7 +432,7 @@ class ServiceGraph:
         on_join: Callable[[str, str, str, np.ndarray], None] | None = None,
         keyframe_m: float = 10.0,
         queue_size: int = 64,
-        refold_s: float = 5.0,
+        refold_s: float = 20.0,
     ) -> None:
         self.settings = settings
         self.refold_s = refold_s

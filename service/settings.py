@@ -152,7 +152,7 @@ class ServiceSettings(BaseSettings):
         default=64, ge=1, description="keyframes waiting for the graph process; beyond, the oldest is dropped"
     )
     graph_refold_s: float = Field(
-        default=5.0,
+        default=20.0,
         ge=0,
         description="at most this often, in a pause between keyframes, the graph process re-folds the "
         "tiles of keyframes it moved (0: after every keyframe)",
