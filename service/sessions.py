@@ -675,6 +675,8 @@ class SessionManager:
             name: set(g.tile_ids()) for name, g in self.maps.items()
         }
         self._dirty_tiles: dict[str, set[str]] = {}
+        #: Own maps of sessions that joined another map, merged into it: name -> (map, session).
+        self._merged: dict[str, tuple[str, str]] = {}
         self._restore_counters()
         self.intake = Intake(
             self.handle,
@@ -1055,7 +1057,8 @@ class SessionManager:
             self.mark_tiles_dirty(map_name, changed)
 
     def _joined(self, vehicle: str, session: str, map_name: str, T_map_session: np.ndarray) -> None:
-        """The pose graph placed a session without priors into ``map_name`` (service/graph.py)."""
+        """The pose graph placed a session without priors into ``map_name`` (service/graph.py):
+        from now on its points fold there, and its own map is merged in and removed."""
         with self._lock:
             w = self._workers.get((vehicle, session))
         if w is not None:
@@ -1067,6 +1070,55 @@ class SessionManager:
             map_name,
             *T_map_session[:3, 3],
         )
+        if w is not None and w.info.map_name != map_name:
+            try:
+                self._merge_map(w, map_name, T_map_session)
+            except (OSError, RandtError):  # the own map stays; nothing is lost
+                self.metrics.store_errors.inc()
+                log.exception("merging map %s into %s failed", w.info.map_name, map_name)
+
+    def _merge_map(self, w: SessionWorker, into: str, T_into_own: np.ndarray) -> None:
+        """Merge the session's own map into the map it joined, and remove it.
+
+        Its tiles' points, moved by ``T_into_own``, are inserted into ``into`` (equalized like
+        any insert: where ``into`` already holds a voxel, its point stays); the graph's next
+        re-fold then replaces the tiles its keyframes touch by their points at their optimized
+        poses. The own map is deleted from memory and the store, its highest version kept as
+        the floor of any later map of that name (a restarted session recreates it until it joins
+        again); ``GET /maps/<own>`` says where it went (:meth:`merged_into`). A map another
+        running session also uses is left alone."""
+        own = w.info.map_name
+        w.fold()  # its points still waiting for the own map go in first
+        with self._flush_lock:  # no flush saves the own map while it goes
+            with self._lock:
+                grid = self.maps.get(own)
+                shared = any(
+                    x is not w and own in (x.info.map_name, x.info.joined_map) for x in self._workers.values()
+                )
+            if grid is None or shared or own == self.settings.default_map:
+                return
+            tiles = grid.tiles()
+            if tiles:
+                xyz = np.concatenate([t.points for t in tiles]).astype(np.float64)
+                moved = (xyz @ T_into_own[:3, :3].T + T_into_own[:3, 3]).astype(np.float32)
+                changed = self.map_grid(into).insert(moved, np.concatenate([t.intensity for t in tiles]))
+                if changed:
+                    self.mark_tiles_dirty(into, changed)
+            floor = max([grid.version_floor, *(t.version for t in tiles)])
+            self.store.delete_map(own, version_floor=floor)
+            with self._lock:
+                if self.maps.get(own) is grid:
+                    del self.maps[own]
+                self._durable.pop(own, None)
+                self._dirty_tiles.pop(own, None)
+                self._merged[own] = (into, f"{w.info.vehicle}/{w.info.session}")
+        log.info("map %s merged into %s (%d tiles) and removed", own, into, len(tiles))
+
+    def merged_into(self, map_name: str) -> tuple[str, str] | None:
+        """``(map, session)`` when ``map_name`` was merged into ``map`` as ``session`` joined it
+        (since this service started), else None."""
+        with self._lock:
+            return self._merged.get(map_name)
 
     def mark_tiles_dirty(self, map_name: str, tile_ids: list[str]) -> None:
         with self._lock:

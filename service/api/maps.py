@@ -137,6 +137,13 @@ def _saved_map(mgr: SessionManager, name: str) -> DurableMap:
     """The map ``name`` as last saved (404 if there is no such map)."""
     saved = mgr.durable_map(name)
     if saved is None:
+        merged = mgr.merged_into(name)
+        if merged is not None:
+            raise NotFoundError(
+                f"map {name!r} was merged into map {merged[0]!r} when session {merged[1]} joined it",
+                resource="map",
+                ident=name,
+            )
         raise NotFoundError(resource="map", ident=name)
     return saved
 

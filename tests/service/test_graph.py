@@ -452,3 +452,22 @@ def test_the_joined_session_maps_into_the_shared_map(join_drive) -> None:
     assert len(only_it) >= 10, "the joined session drove no street of its own: the test lost its point"
     near = cKDTree(xyz[:, :2]).query(other)[0]
     assert near.max() < 5.0, f"the shared map has no point within {near.max():.1f} m of a place it drove"
+
+
+def test_the_joined_sessions_own_map_is_merged_in_and_removed(join_drive) -> None:
+    """Once joined, the session's own map (what it folded before it joined) is merged into the
+    shared map and removed, from memory, the store and the listing; asking for it says where it
+    went. Its versions stay reserved (the store's floor), so a later map of that name (the
+    session restarted before it joins again) never reuses one."""
+    server = join_drive.server
+    mgr = server.service.sessions
+    assert mgr is not None
+    assert "nognss.d1" not in mgr.maps
+    assert "nognss.d1" not in mgr.store.list_maps()
+    assert mgr.store.version_floor("nognss.d1") >= 1
+    listed = {m["name"] for m in httpx.get(f"{server.url}/maps", timeout=30).json()["maps"]}
+    assert listed == {"default"}
+    gone = httpx.get(f"{server.url}/maps/nognss.d1", timeout=30)
+    assert gone.status_code == 404
+    assert "merged into map 'default' when session nognss/d1 joined it" in gone.text
+    assert mgr.merged_into("nognss.d1") == ("default", "nognss/d1")
