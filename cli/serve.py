@@ -21,12 +21,20 @@ if TYPE_CHECKING:
     from service.settings import ServiceSettings
 
 #: The options of ``randt serve`` that override the ``ServiceSettings`` field of the same name.
-SETTINGS_OPTIONS = ("data_dir", "zenoh_mode", "listen", "connect", "zenoh_config", "http_host", "http_port")
+SETTINGS_OPTIONS = (
+    "data_dir", "zenoh_mode", "listen", "connect", "zenoh_config", "http_host", "http_port", "executor",
+    "ray_address",
+)  # fmt: skip
 
 
 class ZenohMode(StrEnum):
     peer = "peer"
     client = "client"
+
+
+class Executor(StrEnum):
+    local = "local"
+    ray = "ray"
 
 
 def serve(
@@ -44,6 +52,16 @@ def serve(
     ] = None,
     http_host: Annotated[str | None, typer.Option(help="HTTP bind address.")] = None,
     http_port: Annotated[int | None, typer.Option(help="HTTP port.")] = None,
+    executor: Annotated[
+        Executor | None,
+        typer.Option(
+            help="Where the matchers run: local worker processes, or Ray actors across a Ray cluster "
+            '(pip install "randt-fleet[ray]"; docs/deploy.md).'
+        ),
+    ] = None,
+    ray_address: Annotated[
+        str | None, typer.Option(help="With --executor ray: the Ray cluster to join (none: a local Ray).")
+    ] = None,
 ) -> None:
     """Run the fleet mapping service (Zenoh ingest + HTTP) until SIGTERM or Ctrl-C.
 
@@ -65,6 +83,8 @@ def serve(
         "zenoh_config": zenoh_config,
         "http_host": http_host,
         "http_port": http_port,
+        "executor": executor.value if executor else None,
+        "ray_address": ray_address,
     }
     settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
     check_ports_free(settings)
@@ -76,6 +96,7 @@ def serve(
         f"{list(settings.connect)}"
         f"{f' config {settings.zenoh_config}' if settings.zenoh_config else ''}; "
         f"http://{settings.http_host}:{settings.http_port}; "
+        f"matchers {settings.executor}{f' at {settings.ray_address}' if settings.ray_address else ''}; "
         f"data {settings.data_dir}",
         err=True,
     )

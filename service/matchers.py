@@ -36,7 +36,7 @@ import traceback
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -49,17 +49,67 @@ from core.voxel import pack_keys, voxel_coords
 
 __all__ = [
     "LocalMatcher",
+    "MatcherExecutor",
     "MatcherPool",
     "MatcherProcessDiedError",
     "MatcherProcessError",
     "Registered",
     "RemoteMatcher",
+    "SessionMatcher",
     "single_threaded_blas",
 ]
 
 log = logging.getLogger(__name__)
 
 Key = tuple[str, str]
+
+
+class SessionMatcher(Protocol):
+    """What a session worker asks of its matcher, wherever it runs: in the session thread
+    (:class:`LocalMatcher`), in a worker process (:class:`RemoteMatcher`) or in a Ray actor
+    (:class:`service.ray_executor.RayMatcher`)."""
+
+    @property
+    def poses(self) -> list[np.ndarray]: ...
+
+    def register(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered: ...
+
+    def update_model(self) -> float: ...
+
+    def state_dict(self) -> dict[str, np.ndarray]: ...
+
+    def close(self) -> None: ...
+
+
+class MatcherExecutor(Protocol):
+    """Where the sessions' matchers run (``executor`` in the settings): local worker processes
+    (:class:`MatcherPool`) or Ray actors (:class:`service.ray_executor.RayMatcherPool`). Order,
+    back-pressure and drops stay the session layer's, the same for both."""
+
+    @property
+    def ready(self) -> bool: ...
+
+    def wait_ready(self, timeout: float | None = None) -> bool: ...
+
+    def open(
+        self,
+        key: Key,
+        state: dict[str, np.ndarray] | None = None,
+        grid: TileGrid | None = None,
+        settings: MatcherSettings | None = None,
+        registration: RegistrationSettings | None = None,
+    ) -> SessionMatcher: ...
+
+    def close(self) -> None: ...
 
 
 class MatcherProcessError(RandtError, RuntimeError):

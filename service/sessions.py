@@ -93,10 +93,11 @@ from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
+    MatcherExecutor,
     MatcherPool,
     MatcherProcessDiedError,
     MatcherProcessError,
-    RemoteMatcher,
+    SessionMatcher,
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
@@ -192,7 +193,7 @@ class SessionWorker:
     def __init__(
         self,
         info: SessionState,
-        matcher: LocalMatcher | RemoteMatcher,
+        matcher: SessionMatcher,
         grid: TileGrid,
         manager: SessionManager,
     ) -> None:
@@ -634,7 +635,13 @@ class SessionManager:
         if n_procs < 0:
             cores = os.cpu_count() or 1
             n_procs = cores if cores > 1 else 0
-        self.pool: MatcherPool | None = MatcherPool(n_procs) if n_procs > 0 else None
+        self.pool: MatcherExecutor | None = None
+        if settings.executor == "ray":
+            from service.ray_executor import RayMatcherPool  # the ray extra
+
+            self.pool = RayMatcherPool(settings.ray_address)
+        elif n_procs > 0:
+            self.pool = MatcherPool(n_procs)
         #: The shared map's pose graph (service/graph.py); its process starts with the first keyframe.
         self.graph: ServiceGraph | None = (
             ServiceGraph(
@@ -966,15 +973,16 @@ class SessionManager:
             map_name = self.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
         grid = self.map_grid(info.map_name)
-        matcher: LocalMatcher | RemoteMatcher
+        matcher: SessionMatcher
         settings = self.settings
         session_matcher = settings.session_matcher()
         if self.pool is not None:
             matcher = self.pool.open(key, state or None, grid, session_matcher, settings.registration)
         else:
-            matcher = LocalMatcher(session_matcher, settings.registration)
+            local = LocalMatcher(session_matcher, settings.registration)
             if state:
-                matcher.load_state_dict(state)
+                local.load_state_dict(state)
+            matcher = local
         # Called on an opener thread without the manager lock; _open installs the worker.
         return SessionWorker(info, matcher, grid, self)
 

@@ -119,6 +119,16 @@ class ServiceSettings(BaseSettings):
         description="worker processes running the matchers: -1 = one per core (none on one core), "
         "0 = run them in the session threads (service/matchers.py)",
     )
+    executor: Literal["local", "ray"] = Field(
+        default="local",
+        description="where the sessions' matchers run: local worker processes (matcher_processes), "
+        "or one Ray actor per session across a Ray cluster (service/ray_executor.py; the ray extra)",
+    )
+    ray_address: str | None = Field(
+        default=None,
+        description="with executor ray: the cluster to join (host:port or ray://...); none starts a "
+        "local Ray",
+    )
     # map
     default_map: str = Field(
         default="default",
