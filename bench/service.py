@@ -211,7 +211,8 @@ service.start()
 if not service.sessions.wait_matchers(600):
     raise SystemExit("matcher processes not warm after 600 s")
 pool = service.sessions.pool
-print(json.dumps({"pid": os.getpid(), "matchers": [p for p in pool.pids() if p] if pool else []}), flush=True)
+pids = [p for p in pool.pids() if p] if hasattr(pool, "pids") else []  # (Ray: its actors' processes)
+print(json.dumps({"pid": os.getpid(), "matchers": pids}), flush=True)
 sys.stdin.read()
 value = service.metrics.registry.get_sample_value
 received = value("randt_scans_received_total") or 0
@@ -240,6 +241,50 @@ def _proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
+def _ray_processes() -> tuple[list[int], list[int]]:
+    """The Ray processes of this machine: (workers, the rest). A worker's title is ``ray::<actor
+    class>`` (``ray::IDLE`` before it holds one); the rest are Ray's own (GCS, raylet, agents)."""
+    workers, own = [], []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if cmd.startswith("ray::"):
+            workers.append(int(entry))
+        elif "/ray/" in cmd and (
+            "gcs_server" in cmd
+            or "raylet" in cmd
+            or "ray/_private" in cmd
+            or "ray/dashboard" in cmd
+            or "ray/autoscaler" in cmd
+        ):
+            own.append(int(entry))
+    return workers, own
+
+
+def _rss_mib(pid: int) -> float:
+    """Current resident memory of a process (0 if it is gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _cpu_or_zero(pid: int) -> float:
+    try:
+        return _proc_cpu_s(pid)
+    except OSError:
+        return 0.0
+
+
 def _peak_rss_mib(pid: int) -> float:
     with open(f"/proc/{pid}/status") as f:
         for line in f:
@@ -250,10 +295,16 @@ def _peak_rss_mib(pid: int) -> float:
 
 # -- one fleet size --------------------------------------------------------------------------------
 def run_one(
-    n_vehicles: int, spool_dir: Path, link: str, service_repo: Path = REPO, graph: bool = True
+    n_vehicles: int,
+    spool_dir: Path,
+    link: str,
+    service_repo: Path = REPO,
+    graph: bool = True,
+    executor: str = "local",
 ) -> dict[str, Any]:
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
-    graph on or off (``RANDT_GRAPH``)."""
+    graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
+    (``RANDT_EXECUTOR``)."""
     import zenoh
 
     from core.transforms import invert
@@ -271,6 +322,7 @@ def run_one(
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}  # the service sets its own
         env["RANDT_GRAPH"] = "true" if graph else "false"
+        env["RANDT_EXECUTOR"] = executor
         service = subprocess.Popen(
             [sys.executable, "-c", SERVE_PROGRAM, str(service_repo), endpoint, str(Path(tmp) / "data")],
             stdin=subprocess.PIPE,
@@ -336,6 +388,8 @@ def run_one(
                 pub.put(payload)
 
         cpu0 = _proc_cpu_s(main_pid), sum(_proc_cpu_s(p) for p in matcher_pids)
+        ray_workers0, ray_own0 = _ray_processes() if executor == "ray" else ([], [])
+        ray_cpu0 = {p: _cpu_or_zero(p) for p in ray_workers0 + ray_own0}
         t0 = time.monotonic()
         # Vehicles staggered over one period, as unsynchronised sensors are (sim.drive.plan_fleet).
         threads = [
@@ -356,6 +410,14 @@ def run_one(
         cpu_matchers = sum(_proc_cpu_s(p) for p in matcher_pids) - cpu0[1]
         rss_main = _peak_rss_mib(main_pid)
         rss_matcher = max((_peak_rss_mib(p) for p in matcher_pids), default=float("nan"))
+        cpu_ray_own = rss_ray_own = 0.0
+        if executor == "ray":  # the actors' processes are the matchers; Ray's own are its cost
+            ray_workers, ray_own = _ray_processes()
+            cpu_matchers = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_workers)
+            cpu_ray_own = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_own)
+            actors = [p for p in ray_workers if _rss_mib(p) > 0]
+            rss_matcher = max((_peak_rss_mib(p) for p in actors), default=float("nan"))
+            rss_ray_own = sum(_rss_mib(p) for p in ray_own)
         with lock:
             wall = max(last_answer[0], t0 + 1e-3) - t0  # first publication to last answer
         for s in subs:
@@ -417,6 +479,9 @@ def run_one(
         "p90_ms": pct[90],
         "p99_ms": pct[99],
         "max_ms": float(lat_ms.max()) if lat_ms.size else float("nan"),
+        "executor": executor,
+        "cpu_ray_own_ms": 1e3 * cpu_ray_own / poses,
+        "rss_ray_own_mib": rss_ray_own,
         "cpu_main_ms": 1e3 * cpu_main / poses,
         "cpu_matchers_ms": 1e3 * cpu_matchers / poses,
         "cpu_total_ms": 1e3 * (cpu_main + cpu_matchers) / poses,
@@ -437,6 +502,7 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
     flow_head = [
         "vehicles",
         "graph",
+        "matchers",
         "scans sent",
         "poses",
         "dropped",
@@ -452,6 +518,7 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
         [
             str(r["vehicles"]),
             "on" if r["graph"] else "off",
+            r["executor"],
             str(r["sent"]),
             str(r["poses"]) + (f" ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""),
             str(r["dropped"]),
@@ -468,6 +535,7 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
     cost_head = [
         "vehicles",
         "graph",
+        "matchers",
         "CPU ms per sweep: service main / matchers / sum",
         "graph process: CPU ms per sweep, keyframes, loops accepted / verified, dropped",
         "cores busy",
@@ -479,6 +547,12 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
         [
             str(r["vehicles"]),
             "on" if r["graph"] else "off",
+            r["executor"]
+            + (
+                f" (Ray's own: {r['cpu_ray_own_ms']:.1f} ms, {r['rss_ray_own_mib']:.0f} MiB)"
+                if r["executor"] == "ray"
+                else ""
+            ),
             f"{r['cpu_main_ms']:.1f} / {r['cpu_matchers_ms']:.1f} / {r['cpu_total_ms']:.1f}",
             f"{r['cpu_graph_ms']:.1f}, {r['graph_keyframes']}, {r['graph_loops']} / {r['graph_verified']}, "
             f"{r['graph_dropped']}"
@@ -569,6 +643,14 @@ def main() -> None:
         help="the service's pose graph (RANDT_GRAPH); both: each fleet size with it off, then on, "
         "and the ratio of their latencies",
     )
+    parser.add_argument(
+        "--executor",
+        choices=["local", "ray", "both"],
+        default="local",
+        help="where the matchers run (RANDT_EXECUTOR); both: each fleet size with local worker processes, "
+        "then Ray actors, and the ratio of their latencies (issue 16: at most +15 %%). Ray binds the "
+        "machine's external address: run it in a private network namespace (docs/benchmarks.md)",
+    )
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--plot", type=Path, help="latency and drops against fleet size (PNG; CSV beside it)")
     parser.add_argument(
@@ -587,7 +669,10 @@ def main() -> None:
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.one, args.spool, args.link, args.service_repo, args.graph == "on")))
+        result = run_one(
+            args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor
+        )
+        print(json.dumps(result))
         return
     print(f"Command: python bench/service.py {shlex.join(sys.argv[1:])}")
     print(machine_line({}, single_threaded=False))
@@ -606,11 +691,13 @@ def main() -> None:
             progress(f"reusing the sweeps in {spool}")
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
         graphs = ["off", "on"] if args.graph == "both" else [args.graph]
+        executors = ["local", "ray"] if args.executor == "both" else [args.executor]
         for n in args.vehicles:
-            for graph in graphs:
-                progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}")
+            for graph, executor in ((g, e) for g in graphs for e in executors):
+                progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}")
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
+                command += ["--executor", executor]
                 out = subprocess.run(command, capture_output=True, text=True)
                 if out.returncode != 0:
                     sys.stderr.write(out.stderr)
@@ -622,13 +709,23 @@ def main() -> None:
     print(table(flow_head, flow, args.markdown))
     print(heading(f"{title}: cost", args.markdown))
     print(table(cost_head, cost, args.markdown))
-    if args.graph == "both":
+    if args.graph == "both" and args.executor != "both":
         print("\nPer-sweep latency, pose graph on against off (issue 15: at most +10 % by the mean):")
         for off, on in zip(results[0::2], results[1::2], strict=True):
             print(
                 f"- {on['vehicles']} vehicle(s): mean {on['mean_ms']:.1f} / {off['mean_ms']:.1f} ms = "
                 f"{on['mean_ms'] / off['mean_ms']:.3f}x; p50 {on['p50_ms'] / off['p50_ms']:.3f}x, "
                 f"p99 {on['p99_ms'] / off['p99_ms']:.3f}x"
+            )
+    if args.executor == "both":
+        print("\nPer-sweep latency, Ray actors against local worker processes (issue 16: at most +15 %):")
+        for local, ray in zip(results[0::2], results[1::2], strict=True):
+            print(
+                f"- {ray['vehicles']} vehicle(s), graph {'on' if ray['graph'] else 'off'}: mean "
+                f"{ray['mean_ms']:.1f} / {local['mean_ms']:.1f} ms = "
+                f"{ray['mean_ms'] / local['mean_ms']:.3f}x; "
+                f"p50 {ray['p50_ms'] / local['p50_ms']:.3f}x, p99 {ray['p99_ms'] / local['p99_ms']:.3f}x; "
+                f"poses/s {ray['poses_per_s']:.1f} / {local['poses_per_s']:.1f}"
             )
     holding = [r["vehicles"] for r in results if r["holds"]]
     print(

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import pickle
 import tempfile
 import time
 from pathlib import Path
@@ -31,6 +32,7 @@ def main() -> None:
     from ray.cluster_utils import Cluster
 
     from core.odometry import IncrementalMatcher, MatcherSettings
+    from core.tiles import TileGrid
     from core.transforms import invert
     from service.metrics import ServiceMetrics
     from service.ray_executor import RayMatcherPool
@@ -67,19 +69,33 @@ def main() -> None:
         # 1. equality with the in-process matcher
         pool = RayMatcherPool()
         diffs, nodes = [], {}
+        sent_bytes: list[int] = []
+        back_bytes: list[int] = []
+        n_points: list[int] = []
         for name, scans in drives.items():
             local = IncrementalMatcher(MatcherSettings())
-            remote = pool.open((name, "eq"))
+            remote = pool.open((name, "eq"), grid=TileGrid(20, 0.2))  # the service's map sizes
             nodes[name] = pool.node_of((name, "eq"))
             for s in scans:
                 xyz = s.points_xyz.astype(np.float32)
                 a = local.register_scan(xyz.astype(np.float64), stamp_s=s.stamp_ns * 1e-9)
-                b = remote.register_scan(xyz, stamp_s=s.stamp_ns * 1e-9)
+                registered = remote.register(xyz, stamp_s=s.stamp_ns * 1e-9)
+                b = registered.result
+                # what moves per sweep: the call's arguments there, the answer back (pickled, as
+                # Ray sends them; the answer carries the points the session's map can keep)
+                sent_bytes.append(len(pickle.dumps((xyz, None, None, s.stamp_ns * 1e-9, None), protocol=5)))
+                back_bytes.append(len(pickle.dumps(registered, protocol=5)))
+                n_points.append(len(xyz))
                 diffs.append(float(np.abs(a.T_world_sensor - b.T_world_sensor).max()))
                 assert a.status == b.status, (name, s.index, a.status, b.status)
             remote.close()
         pool.close()
         out["equality_max_abs"] = max(diffs)
+        out["bytes_per_sweep"] = {
+            "points": float(np.mean(n_points)),
+            "to_actor": float(np.mean(sent_bytes)),
+            "from_actor": float(np.mean(back_bytes)),
+        }
         out["equality_nodes"] = nodes
 
         # 2. a node dies under a running service
