@@ -456,6 +456,11 @@ class IncrementalMatcher:
         """The matching model (NDT pyramid) of ``store``."""
         return store.reference(self.registration, self.registration.voxel_sizes_m or ())
 
+    @property
+    def model_pending(self) -> bool:
+        """Keyframes wait for :meth:`update_model` (left by ``register_scan(defer_model=True)``)."""
+        return bool(self._state.pending)
+
     def update_model(self) -> float:
         """Fold the keyframes ``register_scan(defer_model=True)`` left pending into the model
         (one rebuild however many); returns the seconds spent, 0 when none was pending.

@@ -11,10 +11,10 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): one actor per
                  session (``_MatcherActor``), 0 CPUs reserved, spread over the nodes
                  (``scheduling_strategy="SPREAD"``), never restarted by Ray (max_restarts=0)
-    register  -> RayMatcher.register: one remote call per sweep, waited for; then, unless the
-                 session is behind, a fire-and-forget ``update_model`` (an actor runs one
-                 caller's calls in order, so the next sweep meets the rebuilt model, as with a
-                 matcher process that rebuilds right after replying)
+    register  -> RayMatcher.register: one remote call per sweep, waited for, the sweep inline in
+                 the call (RAY_INLINE_ENV); unless the session is behind, the actor rebuilds a
+                 keyframe's model on a thread once the answer is out, and the next sweep waits
+                 for it (as a matcher process rebuilds right after replying)
     errors    -> an exception raised in the actor is raised again as itself (Ray's wrapper
                  removed); a dead actor or node is a MatcherProcessDiedError, which the session
                  layer already handles: the session is dropped unsaved and resumed from the store
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 from typing import Any
 
@@ -49,6 +50,12 @@ class ConfigurationError(RandtError):
     """The Ray executor cannot start as configured (Ray missing, or the cluster unreachable)."""
 
 
+#: Ray settings (environment variables) under which calls carry a sweep inline.
+RAY_INLINE_ENV = {
+    "RAY_max_direct_call_object_size": str(8 << 20),
+    "RAY_task_rpc_inlined_bytes_limit": str(16 << 20),
+}
+
 #: Ray's namespace for the service's actors.
 RAY_NAMESPACE = "randt"
 
@@ -69,6 +76,13 @@ class _MatcherActor:
         if state:
             self.matcher.load_state_dict(state)
         self.grid = None if grid_params is None else TileGrid(*grid_params)
+        self._rebuild: threading.Thread | None = None
+
+    def _rebuilt(self) -> None:
+        """Wait for the model rebuild started after the previous answer, if one runs."""
+        if self._rebuild is not None:
+            self._rebuild.join()
+            self._rebuild = None
 
     def register(
         self,
@@ -77,16 +91,22 @@ class _MatcherActor:
         prior: PosePrior | None,
         stamp_s: float | None,
         keyframe_voxel_m: float | None,
+        behind: bool,
     ) -> Registered:
+        """One sweep. Unless ``behind``, a keyframe's model is rebuilt on a thread of the actor
+        once this answer is on its way (as a matcher process rebuilds after replying), and the
+        next sweep waits for it: one remote call per sweep."""
+        self._rebuilt()
         result = self.matcher.register_scan(
             xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
         )
+        if not behind and self.matcher.model_pending:
+            self._rebuild = threading.Thread(target=self.matcher.update_model, daemon=True)
+            self._rebuild.start()
         return _registered(result, self.grid, keyframe_voxel_m)
 
-    def update_model(self) -> float:
-        return self.matcher.update_model()
-
     def state(self) -> dict[str, np.ndarray]:
+        self._rebuilt()
         return self.matcher.state_dict()
 
     def node_id(self) -> str:
@@ -112,6 +132,13 @@ class RayMatcherPool:
 
         self._ray = ray
         if not ray.is_initialized():
+            if address is None:
+                # A sweep (0.3-0.5 MB of float32 points) and its answer travel inline in the call
+                # rather than through the shared object store: Ray's own CPU 4.8 -> 1.2 ms per
+                # sweep, mean latency 96 -> 88 ms (bench/service.py, 2 vehicles). A cluster
+                # started with `ray start` takes the same variables (docs/deploy.md).
+                for name, value in RAY_INLINE_ENV.items():
+                    os.environ.setdefault(name, value)
             try:
                 ray.init(
                     address=address,
@@ -221,10 +248,8 @@ class RayMatcher:
     ) -> Registered:
         """:meth:`service.matchers.RemoteMatcher.register`, in the session's actor."""
         registered: Registered = self._get(
-            self._actor.register.remote(points_xyz, time_offset_s, prior, stamp_s, keyframe_voxel_m)
+            self._actor.register.remote(points_xyz, time_offset_s, prior, stamp_s, keyframe_voxel_m, behind)
         )
-        if not behind:
-            self._actor.update_model.remote()  # ordered before this session's next sweep
         self.poses.append(registered.result.T_world_sensor)
         return registered
 
