@@ -482,7 +482,51 @@ class MatcherPool:
             p.close()
 
 
-class RemoteMatcher:
+class ForwardingMatcher:
+    """What a matcher running elsewhere (a worker process, a Ray actor) shares: the trajectory kept
+    here as well (appended from each result, so reading it needs no round trip),
+    :meth:`register_scan` on top of the subclass's ``register``, and no model update to ask for
+    (the far side rebuilds the model right after replying)."""
+
+    poses: list[np.ndarray]
+
+    def register(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered:
+        raise NotImplementedError
+
+    def register_scan(
+        self,
+        points_xyz: np.ndarray,
+        *,
+        time_offset_s: np.ndarray | None = None,
+        prior: PosePrior | None = None,
+        stamp_s: float | None = None,
+        defer_model: bool = True,
+        behind: bool = False,
+    ) -> ScanResult:
+        """:meth:`register`'s result (``defer_model`` is accepted for
+        :meth:`IncrementalMatcher.register_scan`'s signature: the far side always defers). With
+        the session's map given to the executor's ``open``, its ``deskewed_xyz`` is empty: the
+        map's points are in :meth:`register`'s answer."""
+        del defer_model
+        return self.register(
+            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, behind=behind
+        ).result
+
+    def update_model(self) -> float:
+        """Nothing to do here: the far side rebuilds the model right after replying."""
+        return 0.0
+
+
+class RemoteMatcher(ForwardingMatcher):
     """The part of :class:`~core.odometry.IncrementalMatcher` a session worker uses, run remotely.
 
     ``poses`` is kept here as well (appended from each result), so reading a trajectory needs no
@@ -532,29 +576,6 @@ class RemoteMatcher:
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
-
-    def register_scan(
-        self,
-        points_xyz: np.ndarray,
-        *,
-        time_offset_s: np.ndarray | None = None,
-        prior: PosePrior | None = None,
-        stamp_s: float | None = None,
-        defer_model: bool = True,
-        behind: bool = False,
-    ) -> ScanResult:
-        """:meth:`register`'s result (``defer_model`` is accepted for
-        :meth:`IncrementalMatcher.register_scan`'s signature: the process always defers). With
-        the session's map given to :meth:`MatcherPool.open`, its ``deskewed_xyz`` is empty: the
-        map's points are in :meth:`register`'s answer."""
-        del defer_model
-        return self.register(
-            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, behind=behind
-        ).result
-
-    def update_model(self) -> float:
-        """Nothing to do here: the process rebuilds the model right after replying."""
-        return 0.0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return self._proc.call("state", self._key)

@@ -35,9 +35,15 @@ import numpy as np
 
 from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
+from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
 from core.tiles import TileGrid
-from service.matchers import MatcherProcessDiedError, Registered, _registered, single_threaded_blas
+from service.matchers import (
+    ForwardingMatcher,
+    MatcherProcessDiedError,
+    Registered,
+    _registered,
+    single_threaded_blas,
+)
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
 
@@ -211,7 +217,7 @@ class RayMatcherPool:
                 self._ray.kill(actor, no_restart=True)
 
 
-class RayMatcher:
+class RayMatcher(ForwardingMatcher):
     """A session's matcher in a Ray actor: the interface of :class:`service.matchers.RemoteMatcher`."""
 
     def __init__(
@@ -252,25 +258,6 @@ class RayMatcher:
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
-
-    def register_scan(
-        self,
-        points_xyz: np.ndarray,
-        *,
-        time_offset_s: np.ndarray | None = None,
-        prior: PosePrior | None = None,
-        stamp_s: float | None = None,
-        defer_model: bool = True,
-        behind: bool = False,
-    ) -> ScanResult:
-        del defer_model
-        return self.register(
-            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, behind=behind
-        ).result
-
-    def update_model(self) -> float:
-        """Nothing to do here: the actor rebuilds the model right after the sweep's reply."""
-        return 0.0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         state: dict[str, np.ndarray] = self._get(self._actor.state.remote())

@@ -231,6 +231,13 @@ def test_deskew_follows_a_corner_onset() -> None:
     assert err_m < 0.10 and err_deg < 0.3, (err_m, err_deg)
 
 
+def _tarp() -> np.ndarray:
+    """A sweep of a sensor blocked by a tarp: 3000 points 2-4 m away in every direction."""
+    rng = np.random.default_rng(0)
+    tarp = rng.normal(size=(3000, 3))
+    return tarp * (rng.uniform(2.0, 4.0, (3000, 1)) / np.linalg.norm(tarp, axis=1, keepdims=True))
+
+
 def test_a_session_blocked_while_standing_finds_its_track_again() -> None:
     """The sensor is blocked for 1.5 s (a tarp 2-4 m away) while the vehicle stands still; the
     prediction drives on at 12 m/s, so when the sweeps are good again the match lies 18 m behind
@@ -243,9 +250,7 @@ def test_a_session_blocked_while_standing_finds_its_track_again() -> None:
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
     scans = list(simulate(town, route, n_scans=45, speed_mps=12.0, seed=1))
-    rng = np.random.default_rng(0)
-    tarp = rng.normal(size=(3000, 3))
-    tarp *= rng.uniform(2.0, 4.0, (3000, 1)) / np.linalg.norm(tarp, axis=1, keepdims=True)
+    tarp = _tarp()
     fed = [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans[:20]]
     fed += [(tarp, scans[19].T_world_sensor)] * 15
     fed += [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans[20:]]
@@ -270,9 +275,7 @@ def _blocked_through_a_u_turn(relocalize: bool) -> tuple[list[str], list[np.ndar
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
     scans = list(simulate(town, route, n_scans=40, speed_mps=12.0, seed=1))
-    rng = np.random.default_rng(0)
-    tarp = rng.normal(size=(3000, 3))
-    tarp *= rng.uniform(2.0, 4.0, (3000, 1)) / np.linalg.norm(tarp, axis=1, keepdims=True)
+    tarp = _tarp()
     turned = np.eye(4)
     turned[:3, :3] = Rotation.from_euler("z", 180.0, degrees=True).as_matrix()
     fed = [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans]
