@@ -9,8 +9,8 @@ Ray only carries each sweep from the service to its session's actor and the resu
 The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
 
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): one actor per
-                 session (``_MatcherActor``), 0 CPUs reserved, spread over the nodes
-                 (``scheduling_strategy="SPREAD"``), never restarted by Ray (max_restarts=0)
+                 session (``_MatcherActor``), 0 CPUs reserved, on the live node with fewest of the
+                 service's sessions (node affinity), never restarted by Ray (max_restarts=0)
     register  -> RayMatcher.register: one remote call per sweep, waited for, the sweep inline in
                  the call (RAY_INLINE_ENV); unless the session is behind, the actor rebuilds a
                  keyframe's model on a thread once the answer is out, and the next sweep waits
@@ -156,11 +156,10 @@ class RayMatcherPool:
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 where = f"the Ray cluster at {address}" if address else "a local Ray"
                 raise ConfigurationError(f"executor ray: cannot start or join {where}: {exc}") from exc
-        self._actor_class = ray.remote(num_cpus=0, max_restarts=0, scheduling_strategy="SPREAD")(
-            _MatcherActor
-        )
+        self._actor_class = ray.remote(num_cpus=0, max_restarts=0)(_MatcherActor)
         self._lock = threading.Lock()
         self._open: dict[Key, Any] = {}
+        self._node: dict[Key, str] = {}  # where each open session's actor was placed
 
     def __len__(self) -> int:
         """The cluster's live nodes."""
@@ -183,8 +182,27 @@ class RayMatcherPool:
         registration: RegistrationSettings | None = None,
     ) -> RayMatcher:
         """A matcher for session ``key`` (restored from ``state``) in a new actor, placed by Ray."""
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
         params = None if grid is None else (grid.tile_size_m, grid.voxel_size_m, grid.max_points_per_voxel)
-        actor = self._actor_class.remote(state, params, settings, registration)
+        alive = [str(n["NodeID"]) for n in self._ray.nodes() if n.get("Alive")]
+        with self._lock:
+            # The live node with fewest of our sessions (as the local pool places on the process
+            # with fewest). Hard affinity: a soft one spilled over to the other node whenever this
+            # one's worker was still starting; should the node die first, the actor's first call
+            # fails and the session resumes on another (MatcherProcessDiedError).
+            load = dict.fromkeys(alive, 0)
+            for placed in self._node.values():
+                if placed in load:
+                    load[placed] += 1
+            target = min(alive, key=lambda n: load[n]) if alive else None
+            self._node[key] = target or ""
+        options = (
+            {}
+            if target is None
+            else {"scheduling_strategy": NodeAffinitySchedulingStrategy(target, soft=False)}
+        )
+        actor = self._actor_class.options(**options).remote(state, params, settings, registration)
         matcher = RayMatcher(self, actor, key, state)
         with self._lock:
             self._open[key] = actor
@@ -205,13 +223,14 @@ class RayMatcherPool:
         with self._lock:
             if self._open.get(key) is actor:
                 del self._open[key]
+                self._node.pop(key, None)
         with contextlib.suppress(self._ray.exceptions.RayError):
             self._ray.kill(actor, no_restart=True)
 
     def close(self) -> None:
         """Kill the actors still open (the sessions were saved first)."""
         with self._lock:
-            actors, self._open = list(self._open.values()), {}
+            actors, self._open, self._node = list(self._open.values()), {}, {}
         for actor in actors:
             with contextlib.suppress(self._ray.exceptions.RayError):
                 self._ray.kill(actor, no_restart=True)
@@ -237,7 +256,11 @@ class RayMatcher(ForwardingMatcher):
             if cause is None:
                 raise
             raise cause from None
-        except (ray.exceptions.RayActorError, ray.exceptions.ObjectLostError) as exc:
+        except (
+            ray.exceptions.RayActorError,
+            ray.exceptions.ActorUnschedulableError,
+            ray.exceptions.ObjectLostError,
+        ) as exc:
             raise MatcherProcessDiedError(
                 f"the Ray actor of session {self._key[0]}/{self._key[1]} is gone: {type(exc).__name__}"
             ) from exc

@@ -72,9 +72,13 @@ def main() -> None:
         sent_bytes: list[int] = []
         back_bytes: list[int] = []
         n_points: list[int] = []
+        # every actor open at once, as a service's sessions are: Ray spreads them over the nodes
+        remotes = {
+            name: pool.open((name, "eq"), grid=TileGrid(20, 0.2)) for name in drives
+        }  # the map's sizes
         for name, scans in drives.items():
             local = IncrementalMatcher(MatcherSettings())
-            remote = pool.open((name, "eq"), grid=TileGrid(20, 0.2))  # the service's map sizes
+            remote = remotes[name]
             nodes[name] = pool.node_of((name, "eq"))
             for s in scans:
                 xyz = s.points_xyz.astype(np.float32)
