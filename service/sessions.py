@@ -1164,7 +1164,12 @@ class SessionManager:
             saved = [t for t in snapshot if t.id in on_disk]
             with self._lock:
                 if self.maps.get(map_name) is grid:  # not deleted meanwhile
-                    self._durable.setdefault(map_name, {}).update({t.id: t for t in saved})
+                    durable = self._durable.setdefault(map_name, {})
+                    # A tile changed after this flush took its dirty set but before the snapshot
+                    # is dirty again: the next flush saves the same version once more. Publish
+                    # each version once (a client sees every tile's versions strictly increase).
+                    saved = [t for t in saved if t.id not in durable or t.version > durable[t.id].version]
+                    durable.update({t.id: t for t in saved})
             for tile in saved:
                 self.outbox(self.tile_message(map_name, tile))
         now = time.monotonic()
