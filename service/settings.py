@@ -122,7 +122,8 @@ class ServiceSettings(BaseSettings):
     executor: Literal["local", "ray"] = Field(
         default="local",
         description="where the sessions' matchers run: local worker processes (matcher_processes), "
-        "or one Ray actor per session across a Ray cluster (service/ray_executor.py; the ray extra)",
+        "or matcher host actors (one per CPU of each node) across a Ray cluster "
+        "(service/ray_executor.py; the ray extra)",
     )
     ray_address: str | None = Field(
         default=None,

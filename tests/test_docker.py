@@ -116,8 +116,10 @@ def _argv(service: dict[str, Any]) -> list[str]:
     return shlex.split(command) if isinstance(command, str) else [str(a) for a in command]
 
 
-def _environment(service: dict[str, Any]) -> dict[str, str]:
-    """The container's RANDT_* environment: the image's ENV, then the service's (pass-through filled)."""
+def _environment(service: dict[str, Any], choices: dict[str, str] | None = None) -> dict[str, str]:
+    """The container's RANDT_* environment: the image's ENV, then the service's (pass-through
+    filled; interpolated variables from ``choices`` or their defaults)."""
+    choices = choices or {}
     env = {k: v for k, v in _final_stage()["env"].items() if k.startswith("RANDT_")}
     declared = service.get("environment") or {}
     if isinstance(declared, list):
@@ -128,9 +130,19 @@ def _environment(service: dict[str, Any]) -> dict[str, str]:
             env[key] = PASS_THROUGH[key]
         else:
             assert not isinstance(value, bool), f"{key}: quote booleans in compose environments"
-            assert "$" not in str(value), f"{key}: no interpolation (an unset ${{VAR:-}} is an empty value)"
-            env[key] = str(value)
+            env[key] = _interpolated(key, str(value), choices)
     return env
+
+
+def _interpolated(key: str, value: str, choices: dict[str, str]) -> str:
+    """``value`` as Compose hands it over: ``${KEY:-default}`` (the only interpolation allowed, of
+    the variable itself, with a default) is ``choices[KEY]`` when given, else the default."""
+    m = re.fullmatch(r"\$\{(\w+):-([^}]+)\}", value)
+    if m is None:
+        assert "$" not in value, f"{key}: only ${{{key}:-default}} (an unset ${{VAR:-}} is an empty value)"
+        return value
+    assert m.group(1) == key, f"{key}: interpolate {key} itself, not {m.group(1)}"
+    return choices.get(key, m.group(2))
 
 
 def _set_environment(monkeypatch: pytest.MonkeyPatch, env: dict[str, str]) -> None:
@@ -213,8 +225,10 @@ def test_compose_file_is_valid_against_the_compose_spec() -> None:
     broken = copy.deepcopy(compose)
     broken["services"]["randt"]["depends_on"] = {"zenoh": {"condition": "service_ready"}}
     assert not validator.is_valid(broken)
-    assert set(compose["services"]) == {"zenoh", "randt", "fleet"}
+    assert set(compose["services"]) == {"zenoh", "randt", "fleet", "ray-head", "ray-worker"}
     assert compose["services"]["fleet"]["profiles"] == ["demo"]
+    assert compose["services"]["ray-head"]["profiles"] == compose["services"]["ray-worker"]["profiles"]
+    assert compose["services"]["ray-head"]["profiles"] == ["cluster"]
     assert "profiles" not in compose["services"]["randt"] and "profiles" not in compose["services"]["zenoh"]
 
 
@@ -260,9 +274,11 @@ def test_every_randt_command_line_parses_with_the_real_cli(monkeypatch: pytest.M
     compose = _compose()
     router, port = _router_port(compose)
     ours = _our_services(compose)
-    assert set(ours) == {"randt", "fleet"}
+    assert set(ours) == {"randt", "fleet", "ray-head", "ray-worker"}
     seen = set()
     for name, service in ours.items():
+        if _argv(service)[0] == "ray":
+            continue  # the Ray nodes: test_the_cluster_profile_runs_a_ray_head_and_workers
         _set_environment(monkeypatch, _environment(service))
         command, params = _parse(_argv(service))
         seen.add(command)
@@ -318,6 +334,7 @@ def test_every_randt_variable_is_a_setting_and_valid(monkeypatch: pytest.MonkeyP
     assert named in compose["volumes"], "the data live in a named volume"
     # Zenoh accepts the configuration built from these settings (opening it needs the router)
     zenoh_config(settings.zenoh_mode, settings.listen, settings.connect)
+    assert settings.executor == "local", "the local worker processes unless RANDT_EXECUTOR=ray"
     # the token is optional: unset on the host, it is absent in the container and the service starts
     monkeypatch.delenv("RANDT_API_TOKEN")
     assert ServiceSettings().api_token is None
@@ -325,6 +342,52 @@ def test_every_randt_variable_is_a_setting_and_valid(monkeypatch: pytest.MonkeyP
     monkeypatch.setenv("RANDT_API_TOKEN", "")
     with pytest.raises(ValueError):
         ServiceSettings()
+
+
+def _ray_argv(argv: list[str]) -> dict[str, Any]:
+    """Parse a ``ray start ...`` command line with Ray's own click command, without running it."""
+    from ray.scripts.scripts import cli as ray_cli
+
+    assert argv[:2] == ["ray", "start"], f"expected `ray start`, got {argv}"
+    group = ray_cli.make_context("ray", argv[1:], resilient_parsing=False)
+    name, command, args = ray_cli.resolve_command(group, argv[1:])
+    assert command is not None
+    return dict(command.make_context(str(name), args, parent=group).params)
+
+
+def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Profile ``cluster``: a head that schedules (0 CPUs: no matcher host lands on it), workers
+    that join it (one host per CPU), both with the inline-call settings of a local Ray, and the
+    service a Ray Client of the head once ``RANDT_EXECUTOR=ray``."""
+    from service.ray_executor import RAY_INLINE_ENV
+
+    compose = _compose()
+    head, worker = compose["services"]["ray-head"], compose["services"]["ray-worker"]
+    h, w = _ray_argv(_argv(head)), _ray_argv(_argv(worker))
+    assert h["head"] and h["block"] and h["num_cpus"] == 0, h
+    assert not w["head"] and w["block"] and w["num_cpus"] is None, w
+    host, _, gcs_port = w["address"].partition(":")
+    assert host == "ray-head" and int(gcs_port) == h["port"]
+    for node in (head, worker):
+        assert node["environment"] == RAY_INLINE_ENV
+        assert node["image"] == compose["services"]["randt"]["image"], "one image: the same Ray everywhere"
+    assert "ray-head" in worker["depends_on"]
+    # a wrong flag is refused by the same parser (the check is real)
+    with pytest.raises(Exception, match="--num-cpu"):
+        _ray_argv(["ray", "start", "--num-cpu=0"])
+    # the service: local by default, a Ray Client of the head with RANDT_EXECUTOR=ray
+    service = compose["services"]["randt"]
+    _set_environment(monkeypatch, _environment(service, {"RANDT_EXECUTOR": "ray"}))
+    settings = ServiceSettings()
+    assert settings.executor == "ray"
+    assert settings.ray_address == f"ray://ray-head:{h['ray_client_server_port']}"
+    _set_environment(monkeypatch, _environment(service, {"RANDT_EXECUTOR": "rya"}))
+    with pytest.raises(ValueError, match="executor"):
+        ServiceSettings()
+    # the image has Ray: it installs the ray extra
+    _, stages = _dockerfile_stages()
+    installs = [rest for stage in stages for word, rest in stage if word == "RUN" and "pip install" in rest]
+    assert any('".[ray]"' in rest for rest in installs), installs
 
 
 # -- (c) health checks, ports, the app ---------------------------------------------------------------

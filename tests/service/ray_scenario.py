@@ -6,9 +6,10 @@ namespace (Ray binds the machine's external address; alone in a namespace it fal
 
 A 2-node ``ray.cluster_utils.Cluster`` (one CPU each). Three simulated vehicles, no priors:
 
-1. equality: each vehicle's sweeps through a Ray actor (``RayMatcherPool``) and through an
-   in-process matcher that rebuilds its model after every sweep (what the actor does once the
-   sweep is answered): the largest pose difference, and the nodes the actors ran on;
+1. equality: each vehicle's sweeps through the Ray executor (``RayMatcherPool``: matcher hosts,
+   one per node's CPU) and through an in-process matcher that rebuilds its model after every
+   sweep (what a host does once the sweep is answered): the largest pose difference, and the
+   nodes the sessions ran on;
 2. a node dies: the same vehicles through a ``SessionManager`` with ``executor="ray"``; after
    half the sweeps (saved), the worker node is removed; the rest are sent. Reported: every
    acknowledged pose, the final trajectories, the truth, which sessions had to move, and how long
@@ -72,7 +73,7 @@ def main() -> None:
         sent_bytes: list[int] = []
         back_bytes: list[int] = []
         n_points: list[int] = []
-        # every actor open at once, as a service's sessions are: Ray spreads them over the nodes
+        # every session open at once, as a service's sessions are: spread over the nodes' hosts
         remotes = {
             name: pool.open((name, "eq"), grid=TileGrid(20, 0.2)) for name in drives
         }  # the map's sizes

@@ -60,9 +60,9 @@ def scenario() -> dict:
     return json.loads(lines[-1][len("RESULT ") :])
 
 
-def test_ray_actors_give_the_local_matchers_poses_on_both_nodes(scenario) -> None:
-    """Three sessions' actors, spread by Ray over both nodes, give the in-process matcher's poses
-    (measured: bit for bit)."""
+def test_ray_hosts_give_the_local_matchers_poses_on_both_nodes(scenario) -> None:
+    """Three sessions on the matcher hosts of both nodes (one host per node's CPU) give the
+    in-process matcher's poses (measured: bit for bit)."""
     assert scenario["equality_max_abs"] < 1e-6
     assert set(scenario["equality_nodes"].values()) == set(scenario["nodes"].values())
 
@@ -93,5 +93,6 @@ def test_a_dead_node_moves_its_sessions_without_losing_an_acknowledged_pose(scen
             dt, dr = transform_error(invert(T) @ truth[a["seq"]], np.eye(4))
             assert dt < 0.05 and dr < 0.2, f"{name} seq {a['seq']}: {dt:.3f} m, {dr:.3f} deg from the truth"
     # How long a moved session waits: its next scan after the refused one is answered within
-    # this (measured 1.3 s: the state read from the store and a new actor on the head node).
-    assert max(scenario["waits_after_kill_s"]) < 10.0
+    # this (measured 0.1-0.4 s: the state read from the store and opened on the head node's warm
+    # host; 1.3-2.1 s when every session had an actor of its own, started then).
+    assert max(scenario["waits_after_kill_s"]) < 5.0
