@@ -16,7 +16,7 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): the session's
                  matcher on the host with fewest sessions, on the node with fewest per CPU
     register  -> RayMatcher.register: one remote call per sweep, waited for, the sweep inline in
-                 the call (RAY_INLINE_ENV); unless the session is behind, the host rebuilds a
+                 the call (RAY_ENV); unless the session is behind, the host rebuilds a
                  keyframe's model on a thread once the answer is out, and its next request waits
                  for it (as a matcher process rebuilds right after replying)
     errors    -> an exception raised in the host is raised again as itself (Ray's wrapper
@@ -66,10 +66,15 @@ class ConfigurationError(RandtError):
     """The Ray executor cannot start as configured (Ray missing, or the cluster unreachable)."""
 
 
-#: Ray settings (environment variables) under which calls carry a sweep inline.
-RAY_INLINE_ENV = {
+#: Ray settings (environment variables) for the per-sweep call: the sweep and its answer travel
+#: inline in the call rather than through Ray's object store (Ray's own CPU 4.8 -> 1.2 ms per
+#: sweep), and no task events or metrics are recorded per call (the service has its own; the
+#: call's CPU in the service 1.57 -> 1.18 ms, measured with a 630 kB sweep and a 448 kB answer).
+RAY_ENV = {
     "RAY_max_direct_call_object_size": str(8 << 20),
     "RAY_task_rpc_inlined_bytes_limit": str(16 << 20),
+    "RAY_task_events_report_interval_ms": "0",
+    "RAY_enable_metrics_collection": "0",
 }
 
 #: Ray's namespace for the service's actors.
@@ -183,11 +188,9 @@ class RayMatcherPool:
         self._ray = ray
         if not ray.is_initialized():
             if address is None:
-                # A sweep (0.3-0.5 MB of float32 points) and its answer travel inline in the call
-                # rather than through the shared object store: Ray's own CPU 4.8 -> 1.2 ms per
-                # sweep, mean latency 96 -> 88 ms (bench/service.py, 2 vehicles). A cluster
-                # started with `ray start` takes the same variables (docs/deploy.md).
-                for name, value in RAY_INLINE_ENV.items():
+                # RAY_ENV: sweeps inline in the calls, no per-call task events. A cluster started
+                # with `ray start` takes the same variables (docs/deploy.md, docker/compose.yaml).
+                for name, value in RAY_ENV.items():
                     os.environ.setdefault(name, value)
             try:
                 ray.init(

@@ -357,9 +357,9 @@ def _ray_argv(argv: list[str]) -> dict[str, Any]:
 
 def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.MonkeyPatch) -> None:
     """Profile ``cluster``: a head that schedules (0 CPUs: no matcher host lands on it), workers
-    that join it (one host per CPU), both with the inline-call settings of a local Ray, and the
-    service a Ray Client of the head once ``RANDT_EXECUTOR=ray``."""
-    from service.ray_executor import RAY_INLINE_ENV
+    that join it (one host per CPU), both with the per-call settings of a local Ray (sweeps
+    inline, no task events), and the service a Ray Client of the head once ``RANDT_EXECUTOR=ray``."""
+    from service.ray_executor import RAY_ENV
 
     compose = _compose()
     head, worker = compose["services"]["ray-head"], compose["services"]["ray-worker"]
@@ -369,7 +369,7 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     host, _, gcs_port = w["address"].partition(":")
     assert host == "ray-head" and int(gcs_port) == h["port"]
     for node in (head, worker):
-        assert node["environment"] == RAY_INLINE_ENV
+        assert node["environment"] == RAY_ENV
         assert node["image"] == compose["services"]["randt"]["image"], "one image: the same Ray everywhere"
     assert "ray-head" in worker["depends_on"]
     # a wrong flag is refused by the same parser (the check is real)
