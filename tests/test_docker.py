@@ -365,11 +365,12 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     head, worker = compose["services"]["ray-head"], compose["services"]["ray-worker"]
     h, w = _ray_argv(_argv(head)), _ray_argv(_argv(worker))
     assert h["head"] and h["block"] and h["num_cpus"] == 0, h
+    assert h["include_dashboard"] is not False, "Ray Client sessions fail to start without it (ray 2.60)"
     assert not w["head"] and w["block"] and w["num_cpus"] is None, w
     host, _, gcs_port = w["address"].partition(":")
     assert host == "ray-head" and int(gcs_port) == h["port"]
     for node in (head, worker):
-        assert node["environment"] == RAY_ENV
+        assert node["environment"] == {**RAY_ENV, "RAY_AUTH_MODE": "disabled"}
         assert node["image"] == compose["services"]["randt"]["image"], "one image: the same Ray everywhere"
     assert "ray-head" in worker["depends_on"]
     # a wrong flag is refused by the same parser (the check is real)
