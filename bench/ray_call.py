@@ -1,0 +1,112 @@
+"""What one call costs: a multiprocessing pipe (the local executor's) against a Ray actor call.
+
+A float32 sweep of ``--points`` points goes to another process, which answers with an array of
+``--answer`` points (by default what a 64-beam sweep and its kept points weigh: 630 kB and 448 kB).
+Reported per call: the wall time, the caller's CPU, the callee's CPU. The Ray side uses the
+service's per-call settings (``service.ray_executor.RAY_ENV``) unless ``--ray-defaults``.
+
+    unshare -n sh -c "ip link set lo up && python -m bench.ray_call"
+
+(Ray binds the machine's external address; alone in a network namespace it uses 127.0.0.1.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import multiprocessing as mp
+import os
+import time
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+
+def _echo(conn: Connection, n_answer: int) -> None:
+    answer = {"points": np.ones((n_answer, 3), np.float32), "T": np.eye(4)}
+    conn.recv()
+    conn.send(answer)  # the warm-up call
+    start = time.process_time()
+    while True:
+        msg = conn.recv()
+        if msg is None:
+            conn.send(time.process_time() - start)
+            return
+        conn.send(answer)
+
+
+def bench_pipe(n_points: int, n_answer: int, calls: int) -> tuple[float, float, float]:
+    ctx = mp.get_context("spawn")
+    here, there = ctx.Pipe()
+    proc = ctx.Process(target=_echo, args=(there, n_answer))
+    proc.start()
+    sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
+    here.send(sweep)
+    here.recv()
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(calls):
+        here.send(sweep)
+        here.recv()
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    here.send(None)
+    callee = here.recv()  # the child's CPU time after the warm-up call
+    proc.join()
+    return wall / calls, cpu / calls, callee / calls
+
+
+def bench_ray(n_points: int, n_answer: int, calls: int, defaults: bool) -> tuple[float, float, float]:
+    if not defaults:
+        from service.ray_executor import RAY_ENV
+
+        for name, value in RAY_ENV.items():
+            os.environ.setdefault(name, value)
+    import ray
+
+    ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+
+    @ray.remote(num_cpus=0)
+    class Echo:
+        def __init__(self) -> None:
+            self.answer = {"points": np.ones((n_answer, 3), np.float32), "T": np.eye(4)}
+
+        def call(self, sweep: np.ndarray) -> dict[str, Any]:
+            return self.answer
+
+        def cpu(self) -> float:
+            return time.process_time()
+
+    echo = Echo.remote()  # type: ignore[attr-defined]
+    sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
+    ray.get(echo.call.remote(sweep))
+    a0 = ray.get(echo.cpu.remote())
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(calls):
+        ray.get(echo.call.remote(sweep))
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    a1 = ray.get(echo.cpu.remote())
+    ray.shutdown()
+    return wall / calls, cpu / calls, (a1 - a0) / calls
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(prog="ray_call.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=52_500, help="the sweep's points (float32 xyz)")
+    parser.add_argument("--answer", type=int, default=37_333, help="the answer's points")
+    parser.add_argument("--calls", type=int, default=400)
+    parser.add_argument("--ray-defaults", action="store_true", help="Ray's own settings, not RAY_ENV")
+    args = parser.parse_args()
+    kb_in, kb_out = args.points * 12 / 1e3, args.answer * 12 / 1e3
+    print(f"{args.calls} calls, {kb_in:.0f} kB there, {kb_out:.0f} kB back")
+    for name, (wall, cpu, callee) in (
+        ("pipe", bench_pipe(args.points, args.answer, args.calls)),
+        ("ray", bench_ray(args.points, args.answer, args.calls, args.ray_defaults)),
+    ):
+        print(
+            f"{name:5s} {wall * 1e3:6.2f} ms per call; CPU per call: caller {cpu * 1e3:.2f} ms, "
+            f"callee {callee * 1e3:.2f} ms"
+        )
+
+
+if __name__ == "__main__":
+    main()
