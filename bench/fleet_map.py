@@ -110,7 +110,7 @@ def main() -> None:
     kf = max(run.n_keyframes, 1)
     print(
         f"\nFleet: {len(run.sessions)} vehicles, {run.travel_m:.0f} m in all, {run.n_keyframes} keyframes. "
-        f"Time: {wall:.0f} s wall; simulate {run.times_s['simulate']:.0f} s, odometry "
+        f"Time: {wall:.0f} s wall; sweeps waited for {run.times_s['simulate']:.0f} s, odometry "
         f"{run.times_s['odometry']:.0f} s, mapping {run.times_s['mapping']:.0f} s "
         f"({run.times_s['mapping'] / kf * 1e3:.0f} ms per keyframe)"
     )

@@ -512,6 +512,7 @@ def simulate(
     speed_variation: float = 0.0,
     start_s_m: float = 0.0,
     start_stamp_ns: int = 0,
+    workers: int = 0,
 ) -> Iterator[SimScan]:
     """Drive ``route`` through ``town``: an iterator over ``n_scans`` sweeps, computed lazily.
 
@@ -541,6 +542,12 @@ def simulate(
         Arc length of the first sweep's start (m).
     start_stamp_ns:
         Stamp of the first sweep (ns).
+    workers:
+        0: each sweep is computed when it is asked for. ``N > 0``: ``N`` worker processes compute
+        the sweeps ahead of the consumer (at most :data:`AHEAD_PER_WORKER` each), so ray casting
+        runs beside the consumer's work, or on several cores for a ``list(...)``. The scans are
+        the same either way (sweep ``k`` depends only on ``k``); a simulated sweep takes about
+        45 ms of ray casting (64 beams x 1000 columns).
 
     Returns
     -------
@@ -550,6 +557,8 @@ def simulate(
     lidar = Lidar64() if lidar is None else lidar
     if n_scans < 0 or rate_hz <= 0:
         raise ValueError("n_scans must be >= 0 and rate_hz > 0")
+    if workers < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
     phase = float(np.random.default_rng([seed, 2**31]).uniform(0.0, 2.0 * np.pi))
     motion = Motion(
         route,
@@ -566,43 +575,72 @@ def simulate(
             raise ValueError(
                 f"{n_scans} scans need {s_end:.1f} m but the open route has {route.length_m:.1f} m"
             )
-    return _scans(town, motion, lidar, n_scans, period_ns, rate_hz, seed, deskewed, start_stamp_ns)
+    sweeper = _Sweeper(town, motion, lidar, period_ns, rate_hz, seed, deskewed, start_stamp_ns)
+    if workers == 0:
+        return (sweeper(k) for k in range(n_scans))
+    return _ahead(sweeper, n_scans, workers)
 
 
-def _scans(
-    town: Town,
-    motion: Motion,
-    lidar: Lidar64,
-    n_scans: int,
-    period_ns: int,
-    rate_hz: float,
-    seed: int,
-    deskewed: bool,
-    start_stamp_ns: int,
-) -> Iterator[SimScan]:
-    """The scan generator behind :func:`simulate` (arguments already validated)."""
-    firing = lidar.firing_offsets_s(rate_hz)
-    for k in range(n_scans):
+#: Sweeps a worker process of :func:`simulate` may have computed ahead of the consumer.
+AHEAD_PER_WORKER = 4
+
+
+@dataclass(frozen=True)
+class _Sweeper:
+    """Sweep ``k`` of one drive (what :func:`simulate` yields); picklable, for worker processes."""
+
+    town: Town
+    motion: Motion
+    lidar: Lidar64
+    period_ns: int
+    rate_hz: float
+    seed: int
+    deskewed: bool
+    start_stamp_ns: int
+
+    def __call__(self, k: int) -> SimScan:
         tic = time.perf_counter()
-        t0 = k * period_ns * 1e-9
-        T_cols = motion.sensor_poses_at(t0 + firing)
+        firing = self.lidar.firing_offsets_s(self.rate_hz)
+        t0 = k * self.period_ns * 1e-9
+        T_cols = self.motion.sensor_poses_at(t0 + firing)
         T_ref = T_cols[0]  # firing 0 is at offset 0: the sweep start
-        rng = np.random.default_rng([seed, k])
-        sweep = lidar.sweep(town, T_cols, rng, T_world_reference=T_ref if deskewed else None)
+        rng = np.random.default_rng([self.seed, k])
+        sweep = self.lidar.sweep(self.town, T_cols, rng, T_world_reference=T_ref if self.deskewed else None)
         scan = SimScan(
             index=k,
-            stamp_ns=start_stamp_ns + k * period_ns,
+            stamp_ns=self.start_stamp_ns + k * self.period_ns,
             T_world_sensor=T_ref.copy(),
             points_xyz=sweep.points_xyz.astype(np.float32),
             intensity=sweep.intensity,
             time_offset_s=firing[sweep.column],
             ring=sweep.ring,
             label=sweep.label,
-            deskewed=deskewed,
-            route_s_m=float(motion.s_at(t0)[0]),
+            deskewed=self.deskewed,
+            route_s_m=float(self.motion.s_at(t0)[0]),
         )
         log.debug("scan %d: %d points in %.3f s", k, len(scan), time.perf_counter() - tic)
-        yield scan
+        return scan
+
+
+def _ahead(sweeper: _Sweeper, n_scans: int, workers: int) -> Iterator[SimScan]:
+    """``sweeper(k)`` for every ``k`` in order, computed by ``workers`` spawned processes (spawn:
+    the caller may run threads, which fork would copy mid-flight) at most
+    ``AHEAD_PER_WORKER * workers`` sweeps ahead; the processes stop when the iterator is closed."""
+    import multiprocessing
+    from collections import deque
+    from concurrent.futures import Future, ProcessPoolExecutor
+
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    pending: deque[Future[SimScan]] = deque()
+    try:
+        for k in range(n_scans):
+            pending.append(pool.submit(sweeper, k))
+            if len(pending) >= AHEAD_PER_WORKER * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass(frozen=True)
@@ -673,6 +711,7 @@ def simulate_fleet(
     lidar: Lidar64 | None = None,
     deskewed: bool = True,
     start_stamp_ns: int = 0,
+    workers: int = 0,
 ) -> Iterator[tuple[str, SimScan]]:
     """Simulate ``n_vehicles`` vehicles (:func:`plan_fleet`): an iterator over their scans in stamp order.
 
@@ -682,7 +721,8 @@ def simulate_fleet(
         ``n_vehicles * n_scans`` pairs ``(vehicle_id, scan)``; round ``k`` gives every vehicle's
         scan ``k`` in vehicle order, which is stamp order because vehicle ``v`` is staggered by
         ``v / n_vehicles`` periods. With ``closed=False`` each random walk must be long enough for
-        ``n_scans`` (ValueError at the call otherwise).
+        ``n_scans`` (ValueError at the call otherwise). ``workers``: per vehicle, as in
+        :func:`simulate`.
     """
     fleet = plan_fleet(
         town, n_vehicles, seed=seed, route_length_m=route_length_m, closed=closed, rate_hz=rate_hz
@@ -699,6 +739,7 @@ def simulate_fleet(
             deskewed=deskewed,
             start_s_m=v.start_s_m,
             start_stamp_ns=start_stamp_ns + v.stamp_offset_ns,
+            workers=workers,
         )
         for v in fleet
     ]

@@ -114,10 +114,13 @@ def run_mapping_fleet(
     gnss_outage_s: tuple[float, float] | None = (20.0, 35.0),
     true_loop_m: float = 10.0,
     settings: FleetMapSettings | None = None,
+    sim_workers: int = 1,
 ) -> MappingRun:
     """Simulate, map and score a fleet (module docstring). Vehicle ``v`` has no GNSS when ``v`` is
     in ``without_gnss``; the others have ``gnss_noise_m`` white noise, a ``gnss_bias_m`` wandering
-    bias, 1 % multipath jumps and one outage ``gnss_outage_s`` (seconds after their start)."""
+    bias, 1 % multipath jumps and one outage ``gnss_outage_s`` (seconds after their start).
+    ``sim_workers``: processes per vehicle that ray cast its sweeps ahead, beside the odometry and
+    the mapping (:func:`sim.drive.simulate`'s ``workers``; 0: in this process, one at a time)."""
     town = Town.generate(seed)
     fleet = plan_fleet(town, n_vehicles, seed=seed, route_length_m=route_length_m, rate_hz=rate_hz)
     n_scans = int(np.ceil(laps * min(v.route.length_m for v in fleet) / speed_mps * rate_hz))
@@ -144,7 +147,7 @@ def run_mapping_fleet(
     t0 = time.perf_counter()
     for name, scan in simulate_fleet(
         town, n_vehicles, n_scans=n_scans, seed=seed, route_length_m=route_length_m,
-        rate_hz=rate_hz, speed_mps=speed_mps, lidar=lidar, deskewed=True,
+        rate_hz=rate_hz, speed_mps=speed_mps, lidar=lidar, deskewed=True, workers=sim_workers,
     ):  # fmt: skip
         t1 = time.perf_counter()
         times["simulate"] += t1 - t0

@@ -21,7 +21,8 @@ def _drive(n_scans: int, speed_mps: float, *, raw: bool):
     motion = Motion(route, speed_mps=speed_mps)
     builder = MapBuilder()
     gt = []
-    for scan in simulate(town, route, n_scans=n_scans, speed_mps=speed_mps, seed=1, deskewed=not raw):
+    sweeps = simulate(town, route, n_scans=n_scans, speed_mps=speed_mps, seed=1, deskewed=not raw, workers=1)
+    for scan in sweeps:  # ray cast in another process, beside the mapping
         update = builder.add_scan(
             scan.points_xyz.astype(np.float64),
             intensity=scan.intensity,

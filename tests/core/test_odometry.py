@@ -212,7 +212,8 @@ def _raw_corner_run(redeskew: bool) -> tuple[int, float, float]:
     phase = float(np.random.default_rng([1, 2**31]).uniform(0.0, 2.0 * np.pi))
     motion = Motion(route, 12.0, 0.0, phase_rad=phase)
     gt, fallbacks = [], 0
-    for scan in simulate(town, route, n_scans=170, speed_mps=12.0, seed=1, deskewed=False):
+    # workers=1: the sweeps are ray cast in another process, beside the matching
+    for scan in simulate(town, route, n_scans=170, speed_mps=12.0, seed=1, deskewed=False, workers=1):
         r = matcher.register_scan(scan.points_xyz.astype(np.float64), time_offset_s=scan.time_offset_s)
         fallbacks += r.status == "fallback"
         gt.append(motion.sensor_poses_at(scan.index * 0.1 + 0.05)[0])

@@ -144,7 +144,7 @@ def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
     scans = list(
         simulate(
             town, vehicle.route, n_scans=n, seed=vehicle.seed, lidar=lidar, start_s_m=vehicle.start_s_m,
-            deskewed=False,
+            deskewed=False, workers=2,
         )
     )  # fmt: skip
     with live_server(tmp_path_factory.mktemp("graph") / "data") as server:
@@ -368,11 +368,13 @@ def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
     n = int(0.8 * route.route.length_m)
     lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
     drives = {
-        "gnss": list(simulate(town, route.route, n_scans=n, seed=1, lidar=lidar, start_s_m=route.start_s_m)),
+        "gnss": list(
+            simulate(town, route.route, n_scans=n, seed=1, lidar=lidar, start_s_m=route.start_s_m, workers=2)
+        ),
         "nognss": list(
             simulate(
                 town, route.route, n_scans=n, seed=2, lidar=lidar, start_stamp_ns=50_000_000,
-                start_s_m=(route.start_s_m - 100.0) % route.route.length_m,
+                start_s_m=(route.start_s_m - 100.0) % route.route.length_m, workers=2,
             )
         ),
     }  # fmt: skip

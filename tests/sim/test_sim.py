@@ -347,6 +347,25 @@ def test_same_seed_same_scans(town: Town, route: Route) -> None:
     assert a[1].route_s_m != pytest.approx(1.0)  # the speed varies
 
 
+def test_worker_processes_give_the_same_scans_in_order(town: Town, route: Route) -> None:
+    """``workers``: the sweeps ray cast ahead in other processes are those computed in this one,
+    in order, bit for bit; a consumer that stops early stops the processes."""
+    kw = {"n_scans": 11, "seed": 4, "lidar": SMALL, "speed_variation": 0.2, "deskewed": False}
+    here = list(simulate(town, route, **kw))
+    there = list(simulate(town, route, workers=2, **kw))
+    assert [s.index for s in there] == list(range(11))
+    for x, y in zip(here, there, strict=True):
+        np.testing.assert_array_equal(x.points_xyz, y.points_xyz)
+        np.testing.assert_array_equal(x.time_offset_s, y.time_offset_s)
+        np.testing.assert_array_equal(x.T_world_sensor, y.T_world_sensor)
+        assert (x.stamp_ns, x.route_s_m) == (y.stamp_ns, y.route_s_m)
+    stream = simulate(town, route, workers=1, **kw)
+    assert next(stream).index == 0
+    stream.close()  # type: ignore[attr-defined]  # (a generator)
+    with pytest.raises(ValueError, match="workers"):
+        simulate(town, route, workers=-1, **kw)
+
+
 def test_fleet_vehicles_take_different_routes(town: Town) -> None:
     fleet = plan_fleet(town, 3, seed=1, route_length_m=600.0)
     assert len({v.vehicle_id for v in fleet}) == 3
