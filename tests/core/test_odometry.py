@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kit
 from core.odometry import RELOCALIZE_EVERY, IncrementalMatcher, MatcherSettings, PosePrior, deskew
 from core.protocol import synthetic_room
 from core.transforms import invert, make_transform, transform_error, transform_points
+from sim.drive import SimScan
 from tests.data import require_data
 
 
@@ -239,18 +242,37 @@ def _tarp() -> np.ndarray:
     return tarp * (rng.uniform(2.0, 4.0, (3000, 1)) / np.linalg.norm(tarp, axis=1, keepdims=True))
 
 
+@functools.cache
+def _loop_sweeps() -> tuple[SimScan, ...]:
+    """The first 50 sweeps (deskewed) of town 1's 1000 m loop at 12 m/s, simulated once for the
+    tests that drive it (read-only: they copy the points they change)."""
+    from sim.drive import Route, simulate
+    from sim.town import Town
+
+    town = Town.generate(1)
+    route = Route.loop(town, 3, length_m=1000.0)
+    return tuple(simulate(town, route, n_scans=50, speed_mps=12.0, seed=1, workers=2))
+
+
+@functools.cache
+def _fleet_sweeps() -> dict[int, SimScan]:
+    """The 60 sweeps of town 1's one-vehicle fleet at 10 m/s (seed 3), by index, simulated once."""
+    from sim.drive import simulate_fleet
+    from sim.town import Town
+
+    return {
+        s.index: s
+        for _, s in simulate_fleet(Town.generate(1), 1, n_scans=60, seed=3, speed_mps=10.0, workers=2)
+    }
+
+
 def test_a_session_blocked_while_standing_finds_its_track_again() -> None:
     """The sensor is blocked for 1.5 s (a tarp 2-4 m away) while the vehicle stands still; the
     prediction drives on at 12 m/s, so when the sweeps are good again the match lies 18 m behind
     it. That match is accepted (the correction limit grows with every fallback) and the velocity
     is measured from the last match before the blockage, so tracking resumes at once. Before,
     the 2 m limit refused the match forever and the session flew off along its last velocity."""
-    from sim.drive import Route, simulate
-    from sim.town import Town
-
-    town = Town.generate(1)
-    route = Route.loop(town, 3, length_m=1000.0)
-    scans = list(simulate(town, route, n_scans=45, speed_mps=12.0, seed=1))
+    scans = _loop_sweeps()[:45]
     tarp = _tarp()
     fed = [(s.points_xyz.astype(np.float64), s.T_world_sensor) for s in scans[:20]]
     fed += [(tarp, scans[19].T_world_sensor)] * 15
@@ -270,12 +292,7 @@ def _blocked_through_a_u_turn(relocalize: bool) -> tuple[list[str], list[np.ndar
     the prediction drives on forwards, the vehicle drives back."""
     from scipy.spatial.transform import Rotation
 
-    from sim.drive import Route, simulate
-    from sim.town import Town
-
-    town = Town.generate(1)
-    route = Route.loop(town, 3, length_m=1000.0)
-    scans = list(simulate(town, route, n_scans=40, speed_mps=12.0, seed=1))
+    scans = _loop_sweeps()[:40]
     tarp = _tarp()
     turned = np.eye(4)
     turned[:3, :3] = Rotation.from_euler("z", 180.0, degrees=True).as_matrix()
@@ -314,15 +331,10 @@ def test_a_session_that_turned_round_unseen_relocalizes_by_global_registration()
 def _gapped_run(use_stamps: bool) -> tuple[int, float, float, int]:
     """50 simulated sweeps at 12 m/s with runs of sweeps missing, as an overloaded service sheds
     them (drop-oldest): returns (fallbacks, final translation error m, rotation deg, sweeps fed)."""
-    from sim.drive import Route, simulate
-    from sim.town import Town
-
-    town = Town.generate(1)
-    route = Route.loop(town, 3, length_m=1000.0)
     missing = {1, 2, 8, 9, 10, 17, 18, 30, 31, 32, 33, 41}
     matcher = IncrementalMatcher()
     fallbacks, fed, gt = 0, 0, []
-    for scan in simulate(town, route, n_scans=50, speed_mps=12.0, seed=1):
+    for scan in _loop_sweeps():
         if scan.index in missing:
             continue
         stamp = scan.stamp_ns * 1e-9 if use_stamps else None
@@ -398,11 +410,9 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
     session keeps its track. Without the gap search this drive lost its track for good at
     sweep 39 (inlier ratio 0.20), found by bench/service.py with 4 vehicles."""
     from core.transforms import rotation_angle_deg, scale_motion
-    from sim.drive import simulate_fleet
-    from sim.town import Town
 
     keep = [*range(13), 14, 15, 18, 19, 23, 31, 39, 47, 52, 54, 59]
-    scans = {s.index: s for _, s in simulate_fleet(Town.generate(1), 1, n_scans=60, seed=3, speed_mps=10.0)}
+    scans = _fleet_sweeps()
     matcher = IncrementalMatcher()
     misses = []
     for a, i in enumerate(keep):
@@ -427,11 +437,8 @@ def test_a_caller_behind_still_bridges_a_long_gap() -> None:
     constant-velocity prediction misses the 25 -> 39 gap by 73 degrees. The gap search's turns
     reach 100 degrees either way; with 60, as first built, this drive lost its track there
     (found by replaying bench/service.py's drop patterns at 8 vehicles)."""
-    from sim.drive import simulate_fleet
-    from sim.town import Town
-
     keep = [*range(13), 17, 25, 39, 44, 54, 58]
-    scans = {s.index: s for _, s in simulate_fleet(Town.generate(1), 1, n_scans=59, seed=3, speed_mps=10.0)}
+    scans = _fleet_sweeps()  # (its first 59 were simulated for it before they were shared)
     matcher = IncrementalMatcher()
     for i in keep:
         scan = scans[i]
