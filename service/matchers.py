@@ -57,6 +57,7 @@ __all__ = [
     "RemoteMatcher",
     "SessionMatcher",
     "single_threaded_blas",
+    "warm_up",
 ]
 
 log = logging.getLogger(__name__)
@@ -200,7 +201,7 @@ def single_threaded_blas() -> None:
     threadpool_limits(limits=1)
 
 
-def _warm_up() -> None:
+def warm_up() -> None:
     """Load (or compile) the numba kernels before the first sweep arrives: an incremental matcher
     fed three sweeps of a small synthetic room (registration, Algorithm 1, feature extraction and
     the map's candidate mask) and one pairwise registration with the default settings (moving-point
@@ -236,7 +237,7 @@ def _serve(conn: Connection) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored when started from the main thread)
     single_threaded_blas()
     try:
-        _warm_up()
+        warm_up()
     except Exception:  # a failed warm-up only costs the first sweep its compile time
         log.exception("matcher process warm-up failed")
     try:

@@ -51,8 +51,8 @@ from service.matchers import (
     MatcherProcessDiedError,
     Registered,
     _registered,
-    _warm_up,
     single_threaded_blas,
+    warm_up,
 )
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
@@ -90,7 +90,7 @@ class _MatcherHost:
     def __init__(self) -> None:
         single_threaded_blas()
         try:
-            _warm_up()
+            warm_up()
         except Exception:  # a failed warm-up only costs the first sweep its compile time
             log.exception("matcher host warm-up failed")
         self.matchers: dict[Key, IncrementalMatcher] = {}

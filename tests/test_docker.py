@@ -240,7 +240,9 @@ def test_build_context_and_zenoh_versions_agree() -> None:
     assert (context / build["dockerfile"]).resolve() == DOCKERFILE
     assert (context / ".dockerignore").is_file()
     global_args, stages = _dockerfile_stages()
-    assert all(rest.startswith("python:3.11-slim") for word, rest in (s[0] for s in stages))
+    # every stage on the base image argument, the official Python 3.11 image by default
+    assert global_args["BASE_IMAGE"] == "python:3.11-slim"
+    assert all(rest.split()[0] == "${BASE_IMAGE}" for word, rest in (s[0] for s in stages))
     # the router image, the build argument and the Dockerfile's default pin the same Zenoh 1.x
     image = compose["services"]["zenoh"]["image"]
     assert image.startswith("eclipse/zenoh:"), image
