@@ -393,6 +393,51 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     assert any('".[ray]"' in rest for rest in installs), installs
 
 
+def test_the_tls_override_mounts_what_randt_security_init_writes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``docker/compose.tls.yaml``: valid against the Compose spec; the router runs the
+    ``router.json5`` and the service the ``service-client.json5`` that ``randt security init``
+    writes into the directory both containers mount (at the same path, as the configs name their
+    files by absolute path); the service dials the router by its compose name over TLS on the
+    port the router listens on and publishes; the settings accept it all."""
+    from wire.zenoh_security import write_deployment
+
+    override = yaml.safe_load((REPO / "docker" / "compose.tls.yaml").read_text())
+    validator = jsonschema.Draft7Validator(_schema())
+    errors = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(override)]
+    assert not errors, errors
+    compose = _compose()
+    router, port = _router_port(compose)
+    zenoh, randt = override["services"][router], override["services"]["randt"]
+    (mount,) = {v.rsplit(":", 1)[0] for v in zenoh["volumes"]} & {
+        v.rsplit(":", 1)[0] for v in randt["volumes"]
+    }
+    host_dir, container_dir = mount.split(":")
+    assert host_dir == container_dir, "configs name their files by absolute path: mount at the same path"
+    # the files, written where the override expects them (a temporary stand-in for the directory)
+    deployment = write_deployment(tmp_path, ["car-01"], hosts=(router, "fleet.example.org"))
+    argv = zenoh["command"]
+    assert argv[0] == "-c" and Path(argv[1]).parent == Path(container_dir)
+    router_cfg = json.loads(  # (JSON, a subset of JSON5)
+        (tmp_path / Path(argv[1]).name).read_text()
+    )
+    assert router_cfg["mode"] == "router"
+    assert router_cfg["listen"]["endpoints"] == [f"tls/[::]:{port}"], "the port the router publishes"
+    env = {
+        **_environment(compose["services"]["randt"]),
+        **{k: str(v) for k, v in randt["environment"].items()},
+    }
+    config_in_container = Path(env["RANDT_ZENOH_CONFIG"])
+    assert config_in_container.parent == Path(container_dir)
+    assert (tmp_path / config_in_container.name) == deployment.service_client_config
+    env["RANDT_ZENOH_CONFIG"] = str(deployment.service_client_config)
+    _set_environment(monkeypatch, env)
+    settings = ServiceSettings()
+    assert settings.connect == (f"tls/{router}:{port}",)
+    assert settings.zenoh_mode == "client" and settings.listen == ()
+
+
 # -- (c) health checks, ports, the app ---------------------------------------------------------------
 
 
