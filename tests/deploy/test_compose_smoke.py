@@ -314,7 +314,7 @@ def test_vehicles_on_the_host_and_in_the_compose_network_reach_the_service(
     stack.timings["host vehicle"] = time.monotonic() - t
     print(f"\nhost vehicle summary: {json.dumps(host)[:600]}", file=sys.stderr)
     t = time.monotonic()
-    stack.compose("up", "-d", "--no-deps", "fleet")
+    stack.compose("up", "-d", "fleet")  # started once compose's health check calls the service healthy
     cid = stack.compose("ps", "-a", "-q", "fleet").stdout.strip()
     code = int(docker_env.run(["docker", "wait", cid], timeout=900).stdout.strip())
     fleet_log = docker_env.run(["docker", "logs", cid], check=False)
