@@ -13,6 +13,7 @@ import cli.errors
 import clients.rest
 import core.datasets
 import service.matchers
+import service.ray_executor
 import service.sessions
 import service.store
 from core.errors import (
@@ -60,6 +61,7 @@ def _examples() -> list[RandtError]:
         UnavailableError("the service is not running"),
         service.matchers.MatcherProcessError("in matcher process pid 7: Boom: x"),
         service.matchers.MatcherProcessDiedError("matcher process 1 (pid 7) died"),
+        service.ray_executor.ConfigurationError('executor "ray" needs the ray package'),
         service.store.DataDirInUseError("data directory d is already open in another process"),
         core.datasets.NoScansError("d: no scan files (.bin .pcd .ply)"),
         cli.errors.PortInUseError("HTTP port 8080 on 127.0.0.1 is in use"),
