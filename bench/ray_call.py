@@ -55,7 +55,24 @@ def bench_pipe(n_points: int, n_answer: int, calls: int) -> tuple[float, float, 
     return wall / calls, cpu / calls, callee / calls
 
 
-def bench_ray(n_points: int, n_answer: int, calls: int, defaults: bool) -> tuple[float, float, float]:
+class _Echo:
+    """The callee of a Ray call: the same answer to every sweep."""
+
+    def __init__(self, n_answer: int) -> None:
+        self.answer = {"points": np.ones((n_answer, 3), np.float32), "T": np.eye(4)}
+
+    def call(self, sweep: np.ndarray) -> dict[str, Any]:
+        return self.answer
+
+    def cpu(self) -> float:
+        return time.process_time()
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+def _ray_echo(n_answer: int, defaults: bool) -> tuple[Any, Any]:
+    """A local Ray (with the service's RAY_ENV unless ``defaults``) and an :class:`_Echo` actor."""
     if not defaults:
         from service.ray_executor import RAY_ENV
 
@@ -64,19 +81,11 @@ def bench_ray(n_points: int, n_answer: int, calls: int, defaults: bool) -> tuple
     import ray
 
     ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    return ray, ray.remote(num_cpus=0)(_Echo).remote(n_answer)
 
-    @ray.remote(num_cpus=0)
-    class Echo:
-        def __init__(self) -> None:
-            self.answer = {"points": np.ones((n_answer, 3), np.float32), "T": np.eye(4)}
 
-        def call(self, sweep: np.ndarray) -> dict[str, Any]:
-            return self.answer
-
-        def cpu(self) -> float:
-            return time.process_time()
-
-    echo = Echo.remote()  # type: ignore[attr-defined]
+def bench_ray(n_points: int, n_answer: int, calls: int, defaults: bool) -> tuple[float, float, float]:
+    ray, echo = _ray_echo(n_answer, defaults)
     sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
     ray.get(echo.call.remote(sweep))
     a0 = ray.get(echo.cpu.remote())
@@ -93,27 +102,9 @@ def bench_ray_compiled(n_points: int, n_answer: int, calls: int) -> tuple[float,
     """The same call through a Ray compiled graph (shared-memory channels): per call (wall,
     caller CPU, callee CPU), and the callee's CPU per second while it waits for the next call."""
     import psutil  # type: ignore[import-untyped]  # (a dependency of ray)
-    import ray
     from ray.dag import InputNode
 
-    from service.ray_executor import RAY_ENV
-
-    for name, value in RAY_ENV.items():
-        os.environ.setdefault(name, value)
-    ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
-
-    @ray.remote(num_cpus=0)
-    class Echo:
-        def __init__(self) -> None:
-            self.answer = {"points": np.ones((n_answer, 3), np.float32), "T": np.eye(4)}
-
-        def call(self, sweep: np.ndarray) -> dict[str, Any]:
-            return self.answer
-
-        def pid(self) -> int:
-            return os.getpid()
-
-    echo = Echo.remote()  # type: ignore[attr-defined]
+    ray, echo = _ray_echo(n_answer, False)
     callee = psutil.Process(ray.get(echo.pid.remote()))
 
     def callee_cpu() -> float:
