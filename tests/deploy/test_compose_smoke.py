@@ -66,10 +66,11 @@ class Stack:
     timings: dict[str, float] = field(default_factory=dict)
 
     def compose(
-        self, *args: str, timeout: float = 600.0, check: bool = True
+        self, *args: str, timeout: float = 600.0, check: bool = True, env: dict[str, str] | None = None
     ) -> subprocess.CompletedProcess[str]:
+        """``docker-compose`` on the copy; ``env``: variables the compose file interpolates."""
         argv = ["docker-compose", "-f", str(self.compose_file), "-p", self.project, *args]
-        return docker_env.run(argv, timeout=timeout, check=check)
+        return docker_env.run(argv, timeout=timeout, check=check, env={**os.environ, **(env or {})})
 
     def url(self, path: str) -> str:
         return f"http://127.0.0.1:{self.http_port}{path}"
@@ -262,7 +263,7 @@ def stack() -> Iterator[Stack]:
         if stack_ is not None:
             logs = stack_.compose("logs", "--tail", "30", check=False).stdout
             print(f"\nlast compose logs:\n{logs[-4000:]}", file=sys.stderr)
-            stack_.compose("down", "-v", "--remove-orphans", timeout=300, check=False)
+            stack_.compose("--profile", "cluster", "down", "-v", "--remove-orphans", timeout=300, check=False)
         for tag in (app_image, router_tag, *((docker_env.LOCAL_BASE_TAG,) if built_base else ())):
             docker_env.run(["docker", "image", "rm", "-f", tag], check=False)
         # the Dockerfile's build stage, which the legacy builder keeps untagged
@@ -278,12 +279,12 @@ def stack() -> Iterator[Stack]:
         )
 
 
-def _host_vehicle(stack: Stack, tmp_path: Path) -> dict[str, Any]:
-    summary = tmp_path / "host.json"
+def _host_vehicle(stack: Stack, tmp_path: Path, session: str = "host") -> dict[str, Any]:
+    summary = tmp_path / f"{session}.json"
     done = subprocess.run(
         [
             sys.executable, "-m", "cli", "simulate", "--vehicles", "1", "--duration", "3", "--seed", "1",
-            "--connect", f"tcp/127.0.0.1:{stack.zenoh_port}", "--session", "host", "--window", "1",
+            "--connect", f"tcp/127.0.0.1:{stack.zenoh_port}", "--session", session, "--window", "1",
             "--azimuth", "1000",
             "--json-out", str(summary), "--no-progress", "--connect-timeout", "60",
         ],
@@ -355,3 +356,32 @@ def test_restart_and_down_up_keep_every_tile_and_session(stack: Stack) -> None:
     stack.timings["down and up"] = time.monotonic() - t
     again = stack.snapshot()
     assert again == before, "down + up lost or changed a tile or a session"
+
+
+def test_the_cluster_profile_matches_on_a_ray_worker(stack: Stack, tmp_path: Path) -> None:
+    """Profile ``cluster``, for real: a Ray head (0 CPUs) and one worker, the service recreated
+    with ``RANDT_EXECUTOR=ray`` (a Ray Client of the head); a vehicle on the host gets every scan
+    answered, so its matcher ran on the worker (the only node with CPUs, so the only one with
+    matcher hosts), and the sessions mapped before are still there."""
+    before = {s["id"] for s in stack.json("/sessions")}
+    t = time.monotonic()
+    stack.compose("--profile", "cluster", "up", "-d", "ray-head", "ray-worker")
+    stack.compose("up", "-d", "randt", env={"RANDT_EXECUTOR": "ray"})  # recreated: its environment changed
+    stack.wait_healthy()
+    stack.timings["cluster up"] = time.monotonic() - t
+    t = time.monotonic()
+    summary = _host_vehicle(stack, tmp_path, session="host-ray")
+    stack.timings["vehicle through Ray"] = time.monotonic() - t
+    (vehicle,) = summary["vehicles"]
+    assert vehicle["stats"]["acknowledged"] == 30, vehicle["stats"]
+    sessions = {s["id"]: s for s in stack.json("/sessions")}
+    assert sessions["sim000/host-ray"]["scans"] == 30, sessions["sim000/host-ray"]
+    assert before <= set(sessions)
+    cid = stack.container("randt")
+    env = docker_env.run(["docker", "inspect", "--format", "{{json .Config.Env}}", cid]).stdout
+    assert "RANDT_EXECUTOR=ray" in env
+    workers = stack.compose("--profile", "cluster", "ps", "-q", "ray-worker").stdout.split()
+    assert len(workers) == 1
+    # the worker node runs the matcher hosts (Ray's worker processes are named after the actor class)
+    procs = docker_env.run(["docker", "top", workers[0], "-eo", "args"]).stdout
+    assert "_MatcherHost" in procs, procs[-2000:]
