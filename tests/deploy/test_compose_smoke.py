@@ -17,7 +17,9 @@ Then: a simulated vehicle on the host (through the published router port) and th
 (through the router, inside the compose network) both get every scan answered; ``/readyz``,
 ``/maps``, ``/sessions`` and a tile download answer through the published HTTP port; the service
 container restarted (SIGTERM: drained and flushed) keeps every tile byte for byte and every
-session; ``down`` then ``up`` likewise; finally ``down -v`` and the images it built removed.
+session; ``down`` then ``up`` likewise; the cluster profile (a Ray head, one worker, the service
+recreated with ``RANDT_EXECUTOR=ray``) matches a vehicle on the worker; finally ``down -v`` and
+the images it built removed.
 """
 
 from __future__ import annotations
@@ -383,5 +385,5 @@ def test_the_cluster_profile_matches_on_a_ray_worker(stack: Stack, tmp_path: Pat
     workers = stack.compose("--profile", "cluster", "ps", "-q", "ray-worker").stdout.split()
     assert len(workers) == 1
     # the worker node runs the matcher hosts (Ray's worker processes are named after the actor class)
-    procs = docker_env.run(["docker", "top", workers[0], "-eo", "args"]).stdout
+    procs = docker_env.run(["docker", "top", workers[0], "-eo", "pid,args"]).stdout
     assert "_MatcherHost" in procs, procs[-2000:]
