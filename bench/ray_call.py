@@ -16,8 +16,10 @@ import argparse
 import logging
 import multiprocessing as mp
 import os
+import threading
 import time
-from multiprocessing.connection import Connection
+from collections.abc import Callable
+from multiprocessing.connection import Client, Connection
 from typing import Any
 
 import numpy as np
@@ -70,6 +72,26 @@ class _Echo:
     def pid(self) -> int:
         return os.getpid()
 
+    def listen(self, authkey: bytes) -> tuple[str, int]:
+        """Serve the same answer over a socket of its own (``multiprocessing.connection``, the
+        local executor's pipe protocol), on a thread; returns the address."""
+        from multiprocessing.connection import Listener
+
+        listener = Listener(("127.0.0.1", 0), authkey=authkey)
+
+        def serve() -> None:
+            conn = listener.accept()
+            while True:
+                try:
+                    conn.recv()
+                except EOFError:
+                    return
+                conn.send(self.answer)
+
+        threading.Thread(target=serve, daemon=True).start()
+        host, port = listener.address
+        return str(host), int(port)
+
 
 def _ray_echo(n_answer: int, defaults: bool) -> tuple[Any, Any]:
     """A local Ray (with the service's RAY_ENV unless ``defaults``) and an :class:`_Echo` actor."""
@@ -98,36 +120,69 @@ def bench_ray(n_points: int, n_answer: int, calls: int, defaults: bool) -> tuple
     return wall / calls, cpu / calls, (a1 - a0) / calls
 
 
-def bench_ray_compiled(n_points: int, n_answer: int, calls: int) -> tuple[float, float, float, float]:
-    """The same call through a Ray compiled graph (shared-memory channels): per call (wall,
-    caller CPU, callee CPU), and the callee's CPU per second while it waits for the next call."""
+def _cpu_of(pid: int) -> Callable[[], float]:
+    """The CPU seconds process ``pid`` has used so far, read on each call."""
     import psutil  # type: ignore[import-untyped]  # (a dependency of ray)
-    from ray.dag import InputNode
 
-    ray, echo = _ray_echo(n_answer, False)
-    callee = psutil.Process(ray.get(echo.pid.remote()))
+    proc = psutil.Process(pid)
 
-    def callee_cpu() -> float:
-        t = callee.cpu_times()
+    def cpu() -> float:
+        t = proc.cpu_times()
         return float(t.user + t.system)
 
-    with InputNode() as sweep_in:
-        dag = echo.call.bind(sweep_in)
-    compiled = dag.experimental_compile(_buffer_size_bytes=max(1 << 20, 2 * 12 * max(n_points, n_answer)))
-    sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
-    ray.get(compiled.execute(sweep))
+    return cpu
+
+
+def _timed(one_call: Callable[[], object], callee_cpu: Callable[[], float], calls: int) -> tuple[float, ...]:
+    """Per call (wall, caller CPU, callee CPU) over ``calls`` calls after a warm-up call, and the
+    callee's CPU per second over 2 s of waiting for the next call."""
+    one_call()
     a0 = callee_cpu()
     time.sleep(2.0)
     idle = (callee_cpu() - a0) / 2.0
     a0 = callee_cpu()
     t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(calls):
-        ray.get(compiled.execute(sweep))
+        one_call()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    busy = callee_cpu() - a0
+    return wall / calls, cpu / calls, (callee_cpu() - a0) / calls, idle
+
+
+def bench_ray_compiled(n_points: int, n_answer: int, calls: int) -> tuple[float, ...]:
+    """The same call through a Ray compiled graph (shared-memory channels): per call (wall,
+    caller CPU, callee CPU), and the callee's CPU per second while it waits for the next call."""
+    from ray.dag import InputNode
+
+    ray, echo = _ray_echo(n_answer, False)
+    callee_cpu = _cpu_of(ray.get(echo.pid.remote()))
+    with InputNode() as sweep_in:
+        dag = echo.call.bind(sweep_in)
+    compiled = dag.experimental_compile(_buffer_size_bytes=max(1 << 20, 2 * 12 * max(n_points, n_answer)))
+    sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
+    result = _timed(lambda: ray.get(compiled.execute(sweep)), callee_cpu, calls)
     compiled.teardown()
     ray.shutdown()
-    return wall / calls, cpu / calls, busy / calls, idle
+    return result
+
+
+def bench_ray_socket(n_points: int, n_answer: int, calls: int) -> tuple[float, ...]:
+    """The sweep over a socket straight to the Ray actor (Ray only starts and places it; the
+    local executor's pipe protocol): per call (wall, caller CPU, callee CPU), and the callee's CPU
+    per second while idle."""
+    ray, echo = _ray_echo(n_answer, False)
+    callee_cpu = _cpu_of(ray.get(echo.pid.remote()))
+    key = os.urandom(16)
+    conn = Client(ray.get(echo.listen.remote(key)), authkey=key)
+    sweep = np.random.default_rng(0).random((n_points, 3)).astype(np.float32)
+
+    def one_call() -> object:
+        conn.send(sweep)
+        return conn.recv()
+
+    result = _timed(one_call, callee_cpu, calls)
+    conn.close()
+    ray.shutdown()
+    return result
 
 
 def main() -> None:
@@ -138,6 +193,11 @@ def main() -> None:
     parser.add_argument("--ray-defaults", action="store_true", help="Ray's own settings, not RAY_ENV")
     parser.add_argument(
         "--compiled", action="store_true", help="also through a Ray compiled graph (and its idle CPU)"
+    )
+    parser.add_argument(
+        "--socket",
+        action="store_true",
+        help="also over a socket straight to the Ray actor (and its idle CPU)",
     )
     args = parser.parse_args()
     kb_in, kb_out = args.points * 12 / 1e3, args.answer * 12 / 1e3
@@ -154,6 +214,12 @@ def main() -> None:
         wall, cpu, callee, idle = bench_ray_compiled(args.points, args.answer, args.calls)
         print(
             f"ray compiled graph {wall * 1e3:6.2f} ms per call; CPU per call: caller {cpu * 1e3:.2f} ms, "
+            f"callee {callee * 1e3:.2f} ms; callee CPU while idle: {idle:.2f} s per second"
+        )
+    if args.socket:
+        wall, cpu, callee, idle = bench_ray_socket(args.points, args.answer, args.calls)
+        print(
+            f"socket to a Ray actor {wall * 1e3:6.2f} ms per call; CPU per call: caller {cpu * 1e3:.2f} ms, "
             f"callee {callee * 1e3:.2f} ms; callee CPU while idle: {idle:.2f} s per second"
         )
 
