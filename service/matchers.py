@@ -228,8 +228,57 @@ NEXT_REQUEST_WAIT_S = 0.005
 _READY = (True, "ready")
 
 
+class _Sessions:
+    """The matchers of one worker (a matcher process, a Ray matcher host): one per session key,
+    with an empty grid of each session's map (its sizes and cap) to cut the answers to."""
+
+    def __init__(self) -> None:
+        self.matchers: dict[Key, IncrementalMatcher] = {}
+        self.grids: dict[Key, TileGrid | None] = {}
+
+    def open(
+        self,
+        key: Key,
+        state: dict[str, np.ndarray] | None,
+        grid_params: tuple[int, float, int] | None,
+        settings: MatcherSettings | None,
+        registration: RegistrationSettings | None,
+    ) -> None:
+        matcher = IncrementalMatcher(settings, registration)
+        if state:
+            matcher.load_state_dict(state)
+        self.matchers[key] = matcher
+        self.grids[key] = None if grid_params is None else TileGrid(*grid_params)
+
+    def register(
+        self,
+        key: Key,
+        xyz: np.ndarray,
+        offsets: np.ndarray | None,
+        prior: PosePrior | None,
+        stamp_s: float | None,
+        keyframe_voxel_m: float | None,
+    ) -> Registered:
+        """One sweep; the keyframe model is left for the caller to rebuild after replying
+        (``self.matchers[key].model_pending``). With the session's map known, only the points it
+        can keep go back, already in the map frame (float32, as the map stores them): the service
+        process's insert then handles about a quarter of the sweep and transforms nothing."""
+        result = self.matchers[key].register_scan(
+            xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
+        )
+        return _registered(result, self.grids.get(key), keyframe_voxel_m)
+
+    def state(self, key: Key) -> dict[str, np.ndarray]:
+        return self.matchers[key].state_dict()
+
+    def drop(self, key: Key) -> bool:
+        self.grids.pop(key, None)
+        return self.matchers.pop(key, None) is not None
+
+
 def _serve(conn: Connection) -> None:
-    """A worker process's loop: one matcher per session key, one request at a time.
+    """A worker process: warm up, say so (:data:`_READY`), then :func:`serve_requests` until the
+    service quits or is gone.
 
     SIGINT is ignored: Ctrl-C in a terminal reaches the whole process group, and the service
     (the parent) stops its workers itself after draining the sessions (``quit``, or the pipe closing).
@@ -244,8 +293,12 @@ def _serve(conn: Connection) -> None:
         conn.send(_READY)
     except (BrokenPipeError, OSError):  # the service is gone already
         return
-    matchers: dict[Key, IncrementalMatcher] = {}
-    grids: dict[Key, TileGrid | None] = {}  # empty grids with the session map's sizes and cap
+    serve_requests(conn, _Sessions())
+
+
+def serve_requests(conn: Connection, sessions: _Sessions) -> None:
+    """The loop of a matcher process (or of a Ray matcher host's connection): one request at a
+    time, ``(op, key, args)`` in, ``(ok, value)`` out, until ``quit`` or the connection closes."""
     while True:
         try:
             op, key, args = conn.recv()
@@ -258,29 +311,17 @@ def _serve(conn: Connection) -> None:
         behind = False
         try:
             if op == "open":
-                state, grid_params, settings, registration = args
-                matcher = IncrementalMatcher(settings, registration)
-                if state:
-                    matcher.load_state_dict(state)
-                matchers[key] = matcher
-                grids[key] = None if grid_params is None else TileGrid(*grid_params)
+                sessions.open(key, *args)
                 value: Any = None
             elif op == "register":
                 xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
                 # The keyframe model is rebuilt after the reply (below), while the service publishes.
-                result = matchers[key].register_scan(
-                    xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
-                )
-                deferred = matchers[key]
-                # With the session's map known, only the points it can keep go back, already in
-                # the map frame (float32, as the map stores them): the service process's insert
-                # then handles about a quarter of the sweep and transforms nothing.
-                value = _registered(result, grids.get(key), keyframe_voxel_m)
+                value = sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+                deferred = sessions.matchers[key]
             elif op == "state":
-                value = matchers[key].state_dict()
+                value = sessions.state(key)
             elif op == "drop":
-                grids.pop(key, None)
-                value = matchers.pop(key, None) is not None
+                value = sessions.drop(key)
             else:
                 raise ValueError(f"unknown request {op!r}")
         except Exception as exc:  # raised again in the session thread, as itself (module docstring)
@@ -293,7 +334,8 @@ def _serve(conn: Connection) -> None:
         # which at saturation halves the rebuilds. Session threads take turns on the pipe, so a
         # waiting one usually sends within a millisecond or two of the reply; an idle process
         # waits NEXT_REQUEST_WAIT_S, with the pose already out.
-        if deferred is not None and not behind and not conn.poll(NEXT_REQUEST_WAIT_S):
+        rebuild = deferred is not None and deferred.model_pending and not behind
+        if rebuild and deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
                 deferred.update_model()
             except Exception:  # a bug, not bad input: the next request would meet it too
@@ -321,24 +363,18 @@ def _sigint_ignored_by_children() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-class _WorkerProcess:
-    """One child process and the pipe to it; calls are serialized by a lock."""
+class _Channel:
+    """A connection to a worker that speaks :func:`serve_requests`' protocol (a matcher process's
+    pipe, a Ray matcher host's socket): the worker's ready message first, then one call at a time
+    (a lock). A closed connection marks it dead: its calls raise :class:`MatcherProcessDiedError`."""
 
-    def __init__(self, ctx: multiprocessing.context.SpawnContext, index: int) -> None:
-        self.index = index
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)
-        with _sigint_ignored_by_children():
-            self._proc.start()
-        child.close()
+    def __init__(self, conn: Connection, name: str) -> None:
+        self._conn = conn
+        self.name = name
         self._lock = threading.Lock()
         self.sessions: set[Key] = set()
         self.dead = False
-        self.ready = False  # set once the process has sent its ready message (warm-up done)
-
-    @property
-    def pid(self) -> int | None:
-        return self._proc.pid
+        self.ready = False  # set once the worker has sent its ready message (warm-up done)
 
     def _take_ready(self, timeout: float | None) -> bool:
         """Consume the ready message if it has come within ``timeout`` (call with the lock held)."""
@@ -348,12 +384,12 @@ class _WorkerProcess:
             return False
         message = self._conn.recv()
         if message != _READY:
-            raise MatcherProcessError(f"matcher process {self.index} sent {message!r} before being ready")
+            raise MatcherProcessError(f"{self.name} sent {message!r} before being ready")
         self.ready = True
         return True
 
     def wait_ready(self, timeout: float | None) -> bool:
-        """Whether the process finished its warm-up within ``timeout`` s (None: wait for it)."""
+        """Whether the worker finished its warm-up within ``timeout`` s (None: wait for it)."""
         with self._lock:
             if self.dead:
                 return False
@@ -377,22 +413,48 @@ class _WorkerProcess:
         finally:
             self._lock.release()
 
+    def _wait_answer(self) -> None:
+        """Return once the answer can be read (or the connection is closed). A pipe to a child
+        process closes when the child dies, so this does nothing; a socket across machines
+        overrides it to notice a dead peer that cannot close its end."""
+
     def call(self, op: str, key: Key | None, *args: object) -> Any:
         with self._lock:
             if self.dead:
-                raise MatcherProcessDiedError(f"matcher process {self.index} is gone")
+                raise MatcherProcessDiedError(f"{self.name} is gone")
             try:
                 self._take_ready(None)
                 self._conn.send((op, key, args))
+                self._wait_answer()
                 ok, value = self._conn.recv()
             except (EOFError, OSError) as exc:
                 self.dead = True
-                raise MatcherProcessDiedError(
-                    f"matcher process {self.index} (pid {self.pid}) died: {exc or type(exc).__name__}"
-                ) from exc
+                raise MatcherProcessDiedError(f"{self.name} died: {exc or type(exc).__name__}") from exc
         if ok:
             return value
         raise value
+
+    def close(self) -> None:
+        """Close the connection (the worker's loop ends, or waits for another)."""
+        self.dead = True
+        self._conn.close()
+
+
+class _WorkerProcess(_Channel):
+    """One child process and the pipe to it."""
+
+    def __init__(self, ctx: multiprocessing.context.SpawnContext, index: int) -> None:
+        conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)
+        with _sigint_ignored_by_children():
+            self._proc.start()
+        child.close()
+        super().__init__(conn, f"matcher process {index} (pid {self._proc.pid})")
+        self.index = index
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
 
     def close(self, timeout: float = 10.0) -> None:
         if not self.dead:

@@ -36,21 +36,33 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
 import threading
+import time
 from dataclasses import dataclass, field
-from typing import Any
+from multiprocessing import AuthenticationError
+from multiprocessing.connection import (
+    Connection,
+    Listener,
+    answer_challenge,
+    deliver_challenge,
+)
+from typing import Any, Literal
 
 import numpy as np
 
 from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
+from core.odometry import MatcherSettings, PosePrior
 from core.tiles import TileGrid
 from service.matchers import (
+    _READY,
     ForwardingMatcher,
     MatcherProcessDiedError,
     Registered,
-    _registered,
+    _Channel,
+    _Sessions,
+    serve_requests,
     single_threaded_blas,
     warm_up,
 )
@@ -85,7 +97,11 @@ class _MatcherHost:
     """Several sessions' :class:`~core.odometry.IncrementalMatcher` in one Ray worker process,
     one request at a time (wrapped by ``ray.remote`` in :class:`RayMatcherPool`, so that importing
     this module needs no Ray): the actor counterpart of a local matcher process
-    (:func:`service.matchers._serve`), warmed up the same way when it starts."""
+    (:func:`service.matchers._serve`), warmed up the same way when it starts.
+
+    Two ways in, one per pool (``transport``): the service's socket (:meth:`listen`: the local
+    executor's protocol, :func:`service.matchers.serve_requests`, on a connection of its own), or
+    Ray calls (:meth:`open`, :meth:`register`, :meth:`state`, :meth:`drop`)."""
 
     def __init__(self) -> None:
         single_threaded_blas()
@@ -93,22 +109,52 @@ class _MatcherHost:
             warm_up()
         except Exception:  # a failed warm-up only costs the first sweep its compile time
             log.exception("matcher host warm-up failed")
-        self.matchers: dict[Key, IncrementalMatcher] = {}
-        self.grids: dict[Key, TileGrid | None] = {}
+        self.sessions = _Sessions()
         self._rebuilds: list[threading.Thread] = []
-
-    def _rebuilt(self) -> None:
-        """Wait for the model rebuilds started after the previous answers: a request runs only
-        once its host's rebuilds are done (as a matcher process rebuilds between requests)."""
-        for thread in self._rebuilds:
-            thread.join()
-        self._rebuilds.clear()
 
     def ready(self) -> str:
         """The node this host runs on, once warmed up."""
         import ray
 
         return str(ray.get_runtime_context().get_node_id())
+
+    # -- the socket ---------------------------------------------------------------------------------
+    def listen(self, authkey: bytes) -> tuple[str, int]:
+        """Listen on this node's address for the service (``authkey``: the connection's secret,
+        handed over through Ray): a thread accepts one connection at a time and serves it as a
+        matcher process serves its pipe. Returns the address to connect to."""
+        import ray
+
+        listener = Listener((ray.util.get_node_ip_address(), 0), authkey=authkey)
+        threading.Thread(target=self._accept, args=(listener,), name="randt-host-socket", daemon=True).start()
+        address: tuple[str, int] = listener.address
+        return address
+
+    def _accept(self, listener: Listener) -> None:
+        while True:
+            try:
+                conn = listener.accept()
+            except AuthenticationError:
+                log.warning("matcher host: refused a connection without the service's key")
+                continue
+            except OSError:
+                return
+            try:
+                _no_delay(conn)
+                conn.send(_READY)
+                serve_requests(conn, self.sessions)
+            except (EOFError, OSError):
+                pass
+            finally:
+                conn.close()
+
+    # -- Ray calls ----------------------------------------------------------------------------------
+    def _rebuilt(self) -> None:
+        """Wait for the model rebuilds started after the previous answers: a request runs only
+        once its host's rebuilds are done (as a matcher process rebuilds between requests)."""
+        for thread in self._rebuilds:
+            thread.join()
+        self._rebuilds.clear()
 
     def open(
         self,
@@ -119,11 +165,7 @@ class _MatcherHost:
         registration: RegistrationSettings | None,
     ) -> None:
         self._rebuilt()
-        matcher = IncrementalMatcher(settings, registration)
-        if state:
-            matcher.load_state_dict(state)
-        self.matchers[key] = matcher
-        self.grids[key] = None if grid_params is None else TileGrid(*grid_params)
+        self.sessions.open(key, state, grid_params, settings, registration)
 
     def register(
         self,
@@ -132,31 +174,66 @@ class _MatcherHost:
         offsets: np.ndarray | None,
         prior: PosePrior | None,
         stamp_s: float | None,
-        keyframe_voxel_m: float | None,
         behind: bool,
+        keyframe_voxel_m: float | None,
     ) -> Registered:
         """One sweep of session ``key``. Unless ``behind``, a keyframe's model is rebuilt on a
         thread once this answer is on its way (as a matcher process rebuilds after replying), and
         the host's next request waits for it: one remote call per sweep."""
         self._rebuilt()
-        matcher = self.matchers[key]
-        result = matcher.register_scan(
-            xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
-        )
+        registered = self.sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+        matcher = self.sessions.matchers[key]
         if not behind and matcher.model_pending:
             thread = threading.Thread(target=matcher.update_model, daemon=True)
             thread.start()
             self._rebuilds.append(thread)
-        return _registered(result, self.grids[key], keyframe_voxel_m)
+        return registered
 
     def state(self, key: Key) -> dict[str, np.ndarray]:
         self._rebuilt()
-        return self.matchers[key].state_dict()
+        return self.sessions.state(key)
 
     def drop(self, key: Key) -> bool:
         self._rebuilt()
-        self.grids.pop(key, None)
-        return self.matchers.pop(key, None) is not None
+        return self.sessions.drop(key)
+
+
+def _no_delay(conn: Connection) -> None:
+    """Send small writes at once on ``conn``'s socket (``multiprocessing.connection`` writes a
+    message's length and its body separately: Nagle's algorithm would hold the body back)."""
+    with socket.socket(fileno=os.dup(conn.fileno())) as sock:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class _SocketChannel(_Channel):
+    """The service's connection to a matcher host's socket. A host on another machine that dies
+    with its machine cannot close the connection: while an answer is late, the host is asked
+    through Ray whether it still lives (Ray notices dead nodes)."""
+
+    def __init__(self, conn: Connection, name: str, ray: Any, actor: Any) -> None:
+        super().__init__(conn, name)
+        self._ray, self._actor = ray, actor
+
+    def _wait_answer(self) -> None:
+        ping = None
+        while not self._conn.poll(ANSWER_CHECK_S):
+            if ping is None:
+                ping = self._actor.ready.remote()
+            done, _ = self._ray.wait([ping], timeout=0)
+            if done:
+                try:
+                    self._ray.get(ping)
+                except self._ray.exceptions.RayError as exc:
+                    raise EOFError(f"its Ray actor is gone ({type(exc).__name__})") from exc
+                ping = None
+
+
+#: How long an answer over a host's socket may take before the host is asked through Ray whether
+#: it still lives (and again every as long after).
+ANSWER_CHECK_S = 2.0
+
+#: How long the service tries to connect to a matcher host's socket.
+CONNECT_TIMEOUT_S = 10.0
 
 
 @dataclass(eq=False)
@@ -165,9 +242,15 @@ class _Host:
 
     actor: Any
     node: str  # the Ray node it was placed on
-    ready: Any  # the reference of its ``ready`` call (resolves once warmed up)
+    ready: Any  # the reference of its ``ready`` (or ``listen``) call: resolves once warmed up
+    authkey: bytes = b""  # the socket's secret (transport "socket")
     sessions: set[Key] = field(default_factory=set)
     dead: bool = False
+    channel: _SocketChannel | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+Transport = Literal["socket", "ray"]
 
 
 class RayMatcherPool:
@@ -175,40 +258,65 @@ class RayMatcherPool:
     :class:`service.matchers.MatcherPool`.
 
     ``address``: a running cluster's (``ray://`` or ``host:port``); None starts a local Ray (or
-    joins the one this process already initialized)."""
+    joins the one this process already initialized). A cluster that does not answer yet (its head
+    still starting) is tried again for ``join_timeout_s``.
 
-    def __init__(self, address: str | None = None) -> None:
+    ``transport``: how a sweep reaches its host. ``"socket"`` (the default): over a TCP connection
+    from the service to each host (the local executor's protocol, authenticated with a secret
+    handed over through Ray; Ray places and supervises the hosts): 0.79 ms per call where a Ray
+    call takes 2.56 ms (bench/ray_call.py), and the service must reach the nodes' addresses on
+    ephemeral ports. ``"ray"``: every sweep a Ray actor call (only Ray's own ports needed)."""
+
+    def __init__(
+        self, address: str | None = None, transport: Transport = "socket", join_timeout_s: float = 60.0
+    ) -> None:
         try:
             import ray
         except ImportError as exc:
             raise ConfigurationError(
                 'executor "ray" needs the ray package: pip install "randt-fleet[ray]"'
             ) from exc
+        if transport not in ("socket", "ray"):
+            raise ConfigurationError(f'executor ray: transport must be "socket" or "ray", got {transport!r}')
 
         self._ray = ray
+        self.transport = transport
         if not ray.is_initialized():
             if address is None:
                 # RAY_ENV: sweeps inline in the calls, no per-call task events. A cluster started
                 # with `ray start` takes the same variables (docs/deploy.md, docker/compose.yaml).
                 for name, value in RAY_ENV.items():
                     os.environ.setdefault(name, value)
-            try:
-                ray.init(
-                    address=address,
-                    namespace=RAY_NAMESPACE,
-                    include_dashboard=False,
-                    logging_level=logging.WARNING,
-                    log_to_driver=False,
-                )
-            except (ConnectionError, RuntimeError, ValueError) as exc:
-                where = f"the Ray cluster at {address}" if address else "a local Ray"
-                raise ConfigurationError(f"executor ray: cannot start or join {where}: {exc}") from exc
+            self._join(address, join_timeout_s)
         self._host_class = ray.remote(num_cpus=0, max_restarts=0)(_MatcherHost)
         self._lock = threading.Lock()
         self._hosts: list[_Host] = []
         self._placed: dict[Key, _Host] = {}
         with self._lock:
             self._refresh()
+
+    def _join(self, address: str | None, timeout_s: float) -> None:
+        """``ray.init``, tried again every 2 s for ``timeout_s`` while a cluster at ``address``
+        does not answer (a head started with the service takes a few seconds to serve clients)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self._ray.init(
+                    address=address,
+                    namespace=RAY_NAMESPACE,
+                    include_dashboard=False,
+                    logging_level=logging.WARNING,
+                    log_to_driver=False,
+                )
+                return
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                where = f"the Ray cluster at {address}" if address else "a local Ray"
+                if address is None or isinstance(exc, ValueError) or time.monotonic() > deadline:
+                    raise ConfigurationError(f"executor ray: cannot start or join {where}: {exc}") from exc
+                log.warning("executor ray: %s does not answer yet (%s): trying again", where, exc)
+                with contextlib.suppress(Exception):
+                    self._ray.shutdown()
+                time.sleep(2.0)
 
     # -- hosts ------------------------------------------------------------------------------------
     def _nodes(self) -> dict[str, int]:
@@ -237,7 +345,42 @@ class RayMatcherPool:
                 actor: Any = self._host_class.options(
                     scheduling_strategy=NodeAffinitySchedulingStrategy(node, soft=False)
                 ).remote()
-                self._hosts.append(_Host(actor, node, actor.ready.remote()))
+                if self.transport == "socket":
+                    key = os.urandom(32)
+                    self._hosts.append(_Host(actor, node, actor.listen.remote(key), key))
+                else:
+                    self._hosts.append(_Host(actor, node, actor.ready.remote()))
+
+    def _channel(self, host: _Host) -> _SocketChannel:
+        """The connection to ``host``'s socket, made at its first use (once the host listens)."""
+        with host.lock:
+            if host.channel is not None:
+                return host.channel
+            name = f"Ray matcher host on node {host.node[:12]}"
+            try:
+                address = tuple(self._ray.get(host.ready))
+            except self._ray.exceptions.RayError as exc:
+                self._died(host)
+                raise MatcherProcessDiedError(f"{name} is gone: {type(exc).__name__}") from exc
+            try:
+                sock = socket.create_connection(address, timeout=CONNECT_TIMEOUT_S)
+                sock.settimeout(None)
+                conn = Connection(sock.detach())
+                answer_challenge(conn, host.authkey)
+                deliver_challenge(conn, host.authkey)
+                _no_delay(conn)
+            except (OSError, EOFError, AuthenticationError) as exc:
+                self._died(host)
+                log.error(
+                    "executor ray: cannot connect to the %s at %s:%s (%s): the service must reach "
+                    'every Ray node\'s address on ephemeral TCP ports (or use transport "ray")',
+                    name,
+                    *address,
+                    exc,
+                )
+                raise MatcherProcessDiedError(f"cannot connect to the {name} at {address}: {exc}") from exc
+            host.channel = _SocketChannel(conn, f"{name} at {address[0]}:{address[1]}", self._ray, host.actor)
+            return host.channel
 
     def _died(self, host: _Host) -> None:
         """A call on ``host`` found its actor or node gone: place no one there again."""
@@ -290,7 +433,7 @@ class RayMatcherPool:
             self._placed[key] = host
         matcher = RayMatcher(self, host, key, state)
         try:
-            matcher._get(host.actor.open.remote(key, state, params, settings, registration))
+            matcher._call("open", state, params, settings, registration)
         except BaseException:
             self._release(key, host)
             raise
@@ -318,6 +461,8 @@ class RayMatcherPool:
         with self._lock:
             hosts, self._hosts, self._placed = self._hosts, [], {}
         for host in hosts:
+            if host.channel is not None:
+                host.channel.close()
             with contextlib.suppress(self._ray.exceptions.RayError):
                 self._ray.kill(host.actor, no_restart=True)
 
@@ -331,12 +476,19 @@ class RayMatcher(ForwardingMatcher):
         self._pool, self._host, self._key = pool, host, key
         self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
 
-    def _get(self, ref: Any) -> Any:
-        """The call's value; its exception raised as itself; a dead actor or node is a
+    def _call(self, op: str, *args: Any) -> Any:
+        """``op`` on the session's host, over its socket or as a Ray call (the pool's transport):
+        the value; an exception raised there raised as itself; a dead host or node is a
         :class:`MatcherProcessDiedError`."""
+        if self._pool.transport == "socket":
+            try:
+                return self._pool._channel(self._host).call(op, self._key, *args)
+            except MatcherProcessDiedError:
+                self._pool._died(self._host)
+                raise
         ray = self._pool._ray
         try:
-            return ray.get(ref)
+            return ray.get(getattr(self._host.actor, op).remote(self._key, *args))
         except ray.exceptions.RayTaskError as exc:
             cause = exc.cause if isinstance(exc.cause, BaseException) else None
             if cause is None:
@@ -362,21 +514,24 @@ class RayMatcher(ForwardingMatcher):
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
     ) -> Registered:
-        """:meth:`service.matchers.RemoteMatcher.register`, in the session's actor."""
-        registered: Registered = self._get(
-            self._host.actor.register.remote(
-                self._key, points_xyz, time_offset_s, prior, stamp_s, keyframe_voxel_m, behind
-            )
+        """:meth:`service.matchers.RemoteMatcher.register`, on the session's host."""
+        registered: Registered = self._call(
+            "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        state: dict[str, np.ndarray] = self._get(self._host.actor.state.remote(self._key))
+        state: dict[str, np.ndarray] = self._call("state")
         return state
 
     def close(self) -> None:
         """Forget the session in its host (its state should have been saved first)."""
         self._pool._release(self._key, self._host)
-        if not self._host.dead:
-            self._host.actor.drop.remote(self._key)  # not waited for: the host's next request follows it
+        if self._host.dead:
+            return
+        if self._pool.transport == "socket":
+            with contextlib.suppress(MatcherProcessDiedError):
+                self._call("drop")
+        else:  # not waited for: the host's next request follows it
+            self._host.actor.drop.remote(self._key)

@@ -639,7 +639,7 @@ class SessionManager:
         if settings.executor == "ray":
             from service.ray_executor import RayMatcherPool  # the ray extra
 
-            self.pool = RayMatcherPool(settings.ray_address)
+            self.pool = RayMatcherPool(settings.ray_address, settings.ray_transport)
         elif n_procs > 0:
             self.pool = MatcherPool(n_procs)
         #: The shared map's pose graph (service/graph.py); its process starts with the first keyframe.

@@ -130,6 +130,12 @@ class ServiceSettings(BaseSettings):
         description="with executor ray: the cluster to join (host:port or ray://...); none starts a "
         "local Ray",
     )
+    ray_transport: Literal["socket", "ray"] = Field(
+        default="socket",
+        description="with executor ray: how sweeps reach the matcher hosts: a TCP connection from "
+        "the service to each host, placed and supervised by Ray (socket: the service must reach "
+        "the nodes on ephemeral ports), or a Ray actor call per sweep (ray: slower, Ray's ports only)",
+    )
     # map
     default_map: str = Field(
         default="default",

@@ -7,9 +7,9 @@ namespace (Ray binds the machine's external address; alone in a namespace it fal
 A 2-node ``ray.cluster_utils.Cluster`` (one CPU each). Three simulated vehicles, no priors:
 
 1. equality: each vehicle's sweeps through the Ray executor (``RayMatcherPool``: matcher hosts,
-   one per node's CPU) and through an in-process matcher that rebuilds its model after every
-   sweep (what a host does once the sweep is answered): the largest pose difference, and the
-   nodes the sessions ran on;
+   one per node's CPU; over each transport, the hosts' sockets and Ray calls) and through an
+   in-process matcher that rebuilds its model after every sweep (what a host does once the sweep
+   is answered): the largest pose difference, and the nodes the sessions ran on;
 2. a node dies: the same vehicles through a ``SessionManager`` with ``executor="ray"``; after
    half the sweeps (saved), the worker node is removed; the rest are sent. Reported: every
    acknowledged pose, the final trajectories, the truth, which sessions had to move, and how long
@@ -67,41 +67,45 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         stack.callback(cluster.shutdown)
         stack.callback(ray.shutdown)
-        # 1. equality with the in-process matcher
-        pool = RayMatcherPool()
-        diffs, nodes = [], {}
-        sent_bytes: list[int] = []
-        back_bytes: list[int] = []
-        n_points: list[int] = []
-        # every session open at once, as a service's sessions are: spread over the nodes' hosts
-        remotes = {
-            name: pool.open((name, "eq"), grid=TileGrid(20, 0.2)) for name in drives
-        }  # the map's sizes
-        for name, scans in drives.items():
-            local = IncrementalMatcher(MatcherSettings())
-            remote = remotes[name]
-            nodes[name] = pool.node_of((name, "eq"))
-            for s in scans:
-                xyz = s.points_xyz.astype(np.float32)
-                a = local.register_scan(xyz.astype(np.float64), stamp_s=s.stamp_ns * 1e-9)
-                registered = remote.register(xyz, stamp_s=s.stamp_ns * 1e-9)
-                b = registered.result
-                # what moves per sweep: the call's arguments there, the answer back (pickled, as
-                # Ray sends them; the answer carries the points the session's map can keep)
-                sent_bytes.append(len(pickle.dumps((xyz, None, None, s.stamp_ns * 1e-9, None), protocol=5)))
-                back_bytes.append(len(pickle.dumps(registered, protocol=5)))
-                n_points.append(len(xyz))
-                diffs.append(float(np.abs(a.T_world_sensor - b.T_world_sensor).max()))
-                assert a.status == b.status, (name, s.index, a.status, b.status)
-            remote.close()
-        pool.close()
-        out["equality_max_abs"] = max(diffs)
-        out["bytes_per_sweep"] = {
-            "points": float(np.mean(n_points)),
-            "to_actor": float(np.mean(sent_bytes)),
-            "from_actor": float(np.mean(back_bytes)),
-        }
-        out["equality_nodes"] = nodes
+        # 1. equality with the in-process matcher, over each transport (the hosts' sockets, and
+        # a Ray call per sweep)
+        out["equality_max_abs"] = {}
+        for transport in ("socket", "ray"):
+            pool = RayMatcherPool(transport=transport)
+            diffs, nodes = [], {}
+            sent_bytes: list[int] = []
+            back_bytes: list[int] = []
+            n_points: list[int] = []
+            # every session open at once, as a service's sessions are: spread over the nodes' hosts
+            remotes = {
+                name: pool.open((name, "eq"), grid=TileGrid(20, 0.2)) for name in drives
+            }  # the map's sizes
+            for name, scans in drives.items():
+                local = IncrementalMatcher(MatcherSettings())
+                remote = remotes[name]
+                nodes[name] = pool.node_of((name, "eq"))
+                for s in scans:
+                    xyz = s.points_xyz.astype(np.float32)
+                    a = local.register_scan(xyz.astype(np.float64), stamp_s=s.stamp_ns * 1e-9)
+                    registered = remote.register(xyz, stamp_s=s.stamp_ns * 1e-9)
+                    b = registered.result
+                    # what moves per sweep: the call's arguments there, the answer back (pickled;
+                    # the answer carries the points the session's map can keep)
+                    call = (xyz, None, None, s.stamp_ns * 1e-9, None)
+                    sent_bytes.append(len(pickle.dumps(call, protocol=5)))
+                    back_bytes.append(len(pickle.dumps(registered, protocol=5)))
+                    n_points.append(len(xyz))
+                    diffs.append(float(np.abs(a.T_world_sensor - b.T_world_sensor).max()))
+                    assert a.status == b.status, (transport, name, s.index, a.status, b.status)
+                remote.close()
+            pool.close()
+            out["equality_max_abs"][transport] = max(diffs)  # type: ignore[index]
+            out["bytes_per_sweep"] = {
+                "points": float(np.mean(n_points)),
+                "to_actor": float(np.mean(sent_bytes)),
+                "from_actor": float(np.mean(back_bytes)),
+            }
+            out[f"equality_nodes_{transport}"] = nodes
 
         # 2. a node dies under a running service
         data = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-ray-")))

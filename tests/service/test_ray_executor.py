@@ -62,9 +62,11 @@ def scenario() -> dict:
 
 def test_ray_hosts_give_the_local_matchers_poses_on_both_nodes(scenario) -> None:
     """Three sessions on the matcher hosts of both nodes (one host per node's CPU) give the
-    in-process matcher's poses (measured: bit for bit)."""
-    assert scenario["equality_max_abs"] < 1e-6
-    assert set(scenario["equality_nodes"].values()) == set(scenario["nodes"].values())
+    in-process matcher's poses (measured: bit for bit), over the hosts' sockets (the default
+    transport) and over Ray calls."""
+    for transport in ("socket", "ray"):
+        assert scenario["equality_max_abs"][transport] < 1e-6, transport
+        assert set(scenario[f"equality_nodes_{transport}"].values()) == set(scenario["nodes"].values())
 
 
 def test_a_dead_node_moves_its_sessions_without_losing_an_acknowledged_pose(scenario) -> None:
