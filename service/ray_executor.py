@@ -3,8 +3,9 @@
 Why Ray: a fleet outgrows one machine's cores long before it outgrows one map, and the matcher is
 the expensive, stateful part. Ray places stateful actors on a cluster's nodes, notices dead nodes
 and actors, and runs on one machine for tests (``ray.cluster_utils.Cluster``), so the service uses
-it instead of a protocol of its own. Zenoh stays the data plane between vehicles and the service;
-Ray only carries each sweep from the service to its session's actor and the result back.
+it to place and supervise the matchers. Zenoh stays the data plane between vehicles and the
+service; each sweep goes from the service to its session's host and back over the host's socket
+(or, with transport ``"ray"``, in a Ray call).
 
 The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
 
@@ -13,20 +14,26 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
                  restarted by Ray (max_restarts=0), warmed up when it starts (the kernels loaded),
                  as the local pool's worker processes are; a node that joins gets its hosts at
                  the next session's open
+    connect   -> (transport "socket", the default) each host listens on its node's address with a
+                 secret the service gave it through Ray; the service connects at the host's first
+                 use and speaks the local executor's protocol (service.matchers.serve_requests)
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): the session's
                  matcher on the host with fewest sessions, on the node with fewest per CPU
-    register  -> RayMatcher.register: one remote call per sweep, waited for, the sweep inline in
-                 the call (RAY_ENV); unless the session is behind, the host rebuilds a
-                 keyframe's model on a thread once the answer is out, and its next request waits
-                 for it (as a matcher process rebuilds right after replying)
-    errors    -> an exception raised in the host is raised again as itself (Ray's wrapper
-                 removed); a dead host or node is a MatcherProcessDiedError, which the session
-                 layer already handles: the session is dropped unsaved and resumed from the store
-                 with its next scan, on a live host
+    register  -> RayMatcher.register: one request per sweep, waited for; unless the session is
+                 behind, the host rebuilds a keyframe's model once the answer is out, before its
+                 next request (as a matcher process rebuilds right after replying)
+    errors    -> an exception raised in the host is raised again as itself; a closed connection,
+                 or a late answer from a host that Ray reports dead (a node whose machine died
+                 cannot close its sockets), is a MatcherProcessDiedError, which the session layer
+                 already handles: the session is dropped unsaved and resumed from the store with
+                 its next scan, on a live host
 
 Why hosts rather than one actor per session: a new actor is a new process that loads the kernels,
 and the session's first sweeps queue behind it for a second or two (bench/service.py: the
-largest latency of a Ray run was that wait).
+largest latency of a Ray run was that wait). Why a socket rather than a Ray call per sweep: a Ray
+call cost 2.56 ms and 1.4 + 1.3 ms of CPU where the socket takes 0.79 ms and 0.47 + 0.42 ms
+(bench/ray_call.py, a 630 kB sweep and a 448 kB answer), on the cores the matchers need; Ray's
+compiled graphs were as fast but spin a core per idle host.
 
 Nothing here is imported unless ``executor="ray"`` (``pip install "randt-fleet[ray]"``).
 """
@@ -41,12 +48,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from multiprocessing import AuthenticationError
-from multiprocessing.connection import (
-    Connection,
-    Listener,
-    answer_challenge,
-    deliver_challenge,
-)
+from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 from typing import Any, Literal
 
 import numpy as np
@@ -87,6 +89,10 @@ RAY_ENV = {
     "RAY_task_rpc_inlined_bytes_limit": str(16 << 20),
     "RAY_task_events_report_interval_ms": "0",
     "RAY_enable_metrics_collection": "0",
+    # Ray starts its workers at nice 15: a matcher host then yields its core to the service
+    # and every other process (two vehicles on two cores: 1.2-1.3x the local executor's mean
+    # latency, with the same CPU). The matchers are the work; they run at the service's priority.
+    "RAY_worker_niceness": "0",
 }
 
 #: Ray's namespace for the service's actors.
@@ -105,6 +111,7 @@ class _MatcherHost:
 
     def __init__(self) -> None:
         single_threaded_blas()
+        _normal_priority()
         try:
             warm_up()
         except Exception:  # a failed warm-up only costs the first sweep its compile time
@@ -118,35 +125,55 @@ class _MatcherHost:
 
         return str(ray.get_runtime_context().get_node_id())
 
+    def niceness(self) -> int:
+        """This host's nice value (0 unless the node starts workers niced and we may not undo it)."""
+        return os.nice(0)
+
     # -- the socket ---------------------------------------------------------------------------------
     def listen(self, authkey: bytes) -> tuple[str, int]:
         """Listen on this node's address for the service (``authkey``: the connection's secret,
-        handed over through Ray): a thread accepts one connection at a time and serves it as a
+        handed over through Ray) and serve each connection that proves it knows the secret as a
         matcher process serves its pipe. Returns the address to connect to."""
         import ray
 
-        listener = Listener((ray.util.get_node_ip_address(), 0), authkey=authkey)
-        threading.Thread(target=self._accept, args=(listener,), name="randt-host-socket", daemon=True).start()
-        address: tuple[str, int] = listener.address
-        return address
+        ip = ray.util.get_node_ip_address()
+        server = socket.create_server((ip, 0), family=socket.AF_INET6 if ":" in ip else socket.AF_INET)
+        threading.Thread(
+            target=self._accept, args=(server, authkey), name="randt-host-listen", daemon=True
+        ).start()
+        host, port = server.getsockname()[:2]
+        return str(host), int(port)
 
-    def _accept(self, listener: Listener) -> None:
+    def _accept(self, server: socket.socket, authkey: bytes) -> None:
+        """Each connection on a thread of its own, so one that never completes the handshake
+        cannot keep the service's out."""
         while True:
             try:
-                conn = listener.accept()
-            except AuthenticationError:
-                log.warning("matcher host: refused a connection without the service's key")
-                continue
+                sock, _ = server.accept()
             except OSError:
                 return
-            try:
-                _no_delay(conn)
-                conn.send(_READY)
-                serve_requests(conn, self.sessions)
-            except (EOFError, OSError):
-                pass
-            finally:
-                conn.close()
+            threading.Thread(
+                target=self._serve_connection, args=(sock, authkey), name="randt-host-conn", daemon=True
+            ).start()
+
+    def _serve_connection(self, sock: socket.socket, authkey: bytes) -> None:
+        sock.settimeout(None)  # blocking (a default timeout would make the descriptor non-blocking)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn = Connection(sock.detach())
+        try:
+            deliver_challenge(conn, authkey)
+            answer_challenge(conn, authkey)
+        except (AuthenticationError, EOFError, OSError) as exc:
+            log.warning("matcher host: refused a connection without the service's key (%s)", exc)
+            conn.close()
+            return
+        try:
+            conn.send(_READY)
+            serve_requests(conn, self.sessions)
+        except (EOFError, OSError):
+            pass
+        finally:
+            conn.close()
 
     # -- Ray calls ----------------------------------------------------------------------------------
     def _rebuilt(self) -> None:
@@ -196,6 +223,22 @@ class _MatcherHost:
     def drop(self, key: Key) -> bool:
         self._rebuilt()
         return self.sessions.drop(key)
+
+
+def _normal_priority() -> None:
+    """Run this matcher host at nice 0 if Ray started it niced (a node without
+    ``RAY_worker_niceness=0``: Ray's default is 15). Lowering a nice value needs root or
+    CAP_SYS_NICE; without them the host stays niced and says so."""
+    if os.nice(0) <= 0:
+        return
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, 0)
+    except OSError:
+        log.warning(
+            "matcher host runs at nice %d (Ray's worker niceness) and may not change it: set "
+            "RAY_worker_niceness=0 in the environment of `ray start` on every node (docs/deploy.md)",
+            os.nice(0),
+        )
 
 
 def _no_delay(conn: Connection) -> None:
@@ -386,6 +429,8 @@ class RayMatcherPool:
         """A call on ``host`` found its actor or node gone: place no one there again."""
         with self._lock:
             host.dead = True
+        if host.channel is not None:
+            host.channel.close()
 
     def __len__(self) -> int:
         """The cluster's live nodes."""

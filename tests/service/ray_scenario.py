@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import pickle
 import tempfile
 import time
@@ -36,7 +37,7 @@ def main() -> None:
     from core.tiles import TileGrid
     from core.transforms import invert
     from service.metrics import ServiceMetrics
-    from service.ray_executor import RayMatcherPool
+    from service.ray_executor import RAY_ENV, RayMatcherPool
     from service.sessions import SessionManager
     from service.settings import ServiceSettings
     from service.store import Store
@@ -57,6 +58,7 @@ def main() -> None:
     }
     out: dict[str, object] = {}
     t0 = time.monotonic()
+    os.environ.update(RAY_ENV)  # as on every node of a deployment (docs/deploy.md)
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
     worker_node = cluster.add_node(num_cpus=1)
     ray.init(address=cluster.address, include_dashboard=False, logging_level="ERROR", log_to_driver=False)
@@ -72,6 +74,8 @@ def main() -> None:
         out["equality_max_abs"] = {}
         for transport in ("socket", "ray"):
             pool = RayMatcherPool(transport=transport)
+            pool.wait_ready(120)
+            out["host_niceness"] = sorted(ray.get([h.actor.niceness.remote() for h in pool._hosts]))
             diffs, nodes = [], {}
             sent_bytes: list[int] = []
             back_bytes: list[int] = []

@@ -197,3 +197,51 @@ def test_a_ctrl_c_while_a_matcher_process_starts_does_not_kill_it() -> None:
         assert pool.pids() == [pid]
     finally:
         pool.close()
+
+
+def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
+    """The matcher host's socket (the Ray executor's default transport), without a Ray cluster:
+    a connection with the wrong key is refused and one that never speaks does not keep the
+    service out; the service's connection (the right key) gets the in-process matcher's poses,
+    over the local executor's protocol."""
+    import socket
+    import threading
+    from multiprocessing import AuthenticationError
+    from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
+
+    from service.matchers import _Channel
+    from service.ray_executor import _MatcherHost
+
+    host = _MatcherHost()  # warms up here, as in its Ray worker
+    key = os.urandom(32)
+    server = socket.create_server(("127.0.0.1", 0))
+    threading.Thread(target=host._accept, args=(server, key), daemon=True).start()
+    address = server.getsockname()
+    def connect() -> Connection:
+        sock = socket.create_connection(address, timeout=10)
+        sock.settimeout(None)  # Connection reads the descriptor blocking
+        return Connection(sock.detach())
+
+    try:
+        stranger = connect()
+        with pytest.raises(AuthenticationError):
+            answer_challenge(stranger, b"not the key" * 3)
+        stranger.close()
+        silent = socket.create_connection(address)  # never completes the handshake
+        conn = connect()
+        assert conn.poll(10), "no handshake: the silent connection keeps the service's out"
+        answer_challenge(conn, key)
+        deliver_challenge(conn, key)
+        channel = _Channel(conn, "matcher host")
+        channel.call("open", ("v", "s"), None, None, None, None)
+        local = IncrementalMatcher(MatcherSettings())
+        for xyz in _sweeps(4):
+            registered = channel.call("register", ("v", "s"), xyz, None, None, None, False, None)
+            a = local.register_scan(xyz.astype(np.float64))
+            assert registered.result.status == a.status
+            np.testing.assert_allclose(registered.result.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
+        assert channel.call("drop", ("v", "s")) is True
+        channel.close()
+        silent.close()
+    finally:
+        server.close()

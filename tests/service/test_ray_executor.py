@@ -64,6 +64,7 @@ def test_ray_hosts_give_the_local_matchers_poses_on_both_nodes(scenario) -> None
     """Three sessions on the matcher hosts of both nodes (one host per node's CPU) give the
     in-process matcher's poses (measured: bit for bit), over the hosts' sockets (the default
     transport) and over Ray calls."""
+    assert scenario["host_niceness"] == [0, 0]  # not Ray's default 15: the hosts are the work
     for transport in ("socket", "ray"):
         assert scenario["equality_max_abs"][transport] < 1e-6, transport
         assert set(scenario[f"equality_nodes_{transport}"].values()) == set(scenario["nodes"].values())
