@@ -35,6 +35,9 @@ p99 < 200 ms and every pose is within 5 cm of the truth (issue 14).
 ``RANDT_GRAPH``), and prints the ratio of their latencies (issue 15: at most +10 % by the mean);
 the cost table then also gives the graph process's CPU per sweep, its keyframes and loops.
 
+``--repeat N`` runs each such pair N times, interleaved, and adds the ratio over all of them (a
+single run's ratio moves by about 5 %).
+
 ``--plot`` draws latency percentiles and drops against fleet size (matplotlib, the bench extra)
 and writes the same figures as CSV beside the image. Every figure comes from this run.
 """
@@ -626,6 +629,26 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def _pooled(results: list[dict[str, Any]], what: str, repeat: int) -> None:
+    """With ``repeat`` > 1: per fleet size, the second runs' mean latency over all their sweeps
+    against the first runs' (each run's mean weighted by its poses)."""
+    if repeat < 2:
+        return
+    for n in sorted({r["vehicles"] for r in results}):
+        runs = [r for r in results if r["vehicles"] == n]
+        first, second = runs[0::2], runs[1::2]
+
+        def pooled(rs: list[dict[str, Any]]) -> float:
+            return sum(r["mean_ms"] * r["poses"] for r in rs) / sum(r["poses"] for r in rs)
+
+        ratios = ", ".join(f"{b['mean_ms'] / a['mean_ms']:.3f}x" for a, b in zip(first, second, strict=True))
+        print(
+            f"- {n} vehicle(s), {what} over {len(first)} interleaved pairs: mean "
+            f"{pooled(second):.1f} / {pooled(first):.1f} ms = {pooled(second) / pooled(first):.3f}x "
+            f"(pairs: {ratios})"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 6, 8])
@@ -650,6 +673,14 @@ def main() -> None:
         help="where the matchers run (RANDT_EXECUTOR); both: each fleet size with local worker processes, "
         "then Ray actors, and the ratio of their latencies (issue 16: at most +15 %%). Ray binds the "
         "machine's external address: run it in a private network namespace (docs/benchmarks.md)",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="with --graph both or --executor both: run each pair this many times, interleaved "
+        "(off, on, off, on...), and report the ratio of the mean latencies over all of them beside "
+        "each pair's (one run's ratio moves by about 5 %%)",
     )
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--plot", type=Path, help="latency and drops against fleet size (PNG; CSV beside it)")
@@ -692,8 +723,9 @@ def main() -> None:
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
         graphs = ["off", "on"] if args.graph == "both" else [args.graph]
         executors = ["local", "ray"] if args.executor == "both" else [args.executor]
+        pairs = [(g, e) for g in graphs for e in executors]
         for n in args.vehicles:
-            for graph, executor in ((g, e) for g in graphs for e in executors):
+            for graph, executor in pairs * (args.repeat if len(pairs) == 2 else 1):
                 progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}")
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
@@ -717,6 +749,7 @@ def main() -> None:
                 f"{on['mean_ms'] / off['mean_ms']:.3f}x; p50 {on['p50_ms'] / off['p50_ms']:.3f}x, "
                 f"p99 {on['p99_ms'] / off['p99_ms']:.3f}x"
             )
+        _pooled(results, "on against off", args.repeat)
     if args.executor == "both":
         print("\nPer-sweep latency, Ray actors against local worker processes (issue 16: at most +15 %):")
         for local, ray in zip(results[0::2], results[1::2], strict=True):
@@ -727,6 +760,7 @@ def main() -> None:
                 f"p50 {ray['p50_ms'] / local['p50_ms']:.3f}x, p99 {ray['p99_ms'] / local['p99_ms']:.3f}x; "
                 f"poses/s {ray['poses_per_s']:.1f} / {local['poses_per_s']:.1f}"
             )
+        _pooled(results, "Ray against local", args.repeat)
     holding = [r["vehicles"] for r in results if r["holds"]]
     print(
         f"\nLargest fleet that holds (no drop, p99 < {P99_TARGET_MS:.0f} ms, every pose within "
