@@ -227,6 +227,7 @@ def methods(scale: Scale, tiny: bool) -> dict[str, Runner]:
         "RANDT": ours("randt"),
         "RANDT w/o IQR outlier removal": ours("randt", outlier_removal="none", select_moving_points=False),
         "RANDT w/o SVD step": ours("randt", svd_refinement=False),
+        "RANDT, SVD residual fence 1.5 (an option)": ours("randt", svd_residual_fence_k=1.5, svd_fence_k=1.5),
         "NDT (classic)": ours("ndt"),
         "ICP point (ours)": ours("icp-point"),
         "ICP plane (ours)": ours("icp-plane"),

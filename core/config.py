@@ -66,6 +66,12 @@ class RegistrationSettings(BaseModel):
     svd_fence_k: float = Field(
         default=6.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
     )
+    svd_residual_fence_k: float | None = Field(
+        default=None,
+        gt=0,
+        description="Tukey multiplier on the SVD step's point-to-plane residuals at each search "
+        "(None: no residual fence, only the distance fence)",
+    )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"
     )

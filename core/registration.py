@@ -415,7 +415,14 @@ def _svd_refine(
         sel = np.flatnonzero(ok)[has_normal]
         if sel.size < 10:
             return None
-        return moving[sel], ref.points_xyz[idx[sel]], normals[has_normal]
+        src, dst, nrm = moving[sel], ref.points_xyz[idx[sel]], normals[has_normal]
+        if settings.svd_residual_fence_k is not None:
+            r = np.abs(np.einsum("ij,ij->i", transform_points(T_cur, src) - dst, nrm))
+            keep = r <= tukey_fences(r, settings.svd_residual_fence_k)[1]
+            if keep.sum() < 10:
+                return None
+            src, dst, nrm = src[keep], dst[keep], nrm[keep]
+        return src, dst, nrm
 
     def residuals(
         T_cur: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]
