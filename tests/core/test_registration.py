@@ -132,8 +132,8 @@ def test_sparse_object_clouds_get_levels_their_voxels_can_fill() -> None:
     voxel (3-4 cm in a unit sphere) holds 1.3-1.4 points by the mean, and every registration used
     to raise InvalidCloudError ("no voxel holds 6 points"). The levels now grow until the voxels
     hold 8 by the mean, and each object is placed (a 10.6 deg, 12 cm offset, the same points)
-    within 2.5 deg and 3 cm, or reported degenerate (a chair whose points, 1024 on thin legs and a
-    seat, barely constrain two directions)."""
+    within 2.5 deg and 3 cm, or its result says it failed: degenerate, or an inlier ratio below
+    0.5 (a chair, 1024 points on thin legs and a seat: 0.04 where the placed ones have 0.96-0.99)."""
     from core.io import read_cloud
     from core.registration import auto_voxel_sizes
     from tests.data import require_data
@@ -152,6 +152,9 @@ def test_sparse_object_clouds_get_levels_their_voxels_can_fill() -> None:
         except DegenerateProblemError:
             continue
         err_m, err_deg = transform_error(result.T_target_source, T_true)
+        if result.inlier_ratio < 0.5:  # a failure the result owns up to (measured: 0.04)
+            assert err_m > 0.03 or err_deg > 2.5, f"{mesh.name}: placed, inlier ratio {result.inlier_ratio}"
+            continue
         assert err_m < 0.03 and err_deg < 2.5, f"{mesh.name}: {err_m:.4f} m {err_deg:.3f} deg"
         placed += 1
     assert placed >= len(meshes) - 1
@@ -180,3 +183,25 @@ def test_the_svd_residual_fence_helps_on_the_papers_protocol() -> None:
             errors[name].append(transform_error(T, trial.T_true)[0])
     assert max(errors["fenced"]) < 0.02, errors
     assert np.mean(errors["fenced"]) < 0.8 * np.mean(errors["plain"]), errors
+
+
+def test_a_moving_cloud_equalized_coarser_than_the_finest_voxel_still_registers() -> None:
+    """A sweep equalized at 0.5 m (one point per voxel; the paper's density equalization taken
+    far) against the 0.6 m finest NDT level: Algorithm 1's moving-point selection kept 0.1 % of it
+    (its voxels hold too few points for Gaussians) and registration ended degenerate. The
+    selection is now skipped when it would keep less than a quarter (real scans keep 43-89 %),
+    and five protocol trials are placed within its success bounds (5 cm, 0.5 deg; measured
+    0.4-3.2 cm, 0.02-0.11 deg)."""
+    from core.protocol import make_trial
+    from core.shared_data import kitti00_velodyne
+    from core.voxel import pack_keys, voxel_coords
+    from tests.data import require_data
+
+    require_data("kitti00/velodyne/000000.bin")
+    scan = kitti00_velodyne(0).astype(np.float64)
+    for seed in range(5):
+        trial = make_trial(scan, np.random.default_rng(20261325 + seed))
+        _, first = np.unique(pack_keys(voxel_coords(trial.source_xyz, 0.5)), return_index=True)
+        result = register(trial.source_xyz[np.sort(first)], trial.target_xyz)
+        err_m, err_deg = transform_error(result.T_target_source, trial.T_true)
+        assert err_m < 0.05 and err_deg < 0.5, f"seed {seed}: {err_m:.4f} m {err_deg:.3f} deg"
