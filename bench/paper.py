@@ -726,51 +726,43 @@ OBJ_HEAD = [
 ]
 
 
-def scan_rows(rows: dict[str, Row]) -> list[list[str]]:
+def _table_rows(rows: dict[str, Row], cells: list[Callable[[Row], str]]) -> list[list[str]]:
+    """One line per method: its name, its successes, then ``cells`` (each a column's text)."""
+    return [[m, f"{sum(r.success)}/{len(r.success)}", *(cell(r) for cell in cells)] for m, r in rows.items()]
+
+
+def _time_cells(rows: dict[str, Row]) -> list[Callable[[Row], str]]:
+    """Mean time and its ratio to VGICP's in the same rows."""
     vg = mean(rows[VGICP].time_s) if VGICP in rows else math.nan
-    out = []
-    for m, r in rows.items():
-        n = len(r.success)
-        out.append(
-            [
-                m,
-                f"{sum(r.success)}/{n}",
-                fmt(mean(r.t_err)),
-                fmt(mean(r.r_err)),
-                fmt(mean(r.rmse_true)),
-                fmt(mean(r.rmse_nn)),
-                fmt(mean(r.chamfer)),
-                f"{mean(r.time_s):.3f}",
-                f"{mean(r.time_s) / vg:.2f}",
-                fmt(mean(r.points_after), 6),
-                f"{mean(r.overlap):.3f}",
-                fmt(mean(r.density_std)),
-                str(r.failed),
-            ]
-        )
-    return out
+    return [lambda r: f"{mean(r.time_s):.3f}", lambda r: f"{mean(r.time_s) / vg:.2f}"]
+
+
+def scan_rows(rows: dict[str, Row]) -> list[list[str]]:
+    first: list[Callable[[Row], str]] = [
+        lambda r: fmt(mean(r.t_err)),
+        lambda r: fmt(mean(r.r_err)),
+        lambda r: fmt(mean(r.rmse_true)),
+        lambda r: fmt(mean(r.rmse_nn)),
+        lambda r: fmt(mean(r.chamfer)),
+    ]
+    last: list[Callable[[Row], str]] = [
+        lambda r: fmt(mean(r.points_after), 6),
+        lambda r: f"{mean(r.overlap):.3f}",
+        lambda r: fmt(mean(r.density_std)),
+        lambda r: str(r.failed),
+    ]
+    return _table_rows(rows, first + _time_cells(rows) + last)
 
 
 def object_rows(rows: dict[str, Row]) -> list[list[str]]:
-    vg = mean(rows[VGICP].time_s) if VGICP in rows else math.nan
-    out = []
-    for m, r in rows.items():
-        n = len(r.success)
-        out.append(
-            [
-                m,
-                f"{sum(r.success)}/{n}",
-                fmt(mean(r.r_err)),
-                fmt(mean(r.t_err)),
-                fmt(mean(r.rmse_true)),
-                fmt(mean(r.rmse_nn)),
-                fmt(mean(r.chamfer)),
-                f"{mean(r.time_s):.3f}",
-                f"{mean(r.time_s) / vg:.2f}",
-                str(r.failed),
-            ]
-        )
-    return out
+    first: list[Callable[[Row], str]] = [
+        lambda r: fmt(mean(r.r_err)),
+        lambda r: fmt(mean(r.t_err)),
+        lambda r: fmt(mean(r.rmse_true)),
+        lambda r: fmt(mean(r.rmse_nn)),
+        lambda r: fmt(mean(r.chamfer)),
+    ]
+    return _table_rows(rows, first + _time_cells(rows) + [lambda r: str(r.failed)])
 
 
 def verdicts(res: Results) -> list[str]:

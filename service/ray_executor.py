@@ -107,7 +107,7 @@ class _MatcherHost:
 
     Two ways in, one per pool (``transport``): the service's socket (:meth:`listen`: the local
     executor's protocol, :func:`service.matchers.serve_requests`, on a connection of its own), or
-    Ray calls (:meth:`open`, :meth:`register`, :meth:`state`, :meth:`drop`)."""
+    a Ray call per request (:meth:`call`, the same requests)."""
 
     def __init__(self) -> None:
         single_threaded_blas()
@@ -183,46 +183,28 @@ class _MatcherHost:
             thread.join()
         self._rebuilds.clear()
 
-    def open(
-        self,
-        key: Key,
-        state: dict[str, np.ndarray] | None,
-        grid_params: tuple[int, float, int] | None,
-        settings: MatcherSettings | None,
-        registration: RegistrationSettings | None,
-    ) -> None:
+    def call(self, op: str, key: Key, *args: Any) -> Any:
+        """One request of :func:`service.matchers.serve_requests`' protocol as a Ray call
+        (transport "ray"). After a ``register`` whose session is not ``behind``, a keyframe's
+        model is rebuilt on a thread once the answer is on its way (as a matcher process rebuilds
+        after replying), and the host's next request waits for it: one remote call per sweep."""
         self._rebuilt()
-        self.sessions.open(key, state, grid_params, settings, registration)
-
-    def register(
-        self,
-        key: Key,
-        xyz: np.ndarray,
-        offsets: np.ndarray | None,
-        prior: PosePrior | None,
-        stamp_s: float | None,
-        behind: bool,
-        keyframe_voxel_m: float | None,
-    ) -> Registered:
-        """One sweep of session ``key``. Unless ``behind``, a keyframe's model is rebuilt on a
-        thread once this answer is on its way (as a matcher process rebuilds after replying), and
-        the host's next request waits for it: one remote call per sweep."""
-        self._rebuilt()
-        registered = self.sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
-        matcher = self.sessions.matchers[key]
-        if not behind and matcher.model_pending:
-            thread = threading.Thread(target=matcher.update_model, daemon=True)
-            thread.start()
-            self._rebuilds.append(thread)
-        return registered
-
-    def state(self, key: Key) -> dict[str, np.ndarray]:
-        self._rebuilt()
-        return self.sessions.state(key)
-
-    def drop(self, key: Key) -> bool:
-        self._rebuilt()
-        return self.sessions.drop(key)
+        if op == "open":
+            return self.sessions.open(key, *args)
+        if op == "register":
+            xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
+            registered = self.sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+            matcher = self.sessions.matchers[key]
+            if not behind and matcher.model_pending:
+                thread = threading.Thread(target=matcher.update_model, daemon=True)
+                thread.start()
+                self._rebuilds.append(thread)
+            return registered
+        if op == "state":
+            return self.sessions.state(key)
+        if op == "drop":
+            return self.sessions.drop(key)
+        raise ValueError(f"unknown request {op!r}")
 
 
 def _normal_priority() -> None:
@@ -533,7 +515,7 @@ class RayMatcher(ForwardingMatcher):
                 raise
         ray = self._pool._ray
         try:
-            return ray.get(getattr(self._host.actor, op).remote(self._key, *args))
+            return ray.get(self._host.actor.call.remote(op, self._key, *args))
         except ray.exceptions.RayTaskError as exc:
             cause = exc.cause if isinstance(exc.cause, BaseException) else None
             if cause is None:
@@ -579,4 +561,4 @@ class RayMatcher(ForwardingMatcher):
             with contextlib.suppress(MatcherProcessDiedError):
                 self._call("drop")
         else:  # not waited for: the host's next request follows it
-            self._host.actor.drop.remote(self._key)
+            self._host.actor.call.remote("drop", self._key)
