@@ -217,6 +217,7 @@ def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
     server = socket.create_server(("127.0.0.1", 0))
     threading.Thread(target=host._accept, args=(server, key), daemon=True).start()
     address = server.getsockname()
+
     def connect() -> Connection:
         sock = socket.create_connection(address, timeout=10)
         sock.settimeout(None)  # Connection reads the descriptor blocking
