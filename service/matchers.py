@@ -275,6 +275,24 @@ class _Sessions:
         self.grids.pop(key, None)
         return self.matchers.pop(key, None) is not None
 
+    def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> tuple[Any, IncrementalMatcher | None]:
+        """One request of the protocol (``open``, ``register``, ``state``, ``drop``): its value,
+        and after a ``register`` whose session is not behind the matcher whose keyframe model
+        waits to be rebuilt once the answer is out (else None)."""
+        if op == "open":
+            self.open(key, *args)
+            return None, None
+        if op == "register":
+            xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
+            value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+            matcher = self.matchers[key]
+            return value, (matcher if matcher.model_pending and not behind else None)
+        if op == "state":
+            return self.state(key), None
+        if op == "drop":
+            return self.drop(key), None
+        raise ValueError(f"unknown request {op!r}")
+
 
 def _serve(conn: Connection) -> None:
     """A worker process: warm up, say so (:data:`_READY`), then :func:`serve_requests` until the
@@ -308,22 +326,9 @@ def serve_requests(conn: Connection, sessions: _Sessions) -> None:
             conn.send((True, None))
             return
         deferred: IncrementalMatcher | None = None
-        behind = False
         try:
-            if op == "open":
-                sessions.open(key, *args)
-                value: Any = None
-            elif op == "register":
-                xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
-                # The keyframe model is rebuilt after the reply (below), while the service publishes.
-                value = sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
-                deferred = sessions.matchers[key]
-            elif op == "state":
-                value = sessions.state(key)
-            elif op == "drop":
-                value = sessions.drop(key)
-            else:
-                raise ValueError(f"unknown request {op!r}")
+            # The keyframe model is rebuilt after the reply (below), while the service publishes.
+            value, deferred = sessions.handle(op, key, args)
         except Exception as exc:  # raised again in the session thread, as itself (module docstring)
             conn.send((False, _portable(exc)))
         else:
@@ -334,8 +339,7 @@ def serve_requests(conn: Connection, sessions: _Sessions) -> None:
         # which at saturation halves the rebuilds. Session threads take turns on the pipe, so a
         # waiting one usually sends within a millisecond or two of the reply; an idle process
         # waits NEXT_REQUEST_WAIT_S, with the pose already out.
-        rebuild = deferred is not None and deferred.model_pending and not behind
-        if rebuild and deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
+        if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
                 deferred.update_model()
             except Exception:  # a bug, not bad input: the next request would meet it too

@@ -189,22 +189,12 @@ class _MatcherHost:
         model is rebuilt on a thread once the answer is on its way (as a matcher process rebuilds
         after replying), and the host's next request waits for it: one remote call per sweep."""
         self._rebuilt()
-        if op == "open":
-            return self.sessions.open(key, *args)
-        if op == "register":
-            xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
-            registered = self.sessions.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
-            matcher = self.sessions.matchers[key]
-            if not behind and matcher.model_pending:
-                thread = threading.Thread(target=matcher.update_model, daemon=True)
-                thread.start()
-                self._rebuilds.append(thread)
-            return registered
-        if op == "state":
-            return self.sessions.state(key)
-        if op == "drop":
-            return self.sessions.drop(key)
-        raise ValueError(f"unknown request {op!r}")
+        value, deferred = self.sessions.handle(op, key, args)
+        if deferred is not None:
+            thread = threading.Thread(target=deferred.update_model, daemon=True)
+            thread.start()
+            self._rebuilds.append(thread)
+        return value
 
 
 def _normal_priority() -> None:
