@@ -232,6 +232,8 @@ if graph is not None:
     stats["loops"] = value("randt_graph_loops_total", {"result": "accepted"}) or 0
     stats["verified"] = stats["loops"] + (value("randt_graph_loops_total", {"result": "refused"}) or 0)
     stats["dropped"] = value("randt_graph_queue_dropped_total") or 0
+    gate = getattr(graph, "gate", None)  # (YieldGate; a service before it has none)
+    stats["held_s"] = gate.held_s if gate is not None else 0.0
 service.stop()
 print(json.dumps({"received": int(received), "graph": stats}), flush=True)
 """
@@ -464,6 +466,7 @@ def run_one(
         "graph_loops": int(graph_stats.get("loops", 0)),
         "graph_verified": int(graph_stats.get("verified", 0)),
         "graph_dropped": int(graph_stats.get("dropped", 0)),
+        "graph_held_s": float(graph_stats.get("held_s", 0.0)),
         "cpu_graph_ms": 1e3 * graph_stats.get("cpu_s", 0.0) / poses,
         "mean_ms": float(lat_ms.mean()) if lat_ms.size else float("nan"),
         "seconds": n_scans / RATE_HZ,
@@ -540,7 +543,7 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
         "graph",
         "matchers",
         "CPU ms per sweep: service main / matchers / sum",
-        "graph process: CPU ms per sweep, keyframes, loops accepted / verified, dropped",
+        "graph process: CPU ms per sweep, keyframes, loops accepted / verified, dropped, s held",
         "cores busy",
         "bytes per sweep",
         "Mbit/s per vehicle",
@@ -558,7 +561,7 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
             ),
             f"{r['cpu_main_ms']:.1f} / {r['cpu_matchers_ms']:.1f} / {r['cpu_total_ms']:.1f}",
             f"{r['cpu_graph_ms']:.1f}, {r['graph_keyframes']}, {r['graph_loops']} / {r['graph_verified']}, "
-            f"{r['graph_dropped']}"
+            f"{r['graph_dropped']}, {r['graph_held_s']:.0f}"
             if r["graph"]
             else "",
             f"{r['cpu_cores_busy']:.2f}",

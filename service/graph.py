@@ -45,7 +45,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, cast
@@ -87,6 +87,88 @@ GRAPH_NICE = 10
 #: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
 #: last one is this many re-fold periods old (``graph_refold_s``).
 REFOLD_STARVE_PERIODS = 3.0
+
+
+class YieldGate:
+    """Keeps the graph process off the cores while sweeps are being matched: stopped
+    (``SIGSTOP``) when the first sweep enters :meth:`matching`, continued (``SIGCONT``) when the
+    last one leaves. ``SCHED_IDLE`` alone gives the matchers every core they ask for, but not the
+    caches, memory bandwidth and clock the graph shares with them from the other core.
+
+    The graph is never starved: once it has been held ``max_hold_s`` without a break, it runs
+    ``min_run_s`` whatever arrives. POSIX only (elsewhere it does nothing); the process it holds
+    must die with its parent (``_die_with_parent``), since a stopped process cannot exit itself.
+    """
+
+    def __init__(self, *, max_hold_s: float = 1.0, min_run_s: float = 0.2) -> None:
+        self.max_hold_s = max_hold_s
+        self.min_run_s = min_run_s
+        self._lock = threading.Lock()
+        self._pid: int | None = None
+        self._busy = 0
+        self._held_since: float | None = None  # monotonic time of the SIGSTOP, while held
+        self._free_until = 0.0  # no hold before this (the starvation guard)
+        #: seconds the process was held, and how many holds (metrics, benchmarks)
+        self.held_s = 0.0
+        self.holds = 0
+
+    def attach(self, pid: int) -> None:
+        with self._lock:
+            self._pid = pid if hasattr(signal, "SIGSTOP") else None
+
+    def detach(self) -> None:
+        """Continue the process for good (before stopping it, or when it is gone)."""
+        with self._lock:
+            self._release(time.monotonic())
+            self._pid = None
+
+    def _release(self, now: float) -> None:
+        if self._held_since is None or self._pid is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self._pid, signal.SIGCONT)
+        self.held_s += now - self._held_since
+        self._held_since = None
+
+    def _enter(self) -> None:
+        with self._lock:
+            self._busy += 1
+            now = time.monotonic()
+            if self._pid is None:
+                return
+            if self._held_since is not None and now - self._held_since > self.max_hold_s:
+                self._release(now)  # held too long without a break: it runs for a while
+                self._free_until = now + self.min_run_s
+            elif self._held_since is None and now >= self._free_until:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(self._pid, signal.SIGSTOP)
+                    self._held_since = now
+                    self.holds += 1
+
+    def _exit(self) -> None:
+        with self._lock:
+            self._busy -= 1
+            if self._busy == 0:
+                self._release(time.monotonic())
+
+    @contextlib.contextmanager
+    def matching(self) -> Iterator[None]:
+        """Around the matching of one sweep: the graph does not run while any is inside."""
+        self._enter()
+        try:
+            yield
+        finally:
+            self._exit()
+
+
+def _die_with_parent() -> None:
+    """Linux: this process gets SIGKILL when the service's process dies, even while it is
+    stopped by :class:`YieldGate` (a stopped process would otherwise outlive a killed service)."""
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 # ----------------------------------------------------------------------- the graph process
@@ -294,6 +376,7 @@ def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeome
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
     old), and at once on a ``sync`` request."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
+    _die_with_parent()
     single_threaded_blas()
     _lowest_priority()
     maps: dict[str, _ProcessMap] = {}
@@ -433,8 +516,11 @@ class ServiceGraph:
         keyframe_m: float = 10.0,
         queue_size: int = 64,
         refold_s: float = 20.0,
+        yield_to_matchers: bool = True,
     ) -> None:
         self.settings = settings
+        #: holds the graph process while sweeps are matched (``graph_yield``); None: never held
+        self.gate: YieldGate | None = YieldGate() if yield_to_matchers else None
         self.refold_s = refold_s
         self.geometry = geometry or MapGeometry(20, 0.2, 1)
         self._on_refold = on_refold
@@ -486,6 +572,8 @@ class ServiceGraph:
         with _sigint_ignored_by_children():
             self._proc.start()
         child.close()
+        if self.gate is not None and self._proc.pid is not None:
+            self.gate.attach(self._proc.pid)
         self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
         self._receiver = threading.Thread(target=self._receive_loop, name="graph-receiver", daemon=True)
         self._sender.start()
@@ -778,12 +866,19 @@ class ServiceGraph:
             self._cond.notify_all()
             return wait(lambda: self._synced >= token)
 
+    def matching(self) -> contextlib.AbstractContextManager[None]:
+        """Around the matching of one sweep (SessionWorker): with ``graph_yield``, the graph
+        process does not run while any sweep is inside (:class:`YieldGate`)."""
+        return contextlib.nullcontext() if self.gate is None else self.gate.matching()
+
     def close(self, timeout: float = 10.0) -> None:
         """Stop feeding the process and stop it (what is still queued is not processed)."""
         with self._cond:
             self._closed = True
             self._queued.clear()
             self._cond.notify()
+        if self.gate is not None:
+            self.gate.detach()
         if self._proc is None or self._conn is None:
             return
         if self._sender is not None:

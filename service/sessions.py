@@ -266,8 +266,11 @@ class SessionWorker:
                     return
                 job = self._queue.popleft()
                 self._manager.metrics.queue_depth.labels(queue_label(*self.key)).set(len(self._queue))
+            graph = self._manager.graph
             try:
-                self._process(job)
+                # the graph process yields the cores while a sweep is matched (YieldGate)
+                with contextlib.nullcontext() if graph is None else graph.matching():
+                    self._process(job)
                 if self.broken:
                     self._abandon()
                     return
@@ -654,6 +657,9 @@ class SessionManager:
                 keyframe_m=settings.graph_keyframe_m,
                 queue_size=settings.graph_queue,
                 refold_s=settings.graph_refold_s,
+                yield_to_matchers=settings.executor == "local"
+                if settings.graph_yield is None
+                else settings.graph_yield,
             )
             if settings.graph
             else None

@@ -174,6 +174,12 @@ class ServiceSettings(BaseSettings):
         description="at most this often, in a pause between keyframes, the graph process re-folds the "
         "tiles of keyframes it moved (0: after every keyframe)",
     )
+    graph_yield: bool | None = Field(
+        default=None,
+        description="the graph process is stopped while sweeps are being matched (held at most 1 s "
+        "without a break): the matchers' latency does not pay for it (service/graph.py, YieldGate); "
+        "None: on with the local executor, off with Ray (the matchers are elsewhere)",
+    )
     fleet_map: FleetMapSettings = Field(
         default_factory=FleetMapSettings, description="the pose graph's settings (core.fleet_map)"
     )

@@ -240,6 +240,10 @@ def test_every_thread_of_the_graph_process_runs_at_the_lowest_priority(loop_driv
     tids = [int(t) for t in os.listdir(f"/proc/{graph._proc.pid}/task")]
     assert len(tids) >= 1
     assert {tid: os.sched_getscheduler(tid) for tid in tids} == dict.fromkeys(tids, os.SCHED_IDLE)
+    # and it yielded the cores while sweeps were matched (YieldGate), yet took every keyframe
+    # (test_live_graph_closes_the_loop_and_corrects_the_trajectory); it is not left stopped
+    assert graph.gate is not None and graph.gate.holds > 0
+    assert _state(graph._proc.pid) != "T"
 
 
 def test_corrections_are_published_and_replay_to_the_graph_state(loop_drive) -> None:
@@ -473,3 +477,90 @@ def test_the_joined_sessions_own_map_is_merged_in_and_removed(join_drive) -> Non
     assert gone.status_code == 404
     assert "merged into map 'default' when session nognss/d1 joined it" in gone.text
     assert mgr.merged_into("nognss.d1") == ("default", "nognss/d1")
+
+
+def _state(pid: int, settle_s: float = 1.0) -> str:
+    """A process's state letter (``T``: stopped), from /proc, once it stopped changing (a signal
+    takes effect when the process is next scheduled)."""
+
+    def read() -> str:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+
+    state, deadline = read(), time.monotonic() + settle_s
+    while state == "R" and time.monotonic() < deadline:  # (a signal on its way)
+        time.sleep(0.01)
+        state = read()
+    return state
+
+
+def test_the_yield_gate_holds_the_process_while_sweeps_are_matched() -> None:
+    import subprocess
+
+    from service.graph import YieldGate
+
+    proc = subprocess.Popen(["sleep", "60"])
+    try:
+        gate = YieldGate(max_hold_s=0.3, min_run_s=0.5)
+        gate.attach(proc.pid)
+        with gate.matching():
+            assert _state(proc.pid) == "T"
+            with gate.matching():  # a second vehicle's sweep: still held
+                assert _state(proc.pid) == "T"
+            assert _state(proc.pid) == "T"  # one sweep is still inside
+        assert _state(proc.pid) != "T"
+        assert gate.holds == 1 and gate.held_s > 0
+        # Never starved: held longer than max_hold_s without a break, it runs min_run_s whatever comes.
+        with gate.matching():
+            time.sleep(0.4)
+            with gate.matching():
+                assert _state(proc.pid) != "T"
+        with gate.matching():  # within min_run_s of the release: not held
+            assert _state(proc.pid) != "T"
+        time.sleep(0.8)
+        with gate.matching():  # after it: held again
+            assert _state(proc.pid) == "T"
+            gate.detach()  # the service closing: continued for good
+            assert _state(proc.pid) != "T"
+        assert gate.holds == 3
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_held_graph_process_dies_with_the_service() -> None:
+    """A stopped process cannot exit by itself: the graph process asks for SIGKILL when its
+    parent dies (``_die_with_parent``), so a killed service leaves no stopped graph behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    program = (
+        "import multiprocessing as mp, sys, time\n"
+        "from service.graph import _die_with_parent\n"
+        "def child():\n"
+        "    _die_with_parent()\n"
+        "    time.sleep(60)\n"
+        "if __name__ == '__main__':\n"
+        "    p = mp.get_context('fork').Process(target=child, daemon=True)\n"
+        "    p.start()\n"
+        "    print(p.pid, flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        pid = int(parent.stdout.readline())
+        time.sleep(0.5)  # (the child has made its request)
+        os.kill(pid, signal.SIGSTOP)
+        assert _state(pid) == "T"
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 5
+        while os.path.exists(f"/proc/{pid}") and _state(pid) != "Z" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        gone = not os.path.exists(f"/proc/{pid}") or _state(pid) == "Z"
+        assert gone, "the stopped child outlived its parent"
+    finally:
+        parent.kill()
