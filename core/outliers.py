@@ -72,6 +72,7 @@ def iqr_inlier_mask(
     min_points_per_voxel: int = 6,
     min_points_for_voxel_quartiles: int = 10,
     eigenvalue_ratio: float = 0.01,
+    keep_unjudged: bool = False,
 ) -> np.ndarray:
     """Algorithm 1's outlier test: True for points inside their voxel's Tukey fences.
 
@@ -82,6 +83,7 @@ def iqr_inlier_mask(
     k : fence multiplier (1.5 is Tukey's "outlier", 3.0 his "far out").
     min_points_per_voxel : voxels with fewer points get no Gaussian; their points are outliers.
     min_points_for_voxel_quartiles : below this, a voxel uses the pooled fences (module docstring).
+    keep_unjudged : points of voxels without a Gaussian are kept (True) instead of outliers.
 
     Returns
     -------
@@ -93,9 +95,12 @@ def iqr_inlier_mask(
         min_points_per_voxel=min_points_per_voxel,
         eigenvalue_ratio=eigenvalue_ratio,
     )
-    return iqr_fence_mask(
+    mask = iqr_fence_mask(
         points_xyz, gmap, vidx, k=k, min_points_for_voxel_quartiles=min_points_for_voxel_quartiles
     )
+    if keep_unjudged:
+        mask |= vidx < 0
+    return mask
 
 
 def iqr_fence_mask(

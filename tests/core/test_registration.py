@@ -161,6 +161,58 @@ def test_sparse_object_clouds_get_levels_their_voxels_can_fill() -> None:
     assert grown >= len(meshes) - 1
 
 
+def test_a_sparse_clouds_points_without_a_gaussian_are_kept_not_outliers() -> None:
+    """Algorithm 1 calls a point in a voxel too sparse for a Gaussian an outlier. In a real scan
+    that is isolated clutter; in 1024 points on a ModelNet40 object it is the thin parts (9-24 %
+    of the reference dropped, wings and legs first), and it cost the paper's object protocol
+    (rotation up to 45 deg, translation up to 0.5) most of its successes: RMSE 0.064, 11 of 24
+    placed within 1 deg / 0.01. A sparse cloud (:func:`is_sparse_cloud`) now keeps them, in the
+    reference and in the moving selection; measured 0.0587, 19 of 24 (bench/paper.py's trials)."""
+    from core.io import read_cloud
+    from core.registration import auto_voxel_sizes, is_sparse_cloud, prepare_reference
+    from core.shared_data import car
+    from tests.data import require_data
+
+    meshes = sorted((require_data("objects/modelnet40") / "objects" / "modelnet40").glob("*.off"))[:12]
+    rng = np.random.default_rng(20261125)
+    rmse, placed, sparse = [], 0, 0
+    for mesh in meshes:
+        xyz = read_cloud(mesh, n_mesh_samples=1024, seed=int(rng.integers(1 << 31))).xyz.astype(np.float64)
+        xyz -= xyz.mean(axis=0)
+        xyz /= np.linalg.norm(xyz, axis=1).max()
+        sparse += is_sparse_cloud(xyz)
+        for _ in range(2):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            T_true = make_transform(
+                rotvec=axis * np.radians(rng.uniform(0.0, 45.0)), translation=rng.uniform(-0.5, 0.5, size=3)
+            )
+            source = transform_points(np.linalg.inv(T_true), xyz)
+            try:
+                T = register(source, xyz).T_target_source
+            except DegenerateProblemError as exc:
+                T = exc.result.T_target_source
+            except RegistrationFailedError:  # counted as the identity, as bench/paper.py does
+                T = np.eye(4)
+            d = transform_points(T, source) - xyz
+            rmse.append(float(np.sqrt(np.mean(np.sum(d * d, axis=1)))))
+            err_m, err_deg = transform_error(T, T_true)
+            placed += err_m <= 0.01 and err_deg <= 1.0
+    assert sparse >= 11  # (one chair holds 2.3 points per voxel of its scale: not sparse)
+    assert np.mean(rmse) <= 0.062, f"object RMSE {np.mean(rmse):.4f} (the paper's 0.062)"
+    assert placed >= 18, f"{placed} of 24 placed"
+    # A real scan, even the sparse car pair (3 points per voxel of its scale), still drops them.
+    _, target, _ = car()
+    target = target.astype(np.float64)
+    assert not is_sparse_cloud(target)
+    settings = RegistrationSettings()
+    levels = auto_voxel_sizes(target)
+    ref = prepare_reference(target, settings, levels)
+    kept = prepare_reference(target, settings.model_copy(update={"outlier_removal": "none"}), levels)
+    # measured: 55 % of the car's downsampled reference (isolated far points and clutter)
+    assert ref.n_removed_outliers > 0.3 * ref.n_input_points and kept.n_removed_outliers == 0
+
+
 def test_the_svd_residual_fence_helps_on_the_papers_protocol() -> None:
     """``svd_residual_fence_k`` (off by default) trims the SVD step's correspondences by their
     point-to-plane residuals as well as their distances. On the paper's protocol (noise, 10 %
