@@ -105,6 +105,7 @@ class YieldGate:
         self.min_run_s = min_run_s
         self._lock = threading.Lock()
         self._pid: int | None = None
+        self._pidfd: int | None = None
         self._busy = 0
         self._held_since: float | None = None  # monotonic time of the SIGSTOP, while held
         self._free_until = 0.0  # no hold before this (the starvation guard)
@@ -115,18 +116,36 @@ class YieldGate:
     def attach(self, pid: int) -> None:
         with self._lock:
             self._pid = pid if hasattr(signal, "SIGSTOP") else None
+            # A pidfd names this process and no other: once it has exited and been reaped, its
+            # pid may be another process's, which a plain kill would stop (Linux >= 5.3).
+            with contextlib.suppress(AttributeError, OSError):
+                self._pidfd = os.pidfd_open(pid) if self._pid is not None else None
 
     def detach(self) -> None:
         """Continue the process for good (before stopping it, or when it is gone)."""
         with self._lock:
             self._release(time.monotonic())
             self._pid = None
+            if self._pidfd is not None:
+                os.close(self._pidfd)
+                self._pidfd = None
+
+    def _signal(self, sig: int) -> bool:
+        """Send ``sig`` to the process; False when it is gone."""
+        assert self._pid is not None
+        try:
+            if self._pidfd is not None:
+                signal.pidfd_send_signal(self._pidfd, sig)
+            else:
+                os.kill(self._pid, sig)
+        except ProcessLookupError:
+            return False
+        return True
 
     def _release(self, now: float) -> None:
         if self._held_since is None or self._pid is None:
             return
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(self._pid, signal.SIGCONT)
+        self._signal(signal.SIGCONT)
         self.held_s += now - self._held_since
         self._held_since = None
 
@@ -139,11 +158,9 @@ class YieldGate:
             if self._held_since is not None and now - self._held_since > self.max_hold_s:
                 self._release(now)  # held too long without a break: it runs for a while
                 self._free_until = now + self.min_run_s
-            elif self._held_since is None and now >= self._free_until:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(self._pid, signal.SIGSTOP)
-                    self._held_since = now
-                    self.holds += 1
+            elif self._held_since is None and now >= self._free_until and self._signal(signal.SIGSTOP):
+                self._held_since = now
+                self.holds += 1
 
     def _exit(self) -> None:
         with self._lock:

@@ -528,6 +528,25 @@ def test_the_yield_gate_holds_the_process_while_sweeps_are_matched() -> None:
         proc.wait()
 
 
+def test_the_yield_gate_never_signals_a_process_that_is_gone() -> None:
+    """Once the graph process has exited and been reaped, its pid may become another process's
+    (the gate names it by a pidfd, so it would not stop that one); a sweep matched then is
+    neither failed nor counted as a hold."""
+    import subprocess
+
+    from service.graph import YieldGate
+
+    proc = subprocess.Popen(["sleep", "60"])
+    gate = YieldGate()
+    gate.attach(proc.pid)
+    proc.kill()
+    proc.wait()  # reaped: the pid is free for reuse
+    with gate.matching():
+        pass
+    assert gate.holds == 0
+    gate.detach()
+
+
 def test_a_held_graph_process_dies_with_the_service() -> None:
     """A stopped process cannot exit by itself: the graph process asks for SIGKILL when its
     parent dies (``_die_with_parent``), so a killed service leaves no stopped graph behind."""
