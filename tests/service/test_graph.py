@@ -488,7 +488,8 @@ def _state(pid: int, settle_s: float = 1.0) -> str:
             return f.read().rsplit(")", 1)[1].split()[0]
 
     state, deadline = read(), time.monotonic() + settle_s
-    while state == "R" and time.monotonic() < deadline:  # (a signal on its way)
+    # R: a signal on its way; D: still loading (a process just started, on a busy machine)
+    while state in ("R", "D") and time.monotonic() < deadline:
         time.sleep(0.01)
         state = read()
     return state
@@ -501,6 +502,7 @@ def test_the_yield_gate_holds_the_process_while_sweeps_are_matched() -> None:
 
     proc = subprocess.Popen(["sleep", "60"])
     try:
+        assert _state(proc.pid, settle_s=10.0) == "S"  # started and asleep
         gate = YieldGate(max_hold_s=0.3, min_run_s=0.5)
         gate.attach(proc.pid)
         with gate.matching():
