@@ -72,6 +72,14 @@ class RegistrationSettings(BaseModel):
         description="Tukey multiplier on the SVD step's point-to-plane residuals at each search "
         "(None: no residual fence, only the distance fence)",
     )
+    svd_source_voxel_fraction: float | None = Field(
+        default=None,
+        gt=0,
+        le=2,
+        description="the SVD step's moving points downsampled at this x the finest NDT voxel (None: "
+        "the NDT solver's, source_voxel_fraction); with svd_residual_fence_k 1.5 and 0.25 it is "
+        "the most accurate on the paper's protocol, 3-4x slower (docs/benchmarks.md)",
+    )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"
     )

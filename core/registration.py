@@ -905,7 +905,12 @@ def register(
     T, iterations, svd_accepted = match.T, match.iterations, False
     if settings.svd_refinement:
         with clock("svd"):
-            T, n_svd, svd_accepted = _refine(moving, ref, T, settings)
+            svd_moving = moving
+            if settings.svd_source_voxel_fraction is not None:  # a denser selection for the step
+                fraction = settings.svd_source_voxel_fraction
+                dense = settings.model_copy(update={"source_voxel_fraction": fraction})
+                svd_moving = _moving_points(inputs.source_xyz, dense, inputs.levels[-1])
+            T, n_svd, svd_accepted = _refine(svd_moving, ref, T, settings)
             iterations += n_svd
     with clock("judge"):
         if not np.all(np.isfinite(T)):
