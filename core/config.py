@@ -78,7 +78,7 @@ class RegistrationSettings(BaseModel):
         le=2,
         description="the SVD step's moving points downsampled at this x the finest NDT voxel (None: "
         "the NDT solver's, source_voxel_fraction); with svd_residual_fence_k 1.5 and 0.25 it is "
-        "the most accurate on the paper's protocol, 3-4x slower (docs/benchmarks.md)",
+        "the most accurate on the paper's protocol, 1.6x slower (docs/registration.md)",
     )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"

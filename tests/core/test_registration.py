@@ -228,7 +228,7 @@ def test_the_svd_residual_fence_helps_on_the_papers_protocol() -> None:
     plain = RegistrationSettings.for_method("randt")
     fenced = RegistrationSettings.for_method("randt", svd_residual_fence_k=1.5, svd_fence_k=1.5)
     # and with a denser moving selection for the step (svd_source_voxel_fraction): the most
-    # accurate of all methods on the protocol (bench/paper.py: 0.30 / 0.31 cm), 2-4x the time
+    # accurate of all methods on the protocol (bench/paper.py: 0.30 / 0.31 cm), 1.6x the time
     dense = fenced.model_copy(update={"svd_source_voxel_fraction": 0.25})
     errors: dict[str, list[float]] = {"plain": [], "fenced": [], "dense": []}
     for seed in range(3):
