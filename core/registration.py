@@ -299,8 +299,13 @@ def prepare_reference(
     voxel_sizes_m: tuple[float, ...],
     *,
     downsampled_at_m: float | None = None,
+    keep_unjudged: bool = False,
 ) -> PreparedReference:
     """Downsample the reference, remove outliers (IQR, SOR or none) and build the NDT pyramid.
+
+    ``keep_unjudged``: Algorithm 1 keeps the points of voxels too sparse for a Gaussian, for a
+    sparse cloud (:func:`is_sparse_cloud`; :func:`register` decides it once per call): there they
+    say nothing about their points (it would drop 9-24 % of a ModelNet40 object, thin parts first).
 
     ``downsampled_at_m``: the voxel size ``target_xyz`` was already downsampled at (by
     :func:`~core.voxel.voxel_downsample`). When it equals this reference's downsampling voxel,
@@ -314,10 +319,7 @@ def prepare_reference(
     else:
         pts = voxel_downsample(target_xyz, voxel)
     n_in = pts.shape[0]
-    # A sparse cloud's voxels without a Gaussian say nothing about their points (Algorithm 1
-    # would drop 9-24 % of a ModelNet40 object, its thin parts first): they are kept.
-    sparse = is_sparse_cloud(target_xyz)
-    pts = np.compress(reference_inlier_mask(pts, settings, finest, keep_unjudged=sparse), pts, axis=0)
+    pts = np.compress(reference_inlier_mask(pts, settings, finest, keep_unjudged=keep_unjudged), pts, axis=0)
     maps = VoxelGaussianMap.build_pyramid(
         pts,
         voxel_sizes_m,
@@ -361,7 +363,7 @@ def _algorithm1_mask(
 
 
 def _select_moving_points(
-    source_xyz: np.ndarray, settings: RegistrationSettings, finest: float
+    source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, keep_unjudged: bool = False
 ) -> np.ndarray:
     """Algorithm 1 on the moving cloud: keep points of high probability under its own Gaussians,
     then downsample the survivors for the NDT solver.
@@ -374,7 +376,7 @@ def _select_moving_points(
     pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
     if settings.select_moving_points:
         try:
-            keep = _algorithm1_mask(pre, finest, settings, keep_unjudged=is_sparse_cloud(source_xyz))
+            keep = _algorithm1_mask(pre, finest, settings, keep_unjudged=keep_unjudged)
         except InvalidCloudError:
             log.debug("moving cloud too sparse for Algorithm 1 at %g m: selection skipped", finest)
         else:
@@ -636,7 +638,7 @@ class _StageClock:
     def __call__(self, stage: str) -> Iterator[None]:
         t0 = time.perf_counter()
         yield
-        self.times[stage] = time.perf_counter() - t0
+        self.times[stage] = self.times.get(stage, 0.0) + time.perf_counter() - t0
 
 
 @dataclass(frozen=True)
@@ -647,6 +649,9 @@ class _Inputs:
     target_xyz: np.ndarray
     levels: tuple[float, ...]
     n_nonfinite_dropped: int
+    #: :func:`is_sparse_cloud` of each (False with a prepared reference)
+    source_sparse: bool = False
+    target_sparse: bool = False
 
 
 @dataclass(frozen=True)
@@ -692,10 +697,12 @@ def _sanitize_inputs(
     if reference is None:
         tgt, n_bad_t = sanitize_points(target_xyz, name="target", min_points=settings.min_points)
         levels = settings.voxel_sizes_m or auto_voxel_sizes(tgt)
-    else:
+        sparse = (is_sparse_cloud(src), is_sparse_cloud(tgt))
+    else:  # (a prepared reference: the incremental matcher's per-sweep path, real sweeps)
         tgt, n_bad_t = reference.points_xyz, 0
         levels = reference.voxel_sizes_m
-    return _Inputs(src, tgt, tuple(levels), n_bad_s + n_bad_t)
+        sparse = (False, False)
+    return _Inputs(src, tgt, tuple(levels), n_bad_s + n_bad_t, *sparse)
 
 
 def _reference(
@@ -704,12 +711,14 @@ def _reference(
     """The reference given, or the target prepared (:func:`prepare_reference`)."""
     if reference is not None:
         return reference
-    return prepare_reference(inputs.target_xyz, settings, inputs.levels)
+    return prepare_reference(inputs.target_xyz, settings, inputs.levels, keep_unjudged=inputs.target_sparse)
 
 
-def _moving_points(source_xyz: np.ndarray, settings: RegistrationSettings, finest: float) -> np.ndarray:
+def _moving_points(
+    source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, sparse: bool = False
+) -> np.ndarray:
     """:func:`_select_moving_points`, refusing a cloud too sparse to match."""
-    moving = _select_moving_points(source_xyz, settings, finest)
+    moving = _select_moving_points(source_xyz, settings, finest, keep_unjudged=sparse)
     if moving.shape[0] < settings.min_points:
         raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
     return moving
@@ -907,7 +916,7 @@ def register(
     with clock("reference"):
         ref = _reference(inputs, reference, settings)
     with clock("moving"):
-        moving = _moving_points(inputs.source_xyz, settings, inputs.levels[-1])
+        moving = _moving_points(inputs.source_xyz, settings, inputs.levels[-1], sparse=inputs.source_sparse)
     T_init = T
 
     def solve(coarsest: float | None) -> tuple[np.ndarray, int, bool, _Match, _Judgement]:
@@ -921,7 +930,9 @@ def register(
                 if settings.svd_source_voxel_fraction is not None:  # a denser selection for the step
                     fraction = settings.svd_source_voxel_fraction
                     dense = settings.model_copy(update={"source_voxel_fraction": fraction})
-                    svd_moving = _moving_points(inputs.source_xyz, dense, inputs.levels[-1])
+                    svd_moving = _moving_points(
+                        inputs.source_xyz, dense, inputs.levels[-1], sparse=inputs.source_sparse
+                    )
                 T, n_svd, svd_accepted = _refine(svd_moving, ref, T, settings)
                 iterations += n_svd
         with clock("judge"):
