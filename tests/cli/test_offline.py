@@ -209,3 +209,30 @@ def test_register_global_places_bun315_with_no_guess_and_exits_15_when_not_confi
     assert "T_target_source" in proc.stdout
     proc = _randt("register", str(d / "bun315.ply"), str(d / "bun000.ply"), "--global", "--method", "ndt")
     assert proc.returncode != 0 and "--global" in proc.stderr
+
+
+def test_register_dense_svd_places_a_noisy_protocol_trial(tmp_path) -> None:
+    """``--dense-svd`` reaches the core (its pose differs from the default's) and places a paper
+    protocol trial (KITTI 00 frame 3, seed 1: 1-5 cm noise, 10 % outliers, half overlap) within
+    1 cm by the placement RMSE (measured 0.17 cm; the default 0.22 cm); with another method it is a
+    usage error."""
+    from core.protocol import make_trial
+    from core.transforms import transform_points
+    from tests.pairs import kitti00_velodyne
+
+    trial = make_trial(kitti00_velodyne(3), np.random.default_rng(1))
+    np.save(tmp_path / "source.npy", trial.source_xyz)
+    np.save(tmp_path / "target.npy", trial.target_xyz)
+    clean = transform_points(np.linalg.inv(trial.T_true), trial.target_xyz)
+    poses = {}
+    files = (str(tmp_path / "source.npy"), str(tmp_path / "target.npy"))
+    for flags in ((), ("--dense-svd",)):
+        proc = _randt("register", *files, "--json", *flags)
+        assert proc.returncode == 0, proc.stderr
+        poses[flags] = np.array(json.loads(proc.stdout)["T_target_source"])
+    T = poses[("--dense-svd",)]
+    d = transform_points(T, clean) - transform_points(trial.T_true, clean)
+    assert np.sqrt(np.mean(np.sum(d * d, axis=1))) < 0.01
+    assert np.abs(T - poses[()]).max() > 1e-4
+    usage = _randt("register", *files, "--dense-svd", "--method", "ndt")
+    assert usage.returncode == 2 and "--dense-svd" in usage.stderr
