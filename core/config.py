@@ -20,7 +20,7 @@ Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
 #: finest voxel (the NDT solver's is 0.5) and tighter fences. On the paper's protocol (1-5 cm
 #: noise, 10 % outliers, half overlap; 60 trials a scan set) it places the source within 0.29 /
 #: 0.30 cm where the defaults give 0.50 / 0.54 cm and small_gicp GICP 0.34 / 0.33 cm on its
-#: successes, at 1.3-1.7x the defaults' time. On the real pairs it is no better (docs/benchmarks.md).
+#: successes, at 1.2-1.6x the defaults' time. On the real pairs it is no better (docs/benchmarks.md).
 DENSE_SVD_STEP: dict[str, float] = {
     "svd_residual_fence_k": 2.0,
     "svd_fence_k": 3.0,
