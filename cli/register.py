@@ -60,6 +60,14 @@ def register(
     output: Annotated[
         Path | None, typer.Option(help="Write SOURCE moved into TARGET's frame (.pcd or .ply).")
     ] = None,
+    centroid_start: Annotated[
+        bool,
+        typer.Option(
+            "--centroid-start",
+            help="For object scans posed far apart: start from the translation that moves SOURCE's "
+            "centroid onto TARGET's (core.registration.centroid_start); not for LiDAR sweeps.",
+        ),
+    ] = False,
     dense_svd: Annotated[
         bool,
         typer.Option(
@@ -79,8 +87,10 @@ def register(
 ) -> None:
     """Register SOURCE to TARGET and print T_target_source, fitness and time."""
     if global_:
-        if init is not None or method is not MethodChoice.randt:
-            raise typer.BadParameter("--global takes no --init and refines with --method randt only")
+        if init is not None or centroid_start or method is not MethodChoice.randt:
+            raise typer.BadParameter(
+                "--global takes no --init or --centroid-start and refines with --method randt only"
+            )
         _register_global(source, target, voxel, as_json, output)
         return
 
@@ -90,9 +100,15 @@ def register(
 
     if dense_svd and method is not MethodChoice.randt:
         raise typer.BadParameter("--dense-svd is RANDT's SVD step: use it with --method randt")
+    if centroid_start and init is not None:
+        raise typer.BadParameter("--centroid-start and --init are two initial guesses: give one")
     init_T = _read_init(None if init is None else input_file(init))
     src = read_cloud(input_file(source))
     tgt = read_cloud(input_file(target))
+    if centroid_start:
+        from core.registration import centroid_start as start
+
+        init_T = start(src.xyz, tgt.xyz)
     overrides: dict[str, object] = dict(DENSE_SVD_STEP) if dense_svd else {}
     if voxel:
         overrides["voxel_sizes_m"] = tuple(voxel)

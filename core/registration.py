@@ -59,6 +59,7 @@ __all__ = [
     "PreparedReference",
     "RegistrationResult",
     "auto_voxel_sizes",
+    "centroid_start",
     "is_sparse_cloud",
     "prepare_reference",
     "reference_inlier_mask",
@@ -166,6 +167,23 @@ def sanitize_points(points: npt.ArrayLike | None, *, name: str, min_points: int)
             f"need at least {min_points}"
         )
     return xyz, n_bad
+
+
+def centroid_start(source_xyz: npt.ArrayLike, target_xyz: npt.ArrayLike) -> np.ndarray:
+    """An initial guess for two views of one object with no better one: the translation that
+    moves the source's centroid onto the target's (no rotation).
+
+    For object scans and CAD samples posed far apart (the ModelNet40 protocol: up to 0.5 of the
+    object's radius per axis), NDT from the identity can start outside its basin: on the paper
+    bench's clean objects RANDT's placement RMSE is 0.060 from the identity and 0.018 from this
+    start. Not for LiDAR sweeps: a sweep's centroid moves with what it sees, while the sensor's
+    origin is a far better guess. Non-finite rows are ignored.
+    """
+    src, _ = sanitize_points(source_xyz, name="source", min_points=1)
+    tgt, _ = sanitize_points(target_xyz, name="target", min_points=1)
+    T = np.eye(4)
+    T[:3, 3] = tgt.mean(axis=0) - src.mean(axis=0)
+    return T
 
 
 #: Points :func:`auto_voxel_sizes` measures a large cloud's scale on.
