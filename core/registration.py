@@ -380,11 +380,11 @@ def _algorithm1_mask(
     )
 
 
-def _select_moving_points(
+def _moving_survivors(
     source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, keep_unjudged: bool = False
 ) -> np.ndarray:
-    """Algorithm 1 on the moving cloud: keep points of high probability under its own Gaussians,
-    then downsample the survivors for the NDT solver.
+    """Algorithm 1 on the moving cloud: the cloud downsampled at ``target_voxel_fraction`` of the
+    finest voxel, keeping the points of high probability under its own Gaussians.
 
     A moving cloud too sparse for Gaussians at the finest voxel (one already equalized at a
     coarser voxel, say) keeps everything: Algorithm 1 would keep less than
@@ -402,11 +402,11 @@ def _select_moving_points(
                 pre = pre[keep]
             else:
                 log.debug("Algorithm 1 kept %.1f %% of the moving cloud: not used", 100 * keep.mean())
-    return voxel_downsample(pre, finest * settings.source_voxel_fraction)
+    return pre
 
 
 #: Algorithm 1's moving-point selection is used only when it keeps at least this share
-#: (:func:`_select_moving_points`).
+#: (:func:`_moving_survivors`).
 MIN_SELECTED_SHARE = 0.25
 
 
@@ -734,12 +734,18 @@ def _reference(
 
 def _moving_points(
     source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, sparse: bool = False
-) -> np.ndarray:
-    """:func:`_select_moving_points`, refusing a cloud too sparse to match."""
-    moving = _select_moving_points(source_xyz, settings, finest, keep_unjudged=sparse)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The NDT solver's moving points and the SVD step's (the same array unless
+    ``svd_source_voxel_fraction`` asks for a denser one: both are Algorithm 1's survivors,
+    downsampled at their own voxel), refusing a cloud too sparse to match."""
+    survivors = _moving_survivors(source_xyz, settings, finest, keep_unjudged=sparse)
+    moving = voxel_downsample(survivors, finest * settings.source_voxel_fraction)
     if moving.shape[0] < settings.min_points:
         raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
-    return moving
+    fraction = settings.svd_source_voxel_fraction
+    if not settings.svd_refinement or fraction is None:
+        return moving, moving
+    return moving, voxel_downsample(survivors, finest * fraction)
 
 
 def _match(
@@ -942,7 +948,9 @@ def register(
     with clock("reference"):
         ref = _reference(inputs, reference, settings)
     with clock("moving"):
-        moving = _moving_points(inputs.source_xyz, settings, inputs.levels[-1], sparse=inputs.source_sparse)
+        moving, svd_moving = _moving_points(
+            inputs.source_xyz, settings, inputs.levels[-1], sparse=inputs.source_sparse
+        )
     T_init = T
 
     def solve(coarsest: float | None) -> tuple[np.ndarray, int, bool, _Match, _Judgement]:
@@ -952,13 +960,6 @@ def register(
         T, iterations, svd_accepted = match.T, match.iterations, False
         if settings.svd_refinement:
             with clock("svd"):
-                svd_moving = moving
-                if settings.svd_source_voxel_fraction is not None:  # a denser selection for the step
-                    fraction = settings.svd_source_voxel_fraction
-                    dense = settings.model_copy(update={"source_voxel_fraction": fraction})
-                    svd_moving = _moving_points(
-                        inputs.source_xyz, dense, inputs.levels[-1], sparse=inputs.source_sparse
-                    )
                 T, n_svd, svd_accepted = _refine(svd_moving, ref, T, settings)
                 iterations += n_svd
         with clock("judge"):
