@@ -73,7 +73,7 @@ def register(
         typer.Option(
             "--dense-svd",
             help="For noisy clouds: the SVD step on a denser moving selection with tighter fences "
-            "(core.config.DENSE_SVD_STEP; about 1.5x the time).",
+            "(core.config.DENSE_SVD_STEP; 1.2-1.6x the time).",
         ),
     ] = False,
     global_: Annotated[
