@@ -134,6 +134,17 @@ def _moved_and_cell(
 
 
 @nb.njit(cache=True, inline="always")
+def _moved(points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray) -> tuple[float, float, float]:
+    """Point ``i`` moved by ``(R, t)``."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    return (
+        R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0],
+        R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1],
+        R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2],
+    )
+
+
+@nb.njit(cache=True, inline="always")
 def _mahalanobis2(inv_cov: np.ndarray, v: int, x0: float, x1: float, x2: float) -> float:
     """Squared Mahalanobis distance ``x^T Sigma_v^-1 x``."""
     d2: float = (
@@ -675,6 +686,14 @@ def _face_d2(d: int, low: float, cell: float) -> float:
     return 0.0
 
 
+@nb.njit(cache=True, inline="always")
+def _shell_gap(d: int) -> int:
+    """Least number of whole cells between a point and the cell at offset ``d`` along one axis,
+    squared (:func:`cell_block`'s first sort key, summed over the axes)."""
+    g = abs(d) - 1
+    return g * g if g > 0 else 0
+
+
 @nb.njit(cache=True, nogil=True)
 def build_grid(
     points: np.ndarray, cell_size: float
@@ -834,6 +853,7 @@ def grid_knn_normals(
     """
     inv_c = 1.0 / cell_size
     r2 = radius * radius
+    c2 = cell_size * cell_size
     bd2 = np.empty(k)
     bi = np.empty(k, dtype=np.int64)
     A = np.empty((3, 3))
@@ -847,6 +867,11 @@ def grid_knn_normals(
         n_found = 0
         for n_off in range(offsets.shape[0]):
             dx, dy, dz = offsets[n_off, 0], offsets[n_off, 1], offsets[n_off, 2]
+            # The offsets come by their least possible distance: once that is beyond the radius
+            # or the k-th best so far, so is every later cell's.
+            least = _shell_gap(dx) + _shell_gap(dy) + _shell_gap(dz)
+            if least * c2 > (bd2[k - 1] if n_found == k else r2):
+                break
             box = _face_d2(dx, lx, cell_size) + _face_d2(dy, ly, cell_size) + _face_d2(dz, lz, cell_size)
             if box > r2 or (n_found == k and box >= bd2[k - 1]):
                 continue
@@ -1326,3 +1351,61 @@ def spfh_histograms(points: np.ndarray, normals: np.ndarray, neighbors: np.ndarr
             for b in range(3 * bins):
                 out[i, b] *= 100.0 / count
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def projected_pair_moments(
+    src: np.ndarray,
+    dst: np.ndarray,
+    nrm: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    out_mu_q: np.ndarray,
+    out_mu_y: np.ndarray,
+    out_cross: np.ndarray,
+) -> float:
+    """One Kabsch solve's sums for the SVD step, in two passes and no temporaries.
+
+    Each moving point ``src[i]`` moved by ``(R, t)`` is ``q_i``; its partner is ``y_i``, the
+    projection of ``q_i`` onto the plane through ``dst[i]`` with unit normal ``nrm[i]``
+    (``y_i = q_i - n_i r_i``, ``r_i = (q_i - dst_i) . n_i``). Writes the means of ``q`` and ``y``
+    and the cross-covariance ``sum_i (y_i - mu_y)(q_i - mu_q)^T`` (the matrix whose SVD gives the
+    rotation), and returns ``sum_i r_i^2``.
+
+    Reference: core.transforms:umeyama
+    Test: tests/core/test_kernels.py::test_projected_pair_moments_match_umeyama
+    """
+    n = src.shape[0]
+    sq0 = sq1 = sq2 = sy0 = sy1 = sy2 = ss = 0.0
+    for i in range(n):
+        q0, q1, q2 = _moved(src, i, R, t)
+        r = (q0 - dst[i, 0]) * nrm[i, 0] + (q1 - dst[i, 1]) * nrm[i, 1] + (q2 - dst[i, 2]) * nrm[i, 2]
+        sq0 += q0
+        sq1 += q1
+        sq2 += q2
+        sy0 += q0 - nrm[i, 0] * r
+        sy1 += q1 - nrm[i, 1] * r
+        sy2 += q2 - nrm[i, 2] * r
+        ss += r * r
+    m0, m1, m2 = sq0 / n, sq1 / n, sq2 / n
+    y0m, y1m, y2m = sy0 / n, sy1 / n, sy2 / n
+    for a in range(3):
+        for b in range(3):
+            out_cross[a, b] = 0.0
+    for i in range(n):
+        q0, q1, q2 = _moved(src, i, R, t)
+        r = (q0 - dst[i, 0]) * nrm[i, 0] + (q1 - dst[i, 1]) * nrm[i, 1] + (q2 - dst[i, 2]) * nrm[i, 2]
+        a0, a1, a2 = q0 - m0, q1 - m1, q2 - m2
+        b0, b1, b2 = q0 - nrm[i, 0] * r - y0m, q1 - nrm[i, 1] * r - y1m, q2 - nrm[i, 2] * r - y2m
+        out_cross[0, 0] += b0 * a0
+        out_cross[0, 1] += b0 * a1
+        out_cross[0, 2] += b0 * a2
+        out_cross[1, 0] += b1 * a0
+        out_cross[1, 1] += b1 * a1
+        out_cross[1, 2] += b1 * a2
+        out_cross[2, 0] += b2 * a0
+        out_cross[2, 1] += b2 * a1
+        out_cross[2, 2] += b2 * a2
+    out_mu_q[0], out_mu_q[1], out_mu_q[2] = m0, m1, m2
+    out_mu_y[0], out_mu_y[1], out_mu_y[2] = y0m, y1m, y2m
+    return ss

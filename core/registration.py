@@ -33,7 +33,7 @@ from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from core.grid import PointGrid
 from core.icp import icp_point_to_plane, icp_point_to_point
-from core.kernels import best_voxel
+from core.kernels import best_voxel, projected_pair_moments
 from core.ndt import (
     NdtEvaluation,
     NeighborCache,
@@ -468,7 +468,8 @@ def _svd_refine(
     :data:`_SVD_SEARCH_EVERY` Kabsch solves (between searches only the projections onto the same
     planes change), so a KITTI pair needs 6 searches instead of 8 and the car pair 9 instead of
     17, with the same result to 0.02 mm / 0.002 deg. It stops only on a small step taken right
-    after a search, so its fixed point is that of searching every time.
+    after a search, so its fixed point is that of searching every time; that search's pairs give
+    the final RMSE (the pose moved less than the tolerance since).
 
     Returns the refined transform, iterations, and the trimmed point-to-plane RMSE before and after.
     """
@@ -496,35 +497,29 @@ def _svd_refine(
             src, dst, nrm = src[keep], dst[keep], nrm[keep]
         return src, dst, nrm
 
-    def residuals(
-        T_cur: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray]:
-        q = transform_points(T_cur, corr[0])
-        return q, np.einsum("ij,ij->i", q - corr[1], corr[2])
-
     corr = search(T)
     if corr is None:
         return T, 0, np.inf, np.inf
-    rmse_before = float(np.sqrt(np.mean(residuals(T, corr)[1] ** 2)))
+    rmse_before = _projected_kabsch(T, corr)[2]
     # Rotation is weighed by the points' RMS radius so twists compare in metres.
     radius = max(float(np.sqrt(((moving - moving.mean(axis=0)) ** 2).sum(axis=1).mean())), 1e-12)
     previous: np.ndarray | None = None
     since_search = 0
     it = 0
     for it in range(1, settings.svd_iterations + 1):
-        q, r = residuals(T, corr)
-        D, _ = umeyama(q, q - corr[2] * r[:, None])
+        D, c, _ = _projected_kabsch(T, corr)
         T = D @ T
-        # The step as a rotation about the matched points' centroid (not the frame's origin,
-        # which may be far away) and the centroid's translation.
-        c = q.mean(axis=0)
+        # The step as a rotation about the matched points' centroid ``c`` (not the frame's
+        # origin, which may be far away) and the centroid's translation.
         step = np.concatenate([D[:3, :3] @ c + D[:3, 3] - c, Rotation.from_matrix(D[:3, :3]).as_rotvec()])
         small = (
             np.linalg.norm(step[:3]) < settings.svd_translation_eps_m
             and np.linalg.norm(step[3:]) < settings.svd_rotation_eps_rad
         )
         if small and since_search == 0:
-            break  # converged on freshly searched correspondences
+            # Converged on freshly searched correspondences: the pose moved less than the
+            # tolerance since that search, so its pairs are the final pose's too.
+            return T, it, rmse_before, _projected_kabsch(T, corr)[2]
         if not small:
             T, previous = _extrapolate(T, step, previous, radius, c)
         since_search += 1
@@ -536,7 +531,33 @@ def _svd_refine(
     final = search(T)
     if final is None:
         return T, it, rmse_before, np.inf
-    return T, it, rmse_before, float(np.sqrt(np.mean(residuals(T, final)[1] ** 2)))
+    return T, it, rmse_before, _projected_kabsch(T, final)[2]
+
+
+def _projected_kabsch(
+    T: np.ndarray, corr: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One Kabsch solve of the SVD step: the rigid motion ``D`` taking the moving points
+    ``corr[0]`` (moved by ``T``) onto their projections on the partners' planes (points
+    ``corr[1]``, normals ``corr[2]``), the moved points' centroid, and their point-to-plane RMSE
+    at ``T``.
+
+    :func:`~core.transforms.umeyama` on the moved and the projected points, with the moving,
+    projecting and the sums fused into one compiled pass
+    (:func:`~core.kernels.projected_pair_moments`): the step solves this 12-15 times a
+    registration, and its numpy temporaries cost 0.5-1 ms a solve on a KITTI pair's 7-14k points.
+    """
+    src, dst, nrm = corr
+    mu_q, mu_y, cross = np.empty(3), np.empty(3), np.empty((3, 3))
+    R = np.ascontiguousarray(T[:3, :3])
+    t = np.ascontiguousarray(T[:3, 3])
+    sum_r2 = projected_pair_moments(src, dst, nrm, R, t, mu_q, mu_y, cross)
+    U, _, Vt = np.linalg.svd(cross)
+    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    D = np.eye(4)
+    D[:3, :3] = U @ np.diag(signs) @ Vt
+    D[:3, 3] = mu_y - D[:3, :3] @ mu_q
+    return D, mu_q, float(np.sqrt(sum_r2 / src.shape[0]))
 
 
 #: The SVD step searches correspondences again after this many Kabsch solves on the same ones (the

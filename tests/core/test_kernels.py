@@ -247,15 +247,18 @@ def test_point_grid_nearest_matches_kdtree(kitti_clouds) -> None:
         grid.nearest(queries, T, 1.0)
 
 
-def test_point_grid_normals_match_hybrid_knn(kitti_clouds) -> None:
-    """Normals from up to k neighbours within the radius equal an exact k-NN/radius fit."""
+@pytest.mark.parametrize("cell", [1.6, 0.8, 0.55])
+def test_point_grid_normals_match_hybrid_knn(kitti_clouds, cell: float) -> None:
+    """Normals from up to k neighbours within the radius equal an exact k-NN/radius fit, whether
+    the radius spans one cell or three (where the search stops at the first shell of cells that
+    cannot hold a nearer point)."""
     from scipy.spatial import cKDTree
 
     from core.grid import PointGrid
 
     ref = voxel_downsample(kitti_clouds[0], 0.2)
     which = np.arange(0, ref.shape[0], 7)
-    grid = PointGrid.build(ref, 1.6)
+    grid = PointGrid.build(ref, cell)
     normals, valid = grid.normals(which, 16, 1.6, min_points=5)
     dist, idx = cKDTree(ref).query(ref[which], k=16, distance_upper_bound=1.6)
     n_within = np.isfinite(dist).sum(axis=1)
@@ -269,6 +272,28 @@ def test_point_grid_normals_match_hybrid_knn(kitti_clouds) -> None:
         assert abs(evecs[:, 0] @ normals[w]) > 1 - 1e-9
     np.testing.assert_allclose(np.linalg.norm(normals[valid], axis=1), 1.0, atol=1e-12)
     assert np.all(normals[~valid] == 0)
+
+
+def test_projected_pair_moments_match_umeyama(kitti_clouds) -> None:
+    """The SVD step's fused Kabsch sums give umeyama's fit of the moved points onto their
+    projections on the partners' planes, and the point-to-plane residuals' sum of squares."""
+    from core.registration import _projected_kabsch
+    from core.transforms import umeyama
+
+    rng = np.random.default_rng(5)
+    src = voxel_downsample(kitti_clouds[1], 0.3) + np.array([250.0, -40.0, 3.0])  # far from the origin
+    dst = src + rng.normal(scale=0.05, size=src.shape)
+    nrm = rng.normal(size=src.shape)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    T = make_transform(euler_deg=(0.4, -0.2, 1.1), translation=(0.3, 0.1, -0.02))
+    q = transform_points(T, src)
+    r = np.einsum("ij,ij->i", q - dst, nrm)
+    D_ref, _ = umeyama(q, q - nrm * r[:, None])
+    D, centroid, rmse = _projected_kabsch(T, (src, dst, nrm))
+    np.testing.assert_allclose(D, D_ref, atol=1e-9)
+    np.testing.assert_allclose(centroid, q.mean(axis=0), rtol=1e-12)
+    assert rmse == pytest.approx(np.sqrt(np.mean(r**2)), rel=1e-10)
+    assert rmse > 0.01 and transform_error(D, np.eye(4))[0] > 1e-3  # a real step, not the identity
 
 
 @pytest.mark.parametrize("voxel", [0.5, 1.0, 3.0])
