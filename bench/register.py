@@ -4,16 +4,20 @@ Run from the repository root::
 
     python bench/register.py [--quick] [--markdown]
 
-Two experiments, one process, one thread (the thread limits are set before numpy is imported):
+Three experiments, one process, one thread (the thread limits are set before numpy is imported):
 
 1. **Real pairs.** The shared pairs of ``core/shared_data.py`` (reference transforms from their data
    sets) and consecutive KITTI 00 frames (reference: KITTI ground truth, approximate on these
    frames, so the disagreement with small_gicp VGICP is reported as well). Every method starts
    from the identity; the timed region goes from raw (N,3) float64 arrays to the transform, so
    downsampling, normals / covariances and search structures are included. Median over repeats.
-2. **Robustness protocol** (:func:`core.protocol.make_trial`): seeded trials on the RANDT
+2. **Cycle consistency** on KITTI 00 frames 0-10, which needs no reference: for frames
+   ``(i, i+g, i+2g)``, ``g`` = 1 and 2, the pose ``i <- i+2g`` registered directly against the
+   product of ``i <- i+g`` and ``i+g <- i+2g``. It measures each method's precision on real
+   sweeps (a bias shared by all three poses does not show).
+3. **Robustness protocol** (:func:`core.protocol.make_trial`): seeded trials on the RANDT
    paper's Velodyne scans (random rigid transform up to 2 m / 10 deg, 50 % overlap, noise,
-   10 % outliers); RANDT, RANDT --dense-svd, its two ablations, classic NDT and small_gicp VGICP.
+   10 % outliers); RANDT, RANDT --fast-svd, its two ablations, classic NDT and small_gicp VGICP.
 
 Our methods run with their defaults (NDT voxel levels derived from the target's scale). The peers
 (small_gicp, Open3D) need scale parameters; :data:`SCALES` lists them and the output repeats them.
@@ -38,7 +42,7 @@ import open3d as o3d
 import small_gicp
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from core.config import DENSE_SVD_STEP, Method, RegistrationSettings
+from core.config import FAST_SVD_STEP, Method, RegistrationSettings
 from core.errors import DegenerateProblemError, RegistrationFailedError
 from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
 from core.protocol import make_trial
@@ -132,7 +136,7 @@ def open3d_point_to_plane(source: np.ndarray, target: np.ndarray, scale: Scale) 
 
 PAIR_METHODS: dict[str, Runner] = {
     "RANDT": ours("randt"),
-    "RANDT --dense-svd": ours("randt", **DENSE_SVD_STEP),
+    "RANDT --fast-svd": ours("randt", **FAST_SVD_STEP),
     "NDT (classic)": ours("ndt"),
     "ICP point (ours)": ours("icp-point"),
     "ICP plane (ours)": ours("icp-plane"),
@@ -146,7 +150,7 @@ PROTOCOL_HEADERS = ["method", "success", "t mean m", "t p95 m", "r mean deg", "r
 
 PROTOCOL_METHODS: dict[str, Runner] = {
     "RANDT": ours("randt"),
-    "RANDT --dense-svd": ours("randt", **DENSE_SVD_STEP),
+    "RANDT --fast-svd": ours("randt", **FAST_SVD_STEP),
     "RANDT w/o outlier removal": ours("randt", outlier_removal="none", select_moving_points=False),
     "RANDT w/o SVD step": ours("randt", svd_refinement=False),
     "NDT (classic)": ours("ndt"),
@@ -262,6 +266,49 @@ class ProtocolStats:
     r_mean: float
     r_p95: float
     time_mean: float
+
+
+CYCLE_GAPS = (1, 2)
+CYCLE_HEADERS = [
+    "method", "cycles", "t mean cm", "t median cm", "t max cm", "r mean deg", "r max deg", "failed",
+]  # fmt: skip
+
+
+def run_cycles() -> tuple[list[list[str]], str | None]:
+    """Cycle consistency on KITTI 00 frames 0-10 (module docstring, experiment 2): a row per
+    method, or the reason it could not run."""
+    files = [f"kitti00/velodyne/{k:06d}.bin" for k in range(11)]
+    reason = missing(*files)
+    if reason:
+        return [], f"cycles: {reason}"
+    frames = [as_f64(kitti00_velodyne(k)) for k in range(11)]
+    cycles = [(i, i + g, i + 2 * g) for g in CYCLE_GAPS for i in range(11 - 2 * g)]
+    needed = sorted({pair for a, b, c in cycles for pair in ((a, b), (b, c), (a, c))})
+    rows = []
+    for method, runner in PAIR_METHODS.items():
+        progress(f"cycles: {method}")
+        # p_a = poses[(a, b)] p_b, each pair registered once
+        poses = {(a, b): runner(frames[b], frames[a], SCALES["outdoor"]).T for a, b in needed}
+        errors, failed = [], 0
+        for a, b, c in cycles:
+            direct, first, second = poses[(a, c)], poses[(a, b)], poses[(b, c)]
+            if direct is None or first is None or second is None:
+                failed += 1
+                continue
+            errors.append(transform_error(direct, first @ second))
+        e = np.array(errors).reshape(-1, 2)
+        t_cm = 100 * e[:, 0]
+        rows.append(
+            [
+                method,
+                str(len(cycles)),
+                *(f"{v:.2f}" for v in (t_cm.mean(), np.median(t_cm), t_cm.max())),
+                f"{e[:, 1].mean():.4f}",
+                f"{e[:, 1].max():.4f}",
+                str(failed),
+            ]
+        )
+    return rows, None
 
 
 def run_protocol(n_trials: int) -> tuple[list[ProtocolStats], list[str], str]:
@@ -384,6 +431,18 @@ def main() -> None:
             ratios = [r.time_s / vg[r.pair] for r in kitti_runs if r.method == method]
             summary.append(f"{method} {statistics.median(ratios):.2f}x")
         print("\nmedian time ratio to small_gicp VGICP over the KITTI pairs: " + "; ".join(summary))
+
+    cycle_rows, skipped_cycles = run_cycles()
+    if cycle_rows:
+        print(heading("KITTI 00 cycle consistency (no reference needed)", md))
+        print(
+            "Frames (i, i+g, i+2g) of KITTI 00 frames 0-10, g = 1 and 2: the pose i <- i+2g "
+            "registered directly against the product of i <- i+g and i+g <- i+2g (each pair "
+            "registered once, from the identity). A failed pair drops its cycles."
+        )
+        print(table(CYCLE_HEADERS, cycle_rows, md))
+    if skipped_cycles:
+        skipped.append(skipped_cycles)
 
     stats, skipped_protocol, source_note = run_protocol(n_trials)
     skipped += skipped_protocol

@@ -10,21 +10,23 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-__all__ = ["DENSE_SVD_STEP", "Method", "RegistrationSettings"]
+__all__ = ["FAST_SVD_STEP", "Method", "RegistrationSettings"]
 
 Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
 
 
-#: Overrides for noisy clouds (``RegistrationSettings.for_method("randt", **DENSE_SVD_STEP)``,
-#: ``randt register --dense-svd``): the SVD step gets its own moving selection at 0.3 of the
-#: finest voxel (the NDT solver's is 0.5) and tighter fences. On the paper's protocol (1-5 cm
-#: noise, 10 % outliers, half overlap; 60 trials a scan set) it places the source within 0.29 /
-#: 0.30 cm where the defaults give 0.50 / 0.54 cm and small_gicp GICP 0.34 / 0.33 cm on its
-#: successes, at 1.2-1.6x the defaults' time. On the real pairs it is no better (docs/benchmarks.md).
-DENSE_SVD_STEP: dict[str, float] = {
-    "svd_residual_fence_k": 2.0,
-    "svd_fence_k": 3.0,
-    "svd_source_voxel_fraction": 0.3,
+#: Overrides for the SVD step as it was by default before 2026-11-26
+#: (``RegistrationSettings.for_method("randt", **FAST_SVD_STEP)``, ``randt register --fast-svd``):
+#: the step on the NDT solver's own moving points (0.5 of the finest voxel, where the default has
+#: its own selection at 0.3) with looser fences. About 25 % less time a KITTI pair (49 against
+#: 67 ms in-process) for twice the error on the paper's protocol (0.50 / 0.54 cm against 0.29 /
+#: 0.30 cm) and twice the cycle error on real KITTI 00 frames (docs/benchmarks.md).
+FAST_SVD_STEP: dict[str, float | bool | None] = {
+    "svd_normal_neighbors": 16,
+    "svd_residual_fence_k": 2.5,
+    "svd_fence_k": 6.0,
+    "svd_source_voxel_fraction": None,
+    "svd_on_filtered_points": True,
 }
 
 
@@ -71,16 +73,16 @@ class RegistrationSettings(BaseModel):
         "or the most probable finest-level voxel's plane (faster, less accurate: docs/registration.md)",
     )
     svd_normal_neighbors: int = Field(
-        default=16, ge=3, description="reference points per local plane of the SVD step's partners"
+        default=10, ge=3, description="reference points per local plane of the SVD step's partners"
     )
     svd_iterations: int = Field(default=30, ge=1)
     svd_translation_eps_m: float = Field(default=1e-4, gt=0, description="SVD step stops below this")
     svd_rotation_eps_rad: float = Field(default=1e-5, gt=0)
     svd_fence_k: float = Field(
-        default=6.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
+        default=3.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
     )
     svd_residual_fence_k: float | None = Field(
-        default=2.5,
+        default=2.0,
         gt=0,
         description="Tukey multiplier on the SVD step's point-to-plane residuals at each search "
         "(None: no residual fence, only the distance fence)",
@@ -91,12 +93,18 @@ class RegistrationSettings(BaseModel):
         description="the SVD step is kept unless it raises the trimmed point-to-plane RMSE by more "
         "than this fraction (0: it must lower it)",
     )
+    svd_on_filtered_points: bool = Field(
+        default=False,
+        description="the SVD step on the IQR-filtered reference and Algorithm 1's moving "
+        "selection, as the NDT solver (FAST_SVD_STEP); False: on both clouds downsampled before "
+        "those filters, its own distance and residual fences trimming the pairs",
+    )
     svd_source_voxel_fraction: float | None = Field(
-        default=None,
+        default=0.4,
         gt=0,
         le=2,
         description="the SVD step's moving points downsampled at this x the finest NDT voxel (None: "
-        "the NDT solver's, source_voxel_fraction); DENSE_SVD_STEP sets 0.3 for noisy clouds",
+        "the NDT solver's, source_voxel_fraction, as FAST_SVD_STEP sets)",
     )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"

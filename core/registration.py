@@ -272,10 +272,21 @@ class PreparedReference:
     maps: tuple[VoxelGaussianMap, ...]
     n_input_points: int
     n_removed_outliers: int
+    #: The downsampled reference before outlier removal (the SVD step's partners unless
+    #: ``svd_on_filtered_points``); ``None`` when kept for no SVD step (:func:`prepare_reference`).
+    unfiltered_xyz: np.ndarray | None = None
 
     @property
     def voxel_sizes_m(self) -> tuple[float, ...]:
         return tuple(m.voxel_size_m for m in self.maps)
+
+    @cached_property
+    def unfiltered(self) -> PreparedReference:
+        """This reference with :attr:`unfiltered_xyz` as its points (itself when nothing was
+        removed or nothing kept): the SVD step's partners, grid and normals."""
+        if self.unfiltered_xyz is None or self.unfiltered_xyz is self.points_xyz:
+            return self
+        return PreparedReference(self.unfiltered_xyz, self.maps, self.n_input_points, 0)
 
     @cached_property
     def kdtree(self) -> cKDTree:
@@ -337,14 +348,17 @@ def prepare_reference(
     else:
         pts = voxel_downsample(target_xyz, voxel)
     n_in = pts.shape[0]
-    pts = np.compress(reference_inlier_mask(pts, settings, finest, keep_unjudged=keep_unjudged), pts, axis=0)
+    keep = reference_inlier_mask(pts, settings, finest, keep_unjudged=keep_unjudged)
+    unfiltered = pts if settings.svd_refinement and not settings.svd_on_filtered_points else None
+    if not keep.all():
+        pts = np.compress(keep, pts, axis=0)
     maps = VoxelGaussianMap.build_pyramid(
         pts,
         voxel_sizes_m,
         min_points_per_voxel=settings.min_points_per_voxel,
         eigenvalue_ratio=settings.eigenvalue_ratio,
     )
-    return PreparedReference(pts, maps, n_in, n_in - pts.shape[0])
+    return PreparedReference(pts, maps, n_in, n_in - pts.shape[0], unfiltered)
 
 
 def reference_inlier_mask(
@@ -382,7 +396,7 @@ def _algorithm1_mask(
 
 def _moving_survivors(
     source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, keep_unjudged: bool = False
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Algorithm 1 on the moving cloud: the cloud downsampled at ``target_voxel_fraction`` of the
     finest voxel, keeping the points of high probability under its own Gaussians.
 
@@ -390,7 +404,9 @@ def _moving_survivors(
     coarser voxel, say) keeps everything: Algorithm 1 would keep less than
     :data:`MIN_SELECTED_SHARE` of it, not because those points are improbable but because their
     voxels hold too few to judge (a KITTI sweep equalized at 0.5 m kept 0.1 % and the problem
-    became degenerate; real scans keep 43-89 %)."""
+    became degenerate; real scans keep 43-89 %).
+
+    Returns the downsampled cloud and its survivors (the same array when nothing was dropped)."""
     pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
     if settings.select_moving_points:
         try:
@@ -399,10 +415,9 @@ def _moving_survivors(
             log.debug("moving cloud too sparse for Algorithm 1 at %g m: selection skipped", finest)
         else:
             if keep.sum() >= settings.min_points and keep.mean() >= MIN_SELECTED_SHARE:
-                pre = pre[keep]
-            else:
-                log.debug("Algorithm 1 kept %.1f %% of the moving cloud: not used", 100 * keep.mean())
-    return pre
+                return pre, pre[keep]
+            log.debug("Algorithm 1 kept %.1f %% of the moving cloud: not used", 100 * keep.mean())
+    return pre, pre
 
 
 #: Algorithm 1's moving-point selection is used only when it keeps at least this share
@@ -756,17 +771,21 @@ def _reference(
 def _moving_points(
     source_xyz: np.ndarray, settings: RegistrationSettings, finest: float, *, sparse: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The NDT solver's moving points and the SVD step's (the same array unless
-    ``svd_source_voxel_fraction`` asks for a denser one: both are Algorithm 1's survivors,
-    downsampled at their own voxel), refusing a cloud too sparse to match."""
-    survivors = _moving_survivors(source_xyz, settings, finest, keep_unjudged=sparse)
+    """The NDT solver's moving points (Algorithm 1's survivors downsampled at
+    ``source_voxel_fraction`` of the finest voxel) and the SVD step's: by default the cloud
+    downsampled at ``svd_source_voxel_fraction`` before Algorithm 1 (its fences trim the pairs,
+    :func:`_svd_refine`); with ``svd_on_filtered_points`` the survivors, at their own fraction or
+    the solver's very points. Refuses a cloud too sparse to match."""
+    pre, survivors = _moving_survivors(source_xyz, settings, finest, keep_unjudged=sparse)
     moving = voxel_downsample(survivors, finest * settings.source_voxel_fraction)
     if moving.shape[0] < settings.min_points:
         raise InvalidCloudError(f"source: only {moving.shape[0]} points survive downsampling at {finest:g} m")
-    fraction = settings.svd_source_voxel_fraction
-    if not settings.svd_refinement or fraction is None:
+    if not settings.svd_refinement:
         return moving, moving
-    return moving, voxel_downsample(survivors, finest * fraction)
+    fraction = settings.svd_source_voxel_fraction
+    if settings.svd_on_filtered_points:
+        return moving, moving if fraction is None else voxel_downsample(survivors, finest * fraction)
+    return moving, voxel_downsample(pre, finest * (fraction or settings.source_voxel_fraction))
 
 
 def _match(
@@ -913,12 +932,17 @@ def _judge(
 
 def _raise_if_degenerate(result: RegistrationResult, information: np.ndarray, threshold: float) -> None:
     """Raise :class:`DegenerateProblemError` (holding ``result``) when a direction of the
-    point-to-plane information is weaker than ``threshold`` times the strongest."""
+    point-to-plane information is weaker than ``threshold`` times the strongest.
+
+    With ``m`` weak directions it names the ``m`` axes lying most in their span (each axis's
+    squared projection onto it): the weak eigenvectors of a plane may be any rotation of tx and ty
+    within that span, so naming each by its own largest component could name ty twice."""
     evals, evecs = np.linalg.eigh(information)
     ratio = evals / max(evals[-1], 1e-300)
     weak = ratio < threshold
     if np.any(weak):
-        names = tuple(_AXES[int(np.argmax(np.abs(evecs[:, i])))] for i in np.flatnonzero(weak))
+        in_span = (evecs[:, weak] ** 2).sum(axis=1)
+        names = tuple(_AXES[i] for i in sorted(np.argsort(-in_span, kind="stable")[: int(weak.sum())]))
         raise DegenerateProblemError(
             f"the geometry does not constrain {len(names)} degree(s) of freedom "
             f"(mostly {', '.join(names)}; eigenvalue ratios {np.array2string(ratio[weak], precision=2)}): "
@@ -981,7 +1005,8 @@ def register(
         T, iterations, svd_accepted = match.T, match.iterations, False
         if settings.svd_refinement:
             with clock("svd"):
-                T, n_svd, svd_accepted = _refine(svd_moving, ref, T, settings)
+                svd_ref = ref if settings.svd_on_filtered_points else ref.unfiltered
+                T, n_svd, svd_accepted = _refine(svd_moving, svd_ref, T, settings)
                 iterations += n_svd
         with clock("judge"):
             if not np.all(np.isfinite(T)):
