@@ -25,7 +25,6 @@ FAST_SVD_STEP: dict[str, float | bool | None] = {
     "svd_normal_neighbors": 16,
     "svd_residual_fence_k": 2.5,
     "svd_fence_k": 6.0,
-    "svd_source_voxel_fraction": None,
     "svd_on_filtered_points": True,
 }
 
@@ -100,11 +99,11 @@ class RegistrationSettings(BaseModel):
         "those filters, its own distance and residual fences trimming the pairs",
     )
     svd_source_voxel_fraction: float | None = Field(
-        default=0.4,
+        default=None,
         gt=0,
         le=2,
-        description="the SVD step's moving points downsampled at this x the finest NDT voxel (None: "
-        "the NDT solver's, source_voxel_fraction, as FAST_SVD_STEP sets)",
+        description="the SVD step's moving points downsampled at this x the finest NDT voxel "
+        "(None: at source_voxel_fraction, as the NDT solver's)",
     )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"
