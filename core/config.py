@@ -21,8 +21,8 @@ Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
 #: the pairs), moving points at 0.4 of the finest voxel, 10-neighbour normals. On the paper's
 #: protocol about 0.2 cm where the default gives 0.4-0.5 cm and small_gicp GICP 0.33 cm; on real
 #: pairs the default's rotation bias goes (the car 0.25 -> 0.08 deg, small_gicp 0.25 -> 0.17 deg
-#: from the reference); about 1.5x the default's time (KITTI pairs 1.08x small_gicp VGICP's
-#: against 0.7x; docs/registration.md, docs/benchmarks.md).
+#: from the reference); about 1.5x the default's time (KITTI pairs 1.05x small_gicp VGICP's
+#: against 0.63x; docs/registration.md, docs/benchmarks.md).
 DENSE_SVD_STEP: dict[str, float | bool | None] = {
     "svd_on_filtered_points": False,
     "svd_source_voxel_fraction": 0.4,
