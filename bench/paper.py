@@ -63,7 +63,7 @@ from common import REPO, git_line, machine_line, table, warm_up
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from core.config import DENSE_SVD_STEP
+from core.config import FAST_SVD_STEP
 from core.global_registration import register_global
 from core.io import read_cloud
 from core.mapping import MapBuilder
@@ -256,14 +256,13 @@ def centred(run: StartableRunner) -> Runner:
 
 
 VGICP = "small_gicp VGICP"
-DENSE = "RANDT --dense-svd (DENSE_SVD_STEP)"
+FAST = "RANDT --fast-svd (FAST_SVD_STEP)"
 
 
 def methods(scale: Scale, tiny: bool) -> dict[str, Runner]:
     """Every method of the tables (``tiny``: RANDT, one ablation, VGICP and Open3D's point-to-plane)."""
     startable: dict[str, StartableRunner] = {  # the methods the object tables also start from the centroids
         "RANDT": ours("randt"),
-        DENSE: ours("randt", **DENSE_SVD_STEP),
         "NDT (classic)": ours("ndt"),
         "ICP point (ours)": ours("icp-point"),
         "Open3D ICP plane": open3d_runner(plane=True),
@@ -273,10 +272,10 @@ def methods(scale: Scale, tiny: bool) -> dict[str, Runner]:
         "RANDT": startable["RANDT"],
         "RANDT w/o IQR outlier removal": ours("randt", outlier_removal="none", select_moving_points=False),
         "RANDT w/o SVD step": ours("randt", svd_refinement=False),
-        "RANDT w/o residual fence (SVD step before 2026-11-26)": ours(
-            "randt", svd_residual_fence_k=None, svd_max_rmse_rise=0.0
+        FAST: ours("randt", **FAST_SVD_STEP),
+        "RANDT --fast-svd w/o residual fence (the SVD step to 2026-11-25)": ours(
+            "randt", **{**FAST_SVD_STEP, "svd_residual_fence_k": None, "svd_max_rmse_rise": 0.0}
         ),
-        DENSE: startable[DENSE],
         "NDT (classic)": startable["NDT (classic)"],
         "ICP point (ours)": startable["ICP point (ours)"],
         "ICP plane (ours)": ours("icp-plane"),
@@ -844,7 +843,7 @@ def verdicts(res: Results) -> list[str]:
         # method on the trials it succeeds in
         ok_peers = {m: succeeded_mean(r) for m, r in rows.items() if not m.startswith("RANDT")}
         ok_best = min(ok_peers, key=lambda m: ok_peers[m])
-        for m in ("RANDT", DENSE):
+        for m in ("RANDT", FAST):
             if m not in rows:
                 continue
             v, v_ok = mean(rows[m].rmse_true), succeeded_mean(rows[m])
@@ -856,7 +855,7 @@ def verdicts(res: Results) -> list[str]:
     for name, rows in res.objects.items():
         if not name.startswith("ModelNet40"):
             continue
-        for m in ("RANDT", "RANDT, centroid start", f"{DENSE}, centroid start"):
+        for m in ("RANDT", "RANDT, centroid start"):
             if m not in rows:
                 continue
             v = mean(rows[m].rmse_true)

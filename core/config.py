@@ -10,25 +10,27 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-__all__ = ["DENSE_SVD_STEP", "Method", "RegistrationSettings"]
+__all__ = ["FAST_SVD_STEP", "Method", "RegistrationSettings"]
 
 Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
 
 
-#: Overrides for an SVD step below every peer (``RegistrationSettings.for_method("randt",
-#: **DENSE_SVD_STEP)``, ``randt register --dense-svd``): the step pairs both clouds as downsampled,
-#: before the reference's IQR filter and Algorithm 1 (its own fences, tightened to 3 / 2 IQR, trim
-#: the pairs), moving points at 0.4 of the finest voxel, 10-neighbour normals. On the paper's
-#: protocol about 0.2 cm where the default gives 0.4-0.5 cm and small_gicp GICP 0.33 cm; on real
-#: pairs the default's rotation bias goes (the car 0.25 -> 0.08 deg, small_gicp 0.25 -> 0.17 deg
-#: from the reference); about 1.5x the default's time (KITTI pairs 1.05x small_gicp VGICP's
-#: against 0.63x; docs/registration.md, docs/benchmarks.md).
-DENSE_SVD_STEP: dict[str, float | bool | None] = {
-    "svd_on_filtered_points": False,
-    "svd_source_voxel_fraction": 0.4,
-    "svd_normal_neighbors": 10,
-    "svd_fence_k": 3.0,
-    "svd_residual_fence_k": 2.0,
+#: Overrides for the SVD step as it was by default before 2026-11-26
+#: (``RegistrationSettings.for_method("randt", **FAST_SVD_STEP)``, ``randt register --fast-svd``):
+#: the step on the NDT solver's own points (the reference after the IQR filter, the moving
+#: cloud's Algorithm 1 survivors at 0.5 of the finest voxel), 16-neighbour normals, looser fences,
+#: stopping below 0.1 mm / 1e-5 rad. About 0.75x the default's time (KITTI pairs 0.68x small_gicp
+#: VGICP's against 0.90x) for twice the error on the paper's protocol (0.50 / 0.54 cm against
+#: 0.19 / 0.20 cm), a rotation bias on real pairs (the car and small_gicp 0.25 deg from the
+#: reference against 0.08 / 0.17 deg) and 1.6x the cycle error on KITTI 00 (docs/benchmarks.md).
+FAST_SVD_STEP: dict[str, float | bool | None] = {
+    "svd_normal_neighbors": 16,
+    "svd_residual_fence_k": 2.5,
+    "svd_fence_k": 6.0,
+    "svd_on_filtered_points": True,
+    "svd_source_voxel_fraction": None,
+    "svd_translation_eps_m": 1e-4,
+    "svd_rotation_eps_rad": 1e-5,
 }
 
 
@@ -75,16 +77,16 @@ class RegistrationSettings(BaseModel):
         "or the most probable finest-level voxel's plane (faster, less accurate: docs/registration.md)",
     )
     svd_normal_neighbors: int = Field(
-        default=16, ge=3, description="reference points per local plane of the SVD step's partners"
+        default=10, ge=3, description="reference points per local plane of the SVD step's partners"
     )
     svd_iterations: int = Field(default=30, ge=1)
-    svd_translation_eps_m: float = Field(default=1e-4, gt=0, description="SVD step stops below this")
-    svd_rotation_eps_rad: float = Field(default=1e-5, gt=0)
+    svd_translation_eps_m: float = Field(default=3e-4, gt=0, description="SVD step stops below this")
+    svd_rotation_eps_rad: float = Field(default=3e-5, gt=0)
     svd_fence_k: float = Field(
-        default=6.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
+        default=3.0, gt=0, description="Tukey multiplier on SVD correspondence distances"
     )
     svd_residual_fence_k: float | None = Field(
-        default=2.5,
+        default=2.0,
         gt=0,
         description="Tukey multiplier on the SVD step's point-to-plane residuals at each search "
         "(None: no residual fence, only the distance fence)",
@@ -96,13 +98,13 @@ class RegistrationSettings(BaseModel):
         "than this fraction (0: it must lower it)",
     )
     svd_on_filtered_points: bool = Field(
-        default=True,
+        default=False,
         description="the SVD step on the IQR-filtered reference and Algorithm 1's moving "
-        "selection, as the NDT solver; False (DENSE_SVD_STEP): on both clouds downsampled before "
+        "selection, as the NDT solver (FAST_SVD_STEP); False: on both clouds downsampled before "
         "those filters, its own distance and residual fences trimming the pairs",
     )
     svd_source_voxel_fraction: float | None = Field(
-        default=None,
+        default=0.4,
         gt=0,
         le=2,
         description="the SVD step's moving points downsampled at this x the finest NDT voxel "

@@ -245,11 +245,12 @@ def test_a_wrong_basin_at_the_coarsest_level_is_retried_from_the_next(monkeypatc
 
 def test_the_svd_residual_fence_and_the_dense_step_help_on_the_papers_protocol() -> None:
     """The SVD step trims its correspondences by their point-to-plane residuals as well as their
-    distances (``svd_residual_fence_k`` 2.5, the default since 2026-11-26; before, None). On the
-    paper's protocol (noise, 10 % outliers, 50 % overlap) it halves the placement error
-    (bench/paper.py); ``DENSE_SVD_STEP`` lowers it further. Measured here on five trials of one
-    KITTI 00 sweep: before 4.8 mm mean (one trial 10 mm), default 2.1 mm, dense 1.0 mm."""
-    from core.config import DENSE_SVD_STEP
+    distances (``svd_residual_fence_k``; before 2026-11-26 None), and since 2026-11-26 runs on its
+    own denser moving selection with tighter fences (``FAST_SVD_STEP`` keeps the fenced step on
+    the NDT solver's points). On the paper's protocol (noise, 10 % outliers, 50 % overlap) each
+    lowers the placement error (bench/paper.py). Measured here on five trials of one KITTI 00
+    sweep: before 4.8 mm mean (one trial 10 mm), fast 2.1 mm, default 1.5 mm."""
+    from core.config import FAST_SVD_STEP
     from core.protocol import make_trial
     from core.shared_data import kitti00_velodyne
     from tests.data import require_data
@@ -257,9 +258,11 @@ def test_the_svd_residual_fence_and_the_dense_step_help_on_the_papers_protocol()
     require_data("kitti00/velodyne/000000.bin")
     scan = kitti00_velodyne(0).astype(np.float64)
     variants = {
-        "before": RegistrationSettings.for_method("randt", svd_residual_fence_k=None, svd_max_rmse_rise=0.0),
+        "before": RegistrationSettings.for_method(
+            "randt", **{**FAST_SVD_STEP, "svd_residual_fence_k": None, "svd_max_rmse_rise": 0.0}
+        ),
+        "fast": RegistrationSettings.for_method("randt", **FAST_SVD_STEP),
         "default": RegistrationSettings.for_method("randt"),
-        "dense": RegistrationSettings.for_method("randt", **DENSE_SVD_STEP),
     }
     errors: dict[str, list[float]] = {name: [] for name in variants}
     for seed in range(5):
@@ -268,25 +271,25 @@ def test_the_svd_residual_fence_and_the_dense_step_help_on_the_papers_protocol()
             T = register(trial.source_xyz, trial.target_xyz, settings=settings).T_target_source
             errors[name].append(transform_error(T, trial.T_true)[0])
     assert max(errors["default"]) < 0.01, errors
-    assert np.mean(errors["default"]) < 0.6 * np.mean(errors["before"]), errors
-    assert np.mean(errors["dense"]) < np.mean(errors["default"]), errors
+    assert np.mean(errors["fast"]) < 0.6 * np.mean(errors["before"]), errors
+    assert np.mean(errors["default"]) < np.mean(errors["fast"]), errors
 
 
 def test_the_svd_step_on_unfiltered_points_removes_the_rotation_bias_of_real_pairs() -> None:
-    """``DENSE_SVD_STEP`` pairs the clouds as downsampled, before the reference's IQR filter and
-    Algorithm 1 (its own fences trim the pairs). On real scans those filters drop thin structure
-    (a third of a KITTI reference), and the same step on the filtered points leaves a rotation
-    bias the point-to-plane ICPs do not have: measured here car 0.28 deg and small_gicp 0.31 deg
-    from the reference (the default step: 0.25 / 0.25 deg; Open3D's point-to-plane 0.13 / 0.15
-    deg, small_gicp GICP 0.04 / 0.15 deg), on unfiltered points 0.08 / 0.17 deg."""
-    from core.config import DENSE_SVD_STEP
+    """The SVD step pairs the clouds as downsampled, before the reference's IQR filter and
+    Algorithm 1 (its own fences trim the pairs), since 2026-11-26. On real scans those filters
+    drop thin structure (a third of a KITTI reference), and the same step on the filtered points
+    leaves a rotation bias the point-to-plane ICPs do not have: measured here car 0.31 deg and
+    small_gicp 0.32 deg from the reference (``FAST_SVD_STEP``: 0.25 / 0.25 deg; Open3D's
+    point-to-plane 0.13 / 0.15 deg, small_gicp GICP 0.04 / 0.15 deg), on unfiltered points 0.08 /
+    0.17 deg."""
     from tests.pairs import car, small_gicp
 
     for loader, bound_deg in ((car, 0.12), (small_gicp, 0.22)):
         source, target, T_ref = loader()
         errors = {}
         for filtered in (False, True):
-            settings = RegistrationSettings(**{**DENSE_SVD_STEP, "svd_on_filtered_points": filtered})
+            settings = RegistrationSettings(svd_on_filtered_points=filtered)
             result = register(source, target, settings=settings)
             assert result.svd_accepted, (loader.__name__, filtered)
             errors[filtered] = transform_error(result.T_target_source, T_ref)
@@ -296,9 +299,8 @@ def test_the_svd_step_on_unfiltered_points_removes_the_rotation_bias_of_real_pai
 
 def test_the_unfiltered_reference_is_kept_only_for_the_svd_step_that_uses_it() -> None:
     """A prepared reference keeps its downsampled points before the IQR filter only when an SVD
-    step on unfiltered points (``DENSE_SVD_STEP``) will ask for them: the default's and the
-    incremental matcher's references hold one copy of their points, as before."""
-    from core.config import DENSE_SVD_STEP
+    step on unfiltered points will ask for them: the incremental matcher's references (no SVD
+    step) hold one copy of their points, as before."""
     from core.odometry import MATCHER_REGISTRATION
     from core.registration import auto_voxel_sizes, prepare_reference
     from core.shared_data import kitti00_velodyne
@@ -307,31 +309,32 @@ def test_the_unfiltered_reference_is_kept_only_for_the_svd_step_that_uses_it() -
     require_data("kitti00/velodyne/000000.bin")
     scan = kitti00_velodyne(0).astype(np.float64)
     levels = auto_voxel_sizes(scan)
-    ref = prepare_reference(scan, RegistrationSettings(**DENSE_SVD_STEP), levels)
+    ref = prepare_reference(scan, RegistrationSettings(), levels)
     assert ref.unfiltered_xyz is not None and ref.n_removed_outliers > 0.2 * ref.n_input_points
     assert ref.unfiltered.points_xyz.shape[0] == ref.n_input_points == ref.unfiltered_xyz.shape[0]
     assert ref.unfiltered.maps is ref.maps and ref.unfiltered is ref.unfiltered  # built once
-    for settings in (MATCHER_REGISTRATION, RegistrationSettings()):
+    for settings in (MATCHER_REGISTRATION, RegistrationSettings(svd_on_filtered_points=True)):
         other = prepare_reference(scan, settings, levels)
         assert other.unfiltered_xyz is None and other.unfiltered is other
 
 
 def test_the_svd_step_is_kept_unless_its_rmse_clearly_rises() -> None:
-    """On the car pair the fenced SVD step reaches 1.6-2.6 cm from the reference at every residual
-    fence from 2 to 3, while its trimmed RMSE moves 0.01-0.1 cm either way; a strict "must lower
-    it" test kept it at 2 and 2.5 and rejected it at 2.25, 2.75 and 3 (NDT's pose, 4.6 cm). With
-    the 2 % tolerance (``svd_max_rmse_rise``) every one is kept."""
+    """On the car pair the fenced SVD step on the NDT solver's points (``FAST_SVD_STEP``) reaches
+    1.6-2.6 cm from the reference at every residual fence from 2 to 3, while its trimmed RMSE
+    moves 0.01-0.1 cm either way; a strict "must lower it" test kept it at 2 and 2.5 and rejected
+    it at 2.25, 2.75 and 3 (NDT's pose, 4.6 cm). With the 2 % tolerance (``svd_max_rmse_rise``)
+    every one is kept."""
+    from core.config import FAST_SVD_STEP
     from tests.pairs import car
 
     source, target, T_ref = car()
     rejected = 0
     for k in (2.0, 2.25, 2.5, 2.75, 3.0):
-        kept = register(source, target, settings=RegistrationSettings(svd_residual_fence_k=k))
+        step = {**FAST_SVD_STEP, "svd_residual_fence_k": k}
+        kept = register(source, target, settings=RegistrationSettings(**step))
         assert kept.svd_accepted, k
         assert transform_error(kept.T_target_source, T_ref)[0] < 0.027, k
-        strict = register(
-            source, target, settings=RegistrationSettings(svd_residual_fence_k=k, svd_max_rmse_rise=0)
-        )
+        strict = register(source, target, settings=RegistrationSettings(**step, svd_max_rmse_rise=0))
         rejected += not strict.svd_accepted
     assert rejected == 3
 
@@ -362,7 +365,9 @@ def test_the_centroid_start_places_objects_the_identity_cannot() -> None:
     """``centroid_start`` is the translation between the two centroids (non-finite rows ignored).
     ModelNet40 objects (1024 points in the unit sphere) posed 0.5 per axis and 28 deg apart: from
     the identity RANDT ends 77 cm / 78 deg off (the chair) or finds no overlap (the airplane); from
-    the centroids within 1 cm and 0.5 deg (measured 0.25 cm / 0.24 deg and 0.58 cm / 0.37 deg)."""
+    the centroids within 2 cm and 0.5 deg (measured 0.18 cm / 0.08 deg and 1.3 cm / 0.43 deg: on
+    the airplane's 193 moving points the SVD step's trimmed RMSE rises 4 % and NDT's pose is kept;
+    ``FAST_SVD_STEP`` places it within 0.58 cm)."""
     from core.io import read_cloud
     from core.registration import centroid_start
     from core.shared_data import data_root
@@ -385,4 +390,4 @@ def test_the_centroid_start_places_objects_the_identity_cannot() -> None:
             from_identity = np.inf
         assert from_identity > 0.1, name
         dt, dr = transform_error(register(source, xyz, centroid_start(source, xyz)).T_target_source, T)
-        assert dt < 0.01 and dr < 0.5, (name, dt, dr)
+        assert dt < 0.02 and dr < 0.5, (name, dt, dr)
