@@ -122,18 +122,6 @@ def _find(table_key: np.ndarray, table_idx: np.ndarray, key: int) -> int:
 
 
 @nb.njit(cache=True, inline="always")
-def _moved_and_cell(
-    points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray, inv_v: float
-) -> tuple[float, float, float, int, int, int]:
-    """Point ``i`` moved by ``(R, t)`` and the integer cell it falls in."""
-    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-    q0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-    q1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-    q2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-    return q0, q1, q2, int(math.floor(q0 * inv_v)), int(math.floor(q1 * inv_v)), int(math.floor(q2 * inv_v))
-
-
-@nb.njit(cache=True, inline="always")
 def _moved(points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray) -> tuple[float, float, float]:
     """Point ``i`` moved by ``(R, t)``."""
     px, py, pz = points[i, 0], points[i, 1], points[i, 2]
@@ -142,6 +130,15 @@ def _moved(points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray) -> tuple[fl
         R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1],
         R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2],
     )
+
+
+@nb.njit(cache=True, inline="always")
+def _moved_and_cell(
+    points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray, inv_v: float
+) -> tuple[float, float, float, int, int, int]:
+    """Point ``i`` moved by ``(R, t)`` (:func:`_moved`) and the integer cell it falls in."""
+    q0, q1, q2 = _moved(points, i, R, t)
+    return q0, q1, q2, int(math.floor(q0 * inv_v)), int(math.floor(q1 * inv_v)), int(math.floor(q2 * inv_v))
 
 
 @nb.njit(cache=True, inline="always")
