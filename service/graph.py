@@ -32,8 +32,11 @@ graph; once two registrations against it agree, FleetMapper places it there and 
 rewritten: a client corrects the poses it holds with the newest keyframe poses
 (:class:`wire.messages.CorrectionMessage`).
 
-The graph lives in memory: a restarted service starts an empty graph, and a session resumed from
-the store joins it with its next keyframe (its earlier keyframes are not replayed).
+The process is supervised (:meth:`ServiceGraph._supervise`): one thread owns it for the service's
+life and starts it again when it dies. The graph lives in memory: a restarted process (or
+service) starts an empty graph, the sessions it had placed into another map than their own are
+placed there again, and every session joins it with its next keyframe (earlier keyframes are not
+replayed, and the tiles they made are no longer re-folded).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import signal
 import threading
@@ -417,6 +421,13 @@ def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeome
             last_refold = time.monotonic()
             conn.send(("synced", message[1]))
             continue
+        if message[0] == "place":  # a restarted process: a session the graph had placed
+            _, map_name, vehicle, session, T_map_session = message
+            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(map_name, settings, geometry))
+            with contextlib.suppress(RandtError):  # (placed already: nothing to do)
+                graph.mapper.place(f"{vehicle}/{session}", T_map_session)
+            conn.send(("placed", map_name, vehicle, session))
+            continue
         map_name, vehicle, session, seq, join = message[1], message[2], message[3], message[4], message[-1]
         t0 = time.perf_counter()
         try:
@@ -534,6 +545,7 @@ class ServiceGraph:
         queue_size: int = 64,
         refold_s: float = 20.0,
         yield_to_matchers: bool = True,
+        on_restart: Callable[[], None] | None = None,
     ) -> None:
         self.settings = settings
         #: holds the graph process while sweeps are matched (``graph_yield``); None: never held
@@ -563,38 +575,168 @@ class ServiceGraph:
         self._synced = 0  # ... and answered
         self._cond = threading.Condition()
         self._closed = False
+        self._on_restart = on_restart
+        #: The process of the current generation and the service's end of its pipe (``None``
+        #: while it is being (re)started); both owned by the supervisor thread.
         self._proc: multiprocessing.process.BaseProcess | None = None
         self._conn: Connection | None = None
+        #: Items sent to the current process and not answered yet, in order (it answers in order).
+        self._inflight: list[tuple[Any, ...]] = []
+        #: Items that were in flight when a process died: in flight at a second death, dropped.
+        self._retried: set[int] = set()
+        #: Per map, the revision and loop count when the current process started: a restarted
+        #: process counts both from zero, and what the service shows never goes back.
+        self._bases: dict[str, tuple[int, int]] = {}
+        #: Per map, the sessions placed before the current process started (it places only those
+        #: that offer keyframes to it).
+        self._placed_before: dict[str, set[SessionKey]] = {}
+        #: how many times the process died and was started again; how the last one ended
+        self.restarts = 0
+        self.last_exit: str | None = None
+        self._supervisor: threading.Thread | None = None
         self._sender: threading.Thread | None = None
-        self._receiver: threading.Thread | None = None
+
+    @property
+    def started(self) -> bool:
+        """A keyframe has been offered: the graph process is (or is being) run."""
+        return self._supervisor is not None
 
     @property
     def running(self) -> bool:
-        """The graph process has been started (with the first keyframe) and is alive."""
-        return self._proc is not None and self._proc.is_alive()
+        """The graph process of the current generation is alive."""
+        proc = self._proc
+        return proc is not None and proc.is_alive()
+
+    @property
+    def pid(self) -> int | None:
+        proc = self._proc
+        return None if proc is None else proc.pid
 
     def _start(self) -> None:
-        """Start the process and its two threads with the first keyframe (under ``_cond``): a
-        service that never sees one never pays for it."""
-        if self._proc is not None:
+        """Start the supervisor and the sender with the first keyframe (under ``_cond``): a
+        service that never sees one never pays for the process."""
+        if self._supervisor is not None:
             return
+        self._supervisor = threading.Thread(target=self._supervise, name="graph-supervisor", daemon=True)
+        self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
+        self._supervisor.start()
+        self._sender.start()
+
+    # -- the process's life (supervisor thread) ----------------------------------------------
+    def _supervise(self) -> None:
+        """Run the graph process for as long as this object is open: start it, and start it
+        again whenever it dies (logged, counted in ``randt_graph_restarts``, shown by ``/status``
+        and ``/readyz``), after a pause that doubles while it keeps dying young.
+
+        The process is started from this thread, which lives until :meth:`close`: the graph
+        process asks for SIGKILL when the *thread* that started it exits (``PR_SET_PDEATHSIG``
+        follows the forking thread, not the process), so started from a session's worker thread
+        it died with the first session that ended."""
+        pause = 0.0
+        while True:
+            with self._cond:
+                if self._closed:
+                    return
+            proc, conn = self._spawn()
+            receiver = threading.Thread(target=self._receive_loop, args=(conn,), name="graph-receiver")
+            receiver.daemon = True
+            receiver.start()
+            started = time.monotonic()
+            self._metrics.graph_up.set(1)
+            while proc.is_alive() and not self._closed:
+                multiprocessing.connection.wait([proc.sentinel], timeout=0.5)
+            if self._closed:
+                self._stop_process(proc, conn, receiver)
+                return
+            proc.join()
+            self._died(proc, conn, receiver)
+            pause = 0.0 if time.monotonic() - started > 30.0 else min(max(2 * pause, 0.5), 30.0)
+            with self._cond:
+                self._cond.wait_for(lambda: self._closed, timeout=pause)
+
+    def _spawn(self) -> tuple[multiprocessing.process.BaseProcess, Connection]:
         ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(
+        conn, child = ctx.Pipe()
+        proc = ctx.Process(
             target=_graph_main,
             args=(child, self.settings, self.geometry, self.refold_s),
             name="randt-graph",
             daemon=True,
         )
         with _sigint_ignored_by_children():
-            self._proc.start()
+            proc.start()
         child.close()
-        if self.gate is not None and self._proc.pid is not None:
-            self.gate.attach(self._proc.pid)
-        self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
-        self._receiver = threading.Thread(target=self._receive_loop, name="graph-receiver", daemon=True)
-        self._sender.start()
-        self._receiver.start()
+        if self.gate is not None and proc.pid is not None:
+            self.gate.attach(proc.pid)
+        with self._cond:
+            self._proc, self._conn = proc, conn
+            self._cond.notify_all()  # the sender may go on
+        return proc, conn
+
+    def _died(
+        self, proc: multiprocessing.process.BaseProcess, conn: Connection, receiver: threading.Thread
+    ) -> None:
+        """The process died by itself: what it had not answered goes to the next one (once), the
+        maps' revisions and loops go on from where they were, and the sessions it had placed into
+        another map than their own are placed there again."""
+        if self.gate is not None:
+            self.gate.detach()
+        receiver.join(10.0)
+        conn.close()
+        code = proc.exitcode
+        how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        self._metrics.graph_up.set(0)
+        self._metrics.graph_restarts.inc()
+        with self._cond:
+            self._proc = self._conn = None
+            self.restarts += 1
+            self.last_exit = how
+            retry = []
+            for item in self._inflight:
+                if id(item) in self._retried:  # in flight at two deaths: it may be what kills it
+                    log.error("pose graph: %s dropped, in flight at two deaths of the process", item[0])
+                    if item[0] == "keyframe":
+                        self._offered -= 1
+                        self._forget_keyframe(item[1], (item[2], item[3]), item[4])
+                    elif item[0] == "sync":
+                        self._synced = max(self._synced, item[1])
+                    continue
+                self._retried.add(id(item))
+                retry.append(item)
+            self._inflight = []
+            with self._lock:
+                self._bases = {name: (st.revision, len(st.loops)) for name, st in self._states.items()}
+                self._counted_loops = {name: len(st.loops) for name, st in self._states.items()}
+                self._placed_before = {name: set(st.placed) for name, st in self._states.items()}
+                places = [
+                    ("place", map_name, key[0], key[1], T) for key, (map_name, T) in self._joined.items()
+                ]
+            self._queued[:0] = places + retry
+            self._cond.notify_all()
+        log.error(
+            "the pose graph process died (%s): restarting it; its keyframes before now stay as they "
+            "were (%d keyframes re-sent)",
+            how,
+            sum(item[0] == "keyframe" for item in retry),
+        )
+        if self._on_restart is not None:
+            self._on_restart()
+
+    def _stop_process(
+        self, proc: multiprocessing.process.BaseProcess, conn: Connection, receiver: threading.Thread
+    ) -> None:
+        """:meth:`close`: ask the process to quit, kill it if it does not."""
+        if self.gate is not None:
+            self.gate.detach()
+        with contextlib.suppress(OSError, ValueError):
+            conn.send(("quit",))
+        proc.join(10.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(10.0)
+        receiver.join(10.0)
+        conn.close()
+        self._metrics.graph_up.set(0)
 
     # -- input (session threads) -------------------------------------------------------------
     def wants_keyframe(self, vehicle: str, session: str, poses: list[np.ndarray]) -> bool:
@@ -662,31 +804,45 @@ class ServiceGraph:
                 del kfs[index]
 
     def _send_loop(self) -> None:
+        """Queued items to the current process, in order; an item whose send fails (the process
+        died) waits at the head of the queue for the next one."""
         while True:
             with self._cond:
-                while not self._queued and not self._closed:
-                    self._cond.wait()
-                if not self._queued:
+                self._cond.wait_for(lambda: self._closed or (self._queued and self._conn is not None))
+                if self._closed:
                     return
                 item = self._queued.pop(0)
-            assert self._conn is not None
+                conn = self._conn
+                assert conn is not None
+                self._inflight.append(item)
             try:
-                self._conn.send(item)
-            except (OSError, ValueError):
-                log.error("the graph process is gone: the pose graph stops")
-                return
+                conn.send(item)
+            except (OSError, ValueError):  # the supervisor restarts it
+                with self._cond:
+                    if self._inflight and self._inflight[-1] is item:
+                        self._inflight.pop()
+                        self._queued.insert(0, item)
+                    dead = conn
+                    self._cond.wait_for(lambda: self._closed or self._conn is not dead)  # noqa: B023
+
+    def _answered(self) -> None:
+        """The process answered the oldest item in flight (under ``_cond``)."""
+        if self._inflight:
+            self._retried.discard(id(self._inflight.pop(0)))
 
     # -- output (receiver thread) ------------------------------------------------------------
-    def _receive_loop(self) -> None:
-        assert self._conn is not None
+    def _receive_loop(self, conn: Connection) -> None:
+        """One process's answers, until its pipe closes."""
         while True:
             try:
-                message = self._conn.recv()
+                message = conn.recv()
             except (EOFError, OSError):
                 return
-            if message[0] == "synced":
+            if message[0] in ("synced", "placed"):
                 with self._cond:
-                    self._synced = max(self._synced, message[1])
+                    self._answered()
+                    if message[0] == "synced":
+                        self._synced = max(self._synced, message[1])
                     self._cond.notify_all()
                 continue
             try:
@@ -695,6 +851,7 @@ class ServiceGraph:
                 log.exception("pose graph: an update could not be applied")
             if message[0] in ("update", "refused"):  # one per keyframe offered
                 with self._cond:
+                    self._answered()
                     self._done += 1
                     self._cond.notify_all()
 
@@ -716,6 +873,9 @@ class ServiceGraph:
                 self._states[map_name].n_refused += 1
             return
         kind, map_name, revision, moved, start, loops, placed, processed, elapsed = message
+        base_revision, base_loops = self._bases.get(map_name, (0, 0))
+        revision += base_revision
+        start += base_loops
         if kind == "update":
             m.graph_keyframes.labels("added").inc()
         m.graph_update_seconds.observe(elapsed)
@@ -768,7 +928,10 @@ class ServiceGraph:
             self._counted_loops[map_name] = max(counted, len(st.loops))
             st.placed = {
                 key
-                for key in ((name.split("/", 1)[0], name.split("/", 1)[1]) for name in placed)
+                for key in (
+                    *((name.split("/", 1)[0], name.split("/", 1)[1]) for name in placed),
+                    *self._placed_before.get(map_name, ()),
+                )
                 if self._session_map.get(key) == map_name
             }
             st.revision = max(st.revision, revision)
@@ -867,13 +1030,13 @@ class ServiceGraph:
         def wait(done: Callable[[], bool]) -> bool:
             while not done():
                 left = deadline - time.monotonic()
-                if left <= 0 or not self.running:
+                if left <= 0 or self._closed:
                     return False
                 self._cond.wait(min(left, 0.5))
             return True
 
         with self._cond:
-            if self._proc is None:
+            if self._supervisor is None:
                 return True
             if not wait(lambda: self._done >= self._offered):
                 return False
@@ -893,19 +1056,10 @@ class ServiceGraph:
         with self._cond:
             self._closed = True
             self._queued.clear()
-            self._cond.notify()
+            self._cond.notify_all()
         if self.gate is not None:
             self.gate.detach()
-        if self._proc is None or self._conn is None:
-            return
         if self._sender is not None:
             self._sender.join(timeout)
-        with contextlib.suppress(OSError, ValueError):
-            self._conn.send(("quit",))
-        self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(timeout)
-        if self._receiver is not None:
-            self._receiver.join(timeout)
-        self._conn.close()
+        if self._supervisor is not None:  # it stops the process (``_stop_process``)
+            self._supervisor.join(3 * timeout)

@@ -76,6 +76,9 @@ class ServiceMetrics:
         keyframe (place recognition, verification, iSAM2) and per re-fold of a map's tiles (at most
         every ``graph_refold_s``), keyframes dropped because its queue was full, tiles re-folded
         because the graph moved the keyframes behind them.
+    graph_up, graph_restarts:
+        Gauge: 1 while the graph process runs (0 before the first keyframe and while it is being
+        restarted); counter: how many times it died and was started again.
     """
 
     def __init__(self) -> None:
@@ -133,6 +136,10 @@ class ServiceMetrics:
         )
         self.graph_queue_dropped = Counter(
             "randt_graph_queue_dropped", "Keyframes dropped: the pose graph's queue was full", registry=r
+        )
+        self.graph_up = Gauge("randt_graph_up", "1 while the pose graph process runs", registry=r)
+        self.graph_restarts = Counter(
+            "randt_graph_restarts", "Times the pose graph process died and was started again", registry=r
         )
         self._map_collector: _MapCollector | None = None
 

@@ -660,6 +660,7 @@ class SessionManager:
                 yield_to_matchers=settings.executor == "local"
                 if settings.graph_yield is None
                 else settings.graph_yield,
+                on_restart=self._graph_restarted,
             )
             if settings.graph
             else None
@@ -682,8 +683,8 @@ class SessionManager:
                 log.error("%s", exc)
                 grid.version_floor = max((t.version for t in tiles), default=0)
             self._durable[name] = {t.id: t for t in tiles}
-        #: Tiles the store held at start: points of sessions the (in-memory) pose graph never saw,
-        #: so it never re-folds them (refold_tiles).
+        #: Tiles the store held at start (and when the graph process was last restarted): points of
+        #: sessions the (in-memory) pose graph never saw, so it never re-folds them (refold_tiles).
         self._tiles_before_graph: dict[str, set[str]] = {
             name: set(g.tile_ids()) for name, g in self.maps.items()
         }
@@ -1069,6 +1070,14 @@ class SessionManager:
         if changed:
             self.metrics.graph_tiles_refolded.inc(len(changed))
             self.mark_tiles_dirty(map_name, changed)
+
+    def _graph_restarted(self) -> None:
+        """The pose graph process was started again with an empty graph (service/graph.py): the
+        tiles made so far hold points of keyframes it never saw, so it no longer re-folds them,
+        as after a restart of the service."""
+        with self._lock:
+            for name, grid in self.maps.items():
+                self._tiles_before_graph.setdefault(name, set()).update(grid.tile_ids())
 
     def _joined(self, vehicle: str, session: str, map_name: str, T_map_session: np.ndarray) -> None:
         """The pose graph placed a session without priors into ``map_name`` (service/graph.py):

@@ -9,7 +9,7 @@ from fastapi.responses import JSONResponse
 from prometheus_client import Metric
 
 from service.api.deps import ServiceDep, require_reader
-from service.api.models import Health, MapSummary, Ready, Status
+from service.api.models import GraphStatus, Health, MapSummary, Ready, Status
 from service.api.views import map_summary, session_summary
 from service.runtime import Service
 
@@ -29,12 +29,15 @@ def readiness(svc: Service) -> Ready:
     store = svc.store is not None and svc.store.writable()
     workers = svc.sessions is not None and svc.sessions.running
     warm = svc.sessions is not None and svc.sessions.matchers_warm
+    g = None if svc.sessions is None else svc.sessions.graph
+    graph = g is None or not g.started or g.running
     return Ready(
-        ready=zenoh and store and workers and warm,
+        ready=zenoh and store and workers and warm and graph,
         zenoh=zenoh,
         store_writable=store,
         workers=workers,
         matchers_warm=warm,
+        graph=graph,
     )
 
 
@@ -46,7 +49,8 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Ready, responses={503: {"model": Ready}})
 def readyz(svc: ServiceDep) -> JSONResponse:
-    """Zenoh open, store writable, session workers running, matchers warm: 200, else 503 (always open)."""
+    """Zenoh open, store writable, session workers running, matchers warm, the pose graph process
+    running (once started): 200, else 503 (always open)."""
     ready = readiness(svc)
     return JSONResponse(ready.model_dump(), status_code=200 if ready.ready else 503)
 
@@ -58,6 +62,7 @@ def status(svc: ServiceDep) -> Status:
     m = svc.metrics
     workers = mgr.sessions() if mgr else []
     depths = mgr.queue_depths() if mgr else {}
+    g = None if mgr is None else mgr.graph
     maps: dict[str, MapSummary] = {}
     if mgr is not None:
         for name, grid in sorted(dict(mgr.maps).items()):
@@ -73,4 +78,10 @@ def status(svc: ServiceDep) -> Status:
         scans_dropped=_total(list(m.scans_dropped.collect())),
         queue_depths=depths,
         maps=maps,
+        graph=GraphStatus(
+            enabled=g is not None,
+            running=g is not None and g.running,
+            restarts=0 if g is None else g.restarts,
+            last_exit=None if g is None else g.last_exit,
+        ),
     )

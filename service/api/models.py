@@ -59,6 +59,18 @@ class Ready(BaseModel):
     matchers_warm: bool = Field(
         description="the matcher processes have loaded their compiled kernels (about 10 s on a cold cache)"
     )
+    graph: bool = Field(
+        default=True,
+        description="the pose graph process runs (or is not needed yet: no keyframe so far, or the graph "
+        "is off); false while it is being restarted after it died",
+    )
+
+
+class GraphStatus(BaseModel):
+    enabled: bool = Field(description="the service runs a pose graph (settings.graph)")
+    running: bool = Field(description="its process is alive (it starts with the first keyframe)")
+    restarts: int = Field(description="times the process died and was started again")
+    last_exit: str | None = Field(description="how the process last died ('signal 9', 'exit code 1')")
 
 
 class MapExtent(BaseModel):
@@ -225,3 +237,4 @@ class Status(BaseModel):
     scans_dropped: int
     queue_depths: dict[str, int] = Field(description="'<vehicle>/<session>' -> scans waiting")
     maps: dict[str, MapSummary]
+    graph: GraphStatus = Field(description="the pose graph process (service/graph.py)")

@@ -68,6 +68,7 @@ def test_health_ready_docs_and_openapi(served) -> None:
         "store_writable": True,
         "workers": True,
         "matchers_warm": True,
+        "graph": True,
     }
     schema = client.get("/openapi.json").json()
     paths = set(schema["paths"])

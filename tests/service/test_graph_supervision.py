@@ -1,0 +1,157 @@
+"""The pose graph's process is the service's, not a session's (service/graph.py, ``_supervise``).
+
+It used to be started from the worker thread of the session whose keyframe came first, and it
+asks for SIGKILL when the thread that started it exits (``PR_SET_PDEATHSIG`` follows the forking
+thread): the first session to expire or give up its slot switched the pose graph off for every
+vehicle, silently. Here one session expires, one is evicted, the process is then killed, and a
+later vehicle must still be placed and corrected by the (restarted) graph, with the restart said
+in the log, ``/status``, ``/readyz`` and ``/metrics``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from core.fleet_map import FleetMapSettings
+from service.graph import ServiceGraph
+from service.metrics import ServiceMetrics
+from sim.drive import SimScan, plan_fleet, simulate
+from sim.lidar import Lidar64
+from sim.town import Town
+from tests.service.api_server import PRIOR_COV, LiveServer, answers, live_server, wait_answers
+from wire.messages import CorrectionMessage, encode, scan_from_arrays
+
+N_SCANS = 24  # 24 m at 10 m/s: three keyframes a session
+
+
+def _drives() -> dict[str, list[SimScan]]:
+    town = Town.generate(0)
+    lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
+    plans = plan_fleet(town, 3, seed=3, route_length_m=400.0)
+    return {
+        name: list(
+            simulate(town, p.route, n_scans=2 * N_SCANS, seed=p.seed, lidar=lidar, start_s_m=p.start_s_m)
+        )
+        for name, p in zip(("first", "evicted", "later"), plans, strict=True)
+    }
+
+
+def _send(server: LiveServer, vehicle: str, scans: list[SimScan]) -> None:
+    """One scan at a time (each once the one before is answered), a prior on the session's first."""
+    mgr = server.service.sessions
+    assert mgr is not None
+    for s in scans:
+        extra = {"prior_pose": s.T_world_sensor, "prior_covariance": PRIOR_COV} if s.index == 0 else {}
+        n = len(answers(server.service))
+        scan = scan_from_arrays(vehicle, "d1", s.index, s.stamp_ns, s.points_xyz, **extra)
+        mgr.submit(vehicle, encode(scan))
+        wait_answers(server.service, n + 1)
+
+
+def _running(server: LiveServer) -> set[tuple[str, str]]:
+    mgr = server.service.sessions
+    assert mgr is not None
+    return {(s.vehicle, s.session) for s in mgr.sessions()}
+
+
+def _wait(what: str, done, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"not within {timeout:.0f} s: {what}"
+        time.sleep(0.05)
+
+
+def _restarts_metric(url: str) -> float:
+    text = httpx.get(f"{url}/metrics", timeout=30).text
+    line = next(x for x in text.splitlines() if x.startswith("randt_graph_restarts_total "))
+    return float(line.split()[1])
+
+
+def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) -> None:
+    drives = _drives()
+    caplog.set_level(logging.INFO)
+    # one slot: the evicted session gives it to the later one; the first expires on its own
+    with live_server(tmp_path / "data", max_sessions=1, idle_expiry_s=1.5, slot_idle_s=0.5) as server:
+        mgr = server.service.sessions
+        assert mgr is not None and mgr.graph is not None
+        graph: ServiceGraph = mgr.graph
+        url = server.url
+
+        _send(server, "first", drives["first"][:N_SCANS])
+        _wait("the graph process started", lambda: graph.running)
+        pid = graph.pid
+        assert graph.wait_idle(120)
+        _wait("the first session expired", lambda: ("first", "d1") not in _running(server))
+        time.sleep(1.0)  # (the process used to be killed within 0.2 s of the expiry)
+        assert graph.running and graph.pid == pid, "the graph process died with the first session"
+
+        _send(server, "evicted", drives["evicted"][:N_SCANS])
+        assert graph.wait_idle(120)
+        time.sleep(0.7)  # idle past slot_idle_s: it gives its slot to the next session
+        _send(server, "later", drives["later"][:1])
+        assert ("evicted", "d1") not in _running(server)
+        assert any("gives its slot" in r.getMessage() for r in caplog.records)
+        time.sleep(1.0)
+        assert graph.running and graph.pid == pid, "the graph process died with the evicted session"
+        assert graph.restarts == 0
+
+        before = [m for m in list(server.service._sent) if isinstance(m, CorrectionMessage)]
+        revision_before = max((m.revision for m in before), default=0)
+        os.kill(pid, signal.SIGKILL)
+        _wait("the graph process restarted", lambda: graph.running and graph.pid != pid, timeout=15)
+        status = httpx.get(f"{url}/status", timeout=30).json()["graph"]
+        assert status == {"enabled": True, "running": True, "restarts": 1, "last_exit": "signal 9"}
+        assert _restarts_metric(url) == 1.0
+        assert httpx.get(f"{url}/readyz", timeout=30).json()["graph"] is True
+        assert any("pose graph process died (signal 9)" in r.getMessage() for r in caplog.records)
+
+        # The later vehicle drives on: its keyframes are placed and corrected by the new process.
+        _send(server, "later", drives["later"][1 : 2 * N_SCANS])
+        assert graph.wait_idle(120)
+        state = graph.snapshot("default")
+        assert state is not None
+        assert {("first", "d1"), ("evicted", "d1"), ("later", "d1")} <= state.placed
+        kfs = state.session_keyframes(("later", "d1"))
+        assert len(kfs) >= 4 and all(k.optimized is not None for k in kfs), kfs
+        reply = httpx.get(f"{url}/sessions/later/d1/trajectory?corrected=true", timeout=30).json()
+        assert reply["corrected"] is True and reply["map"] == "default"
+        truth = np.stack([s.T_world_sensor[:3, 3] for s in drives["later"][: 2 * N_SCANS]])
+        corrected = np.array([p["pose"] for p in reply["poses"]])[:, :3, 3]
+        err = np.linalg.norm(corrected - truth, axis=1)
+        assert len(err) == 2 * N_SCANS and err.max() < 0.5, f"corrected up to {err.max():.2f} m off the truth"
+        # revisions go on from where they were, never back
+        after = [m for m in list(server.service._sent) if isinstance(m, CorrectionMessage)][len(before) :]
+        assert all(m.revision > revision_before for m in after)
+        assert graph.restarts == 1 and graph.pid is not None
+
+
+@pytest.mark.parametrize("deaths", [1, 2])
+def test_an_item_in_flight_at_two_deaths_is_dropped_not_retried_forever(deaths: int) -> None:
+    """What the process had not answered when it died goes to the next one once; in flight at a
+    second death too, it is dropped (it may be what kills the process)."""
+
+    class Dead:  # the dead process, its pipe and its receiver thread, as ``_died`` sees them
+        exitcode = -9
+
+        def close(self) -> None:
+            pass
+
+        def join(self, timeout: float) -> None:
+            pass
+
+    graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
+    item = ("sync", 1)
+    for _ in range(deaths):
+        graph._queued = [q for q in graph._queued if q is not item]
+        graph._inflight = [item]  # sent, not answered
+        graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
+    assert (item in graph._queued) == (deaths == 1)
+    assert graph._synced == (0 if deaths == 1 else 1)  # a dropped sync is answered, never waited for
+    assert graph.restarts == deaths and graph.last_exit == "signal 9"
