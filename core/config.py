@@ -110,6 +110,16 @@ class RegistrationSettings(BaseModel):
         description="the SVD step's moving points downsampled at this x the finest NDT voxel "
         "(None: at source_voxel_fraction, as the NDT solver's)",
     )
+    max_match_points: int | None = Field(
+        default=None,
+        ge=100,
+        description="Newton's iterations on at most about this many of the moving points, a spatially "
+        "stratified subsample (core.voxel.stratified_subsample: the same count from every cell of "
+        "match_cell_voxels finest voxels); None: every moving point",
+    )
+    match_cell_voxels: float = Field(
+        default=2.0, gt=0, description="the subsample's cells, in finest NDT voxels (max_match_points)"
+    )
     degeneracy_threshold: float = Field(
         default=1e-3, gt=0, lt=1, description="min/max eigenvalue ratio of the plane information"
     )

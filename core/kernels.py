@@ -37,6 +37,7 @@ __all__ = [
     "best_voxel",
     "build_grid",
     "build_hash",
+    "deskew_points",
     "eigh3",
     "first_per_voxel_pair",
     "grid_knn_normals",
@@ -1406,3 +1407,37 @@ def projected_pair_moments(
     out_mu_q[0], out_mu_q[1], out_mu_q[2] = m0, m1, m2
     out_mu_y[0], out_mu_y[1], out_mu_y[2] = y0m, y1m, y2m
     return ss
+
+
+@nb.njit(cache=True, nogil=True)
+def deskew_points(
+    points: np.ndarray, s: np.ndarray, rotvec: np.ndarray, translation: np.ndarray
+) -> np.ndarray:
+    """Each point ``p_i`` (N,3) moved by the rigid motion ``s_i`` times along the constant
+    velocity ``(rotvec, translation)``: ``exp([s_i rotvec]x) p_i + s_i translation``, by
+    Rodrigues' formula per point in one pass (scipy's ``Rotation.from_rotvec(...).apply`` builds
+    N rotation objects and quaternions: 2.8 ms for a reduced 32k-point sweep against 0.3 ms).
+
+    Reference: core.odometry:deskew_reference
+    Test: tests/core/test_kernels.py::test_deskew_kernel_matches_scipys_rotations
+    """
+    n = points.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        si = s[i]
+        w0, w1, w2 = si * rotvec[0], si * rotvec[1], si * rotvec[2]
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        # w x p and w . p
+        c0, c1, c2 = w1 * z - w2 * y, w2 * x - w0 * z, w0 * y - w1 * x
+        d = w0 * x + w1 * y + w2 * z
+        if theta < 1e-8:  # second order: exact to round-off at these angles
+            a, b, c = 1.0 - theta * theta / 2.0, 1.0, 0.5
+        else:
+            a = math.cos(theta)
+            b = math.sin(theta) / theta
+            c = (1.0 - a) / (theta * theta)
+        out[i, 0] = a * x + b * c0 + c * d * w0 + si * translation[0]
+        out[i, 1] = a * y + b * c1 + c * d * w1 + si * translation[1]
+        out[i, 2] = a * z + b * c2 + c * d * w2 + si * translation[2]
+    return out

@@ -40,6 +40,7 @@ from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
 from core.features import Features, extract_features
 from core.global_registration import GlobalSettings, register_global
+from core.kernels import deskew_points
 from core.model import KeyframeModel
 from core.ndt import ndt_constants, ndt_cost
 from core.place import query_descriptors, scan_context, scan_context_distance
@@ -134,7 +135,10 @@ REDESKEW_M = 0.05
 #: good prediction it takes about one evaluation fewer per sweep, and on KITTI 00 frames 0-10 the
 #: poses are the same to 0.01 mm travel and 1e-4 deg frame-to-frame error.
 MATCHER_REGISTRATION = RegistrationSettings(
-    select_moving_points=False, svd_refinement=False, translation_eps_m=5e-4, rotation_eps_rad=5e-5
+    select_moving_points=False,
+    svd_refinement=False,
+    translation_eps_m=5e-4,
+    rotation_eps_rad=5e-5,
 )
 
 
@@ -351,6 +355,23 @@ def deskew(
     it is re-expressed in the frame at ``s = reference_fraction`` (0: the sweep's start, 0.5: its
     middle).
     """
+    s = np.clip(np.asarray(time_offset_s, dtype=np.float64) / period_s, 0.0, 1.5) - reference_fraction
+    rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
+    pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
+    return deskew_points(
+        pts, np.ascontiguousarray(s), rotvec, np.ascontiguousarray(delta[:3, 3], dtype=float)
+    )
+
+
+def deskew_reference(
+    points_xyz: np.ndarray,
+    time_offset_s: np.ndarray,
+    delta: np.ndarray,
+    period_s: float,
+    *,
+    reference_fraction: float = 0.0,
+) -> np.ndarray:
+    """:func:`deskew` with scipy's rotations (the reference of :func:`core.kernels.deskew_points`)."""
     s = np.clip(time_offset_s / period_s, 0.0, 1.5) - reference_fraction
     rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
     R = Rotation.from_rotvec(s[:, None] * rotvec[None, :])

@@ -53,7 +53,14 @@ from core.transforms import (
     transform_points,
     umeyama,
 )
-from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap, pack_keys, voxel_coords, voxel_downsample
+from core.voxel import (
+    NEIGHBOR_OFFSETS,
+    VoxelGaussianMap,
+    pack_keys,
+    stratified_subsample,
+    voxel_coords,
+    voxel_downsample,
+)
 
 __all__ = [
     "PreparedReference",
@@ -996,6 +1003,10 @@ def register(
         moving, svd_moving = _moving_points(
             inputs.source_xyz, settings, inputs.levels[-1], sparse=inputs.source_sparse
         )
+        if settings.max_match_points is not None:  # a few thousand drive Newton (docs/mapping.md)
+            moving = stratified_subsample(
+                moving, settings.max_match_points, settings.match_cell_voxels * inputs.levels[-1]
+            )
     T_init = T
 
     def solve(coarsest: float | None) -> tuple[np.ndarray, int, bool, _Match, _Judgement]:

@@ -391,3 +391,40 @@ def test_the_centroid_start_places_objects_the_identity_cannot() -> None:
         assert from_identity > 0.1, name
         dt, dr = transform_error(register(source, xyz, centroid_start(source, xyz)).T_target_source, T)
         assert dt < 0.02 and dr < 0.5, (name, dt, dr)
+
+
+def test_stratified_subsample_keeps_each_cells_share_in_input_order() -> None:
+    """core.voxel.stratified_subsample: exactly the asked count, every cell's share within one
+    point of its proportion, rows in input order, the same rows every call."""
+    from core.voxel import stratified_subsample, voxel_groups
+
+    rng = np.random.default_rng(5)
+    dense = rng.normal(0.0, 0.5, (6000, 3))  # a few cells near the origin hold most points
+    sparse = rng.uniform(-40.0, 40.0, (3000, 3))  # thousands of cells with one or two
+    xyz = np.vstack([dense, sparse])
+    out = stratified_subsample(xyz, 3000, 2.0)
+    assert out.shape == (3000, 3)
+    np.testing.assert_array_equal(out, stratified_subsample(xyz, 3000, 2.0))
+    rows = np.flatnonzero((xyz[:, None, :] == out[None, :1000, :]).all(axis=2).any(axis=1))
+    assert np.all(np.diff(rows) > 0)  # (a prefix's rows, in input order)
+    inverse, _, counts = voxel_groups(xyz, 2.0)
+    cell_of = {tuple(p): c for p, c in zip(map(tuple, xyz), inverse, strict=True)}
+    got = np.bincount([cell_of[tuple(p)] for p in out], minlength=counts.size)
+    share = counts * 3000 / xyz.shape[0]
+    assert np.all(np.abs(got - share) <= 1.0 + 1e-9), np.max(np.abs(got - share))
+    # the dense cells gave up most of theirs: the sample is the cloud's distribution, thinned
+    assert abs(np.mean(np.linalg.norm(out, axis=1) < 3.0) - 6000 / 9000) < 0.02
+    np.testing.assert_array_equal(stratified_subsample(xyz[:100], 3000, 2.0), xyz[:100])
+
+
+@pytest.mark.parametrize("name", ["small_gicp", "argoverse2"])
+def test_real_pair_with_a_subsample_driving_newton(name: str) -> None:
+    """``max_match_points``: 2000 stratified moving points drive the Newton iterations and the
+    pose stays within the pair's bound (docs/mapping.md, the matcher's subsample)."""
+    source, target, T_ref = _pair(name)
+    _, tol_m, tol_deg, _ = PAIRS[name]
+    full = register(source, target)
+    sub = register(source, target, settings=RegistrationSettings(max_match_points=2000))
+    assert sub.n_source_used == 2000 < full.n_source_used
+    err_m, err_deg = transform_error(sub.T_target_source, T_ref)
+    assert err_m < tol_m and err_deg < tol_deg, f"{name}: {err_m:.4f} m {err_deg:.3f} deg"
