@@ -498,3 +498,20 @@ def test_deskew_kernel_matches_scipys_rotations() -> None:
     # the motion itself is applied: a point seen at the sweep's end moves by the whole of it
     moved = deskew(np.array([[10.0, 0, 0]]), np.array([0.1]), delta, 0.1)
     np.testing.assert_allclose(moved[0], [11.0, 2.0, 3.0], atol=1e-12)
+
+
+def test_group_int_keys_matches_a_stable_sort() -> None:
+    """core.kernels.group_int_keys: groups in first-seen order, rows in input order within each."""
+    from core.kernels import group_int_keys
+
+    rng = np.random.default_rng(8)
+    keys = rng.integers(0, 40, 5000) * 1_000_003 + (1 << 40)
+    order, uniq, starts = group_int_keys(keys)
+    first_seen = keys[np.sort(np.unique(keys, return_index=True)[1])]
+    np.testing.assert_array_equal(uniq, first_seen)
+    for g, k in enumerate(uniq):
+        rows = order[starts[g] : starts[g + 1]]
+        np.testing.assert_array_equal(rows, np.flatnonzero(keys == k))
+    assert starts[-1] == keys.size
+    empty = group_int_keys(np.zeros(0, dtype=np.int64))
+    assert empty[0].size == 0 and empty[1].size == 0 and list(empty[2]) == [0]

@@ -131,8 +131,10 @@ def test_cap_holds_exactly_and_reinsertion_changes_nothing(cap: int) -> None:
 def reference_equalize(
     batches: list[np.ndarray], tile: int, voxel: float, cap: int
 ) -> dict[str, list[tuple[float, float, float]]]:
-    """The policy written as the obvious per-point loop (fine in a test): keep first arrivals."""
+    """The policy written as the obvious per-point loop (fine in a test): keep first arrivals,
+    each tile's points in the order they were kept."""
     voxels: dict[tuple[int, ...], list[tuple[float, float, float]]] = {}
+    tiles: dict[str, list[tuple[float, float, float]]] = {}
     for batch in batches:
         for p in batch.astype(np.float32).astype(np.float64):
             ix, iy = int(np.floor(p[0] / tile)), int(np.floor(p[1] / tile))
@@ -141,9 +143,7 @@ def reference_equalize(
             kept = voxels.setdefault(key, [])
             if tuple(p) not in kept and len(kept) < cap:
                 kept.append(tuple(p))
-    tiles: dict[str, list[tuple[float, float, float]]] = {}
-    for key in sorted(voxels):
-        tiles.setdefault(tile_id(key[0], key[1]), []).extend(voxels[key])
+                tiles.setdefault(tile_id(ix, iy), []).append(tuple(p))
     return tiles
 
 
@@ -645,3 +645,53 @@ def test_refold_replaces_only_the_listed_tiles_and_advances_their_versions() -> 
     assert grid.refold([], moved) == [] and grid.refold(["0_0"], np.empty((0, 3))) == []
     with pytest.raises(ValueError):
         grid.refold(["zero"], moved)
+
+
+@pytest.mark.parametrize("cap", [1, 2])
+def test_refold_replaces_the_tiles_equalized_as_new(cap: int) -> None:
+    """A re-fold empties the listed tiles' voxels in the grid's table (backward-shift deletion,
+    core.kernels.voxel_table_forget) and equalizes the given points into them as into new tiles;
+    later inserts then see exactly what the tiles hold. Enough points to grow the table several
+    times, and every other tile re-folded, so deletions run through long probe runs."""
+    rng = np.random.default_rng(10 + cap)
+
+    def cloud(n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(-60, 60, n), rng.uniform(-60, 60, n), rng.uniform(0, 3, n)])
+
+    grid = TileGrid(tile_size_m=10, voxel_size_m=0.5, max_points_per_voxel=cap)
+    for _ in range(4):
+        grid.insert(cloud(8000))
+    before = {t.id: t for t in grid.tiles()}
+    listed = [tid for i, tid in enumerate(sorted(before, key=parse_tile_id)) if i % 2 == 0]
+    fresh = cloud(12_000)
+    changed = grid.refold(listed, fresh)
+    want = reference_equalize([fresh], tile=10, voxel=0.5, cap=cap)
+    assert changed == sorted((t for t in listed if t in want), key=parse_tile_id)
+    for tid in changed:
+        assert [tuple(p) for p in grid.get(tid).points.astype(np.float64)] == want[tid]
+        assert grid.get(tid).version == before[tid].version + 1
+    for tid in set(before) - set(changed):
+        assert grid.get(tid) is before[tid]  # untouched: the same snapshot
+    # The table agrees with the tiles: a later insert keeps what the policy keeps given them.
+    more = cloud(10_000)
+    held = np.concatenate([t.points.astype(np.float64) for t in grid.tiles()])  # (tile by tile)
+    grid.insert(more)
+    expected = reference_equalize([held, more], tile=10, voxel=0.5, cap=cap)
+    assert grid.tile_ids() == sorted(expected, key=parse_tile_id)
+    for tid, points in expected.items():
+        assert [tuple(p) for p in grid.get(tid).points.astype(np.float64)] == points
+
+
+def test_snapshots_stay_unchanged_while_the_tile_grows() -> None:
+    """A snapshot is a read-only view of a tile's first rows: appends after it (in the same buffer
+    or a larger one) change neither its points nor its length."""
+    rng = np.random.default_rng(4)
+    grid = TileGrid(tile_size_m=20, voxel_size_m=0.1, max_points_per_voxel=1)
+    grid.insert(rng.uniform(0, 19, (1000, 3)))
+    first = grid.get("0_0")
+    copy = first.points.copy()
+    for _ in range(5):
+        grid.insert(rng.uniform(0, 19, (3000, 3)))
+    assert grid.get("0_0").n_points > first.n_points
+    np.testing.assert_array_equal(first.points, copy)
+    assert not first.points.flags.writeable
