@@ -46,6 +46,7 @@ from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanRe
 from core.tiles import TileGrid
 from core.transforms import transform_points
 from core.voxel import pack_keys, voxel_coords
+from wire.messages import WireLimits, decode_scan
 
 __all__ = [
     "LocalMatcher",
@@ -80,6 +81,15 @@ class SessionMatcher(Protocol):
         time_offset_s: np.ndarray | None = None,
         prior: PosePrior | None = None,
         stamp_s: float | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered: ...
+
+    def register_payload(
+        self,
+        payload: bytes,
+        *,
+        limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
     ) -> Registered: ...
@@ -154,6 +164,10 @@ class Registered:
         sensor frame, the first of each voxel (real points, float32), for the pose graph and the
         re-folding of the map (service/graph.py), and their rows in the sweep as sent (their
         intensity); else ``None``, and always ``None`` for a fallback.
+    map_intensity, keyframe_intensity:
+        From :meth:`register_payload` (the sweep decoded where it was matched): the intensity
+        (float32) of each point of ``map_xyz`` and ``keyframe_xyz``; ``None`` when the sweep has
+        none, or when the caller holds the sweep (``register``) and reads them by index.
     """
 
     result: ScanResult
@@ -161,6 +175,37 @@ class Registered:
     map_index: np.ndarray
     keyframe_xyz: np.ndarray | None = None
     keyframe_index: np.ndarray | None = None
+    map_intensity: np.ndarray | None = None
+    keyframe_intensity: np.ndarray | None = None
+
+
+def decoded_sweep(
+    payload: bytes, limits: WireLimits | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, PosePrior | None, float]:
+    """A scan payload decoded for the matcher (:func:`wire.messages.decode_scan`: v2 bodies
+    decompressed here): ``(xyz float32 view, time offsets float32 or None, intensity float32 or
+    None, prior, stamp s)``. Raises :class:`~core.errors.BadMessageError` as the decoder does."""
+    scan = decode_scan(payload, limits)
+    pose = scan.prior_pose()
+    prior = None
+    if pose is not None:
+        cov = scan.prior_covariance()
+        assert cov is not None  # a scan's prior carries both
+        prior = PosePrior(pose, cov)
+    offsets = None if scan.time_offsets is None else np.frombuffer(scan.time_offsets, dtype="<f4")
+    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior, scan.stamp_ns * 1e-9
+
+
+def _with_intensity(registered: Registered, intensity: np.ndarray | None) -> Registered:
+    """``registered`` with the intensities of its map and keyframe points (none without)."""
+    if intensity is None:
+        return registered
+    kf = registered.keyframe_index
+    return replace(
+        registered,
+        map_intensity=intensity[registered.map_index],
+        keyframe_intensity=None if kf is None else intensity[kf],
+    )
 
 
 def _registered(
@@ -268,6 +313,14 @@ class _Sessions:
         )
         return _registered(result, self.grids.get(key), keyframe_voxel_m)
 
+    def register_payload(
+        self, key: Key, payload: bytes, limits: WireLimits | None, keyframe_voxel_m: float | None
+    ) -> Registered:
+        """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`): the service
+        process routes the bytes and reads only the header, the numeric work is the worker's."""
+        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
+        return _with_intensity(self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m), intensity)
+
     def state(self, key: Key) -> dict[str, np.ndarray]:
         return self.matchers[key].state_dict()
 
@@ -285,6 +338,11 @@ class _Sessions:
         if op == "register":
             xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
             value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+            matcher = self.matchers[key]
+            return value, (matcher if matcher.model_pending and not behind else None)
+        if op == "register_payload":
+            payload, limits, behind, keyframe_voxel_m = args
+            value = self.register_payload(key, payload, limits, keyframe_voxel_m)
             matcher = self.matchers[key]
             return value, (matcher if matcher.model_pending and not behind else None)
         if op == "state":
@@ -569,6 +627,16 @@ class ForwardingMatcher:
     ) -> Registered:
         raise NotImplementedError
 
+    def register_payload(
+        self,
+        payload: bytes,
+        *,
+        limits: WireLimits | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered:
+        raise NotImplementedError
+
     def register_scan(
         self,
         points_xyz: np.ndarray,
@@ -644,6 +712,24 @@ class RemoteMatcher(ForwardingMatcher):
         self.poses.append(registered.result.T_world_sensor)
         return registered
 
+    def register_payload(
+        self,
+        payload: bytes,
+        *,
+        limits: WireLimits | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered:
+        """:meth:`register` of a scan payload, sent as the bytes that came (a reduced sweep's
+        120 kB instead of its 0.6 MB of arrays) and decoded in the session's process
+        (:func:`decoded_sweep`), which also returns the map points' intensities. A payload whose
+        bodies do not decode raises the decoder's :class:`~core.errors.BadMessageError`."""
+        registered: Registered = self._proc.call(
+            "register_payload", self._key, payload, limits, behind, keyframe_voxel_m
+        )
+        self.poses.append(registered.result.T_world_sensor)
+        return registered
+
     def state_dict(self) -> dict[str, np.ndarray]:
         return self._proc.call("state", self._key)
 
@@ -699,6 +785,26 @@ class LocalMatcher(IncrementalMatcher):
             behind=behind,
         )
         return _registered(result, None, keyframe_voxel_m)
+
+    def register_payload(
+        self,
+        payload: bytes,
+        *,
+        limits: WireLimits | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered:
+        """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`)."""
+        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
+        registered = self.register(
+            xyz,
+            time_offset_s=offsets,
+            prior=prior,
+            stamp_s=stamp_s,
+            behind=behind,
+            keyframe_voxel_m=keyframe_voxel_m,
+        )
+        return _with_intensity(registered, intensity)
 
     def close(self) -> None:
         """Nothing to release."""

@@ -68,6 +68,7 @@ from service.matchers import (
     single_threaded_blas,
     warm_up,
 )
+from wire.messages import WireLimits
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
 
@@ -535,6 +536,20 @@ class RayMatcher(ForwardingMatcher):
         registered: Registered = self._call(
             "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m
         )
+        self.poses.append(registered.result.T_world_sensor)
+        return registered
+
+    def register_payload(
+        self,
+        payload: bytes,
+        *,
+        limits: WireLimits | None = None,
+        behind: bool = False,
+        keyframe_voxel_m: float | None = None,
+    ) -> Registered:
+        """:meth:`service.matchers.RemoteMatcher.register_payload`, on the session's host: the
+        payload's bytes travel, the host decodes them."""
+        registered: Registered = self._call("register_payload", payload, limits, behind, keyframe_voxel_m)
         self.poses.append(registered.result.T_world_sensor)
         return registered
 

@@ -11,9 +11,9 @@ Flow of a scan::
         the map's candidate points in the map frame out) --> the pose appended to the session's
         pose log and fsync'd (Store.append_pose) --> map tiles (shared TileGrid) --> pose to the
         outbox (held until the session's first snapshot is on disk)
-    flusher thread (every flush_interval_s) --> dirty tiles and session snapshots to the store
-        (a snapshot drops the log records it now holds), then the saved tiles' updates to the
-        outbox; idle sessions expired; counters to DATA/counters.json
+    flusher thread (every flush_interval_s) --> session snapshots to the store (a snapshot drops
+        the log records it now holds); every tile_save_interval_s, dirty tiles too, then the saved
+        tiles' updates to the outbox; idle sessions expired; counters to DATA/counters.json
 
 **Durable before acknowledged**: a pose goes out only once it is in the session's fsync'd log (a
 session's first poses also wait for its first snapshot, which fixes its frame and holds its first
@@ -31,9 +31,11 @@ into the map's tiles together, by the scan that makes them that many, by the flu
 saves tiles, or when the session closes. An insert pays per point and per tile touched (about 60
 tiles of 20 m per sweep, each copied: a tile is an immutable version), and a vehicle's
 consecutive sweeps touch the same tiles, so a tile is copied once per fold instead of once per
-sweep. Tiles are served as saved (every ``flush_interval_s``, before which every session folds),
-so nothing outside sees the difference; ``fold_scans=1`` folds every scan before its pose goes
-out.
+sweep. Tiles are served as saved (every ``tile_save_interval_s``, before which every session
+folds), so nothing outside sees the difference; ``fold_scans=1`` folds every scan before its pose
+goes out. Tiles are saved less often than sessions: a vehicle's sweeps touch the same ~60 tiles
+for seconds, and each save writes a tile whole (PCD, fsync) and publishes it whole, so the
+service process's cost of saving falls with the interval (3 s by default).
 
 **Locking**: the manager lock (``_lock``) guards the dictionaries of sessions only and is never held
 across a store read, a matcher call or a matcher warm-up: ``/status``, ``/sessions`` and other
@@ -106,13 +108,15 @@ from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
 from wire.ids import UNKNOWN_ID, session_map_name
 from wire.messages import (
+    SCAN_V2,
     ErrorMessage,
     PoseMessage,
-    ScanMessage,
+    ScanHeader,
     TileUpdateMessage,
     WireLimits,
     WireMessage,
     decode_scan,
+    decode_scan_header,
     peek_ids,
     peek_seq,
     points_digest,
@@ -144,15 +148,19 @@ class MapInUseError(ConflictError):
 
 @dataclass
 class _Job:
-    scan: ScanMessage
+    """A scan as the service process holds it: its header, and the payload's bytes, which only
+    the session's matcher decodes (wire.messages.decode_scan_header)."""
+
+    scan: ScanHeader
     received_ns: int
+    payload: bytes = b""
 
 
 @dataclass
 class _Opening:
     """A session being opened by an opener thread: holds its slot; its scans wait here meanwhile."""
 
-    first: ScanMessage
+    first: ScanHeader
     jobs: deque[_Job] = field(default_factory=deque)
     #: A running session that gave up its slot (admission): saved and closed before the open.
     evict: SessionWorker | None = None
@@ -335,7 +343,6 @@ class SessionWorker:
             prior_cov = scan.prior_covariance()
             assert prior_cov is not None  # a scan's prior carries both
             prior = PosePrior(pose, prior_cov)
-        intensity = scan.intensity()
         # More of this session's scans wait: the keyframe model may lag one keyframe rather than
         # delay them (IncrementalMatcher.update_model).
         behind = self.depth() > 0
@@ -349,17 +356,10 @@ class SessionWorker:
                 # the map's voxel: the points also re-fold the map's tiles (the graph thins them)
                 keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
             try:
-                # float32 views of the payload (the matcher widens them; a matcher process gets
-                # half the bytes of float64); the keyframe model is rebuilt after the pose is out.
-                registered = self.matcher.register(
-                    scan.points_f32()[:, :3],
-                    time_offset_s=None
-                    if scan.time_offsets is None
-                    else np.frombuffer(scan.time_offsets, dtype="<f4"),
-                    prior=prior,
-                    stamp_s=scan.stamp_ns * 1e-9,
-                    behind=behind,
-                    keyframe_voxel_m=keyframe_voxel_m,
+                # The payload's bytes go to the matcher, which decodes them (its intensities come
+                # back with the map's points); the keyframe model is rebuilt after the pose is out.
+                registered = self.matcher.register_payload(
+                    job.payload, limits=m.limits, behind=behind, keyframe_voxel_m=keyframe_voxel_m
                 )
                 result = registered.result
             except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
@@ -375,6 +375,9 @@ class SessionWorker:
                 return
             except MatcherProcessError:
                 raise  # a bug, not bad input: logged and answered internal_error by the worker loop
+            except BadMessageError as exc:  # its bodies did not decode (v2: decompressed there)
+                m.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
+                return
             except RandtError as exc:
                 m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
                 return
@@ -397,7 +400,7 @@ class SessionWorker:
                 self._storage_failed(scan, exc)
                 return
             if registered.map_xyz.shape[0]:  # none for a fallback
-                inten = None if intensity is None else intensity[registered.map_index]
+                inten = registered.map_intensity
                 map_xyz = registered.map_xyz
                 C, fold_map = None, self.info.map_name
                 if graph is not None:  # the map follows the pose graph (service/graph.py)
@@ -462,9 +465,7 @@ class SessionWorker:
                 stamp_s=scan.stamp_ns * 1e-9,
                 T_live=result.T_world_sensor,
                 points=registered.keyframe_xyz,
-                intensity=None
-                if intensity is None or registered.keyframe_index is None
-                else intensity[registered.keyframe_index],
+                intensity=registered.keyframe_intensity,
                 gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
                 # a session without priors (its own map) may join the shared map
                 join=m.settings.default_map if info.frame == "session" else None,
@@ -564,7 +565,7 @@ class SessionWorker:
         )
         self.broken = True
 
-    def _storage_failed(self, scan: ScanMessage, exc: Exception) -> None:
+    def _storage_failed(self, scan: ScanHeader, exc: Exception) -> None:
         """A pose could not be made durable: answer ``storage_error`` (no pose) and abandon the
         session, so that its next scan resumes it from what the store holds."""
         log.error("session %s/%s: scan %d not durable: %s", *self.key, scan.seq, exc)
@@ -689,6 +690,7 @@ class SessionManager:
             name: set(g.tile_ids()) for name, g in self.maps.items()
         }
         self._dirty_tiles: dict[str, set[str]] = {}
+        self._tiles_saved_at = time.monotonic()  # the flusher saves tiles every tile_save_interval_s
         #: Own maps of sessions that joined another map, merged into it: name -> (map, session).
         self._merged: dict[str, tuple[str, str]] = {}
         self._restore_counters()
@@ -735,7 +737,11 @@ class SessionManager:
         an ``_Opening`` placeholder and an opener thread does the opening.
         """
         try:
-            scan = decode_scan(payload, self.limits)
+            scan = decode_scan_header(payload, self.limits)  # the bodies: the matcher's
+            if (scan.vehicle, scan.session) not in self._workers and scan.v == SCAN_V2:
+                # A scan that may open a session is decoded whole first (rare: once a session):
+                # a body that does not decode never takes a slot, opens a session or reads the store.
+                decode_scan(payload, self.limits)
             if scan.vehicle != key_vehicle:
                 raise BadMessageError(
                     f"vehicle: message says {scan.vehicle!r} but was published on {key_vehicle!r}'s key",
@@ -747,7 +753,7 @@ class SessionManager:
             self.reject(key_vehicle, session or UNKNOWN_ID, seq, exc.code, str(exc))
             return
         key = (scan.vehicle, scan.session)
-        job = _Job(scan, received_ns)
+        job = _Job(scan, received_ns, payload)
         dropped: _Job | None = None
         refusal: tuple[str, str] | None = None
         with self._lock:
@@ -942,7 +948,7 @@ class SessionManager:
             w.info.n_errors += 1
         self.outbox(ErrorMessage(vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
 
-    def _open_session(self, scan: ScanMessage) -> SessionWorker:
+    def _open_session(self, scan: ScanHeader) -> SessionWorker:
         key = (scan.vehicle, scan.session)
         state: dict[str, np.ndarray] | None = None
         record = self._records.get(key)
@@ -1147,20 +1153,32 @@ class SessionManager:
         with self._lock:
             self._dirty_tiles.setdefault(map_name, set()).update(tile_ids)
 
-    def flush(self) -> None:
-        """Save dirty tiles and changed sessions, publish tile updates, expire idle sessions."""
+    def flush(self, *, tiles: bool = True) -> None:
+        """Save changed sessions (and, with ``tiles``, dirty tiles, publishing their updates),
+        expire idle sessions."""
         with self._flush_lock:
-            self._flush()
+            self._flush(tiles=tiles)
             self._save_counters()
 
-    def _flush(self) -> None:
+    def _flush(self, *, tiles: bool = True) -> None:
         with self._lock:
-            running = list(self._workers.values())
+            workers = list(self._workers.values())
+        if tiles:
+            self._save_tiles(workers)
+        now = time.monotonic()
+        for w in workers:
+            if w.info.dirty:
+                self._save_session(w)
+            if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
+                self.close(*w.key, state="expired")
+
+    def _save_tiles(self, running: list[SessionWorker]) -> None:
+        """Save every dirty tile (after the sessions fold what they hold) and publish it."""
+        self._tiles_saved_at = time.monotonic()
         for w in running:  # what sessions that were behind processed goes into this save
             w.fold()
         with self._lock:
             dirty, self._dirty_tiles = self._dirty_tiles, {}
-            workers = list(self._workers.values())
         for map_name, ids in dirty.items():
             grid = self.maps.get(map_name)
             if grid is None:  # deleted since its tiles changed
@@ -1187,12 +1205,6 @@ class SessionManager:
                     durable.update({t.id: t for t in saved})
             for tile in saved:
                 self.outbox(self.tile_message(map_name, tile))
-        now = time.monotonic()
-        for w in workers:
-            if w.info.dirty:
-                self._save_session(w)
-            if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
-                self.close(*w.key, state="expired")
 
     def tile_message(self, map_name: str, tile: Tile) -> TileUpdateMessage:
         """The :class:`~wire.messages.TileUpdateMessage` of a saved tile (with its digest)."""
@@ -1309,8 +1321,9 @@ class SessionManager:
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.settings.flush_interval_s):
+            due = time.monotonic() - self._tiles_saved_at >= self.settings.tile_save_s - 1e-3
             try:
-                self.flush()
+                self.flush(tiles=due)
             except Exception:  # keep flushing whatever one failure was
                 log.exception("flush failed")
 

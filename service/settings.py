@@ -145,7 +145,14 @@ class ServiceSettings(BaseSettings):
     )
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
-    flush_interval_s: float = Field(default=1.0, gt=0, description="dirty tiles and sessions saved")
+    flush_interval_s: float = Field(default=1.0, gt=0, description="dirty sessions saved, idle ones expired")
+    tile_save_interval_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="dirty tiles saved and published (at the first flush this long after the last "
+        "save; None: every third flush, 3 s by default): a vehicle's sweeps touch the same tiles for "
+        "seconds, and each save writes and publishes a tile whole",
+    )
     fold_scans: int = Field(
         default=10,
         ge=1,
@@ -193,6 +200,12 @@ class ServiceSettings(BaseSettings):
         default=MATCHER_REGISTRATION,
         description="the matcher's NDT registration; fields not given keep the matcher's defaults",
     )
+
+    @property
+    def tile_save_s(self) -> float:
+        """Seconds between two saves of the dirty tiles (``tile_save_interval_s``, by default three
+        flush intervals)."""
+        return 3.0 * self.flush_interval_s if self.tile_save_interval_s is None else self.tile_save_interval_s
 
     def session_matcher(self) -> MatcherSettings:
         """The matcher settings every session gets: :attr:`matcher`, with NDT levels tied to the map.

@@ -40,6 +40,7 @@ import hashlib
 import logging
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Annotated, Any, Final, Literal, TypeVar
 
 import msgpack
@@ -76,6 +77,7 @@ __all__ = [
     "PoseMessage",
     "Prior",
     "ScanEncoding",
+    "ScanHeader",
     "ScanMessage",
     "SchemaVersion",
     "TileUpdateMessage",
@@ -87,6 +89,7 @@ __all__ = [
     "decode_error",
     "decode_pose",
     "decode_scan",
+    "decode_scan_header",
     "decode_tile_update",
     "encode",
     "encode_scan_v2",
@@ -1228,6 +1231,60 @@ def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage
         ``payload`` does not support the buffer protocol (a programming error, not bad input).
     """
     return _decode(ScanMessage, payload, limits)
+
+
+@dataclass(frozen=True)
+class ScanHeader:
+    """What :func:`decode_scan_header` reads of a scan: everything but its bodies.
+
+    A v2 scan's bodies (``xyz``, ``time_offsets``, ``intensity``) stay compressed: its message
+    was validated as a :class:`CompactScanMessage` (ids, seq, stamp, prior, encoding, point
+    count), and :func:`decode_scan` of the same payload decompresses them where the points are
+    used (the service's matcher processes). A v1 scan was validated whole (its points are raw
+    float32: the checks are one pass, no decompression).
+    """
+
+    v: int
+    vehicle: str
+    session: str
+    seq: int
+    stamp_ns: int
+    n_points: int
+    prior: Prior | None = None
+
+    def prior_pose(self) -> np.ndarray | None:
+        """(4, 4) float64 ``T_map_sensor`` of the prior, or ``None``."""
+        return None if self.prior is None else pose_to_matrix(self.prior.pose)
+
+    def prior_covariance(self) -> np.ndarray | None:
+        """(6, 6) float64 covariance of the prior (order tx ty tz rx ry rz), or ``None``."""
+        return None if self.prior is None else np.asarray(self.prior.covariance).reshape(6, 6)
+
+
+def decode_scan_header(payload: bytes, limits: WireLimits | None = None) -> ScanHeader:
+    """Decode and validate a scan message without decompressing its bodies (:class:`ScanHeader`).
+
+    Every error :func:`decode_scan` reports is reported here too, with the same code, except
+    those only the bodies reveal: a v2 body that does not decompress to its declared size
+    (``invalid_compression``) or decodes to time offsets out of range (``invalid_points``).
+    Raises as :func:`decode_scan`.
+    """
+    limits = _DEFAULT_LIMITS if limits is None else limits
+    memoryview(payload)  # TypeError for objects without the buffer protocol (a caller's bug)
+    try:
+        obj = _unpack(payload, limits, SCAN_VERSIONS)
+        if obj["v"] == SCAN_V2:
+            c = _validate(CompactScanMessage, obj, limits)
+            return ScanHeader(c.v, c.vehicle, c.session, c.seq, c.stamp_ns, c.n_points, c.prior)
+        m = _validate(ScanMessage, obj, limits)
+        return ScanHeader(m.v, m.vehicle, m.session, m.seq, m.stamp_ns, m.n_points, m.prior)
+    except BadMessageError:
+        raise
+    except Exception as exc:  # a decoder bug must not take down a transport callback
+        log.exception("decoding a scan header raised %s; reported as malformed", type(exc).__name__)
+        raise BadMessageError(
+            f"payload: could not be decoded ({type(exc).__name__})", code=ErrorCode.MALFORMED
+        ) from exc
 
 
 def decode_pose(payload: bytes, limits: WireLimits | None = None) -> PoseMessage:

@@ -267,3 +267,43 @@ def test_a_session_beyond_max_sessions_is_refused_and_others_go_on(tmp_path) -> 
         assert isinstance(last, PoseMessage) and last.seq == 2
     finally:
         mgr.stop()
+
+
+def test_a_running_sessions_bad_v2_bodies_are_answered_by_its_matcher(manager) -> None:
+    """Once a session runs, its compact (v2) scans go to the matcher undecoded (the service
+    process reads the header only): a body that does not decompress to its declared size is
+    answered there with the decoder's code, and the session goes on with its next scan. A first
+    scan with such a body is refused before it opens a session, as before."""
+    from wire.messages import encode_scan_v2
+
+    mgr, out = manager
+
+    def v2(seq: int, session: str = "s1") -> dict:
+        return msgpack.unpackb(
+            encode_scan_v2(scan_from_arrays("v", session, seq, seq * 100_000_000, ROOM)), raw=False
+        )
+
+    truncated = v2(1)
+    truncated["xyz"] = truncated["xyz"][:-8]
+    lying = v2(2)
+    lying["n_points"] = lying["n_points"] + 1  # the bodies decompress to fewer bytes than declared
+    first = v2(0, session="s2")
+    first["xyz"] = first["xyz"][:-8]
+    for payload in (v2(0), truncated, lying, v2(3)):
+        mgr.submit("v", msgpack.packb(payload, use_bin_type=True) if isinstance(payload, dict) else payload)
+    mgr.submit("v", msgpack.packb(first, use_bin_type=True))
+    _wait(out, 5)
+    answers = {
+        (m.session, m.seq): (type(m).__name__, getattr(m, "code", None))
+        for m in out
+        if isinstance(m, PoseMessage | ErrorMessage)
+    }
+    assert answers == {
+        ("s1", 0): ("PoseMessage", None),
+        ("s1", 1): ("ErrorMessage", "invalid_compression"),
+        ("s1", 2): ("ErrorMessage", "invalid_compression"),
+        ("s1", 3): ("PoseMessage", None),
+        ("s2", 0): ("ErrorMessage", "invalid_compression"),
+    }
+    assert ("v", "s2") not in {(s.vehicle, s.session) for s in mgr.sessions()}
+    assert _rejected(mgr, "invalid_compression") == 3

@@ -128,7 +128,7 @@ def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_pa
         if done >= N_VEHICLES * N_SCANS:
             break
         time.sleep(0.5)
-    time.sleep(2 * settings.flush_interval_s + 0.5)
+    time.sleep(settings.tile_save_s + settings.flush_interval_s + 0.5)  # the last tiles saved and published
     try:
         for vehicle, by_seq in answers.items():
             assert sorted(by_seq) == list(range(N_SCANS)), f"{vehicle}: answers for {sorted(by_seq)}"
