@@ -41,6 +41,7 @@ replayed, and the tiles they made are no longer re-folded).
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import multiprocessing
@@ -617,10 +618,19 @@ class ServiceGraph:
         service that never sees one never pays for the process."""
         if self._supervisor is not None:
             return
+        # At interpreter exit multiprocessing terminates daemonic children (its own atexit hook,
+        # registered at its import, so it runs after this one): the supervisor must not take
+        # that for a death to recover from.
+        atexit.register(self._closing_at_exit)
         self._supervisor = threading.Thread(target=self._supervise, name="graph-supervisor", daemon=True)
         self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
         self._supervisor.start()
         self._sender.start()
+
+    def _closing_at_exit(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
 
     # -- the process's life (supervisor thread) ----------------------------------------------
     def _supervise(self) -> None:
@@ -1057,6 +1067,7 @@ class ServiceGraph:
             self._closed = True
             self._queued.clear()
             self._cond.notify_all()
+        atexit.unregister(self._closing_at_exit)
         if self.gate is not None:
             self.gate.detach()
         if self._sender is not None:

@@ -89,7 +89,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
-from core.odometry import PosePrior, extend_state_dict
+from core.odometry import PosePrior, ScanResult, extend_state_dict
 from core.tiles import Tile, TileGrid
 from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
@@ -99,6 +99,7 @@ from service.matchers import (
     MatcherPool,
     MatcherProcessDiedError,
     MatcherProcessError,
+    Registered,
     SessionMatcher,
 )
 from service.metrics import ServiceMetrics
@@ -193,6 +194,16 @@ class SessionState:
     #: The shared map the pose graph placed this session (one without priors) into: its points
     #: fold there from then on (service/graph.py); ``None`` otherwise.
     joined_map: str | None = None
+
+
+def _prior_of(scan: ScanHeader) -> PosePrior | None:
+    """The scan's prior pose (GNSS/INS) with its covariance, if it carries one."""
+    pose = scan.prior_pose()
+    if pose is None:
+        return None
+    cov = scan.prior_covariance()
+    assert cov is not None  # a scan's prior carries both
+    return PosePrior(pose, cov)
 
 
 class SessionWorker:
@@ -335,98 +346,121 @@ class SessionWorker:
         self._manager.forget_empty_map(old)
 
     def _process(self, job: _Job) -> None:
+        """One scan, in stages: match it where the matcher runs, make its pose durable, queue its
+        map points, account for it, answer it, offer it to the pose graph. A stage that answers
+        the scan with an error ends it (``None``/``False``)."""
         scan = job.scan
-        m = self._manager
-        prior = None
-        pose = scan.prior_pose()
-        if pose is not None:
-            prior_cov = scan.prior_covariance()
-            assert prior_cov is not None  # a scan's prior carries both
-            prior = PosePrior(pose, prior_cov)
+        prior = _prior_of(scan)
         # More of this session's scans wait: the keyframe model may lag one keyframe rather than
         # delay them (IncrementalMatcher.update_model).
         behind = self.depth() > 0
-        graph = m.graph
         with self.lock:
-            if self.info.n_scans == 0:
-                self._fix_frame(prior is not None)
-            # The pose graph's next keyframe: the matcher returns its points (service/graph.py).
-            keyframe_voxel_m = None
-            if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
-                # the map's voxel: the points also re-fold the map's tiles (the graph thins them)
-                keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
-            try:
-                # The payload's bytes go to the matcher, which decodes them (its intensities come
-                # back with the map's points); the keyframe model is rebuilt after the pose is out.
-                registered = self.matcher.register_payload(
-                    job.payload, limits=m.limits, behind=behind, keyframe_voxel_m=keyframe_voxel_m
-                )
-                result = registered.result
-            except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
-                log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
-                m.reject(
-                    scan.vehicle,
-                    scan.session,
-                    scan.seq,
-                    ErrorCode.INTERNAL_ERROR,
-                    "the matcher process died; the session resumes from its last saved state",
-                )
-                self.broken = True
+            registered = self._match(job, prior, behind)
+            if registered is None or not self._log_pose(scan, registered.result):
                 return
-            except MatcherProcessError:
-                raise  # a bug, not bad input: logged and answered internal_error by the worker loop
-            except BadMessageError as exc:  # its bodies did not decode (v2: decompressed there)
-                m.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
-                return
-            except RandtError as exc:
-                m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
-                return
-            # Durable before acknowledged: the pose is in the session's fsync'd log before it is
-            # published (and before the map holds its points).
-            try:
-                m.store.append_pose(
-                    scan.vehicle,
-                    scan.session,
-                    PoseLogRecord(
-                        index=result.index,
-                        seq=scan.seq,
-                        stamp_ns=scan.stamp_ns,
-                        stamp_s=scan.stamp_ns * 1e-9,
-                        pose=result.T_world_sensor,
-                        status=result.status,
-                    ),
-                )
-            except (OSError, RandtError) as exc:
-                self._storage_failed(scan, exc)
-                return
-            if registered.map_xyz.shape[0]:  # none for a fallback
-                inten = registered.map_intensity
-                map_xyz = registered.map_xyz
-                C, fold_map = None, self.info.map_name
-                if graph is not None:  # the map follows the pose graph (service/graph.py)
-                    C, fold_map = graph.fold_target(scan.vehicle, scan.session, fold_map)
-                if C is not None:
-                    map_xyz = (map_xyz @ C[:3, :3].T.astype(np.float32) + C[:3, 3].astype(np.float32)).astype(
-                        np.float32
-                    )
-                self._unfolded.append((fold_map, map_xyz, inten))
-            info = self.info
-            info.n_scans += 1
-            info.n_fallbacks += result.status == "fallback"
-            info.stamps_s.append(scan.stamp_ns * 1e-9)
-            info.last_fitness = result.fitness
-            info.last_status = result.status
-            info.last_activity = time.monotonic()
-            info.dirty = True
-            if prior is not None:
-                info.drift_var_m2 = float(np.trace(np.asarray(prior.covariance)[:3, :3]))
-            elif np.all(np.isfinite(result.covariance[:3, :3])):
-                info.drift_var_m2 += float(np.trace(result.covariance[:3, :3]))
-        # Fold into the map every fold_scans scans; the flusher folds before it saves tiles
-        # (module docstring, Map folding).
-        if len(self._unfolded) >= self._manager.settings.fold_scans:
+            self._queue_map_points(registered)
+            self._account(scan, registered.result, prior)
+        if len(self._unfolded) >= self._manager.settings.fold_scans:  # (module docstring, Map folding)
             self.fold()
-        cov = result.covariance
+        self._answer(job, registered.result)
+        self._offer_keyframe(scan, registered, prior)
+        if not behind:
+            with self.lock:
+                self.matcher.update_model()  # in-process matchers; a matcher process does it itself
+
+    # -- the stages of one scan (SessionWorker._process, under the session lock up to _account) --
+    def _match(self, job: _Job, prior: PosePrior | None, behind: bool) -> Registered | None:
+        """The scan's payload to the matcher, which decodes and matches it; ``None`` when it was
+        answered with an error instead (the matcher process died: the session is then broken)."""
+        scan, m, graph = job.scan, self._manager, self._manager.graph
+        if self.info.n_scans == 0:
+            self._fix_frame(prior is not None)
+        # The pose graph's next keyframe: the matcher returns its points (service/graph.py), at
+        # the map's voxel (they also re-fold the map's tiles; the graph thins them).
+        keyframe_voxel_m = None
+        if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
+            keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
+        try:
+            # the keyframe model is rebuilt after the pose is out
+            return self.matcher.register_payload(
+                job.payload, limits=m.limits, behind=behind, keyframe_voxel_m=keyframe_voxel_m
+            )
+        except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
+            log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
+            m.reject(
+                scan.vehicle,
+                scan.session,
+                scan.seq,
+                ErrorCode.INTERNAL_ERROR,
+                "the matcher process died; the session resumes from its last saved state",
+            )
+            self.broken = True
+        except MatcherProcessError:
+            raise  # a bug, not bad input: logged and answered internal_error by the worker loop
+        except BadMessageError as exc:  # its bodies did not decode (v2: decompressed there)
+            m.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
+        except RandtError as exc:
+            m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
+        return None
+
+    def _log_pose(self, scan: ScanHeader, result: ScanResult) -> bool:
+        """Durable before acknowledged: the pose into the session's fsync'd log before it is
+        published (and before the map holds its points); False when that failed (answered
+        ``storage_error``, the session dropped to resume from the store)."""
+        try:
+            self._manager.store.append_pose(
+                scan.vehicle,
+                scan.session,
+                PoseLogRecord(
+                    index=result.index,
+                    seq=scan.seq,
+                    stamp_ns=scan.stamp_ns,
+                    stamp_s=scan.stamp_ns * 1e-9,
+                    pose=result.T_world_sensor,
+                    status=result.status,
+                ),
+            )
+        except (OSError, RandtError) as exc:
+            self._storage_failed(scan, exc)
+            return False
+        return True
+
+    def _queue_map_points(self, registered: Registered) -> None:
+        """The scan's map points (none for a fallback) wait to be folded, into the map they go to
+        and moved by the session's newest correction: the map follows the pose graph."""
+        if not registered.map_xyz.shape[0]:
+            return
+        map_xyz = registered.map_xyz
+        C, fold_map = None, self.info.map_name
+        graph = self._manager.graph
+        if graph is not None:
+            C, fold_map = graph.fold_target(self.info.vehicle, self.info.session, fold_map)
+        if C is not None:
+            R, t = C[:3, :3].T.astype(np.float32), C[:3, 3].astype(np.float32)
+            map_xyz = (map_xyz @ R + t).astype(np.float32)
+        self._unfolded.append((fold_map, map_xyz, registered.map_intensity))
+
+    def _account(self, scan: ScanHeader, result: ScanResult, prior: PosePrior | None) -> None:
+        """The session's counters, last figures and drift variance after a processed scan."""
+        info = self.info
+        info.n_scans += 1
+        info.n_fallbacks += result.status == "fallback"
+        info.stamps_s.append(scan.stamp_ns * 1e-9)
+        info.last_fitness = result.fitness
+        info.last_status = result.status
+        info.last_activity = time.monotonic()
+        info.dirty = True
+        if prior is not None:
+            info.drift_var_m2 = float(np.trace(np.asarray(prior.covariance)[:3, :3]))
+        elif np.all(np.isfinite(result.covariance[:3, :3])):
+            info.drift_var_m2 += float(np.trace(result.covariance[:3, :3]))
+
+    def _answer(self, job: _Job, result: ScanResult) -> None:
+        """The pose message, published, or held until the session's first snapshot is on disk:
+        a session's first save holds its frame, map and first keyframe, and its later logged poses
+        are resumable only on top of it. It is written on its own thread while this one goes on
+        matching (module docstring, Durable)."""
+        scan, cov = job.scan, result.covariance
         answer = PoseMessage(
             vehicle=scan.vehicle,
             session=scan.session,
@@ -439,40 +473,40 @@ class SessionWorker:
             status=result.status,
             covariance=None if not np.all(np.isfinite(cov)) else tuple(cov.ravel().tolist()),
             latency_ms=0.0,  # set when it goes out
-            map=info.map_name,
+            map=self.info.map_name,
         )
-        m.metrics.registration_seconds.observe(result.time_s)
-        if result.index == 0:
-            # A session's first save holds its frame, map and first keyframe: its later logged
-            # poses are resumable only on top of it, so its poses wait for it. It is written on
-            # its own thread while this one goes on matching (module docstring, Durable).
-            with self._held_lock:
-                self._first_saved = None
-                self._held.append((answer, job.received_ns))
-            self._first_save = threading.Thread(
-                target=self._save_first, name=f"first-save-{scan.vehicle}-{scan.session}", daemon=True
-            )
-            self._first_save.start()
-        else:
+        self._manager.metrics.registration_seconds.observe(result.time_s)
+        if result.index != 0:
             self._publish(answer, job.received_ns)
-        if graph is not None and registered.keyframe_xyz is not None and len(registered.keyframe_xyz) >= 10:
-            graph.offer(
-                scan.vehicle,
-                scan.session,
-                map_name=info.map_name,
-                seq=scan.seq,
-                index=result.index,
-                stamp_s=scan.stamp_ns * 1e-9,
-                T_live=result.T_world_sensor,
-                points=registered.keyframe_xyz,
-                intensity=registered.keyframe_intensity,
-                gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
-                # a session without priors (its own map) may join the shared map
-                join=m.settings.default_map if info.frame == "session" else None,
-            )
-        if not behind:
-            with self.lock:
-                self.matcher.update_model()  # in-process matchers; a matcher process does it itself
+            return
+        with self._held_lock:
+            self._first_saved = None
+            self._held.append((answer, job.received_ns))
+        self._first_save = threading.Thread(
+            target=self._save_first, name=f"first-save-{scan.vehicle}-{scan.session}", daemon=True
+        )
+        self._first_save.start()
+
+    def _offer_keyframe(self, scan: ScanHeader, registered: Registered, prior: PosePrior | None) -> None:
+        """A keyframe's points (when the matcher returned some) to the pose graph of the session's
+        map, with its prior's position as GNSS; a session without priors may join the shared map."""
+        graph, kf = self._manager.graph, registered.keyframe_xyz
+        if graph is None or kf is None or len(kf) < 10:
+            return
+        info, result = self.info, registered.result
+        graph.offer(
+            scan.vehicle,
+            scan.session,
+            map_name=info.map_name,
+            seq=scan.seq,
+            index=result.index,
+            stamp_s=scan.stamp_ns * 1e-9,
+            T_live=result.T_world_sensor,
+            points=kf,
+            intensity=registered.keyframe_intensity,
+            gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
+            join=self._manager.settings.default_map if info.frame == "session" else None,
+        )
 
     def fold(self) -> None:
         """Insert the map points waiting to be folded into the session's map, and mark the tiles
