@@ -382,7 +382,8 @@ def demo(
                 if not any(depths.values()):
                     break
                 time.sleep(0.5)
-            time.sleep(2.5 * settings.flush_interval_s)
+            # (tiles are saved every tile_save_s, at a flush: one whole period and a flush more)
+            time.sleep(settings.tile_save_s + 1.5 * settings.flush_interval_s)
             available = [
                 p
                 for p in ("/status", "/sessions", "/maps", "/maps/default/tiles", "/metrics", "/docs")
