@@ -1138,46 +1138,21 @@ def first_per_voxel_pair(
     order: what :meth:`core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
     twin, two ``np.lexsort`` calls, took 14-30 ms on a KITTI sweep with a cap of 1). A point
     equal (float32 x, y, z) to one already kept in its voxel is not distinct and is skipped, as
-    the map's insert drops it.
+    the map's insert drops it: the map's policy (:func:`voxel_table_admit`) against an empty map.
 
     Reference: core.tiles:TileGrid.candidate_mask_numpy
     Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
     """
     n = tile_keys.shape[0]
     size = 16
-    while size < 2 * n:
+    while size < 2 * (n + 1):
         size <<= 1
-    mask = size - 1
     table_t = np.full(size, -1, dtype=np.int64)
     table_v = np.empty(size, dtype=np.int64)
-    table_g = np.empty(size, dtype=np.int64)
-    counts = np.zeros(n, dtype=np.int64)
-    kept = np.empty((n, cap), dtype=np.int64)
+    table_c = np.zeros(size, dtype=np.int32)
+    table_xyz = np.empty((size, cap if cap > 1 else 0, 3), dtype=np.float32)
     out = np.zeros(n, dtype=np.bool_)
-    m = 0
-    for i in range(n):
-        tk, vk = tile_keys[i], voxel_keys[i]
-        h = _slot(vk ^ (tk * 0x27D4EB2F165667C5), mask)
-        while table_t[h] != -1 and (table_t[h] != tk or table_v[h] != vk):
-            h = (h + 1) & mask
-        if table_t[h] == -1:
-            table_t[h], table_v[h], table_g[h] = tk, vk, m
-            m += 1
-        g = table_g[h]
-        c = counts[g]
-        if c >= cap:
-            continue
-        duplicate = False
-        for j in range(c):
-            k = kept[g, j]
-            if xyz32[k, 0] == xyz32[i, 0] and xyz32[k, 1] == xyz32[i, 1] and xyz32[k, 2] == xyz32[i, 2]:
-                duplicate = True
-                break
-        if duplicate:
-            continue
-        kept[g, c] = i
-        counts[g] = c + 1
-        out[i] = True
+    voxel_table_admit(table_t, table_v, table_c, table_xyz, 0, tile_keys, voxel_keys, xyz32, cap, 0, out)
     return out
 
 
