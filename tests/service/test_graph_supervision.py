@@ -155,3 +155,39 @@ def test_an_item_in_flight_at_two_deaths_is_dropped_not_retried_forever(deaths: 
     assert (item in graph._queued) == (deaths == 1)
     assert graph._synced == (0 if deaths == 1 else 1)  # a dropped sync is answered, never waited for
     assert graph.restarts == deaths and graph.last_exit == "signal 9"
+
+
+def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_map() -> None:
+    """A session without priors that joined the shared map lives in that map's graph at its
+    ``T_map_session``: the new process is told so before any keyframe, and the map's revision
+    and loop records go on from where the service had them."""
+    from service.graph import GraphLoop, GraphState
+
+    class Dead:
+        exitcode = -9
+
+        def close(self) -> None:
+            pass
+
+        def join(self, timeout: float) -> None:
+            pass
+
+    graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
+    T = np.eye(4)
+    T[:3, 3] = (12.0, -3.0, 0.5)
+    graph._joined[("nognss", "d1")] = ("default", T)
+    loop = GraphLoop(("a", "d1", 5), ("a", "d1", 90), "place", True, True, "", 40)
+    graph._states["default"] = GraphState("default", revision=7, loops=[loop], placed={("a", "d1")})
+    keyframe = ("keyframe", "default", "a", "d1", 100, 100, np.eye(4), np.zeros((20, 3)), None, None, None)
+    graph._queued = [keyframe]
+    graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
+    first = graph._queued[0]
+    assert first[:4] == ("place", "default", "nognss", "d1") and np.array_equal(first[4], T)
+    assert graph._queued[1] is keyframe
+    assert graph._bases["default"] == (7, 1) and graph._placed_before["default"] == {("a", "d1")}
+    # an update from the new process (its revision 1, its loop records from 0) is numbered on
+    graph._session_map[("a", "d1")] = "default"
+    graph._apply(("update", "default", 1, [], 0, [], {"a/d1": np.eye(4)}, ("a", "d1", 100), 0.01))
+    state = graph.snapshot("default")
+    assert state is not None and state.revision == 8 and state.loops == [loop]
+    assert state.placed == {("a", "d1")}
