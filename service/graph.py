@@ -704,6 +704,7 @@ class ServiceGraph:
             retry = []
             for item in self._inflight:
                 if id(item) in self._retried:  # in flight at two deaths: it may be what kills it
+                    self._retried.discard(id(item))
                     log.error("pose graph: %s dropped, in flight at two deaths of the process", item[0])
                     if item[0] == "keyframe":
                         self._offered -= 1

@@ -46,7 +46,7 @@ from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanRe
 from core.tiles import TileGrid
 from core.transforms import transform_points
 from core.voxel import pack_keys, voxel_coords
-from wire.messages import WireLimits, decode_scan
+from wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
 
 __all__ = [
     "LocalMatcher",
@@ -57,6 +57,7 @@ __all__ = [
     "Registered",
     "RemoteMatcher",
     "SessionMatcher",
+    "prior_of",
     "single_threaded_blas",
     "warm_up",
 ]
@@ -186,14 +187,18 @@ def decoded_sweep(
     decompressed here): ``(xyz float32 view, time offsets float32 or None, intensity float32 or
     None, prior, stamp s)``. Raises :class:`~core.errors.BadMessageError` as the decoder does."""
     scan = decode_scan(payload, limits)
-    pose = scan.prior_pose()
-    prior = None
-    if pose is not None:
-        cov = scan.prior_covariance()
-        assert cov is not None  # a scan's prior carries both
-        prior = PosePrior(pose, cov)
     offsets = None if scan.time_offsets is None else np.frombuffer(scan.time_offsets, dtype="<f4")
-    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior, scan.stamp_ns * 1e-9
+    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior_of(scan), scan.stamp_ns * 1e-9
+
+
+def prior_of(scan: ScanMessage | ScanHeader) -> PosePrior | None:
+    """The scan's prior pose (GNSS/INS) with its covariance, if it carries one."""
+    pose = scan.prior_pose()
+    if pose is None:
+        return None
+    cov = scan.prior_covariance()
+    assert cov is not None  # a scan's prior carries both
+    return PosePrior(pose, cov)
 
 
 def _with_intensity(registered: Registered, intensity: np.ndarray | None) -> Registered:

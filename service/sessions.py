@@ -101,6 +101,7 @@ from service.matchers import (
     MatcherProcessError,
     Registered,
     SessionMatcher,
+    prior_of,
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
@@ -194,16 +195,6 @@ class SessionState:
     #: The shared map the pose graph placed this session (one without priors) into: its points
     #: fold there from then on (service/graph.py); ``None`` otherwise.
     joined_map: str | None = None
-
-
-def _prior_of(scan: ScanHeader) -> PosePrior | None:
-    """The scan's prior pose (GNSS/INS) with its covariance, if it carries one."""
-    pose = scan.prior_pose()
-    if pose is None:
-        return None
-    cov = scan.prior_covariance()
-    assert cov is not None  # a scan's prior carries both
-    return PosePrior(pose, cov)
 
 
 class SessionWorker:
@@ -350,7 +341,7 @@ class SessionWorker:
         map points, account for it, answer it, offer it to the pose graph. A stage that answers
         the scan with an error ends it (``None``/``False``)."""
         scan = job.scan
-        prior = _prior_of(scan)
+        prior = prior_of(scan)
         # More of this session's scans wait: the keyframe model may lag one keyframe rather than
         # delay them (IncrementalMatcher.update_model).
         behind = self.depth() > 0

@@ -132,19 +132,22 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
         assert graph.restarts == 1 and graph.pid is not None
 
 
+class Dead:
+    """A dead graph process, its pipe and its receiver thread, as ``ServiceGraph._died`` sees them."""
+
+    exitcode = -9
+
+    def close(self) -> None:
+        pass
+
+    def join(self, timeout: float) -> None:
+        pass
+
+
 @pytest.mark.parametrize("deaths", [1, 2])
 def test_an_item_in_flight_at_two_deaths_is_dropped_not_retried_forever(deaths: int) -> None:
     """What the process had not answered when it died goes to the next one once; in flight at a
     second death too, it is dropped (it may be what kills the process)."""
-
-    class Dead:  # the dead process, its pipe and its receiver thread, as ``_died`` sees them
-        exitcode = -9
-
-        def close(self) -> None:
-            pass
-
-        def join(self, timeout: float) -> None:
-            pass
 
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     item = ("sync", 1)
@@ -154,6 +157,7 @@ def test_an_item_in_flight_at_two_deaths_is_dropped_not_retried_forever(deaths: 
         graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
     assert (item in graph._queued) == (deaths == 1)
     assert graph._synced == (0 if deaths == 1 else 1)  # a dropped sync is answered, never waited for
+    assert (id(item) in graph._retried) == (deaths == 1)  # a dropped item leaves no trace
     assert graph.restarts == deaths and graph.last_exit == "signal 9"
 
 
@@ -162,15 +166,6 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     ``T_map_session``: the new process is told so before any keyframe, and the map's revision
     and loop records go on from where the service had them."""
     from service.graph import GraphLoop, GraphState
-
-    class Dead:
-        exitcode = -9
-
-        def close(self) -> None:
-            pass
-
-        def join(self, timeout: float) -> None:
-            pass
 
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     T = np.eye(4)
