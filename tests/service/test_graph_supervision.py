@@ -26,7 +26,8 @@ from sim.drive import SimScan, plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from tests.service.api_server import PRIOR_COV, LiveServer, answers, live_server, wait_answers
-from wire.messages import CorrectionMessage, encode, scan_from_arrays
+from wire.codes import ErrorCode
+from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 N_SCANS = 24  # 24 m at 10 m/s: three keyframes a session
 
@@ -44,15 +45,24 @@ def _drives() -> dict[str, list[SimScan]]:
 
 
 def _send(server: LiveServer, vehicle: str, scans: list[SimScan]) -> None:
-    """One scan at a time (each once the one before is answered), a prior on the session's first."""
+    """One scan at a time (each once the one before is answered), a prior on the session's first.
+
+    Every scan must be posed. A session idle past its expiry while the test waits (a slow
+    machine) is saved and resumed by its next scan; one that arrives while it is being saved is
+    refused as busy, and this vehicle sends it again, as the error says to."""
     mgr = server.service.sessions
     assert mgr is not None
     for s in scans:
         extra = {"prior_pose": s.T_world_sensor, "prior_covariance": PRIOR_COV} if s.index == 0 else {}
-        n = len(answers(server.service))
         scan = scan_from_arrays(vehicle, "d1", s.index, s.stamp_ns, s.points_xyz, **extra)
-        mgr.submit(vehicle, encode(scan))
-        wait_answers(server.service, n + 1)
+        for _ in range(20):
+            n = len(answers(server.service))
+            mgr.submit(vehicle, encode(scan))
+            answer = wait_answers(server.service, n + 1)[n]
+            if not (isinstance(answer, ErrorMessage) and answer.code == ErrorCode.SESSION_BUSY):
+                break
+            time.sleep(0.1)
+        assert isinstance(answer, PoseMessage), f"{vehicle} scan {s.index}: {answer}"
 
 
 def _running(server: LiveServer) -> set[tuple[str, str]]:
