@@ -37,6 +37,7 @@ __all__ = [
     "best_voxel",
     "build_grid",
     "build_hash",
+    "conditioned_gaussians",
     "deskew_points",
     "eigh3",
     "first_per_voxel_pair",
@@ -49,11 +50,16 @@ __all__ = [
     "group_voxels",
     "group_weighted_moments",
     "grouped_fence_mask",
+    "in_marked_cells",
     "isolated_points",
     "mahalanobis_to_assigned",
     "masked_group_centroids",
+    "model_compact",
+    "model_evict",
+    "model_merge",
     "ndt_accumulate",
     "ndt_scores",
+    "parent_moments",
     "smallest_eigenvector",
     "tile_voxel_keys",
     "voxel_table_admit",
@@ -638,6 +644,46 @@ def group_weighted_moments(
 
 
 @nb.njit(cache=True, nogil=True)
+def parent_moments(
+    inverse: np.ndarray, parent_center: np.ndarray, counts: np.ndarray, means: np.ndarray, scatter: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Counts, means and scatter matrices (about the means) of parent voxels from their
+    children's (child ``c`` in parent ``inverse[c]``): ``S = sum(S_c + n_c d_c d_c^T) - n e e^T``
+    with ``d_c`` the child's mean and ``e`` the parent's about the parent's centre.
+
+    Reference: core.voxel:_parent_moments_numpy
+    Test: tests/core/test_kernels.py::test_parent_moments_match_bincount
+    """
+    m = parent_center.shape[0]
+    n_p = np.zeros(m)
+    e = np.zeros((m, 3))
+    out = np.zeros((m, 3, 3))
+    for c in range(inverse.shape[0]):
+        g = inverse[c]
+        n = float(counts[c])
+        d0 = means[c, 0] - parent_center[g, 0]
+        d1 = means[c, 1] - parent_center[g, 1]
+        d2 = means[c, 2] - parent_center[g, 2]
+        n_p[g] += n
+        e[g, 0] += n * d0
+        e[g, 1] += n * d1
+        e[g, 2] += n * d2
+        d = (d0, d1, d2)
+        for r in range(3):
+            for k in range(3):
+                out[g, r, k] += scatter[c, r, k] + n * d[r] * d[k]
+    mean = np.empty((m, 3))
+    for g in range(m):
+        for r in range(3):
+            e[g, r] /= n_p[g]
+        for r in range(3):
+            for k in range(3):
+                out[g, r, k] -= n_p[g] * e[g, r] * e[g, k]
+            mean[g, r] = parent_center[g, r] + e[g, r]
+    return n_p.astype(np.int64), mean, out
+
+
+@nb.njit(cache=True, nogil=True)
 def group_centroids(points: np.ndarray, inverse: np.ndarray, n_groups: int) -> np.ndarray:
     """Mean of each group's points, (m,3).
 
@@ -962,6 +1008,64 @@ def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             for r in range(3):
                 evecs[g, r, c] = V[r, src_c]
     return evals, evecs
+
+
+@nb.njit(cache=True, nogil=True)
+def conditioned_gaussians(
+    scatter: np.ndarray, counts: np.ndarray, eigenvalue_ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per voxel, from its scatter matrix about the mean and its point count, the conditioned
+    covariance (eigenvalues below ``eigenvalue_ratio`` times the largest raised to it, at least
+    1e-12), its inverse, the whitening ``W`` (``W^T W`` the inverse) and the normal (eigenvector
+    of the smallest eigenvalue): ``(cov, inv, whitening, normals)``, in one pass with no (m,3,3)
+    temporaries (the numpy form's batched 3x3 products were most of a pyramid's fit).
+
+    Reference: core.voxel:VoxelGaussianMap._from_moments_numpy
+    Test: tests/core/test_kernels.py::test_conditioned_gaussians_match_the_numpy_fit
+    """
+    m = scatter.shape[0]
+    cov = np.empty((m, 3, 3))
+    inv = np.empty((m, 3, 3))
+    white = np.empty((m, 3, 3))
+    normals = np.empty((m, 3))
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    e = np.empty(3)
+    vec = np.empty((3, 3))
+    for g in range(m):
+        denom = max(counts[g] - 1.0, 1.0)
+        for r in range(3):
+            for c in range(3):
+                A[r, c] = scatter[g, r, c] / denom
+        smallest_eigenvector(A, V)
+        d0, d1, d2 = A[0, 0], A[1, 1], A[2, 2]
+        i0, i1, i2 = 0, 1, 2  # the eigenpairs ascending, as eigh3 sorts them
+        if d1 < d0:
+            i0, i1 = i1, i0
+        if d2 < A[i1, i1]:
+            i1, i2 = i2, i1
+        if A[i1, i1] < A[i0, i0]:
+            i0, i1 = i1, i0
+        order = (i0, i1, i2)
+        for c in range(3):
+            e[c] = A[order[c], order[c]]
+            for r in range(3):
+                vec[r, c] = V[r, order[c]]
+        floor = max(e[2] * eigenvalue_ratio, 1e-12)
+        for c in range(3):
+            e[c] = max(e[c], floor)
+        for r in range(3):
+            for c in range(3):
+                s_cov = 0.0
+                s_inv = 0.0
+                for k in range(3):
+                    s_cov += vec[r, k] * e[k] * vec[c, k]
+                    s_inv += vec[r, k] / e[k] * vec[c, k]
+                cov[g, r, c] = s_cov
+                inv[g, r, c] = s_inv
+                white[g, r, c] = vec[c, r] / math.sqrt(e[r])
+            normals[g, r] = vec[r, 0]
+    return cov, inv, white, normals
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1563,6 +1667,173 @@ def voxel_table_forget(
                 gap = j
         table_t[gap] = -1
     return removed
+
+
+@nb.njit(cache=True, nogil=True)
+def model_merge(
+    old_keys: np.ndarray,
+    old_sums: np.ndarray,
+    old_counts: np.ndarray,
+    old_born: np.ndarray,
+    new_keys: np.ndarray,
+    new_points: np.ndarray,
+    kid: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A keyframe's points summed into the keyframe model's voxels: one merge of the two
+    ascending key runs (the model's, the keyframe's, each unique). Returns ``(keys, sums,
+    counts, born, changed, at_old)``: every voxel before and after, keys ascending, the
+    keyframe's point added where it has one (``changed``), a new voxel ``born`` at ``kid``, and
+    each old voxel's row. Fresh arrays: the model's are not changed.
+
+    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
+    """
+    n_old, n_new = old_keys.shape[0], new_keys.shape[0]
+    cap = n_old + n_new
+    keys = np.empty(cap, dtype=np.int64)
+    sums = np.empty((cap, 3))
+    counts = np.empty(cap, dtype=np.int64)
+    born = np.empty(cap, dtype=np.int64)
+    changed = np.zeros(cap, dtype=np.bool_)
+    at_old = np.empty(n_old, dtype=np.int64)
+    i = j = n = 0
+    while i < n_old or j < n_new:
+        take_old = j >= n_new or (i < n_old and old_keys[i] <= new_keys[j])
+        take_new = i >= n_old or (j < n_new and new_keys[j] <= old_keys[i])
+        if take_old:
+            keys[n] = old_keys[i]
+            sums[n, 0], sums[n, 1], sums[n, 2] = old_sums[i, 0], old_sums[i, 1], old_sums[i, 2]
+            counts[n], born[n] = old_counts[i], old_born[i]
+            at_old[i] = n
+            i += 1
+        else:
+            keys[n] = new_keys[j]
+            sums[n, 0] = sums[n, 1] = sums[n, 2] = 0.0
+            counts[n], born[n] = 0, kid
+        if take_new:
+            sums[n, 0] += new_points[j, 0]
+            sums[n, 1] += new_points[j, 1]
+            sums[n, 2] += new_points[j, 2]
+            counts[n] += 1
+            changed[n] = True
+            j += 1
+        n += 1
+    return keys[:n], sums[:n], counts[:n], born[:n], changed[:n], at_old
+
+
+@nb.njit(cache=True, nogil=True)
+def model_evict(
+    keys: np.ndarray,
+    sums: np.ndarray,
+    counts: np.ndarray,
+    born: np.ndarray,
+    changed: np.ndarray,
+    evicted_keys: np.ndarray,
+    evicted_points: np.ndarray,
+    evicted_id: int,
+) -> None:
+    """The evicted keyframe's points subtracted, in place, from the voxels (keys ascending) it
+    still contributes to: those not reborn after it (``born <= evicted_id``); its keys are
+    ascending too, so one merge walk finds them.
+
+    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
+    """
+    i, n = 0, keys.shape[0]
+    for j in range(evicted_keys.shape[0]):
+        k = evicted_keys[j]
+        while i < n and keys[i] < k:
+            i += 1
+        if i < n and keys[i] == k and born[i] <= evicted_id:
+            sums[i, 0] -= evicted_points[j, 0]
+            sums[i, 1] -= evicted_points[j, 1]
+            sums[i, 2] -= evicted_points[j, 2]
+            counts[i] -= 1
+            changed[i] = True
+
+
+@nb.njit(cache=True, nogil=True)
+def model_compact(
+    keys: np.ndarray,
+    sums: np.ndarray,
+    counts: np.ndarray,
+    born: np.ndarray,
+    changed: np.ndarray,
+    cx: float,
+    cy: float,
+    radius2: float,
+    finest_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The voxels that stay (a point left in them, their centroid within ``sqrt(radius2)`` of
+    ``(cx, cy)`` in x-y), in order: ``(keys, sums, counts, born, centroids, fine, changed, row)``
+    with ``fine`` the packed key of each centroid's voxel of ``finest_m`` (grouped as
+    :func:`group_voxels` groups) and ``row`` each input voxel's row in the output (-1: gone).
+
+    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
+    """
+    n = keys.shape[0]
+    row = np.full(n, -1, dtype=np.int64)
+    centroid = np.empty((n, 3))
+    m = 0
+    for i in range(n):
+        if counts[i] <= 0:
+            continue
+        x, y, z = sums[i, 0] / counts[i], sums[i, 1] / counts[i], sums[i, 2] / counts[i]
+        if (x - cx) * (x - cx) + (y - cy) * (y - cy) > radius2:
+            continue
+        centroid[m, 0], centroid[m, 1], centroid[m, 2] = x, y, z
+        row[i] = m
+        m += 1
+    out_keys = np.empty(m, dtype=np.int64)
+    out_sums = np.empty((m, 3))
+    out_counts = np.empty(m, dtype=np.int64)
+    out_born = np.empty(m, dtype=np.int64)
+    out_changed = np.empty(m, dtype=np.bool_)
+    fine = np.empty(m, dtype=np.int64)
+    inv_v = 1.0 / finest_m
+    for i in range(n):
+        r = row[i]
+        if r < 0:
+            continue
+        out_keys[r], out_counts[r], out_born[r], out_changed[r] = keys[i], counts[i], born[i], changed[i]
+        out_sums[r, 0], out_sums[r, 1], out_sums[r, 2] = sums[i, 0], sums[i, 1], sums[i, 2]
+        fine[r] = _pack(
+            int(math.floor(centroid[r, 0] * inv_v)),
+            int(math.floor(centroid[r, 1] * inv_v)),
+            int(math.floor(centroid[r, 2] * inv_v)),
+        )
+    return out_keys, out_sums, out_counts, out_born, centroid[:m].copy(), fine, out_changed, row
+
+
+@nb.njit(cache=True, nogil=True)
+def in_marked_cells(cells: np.ndarray, marked: np.ndarray) -> np.ndarray:
+    """True where ``cells[i]`` is one of ``marked`` (packed keys, repeats allowed): a hashed set.
+
+    Reference: numpy:isin
+    Test: tests/core/test_kernels.py::test_in_marked_cells_matches_isin
+    """
+    size = 16
+    while size < 2 * marked.shape[0]:
+        size <<= 1
+    mask = size - 1
+    table = np.full(size, -1, dtype=np.int64)
+    for j in range(marked.shape[0]):
+        k = marked[j]
+        h = _slot(k, mask)
+        while table[h] != -1 and table[h] != k:
+            h = (h + 1) & mask
+        table[h] = k
+    out = np.zeros(cells.shape[0], dtype=np.bool_)
+    for i in range(cells.shape[0]):
+        k = cells[i]
+        h = _slot(k, mask)
+        while table[h] != -1:
+            if table[h] == k:
+                out[i] = True
+                break
+            h = (h + 1) & mask
+    return out
 
 
 @nb.njit(cache=True, nogil=True)

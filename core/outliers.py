@@ -73,6 +73,7 @@ def iqr_inlier_mask(
     min_points_for_voxel_quartiles: int = 10,
     eigenvalue_ratio: float = 0.01,
     keep_unjudged: bool = False,
+    groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Algorithm 1's outlier test: True for points inside their voxel's Tukey fences.
 
@@ -84,6 +85,8 @@ def iqr_inlier_mask(
     min_points_per_voxel : voxels with fewer points get no Gaussian; their points are outliers.
     min_points_for_voxel_quartiles : below this, a voxel uses the pooled fences (module docstring).
     keep_unjudged : points of voxels without a Gaussian are kept (True) instead of outliers.
+    groups : the points' voxels when the caller has them, as :func:`core.voxel.voxel_groups`
+        gives them with ``sort`` (the keyframe model's, :mod:`core.model`).
 
     Returns
     -------
@@ -94,6 +97,7 @@ def iqr_inlier_mask(
         voxel_size_m,
         min_points_per_voxel=min_points_per_voxel,
         eigenvalue_ratio=eigenvalue_ratio,
+        groups=groups,
     )
     mask = iqr_fence_mask(
         points_xyz, gmap, vidx, k=k, min_points_for_voxel_quartiles=min_points_for_voxel_quartiles

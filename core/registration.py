@@ -369,14 +369,20 @@ def prepare_reference(
 
 
 def reference_inlier_mask(
-    points_xyz: np.ndarray, settings: RegistrationSettings, finest_m: float, *, keep_unjudged: bool = False
+    points_xyz: np.ndarray,
+    settings: RegistrationSettings,
+    finest_m: float,
+    *,
+    keep_unjudged: bool = False,
+    groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The reference's outlier removal as the settings choose: Algorithm 1 (``"iqr"``, with
     Gaussians at the finest NDT voxel ``finest_m``), SOR, or none (all True). ``keep_unjudged``:
     Algorithm 1 keeps the points of voxels too sparse for a Gaussian instead of dropping them
-    (a sparse cloud, :func:`is_sparse_cloud`)."""
+    (a sparse cloud, :func:`is_sparse_cloud`). ``groups``: the points' finest voxels when the
+    caller has them (:func:`core.outliers.iqr_inlier_mask`)."""
     if settings.outlier_removal == "iqr":
-        return _algorithm1_mask(points_xyz, finest_m, settings, keep_unjudged=keep_unjudged)
+        return _algorithm1_mask(points_xyz, finest_m, settings, keep_unjudged=keep_unjudged, groups=groups)
     if settings.outlier_removal == "sor":
         return statistical_outlier_mask(points_xyz)
     return np.ones(points_xyz.shape[0], dtype=bool)
@@ -388,6 +394,7 @@ def _algorithm1_mask(
     settings: RegistrationSettings,
     *,
     keep_unjudged: bool = False,
+    groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Algorithm 1's inlier mask with the settings' fence, voxel and quartile rules."""
     return iqr_inlier_mask(
@@ -398,6 +405,7 @@ def _algorithm1_mask(
         min_points_for_voxel_quartiles=settings.iqr_min_points_for_voxel_quartiles,
         eigenvalue_ratio=settings.eigenvalue_ratio,
         keep_unjudged=keep_unjudged,
+        groups=groups,
     )
 
 

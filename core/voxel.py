@@ -16,7 +16,14 @@ from functools import cached_property
 import numpy as np
 
 from core.errors import InvalidCloudError
-from core.kernels import eigh3, group_centroids, group_moments, group_voxels
+from core.kernels import (
+    conditioned_gaussians,
+    eigh3,
+    group_centroids,
+    group_moments,
+    group_voxels,
+    parent_moments,
+)
 
 __all__ = [
     "NEIGHBOR_OFFSETS",
@@ -213,11 +220,13 @@ class VoxelGaussianMap:
         *,
         min_points_per_voxel: int = 6,
         eigenvalue_ratio: float = 0.01,
+        groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[VoxelGaussianMap, np.ndarray]:
         """:meth:`build`, plus each point's voxel index in the map (-1 where its voxel has too
-        few points for a Gaussian)."""
+        few points for a Gaussian). ``groups``: the points' grouping ``(inverse, keys ascending,
+        counts)`` when the caller has it (:func:`voxel_groups` with ``sort``)."""
         pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
-        inverse, keys, counts = voxel_groups(pts, voxel_size_m, sort=True)
+        inverse, keys, counts = voxel_groups(pts, voxel_size_m, sort=True) if groups is None else groups
         _, mean, scatter = group_moments(pts, inverse, keys.size)
         keep = counts >= min_points_per_voxel
         gmap = cls._from_moments(
@@ -335,13 +344,11 @@ class VoxelGaussianMap:
             )
         keys, counts = keys[keep], counts[keep]
         mean = np.compress(keep, mean, axis=0)  # np.compress: a boolean index of (M,3) is 8x slower
-        cov = np.compress(keep, scatter, axis=0) / np.maximum(counts - 1.0, 1.0)[:, None, None]
-        evals, evecs = eigh3(cov)
-        floor = np.maximum(evals[:, 2:3] * eigenvalue_ratio, 1e-12)
-        evals = np.maximum(evals, floor)
-        cov = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
-        inv = (evecs / evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
-        whitening = np.swapaxes(evecs / np.sqrt(evals)[:, None, :], 1, 2)
+        cov, inv, whitening, normals = conditioned_gaussians(
+            np.ascontiguousarray(np.compress(keep, scatter, axis=0), dtype=np.float64),
+            counts.astype(np.float64),
+            float(eigenvalue_ratio),
+        )
         return cls(
             voxel_size_m=float(voxel_size_m),
             keys=keys,
@@ -349,9 +356,24 @@ class VoxelGaussianMap:
             covariances=cov,
             inv_covariances=inv,
             whitening=whitening,
-            normals=np.ascontiguousarray(evecs[:, :, 0]),
+            normals=normals,
             counts=counts.astype(np.int64),
         )
+
+    @staticmethod
+    def _from_moments_numpy(
+        scatter: np.ndarray, counts: np.ndarray, eigenvalue_ratio: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(cov, inv, whitening, normals)`` of voxels with these scatter matrices and counts,
+        vectorized: the reference of :func:`core.kernels.conditioned_gaussians` (the tests)."""
+        cov = scatter / np.maximum(counts - 1.0, 1.0)[:, None, None]
+        evals, evecs = eigh3(cov)
+        floor = np.maximum(evals[:, 2:3] * eigenvalue_ratio, 1e-12)
+        evals = np.maximum(evals, floor)
+        cov = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
+        inv = (evecs / evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
+        whitening = np.swapaxes(evecs / np.sqrt(evals)[:, None, :], 1, 2)
+        return cov, inv, whitening, np.ascontiguousarray(evecs[:, :, 0])
 
     def lookup(self, coords: np.ndarray) -> np.ndarray:
         """Voxel indices (N,) of packed cell coordinates, -1 where the cell holds no Gaussian."""
@@ -401,6 +423,25 @@ def _parent_moments(
     parent's centre: ``S = sum(S_c + n_c d_c d_c^T) - n e e^T``, with ``d_c`` the child mean and
     ``e`` the parent mean relative to it.
     """
+    parent_size = 2.0 * voxel_size_m
+    centers = (unpack_keys(keys) + 0.5) * voxel_size_m
+    inverse, parent_keys, _ = voxel_groups(centers, parent_size)
+    parent_center = (unpack_keys(parent_keys) + 0.5) * parent_size
+    n_p, mean_p, scatter_p = parent_moments(
+        inverse,
+        parent_center,
+        counts,
+        np.ascontiguousarray(mean, dtype=np.float64),
+        np.ascontiguousarray(scatter, dtype=np.float64),
+    )
+    return parent_keys, n_p, mean_p, scatter_p
+
+
+def _parent_moments_numpy(
+    keys: np.ndarray, counts: np.ndarray, mean: np.ndarray, scatter: np.ndarray, voxel_size_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_parent_moments` by ``np.bincount``: the reference of
+    :func:`core.kernels.parent_moments` (the tests)."""
     parent_size = 2.0 * voxel_size_m
     centers = (unpack_keys(keys) + 0.5) * voxel_size_m
     inverse, parent_keys, _ = voxel_groups(centers, parent_size)

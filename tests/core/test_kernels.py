@@ -28,6 +28,7 @@ from core.voxel import (
     unpack_keys,
     voxel_coords,
     voxel_downsample,
+    voxel_groups,
 )
 from tests.data import require_data
 
@@ -225,6 +226,64 @@ def test_eigh3_matches_lapack() -> None:
     np.testing.assert_allclose(evecs @ np.swapaxes(evecs, 1, 2), eye, atol=1e-12)
     rebuilt = (evecs * evals[:, None, :]) @ np.swapaxes(evecs, 1, 2)
     np.testing.assert_allclose(rebuilt, M, atol=1e-11 * scale.max())
+
+
+def test_conditioned_gaussians_match_the_numpy_fit(kitti_clouds) -> None:
+    """The fused fit (conditioning, covariance, inverse, whitening, normal) is the vectorized
+    one to round-off, on a real sweep's 1 m voxels and on flat (rank-deficient) scatters."""
+    from core.kernels import group_moments
+
+    pts = np.ascontiguousarray(kitti_clouds[0], dtype=np.float64)
+    inverse, keys, _ = voxel_groups(pts, 1.0)
+    counts, _, scatter = group_moments(pts, inverse, keys.size)
+    scatter = np.concatenate([scatter, np.zeros((50, 3, 3))])
+    scatter[-50:, :2, :2] = np.eye(2)  # flat voxels: the floor decides the third eigenvalue
+    counts = np.concatenate([counts, np.full(50, 7)]).astype(np.float64)
+    assert scatter.shape[0] > 2000
+    got = kernels.conditioned_gaussians(scatter, counts, 0.01)
+    ref = VoxelGaussianMap._from_moments_numpy(scatter, counts, 0.01)
+    for name, a, b in zip(("cov", "inv", "whitening", "normals"), got, ref, strict=True):
+        scale = np.abs(b).max(axis=tuple(range(1, b.ndim)), keepdims=True)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * scale.max(), err_msg=name)
+    cov, inv, white, _ = got
+    eye = np.broadcast_to(np.eye(3), cov.shape)
+    np.testing.assert_allclose(cov @ inv, eye, atol=1e-6)
+    np.testing.assert_allclose(np.swapaxes(white, 1, 2) @ white, inv, rtol=1e-9, atol=1e-9 * np.abs(inv).max())
+    evals = np.linalg.eigvalsh(cov[-50:])
+    np.testing.assert_allclose(evals[:, 0], 0.01 * evals[:, 2], rtol=1e-9)
+
+
+def test_parent_moments_match_bincount(kitti_clouds) -> None:
+    """Moments one level up from the children's, compiled and by ``np.bincount``, on a real sweep."""
+    from core.kernels import group_moments
+    from core.voxel import _parent_moments, _parent_moments_numpy
+
+    pts = np.ascontiguousarray(kitti_clouds[0], dtype=np.float64)
+    inverse, keys, _ = voxel_groups(pts, 0.5)
+    counts, means, scatter = group_moments(pts, inverse, keys.size)
+    got = _parent_moments(keys, counts, means, scatter, 0.5)
+    ref = _parent_moments_numpy(keys, counts, means, scatter, 0.5)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+    np.testing.assert_allclose(got[2], ref[2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got[3], ref[3], rtol=0, atol=1e-9 * np.abs(ref[3]).max())
+    # and they are the moments of the points grouped at the parent size directly
+    inv1, keys1, _ = voxel_groups(pts, 1.0)
+    c1, m1, s1 = group_moments(pts, inv1, keys1.size)
+    order, order1 = np.argsort(got[0]), np.argsort(keys1)
+    np.testing.assert_array_equal(got[1][order], c1[order1])
+    np.testing.assert_allclose(got[2][order], m1[order1], atol=1e-9)
+    np.testing.assert_allclose(got[3][order], s1[order1], atol=1e-7 * np.abs(s1).max())
+
+
+def test_in_marked_cells_matches_isin() -> None:
+    rng = np.random.default_rng(5)
+    cells = pack_keys(rng.integers(-50, 50, size=(20000, 3)))
+    marked = np.concatenate([rng.choice(cells, 3000), pack_keys(rng.integers(60, 90, size=(500, 3)))])
+    got = kernels.in_marked_cells(cells, marked)
+    np.testing.assert_array_equal(got, np.isin(cells, marked))
+    assert 0 < got.sum() < got.size
+    assert not kernels.in_marked_cells(cells, marked[:0]).any()
 
 
 def test_point_grid_nearest_matches_kdtree(kitti_clouds) -> None:
