@@ -33,61 +33,29 @@ import os
 import shlex
 import sys
 import time
-from dataclasses import dataclass, field
 
 import common
 import numpy as np
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
+from offline import Run, service_matcher
 
 from clients.publisher import encode_sweep
 from core.datasets import open_sequence
 from core.metrics.trajectory import ate
-from core.odometry import IncrementalMatcher
 from core.shared_data import data_root
 from core.transforms import invert, transform_error
 from service.matchers import decoded_sweep
-from service.settings import ServiceSettings
 
 del common
 
 RATE_HZ = 10.0
 
 
-@dataclass
-class Run:
-    """One odometry over one set of sweeps: poses and per-sweep seconds (with a breakdown)."""
-
-    name: str
-    poses: list[np.ndarray] = field(default_factory=list)
-    times_s: list[float] = field(default_factory=list)
-    decode_s: list[float] = field(default_factory=list)
-    model_s: list[float] = field(default_factory=list)
-    points: list[int] = field(default_factory=list)
-
-
 def randt(payloads: list[bytes]) -> Run:
     """The service's session matcher: decode, register, model update (one thread)."""
-    s = ServiceSettings()
-    matcher = IncrementalMatcher(s.session_matcher(), s.registration)
-    run = Run("RANDT (service matcher)")
-    for payload in payloads:
-        t0 = time.perf_counter()
-        xyz, offsets, _, prior, stamp_s = decoded_sweep(payload, None)
-        t1 = time.perf_counter()
-        result = matcher.register_scan(
-            xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
-        )
-        t2 = time.perf_counter()
-        matcher.update_model()
-        t3 = time.perf_counter()
-        run.poses.append(result.T_world_sensor)
-        run.times_s.append(t3 - t0)
-        run.decode_s.append(t1 - t0)
-        run.model_s.append(t3 - t2)
-        run.points.append(int(xyz.shape[0]))
-    return run
+    return service_matcher(payloads)
 
 
 def kiss_icp(payloads: list[bytes]) -> Run:
