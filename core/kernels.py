@@ -60,6 +60,7 @@ __all__ = [
     "ndt_accumulate",
     "ndt_scores",
     "parent_moments",
+    "plane_information",
     "smallest_eigenvector",
     "tile_voxel_keys",
     "voxel_table_admit",
@@ -372,6 +373,76 @@ def ndt_accumulate(
         out_gn[5, 5] = out_gn[5, 5] = G55
         out_hess[5, 5] = out_hess[5, 5] = G55 + K55
     return cost, n_pairs
+
+
+@nb.njit(cache=True, nogil=True)
+def plane_information(
+    points: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+    normals: np.ndarray,
+    voxel_size: float,
+) -> tuple[np.ndarray, int]:
+    """``(6x6 information, points matched)``: the point-to-plane information of the points
+    ``R p + t`` that lie in a map voxel, ``mean(J J^T)`` with ``J = [n, (q - c) x n / rho]``
+    (``n`` the voxel's normal, ``c`` the matched points' centroid, ``rho`` their RMS distance from
+    it), in two passes with no (N, 6) temporaries. The cell is ``floor(q / voxel_size)``, as
+    :meth:`core.voxel.VoxelGaussianMap.neighbors` finds it.
+
+    Reference: core.registration:_plane_information_numpy
+    Test: tests/core/test_registration.py::test_plane_information_kernel_matches_numpy
+    """
+    n = points.shape[0]
+    vox = np.empty(n, dtype=np.int64)
+    cx = cy = cz = 0.0
+    m = 0
+    for i in range(n):
+        q0, q1, q2 = _moved(points, i, R, t)
+        v = _find(
+            table_key,
+            table_idx,
+            _pack(
+                int(math.floor(q0 / voxel_size)),
+                int(math.floor(q1 / voxel_size)),
+                int(math.floor(q2 / voxel_size)),
+            ),
+        )
+        vox[i] = v
+        if v >= 0:
+            cx += q0
+            cy += q1
+            cz += q2
+            m += 1
+    info = np.zeros((6, 6))
+    if m == 0:
+        return info, 0
+    cx, cy, cz = cx / m, cy / m, cz / m
+    acc = np.zeros((6, 6))
+    r2 = 0.0
+    J = np.empty(6)
+    for i in range(n):
+        v = vox[i]
+        if v < 0:
+            continue
+        q0, q1, q2 = _moved(points, i, R, t)
+        r0, r1, r2_ = q0 - cx, q1 - cy, q2 - cz
+        r2 += r0 * r0 + r1 * r1 + r2_ * r2_
+        n0, n1, n2 = normals[v, 0], normals[v, 1], normals[v, 2]
+        J[0], J[1], J[2] = n0, n1, n2
+        J[3] = r1 * n2 - r2_ * n1
+        J[4] = r2_ * n0 - r0 * n2
+        J[5] = r0 * n1 - r1 * n0
+        for a in range(6):
+            for b in range(a, 6):
+                acc[a, b] += J[a] * J[b]
+    radius = max(math.sqrt(r2 / m), 1e-9)
+    for a in range(6):
+        for b in range(a, 6):
+            scale = (1.0 / radius if a >= 3 else 1.0) * (1.0 / radius if b >= 3 else 1.0)
+            info[a, b] = info[b, a] = acc[a, b] * scale / m
+    return info, m
 
 
 @nb.njit(cache=True, nogil=True)

@@ -33,7 +33,7 @@ from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from core.grid import PointGrid
 from core.icp import icp_point_to_plane, icp_point_to_point
-from core.kernels import best_voxel, projected_pair_moments
+from core.kernels import best_voxel, plane_information, projected_pair_moments
 from core.ndt import (
     NdtEvaluation,
     NeighborCache,
@@ -677,10 +677,25 @@ def _svd_refine_voxel(
     return T, it, rmse_before, float(np.sqrt(np.mean(r**2)))
 
 
-def _plane_information(
-    moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int
-) -> np.ndarray:
-    """6x6 point-to-plane information of the matched points, rotation scaled by their RMS radius."""
+def _plane_information(moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap) -> np.ndarray:
+    """6x6 point-to-plane information of the matched points (those in a map voxel), rotation
+    scaled by their RMS radius; zeros when fewer than 6 match (compiled:
+    :func:`core.kernels.plane_information`, 1.6 -> 0.2 ms on a reduced sweep's 7k points)."""
+    table_key, table_idx = gmap.hash_table
+    information, n_matched = plane_information(
+        np.ascontiguousarray(moving, dtype=np.float64),
+        np.ascontiguousarray(T[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(T[:3, 3], dtype=np.float64),
+        table_key,
+        table_idx,
+        gmap.normals,
+        float(gmap.voxel_size_m),
+    )
+    return information if n_matched >= 6 else np.zeros((6, 6))
+
+
+def _plane_information_numpy(moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap) -> np.ndarray:
+    """:func:`_plane_information` vectorized: the kernel's reference (the tests)."""
     q = transform_points(T, moving)
     pidx, vidx = gmap.neighbors(q, 1)
     if pidx.size < 6:
@@ -941,7 +956,7 @@ def _judge(
         nvtl=float(score_max[has].mean()),
         inlier_ratio=float(np.mean(best_m < CHI2_3DOF_99)),
         covariance=0.5 * (covariance + covariance.T),
-        plane_information=_plane_information(moving, T, finest_map, n_neighbors),
+        plane_information=_plane_information(moving, T, finest_map),
     )
 
 
