@@ -18,8 +18,13 @@ same attributes (a :class:`~core.errors.DegenerateProblemError` keeps its ``weak
 ``ValueError`` stays a ``ValueError``), the worker's traceback attached as a note; one that cannot
 be pickled arrives as a :class:`MatcherProcessError` naming it. If a worker process dies, the calls
 on it raise :class:`MatcherProcessDiedError`; the session manager then drops the affected sessions
-without saving them (their last saved state, at most one flush interval old, is the truth) and the
-next scan resumes each from the store on a fresh process.
+without saving them (their last snapshot plus their pose log is the truth) and the next scan
+resumes each from the store on a fresh process.
+
+A snapshot's matcher state leaves the trajectory out (:meth:`SessionMatcher.snapshot_state`,
+:func:`without_trajectory`): the store already holds every pose (its pose log), so what crosses
+the pipe and is written does not grow with the session's length; :func:`with_trajectory` puts it
+back when the session resumes.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from core.config import RegistrationSettings
-from core.errors import RandtError
+from core.errors import FormatError, RandtError
 from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
 from core.tiles import TileGrid
 from core.transforms import transform_points
@@ -60,6 +65,8 @@ __all__ = [
     "prior_of",
     "single_threaded_blas",
     "warm_up",
+    "with_trajectory",
+    "without_trajectory",
 ]
 
 log = logging.getLogger(__name__)
@@ -99,7 +106,50 @@ class SessionMatcher(Protocol):
 
     def state_dict(self) -> dict[str, np.ndarray]: ...
 
+    def snapshot_state(self) -> dict[str, np.ndarray]:
+        """:meth:`state_dict` without the trajectory (:func:`without_trajectory`), for a snapshot."""
+        ...
+
     def close(self) -> None: ...
+
+
+#: A snapshot's matcher state keeps the number of poses it was taken at under this key, in place
+#: of the poses themselves (:func:`without_trajectory`).
+TRAJECTORY_LENGTH_KEY = "n_poses"
+
+
+def without_trajectory(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """An :meth:`IncrementalMatcher.state_dict <core.odometry.IncrementalMatcher.state_dict>` for a
+    snapshot: its ``poses`` (N, 4, 4), which grow with the session, replaced by N
+    (:data:`TRAJECTORY_LENGTH_KEY`). The store holds the trajectory (every pose is logged before
+    it is published); :func:`with_trajectory` undoes this."""
+    out = {key: value for key, value in state.items() if key != "poses"}
+    n = np.asarray(state["poses"]).reshape(-1, 4, 4).shape[0]
+    out[TRAJECTORY_LENGTH_KEY] = np.array(n, dtype=np.int64)
+    return out
+
+
+def with_trajectory(state: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
+    """The state :meth:`IncrementalMatcher.load_state_dict
+    <core.odometry.IncrementalMatcher.load_state_dict>` takes, from a snapshot's
+    (:func:`without_trajectory`) and the stored trajectory ``poses`` (N, 4, 4): its first
+    ``n_poses`` poses go back in. A state that kept its poses (snapshots written before) is
+    returned as it is.
+
+    Raises
+    ------
+    FormatError
+        The trajectory is shorter than the snapshot's.
+    """
+    if "poses" in state or TRAJECTORY_LENGTH_KEY not in state:
+        return state
+    n = int(state[TRAJECTORY_LENGTH_KEY])
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if not 0 <= n <= poses.shape[0]:
+        raise FormatError(f"the matcher state was taken at {n} poses, the trajectory has {poses.shape[0]}")
+    out = {key: value for key, value in state.items() if key != TRAJECTORY_LENGTH_KEY}
+    out["poses"] = poses[:n].copy()
+    return out
 
 
 class MatcherExecutor(Protocol):
@@ -329,12 +379,16 @@ class _Sessions:
     def state(self, key: Key) -> dict[str, np.ndarray]:
         return self.matchers[key].state_dict()
 
+    def snapshot(self, key: Key) -> dict[str, np.ndarray]:
+        """The session's state for a snapshot: what crosses the pipe does not grow with its length."""
+        return without_trajectory(self.matchers[key].state_dict())
+
     def drop(self, key: Key) -> bool:
         self.grids.pop(key, None)
         return self.matchers.pop(key, None) is not None
 
     def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> tuple[Any, IncrementalMatcher | None]:
-        """One request of the protocol (``open``, ``register``, ``state``, ``drop``): its value,
+        """One request of the protocol (``open``, ``register``, ``state``, ``snapshot``, ``drop``): its value,
         and after a ``register`` whose session is not behind the matcher whose keyframe model
         waits to be rebuilt once the answer is out (else None)."""
         if op == "open":
@@ -352,6 +406,8 @@ class _Sessions:
             return value, (matcher if matcher.model_pending and not behind else None)
         if op == "state":
             return self.state(key), None
+        if op == "snapshot":
+            return self.snapshot(key), None
         if op == "drop":
             return self.drop(key), None
         raise ValueError(f"unknown request {op!r}")
@@ -738,6 +794,10 @@ class RemoteMatcher(ForwardingMatcher):
     def state_dict(self) -> dict[str, np.ndarray]:
         return self._proc.call("state", self._key)
 
+    def snapshot_state(self) -> dict[str, np.ndarray]:
+        """:meth:`state_dict` without the trajectory (:func:`without_trajectory`), built in the process."""
+        return self._proc.call("snapshot", self._key)
+
     def close(self) -> None:
         """Forget the session in its process (its state should have been saved first)."""
         try:
@@ -810,6 +870,10 @@ class LocalMatcher(IncrementalMatcher):
             keyframe_voxel_m=keyframe_voxel_m,
         )
         return _with_intensity(registered, intensity)
+
+    def snapshot_state(self) -> dict[str, np.ndarray]:
+        """:meth:`state_dict` without the trajectory (:func:`without_trajectory`)."""
+        return without_trajectory(self.state_dict())
 
     def close(self) -> None:
         """Nothing to release."""

@@ -557,6 +557,11 @@ class RayMatcher(ForwardingMatcher):
         state: dict[str, np.ndarray] = self._call("state")
         return state
 
+    def snapshot_state(self) -> dict[str, np.ndarray]:
+        """:meth:`state_dict` without the trajectory (:func:`service.matchers.without_trajectory`)."""
+        state: dict[str, np.ndarray] = self._call("snapshot")
+        return state
+
     def close(self) -> None:
         """Forget the session in its host (its state should have been saved first)."""
         self._pool._release(self._key, self._host)

@@ -11,9 +11,10 @@ Flow of a scan::
         the map's candidate points in the map frame out) --> the pose appended to the session's
         pose log and fsync'd (Store.append_pose) --> map tiles (shared TileGrid) --> pose to the
         outbox (held until the session's first snapshot is on disk)
-    flusher thread (every flush_interval_s) --> session snapshots to the store (a snapshot drops
-        the log records it now holds); every tile_save_interval_s, dirty tiles too, then the saved
-        tiles' updates to the outbox; idle sessions expired; counters to DATA/counters.json
+    flusher thread (every flush_interval_s) --> the snapshots that are due (a session's matcher
+        state and record, every snapshot_interval_s or snapshot_distance_m; its poses are in its
+        log already); every tile_save_interval_s, dirty tiles too, then the saved tiles' updates
+        to the outbox; idle sessions expired; counters to DATA/counters.json
 
 **Durable before acknowledged**: a pose goes out only once it is in the session's fsync'd log (a
 session's first poses also wait for its first snapshot, which fixes its frame and holds its first
@@ -21,9 +22,22 @@ keyframe: it is written on a thread of its own while the session goes on matchin
 that come meanwhile go out in order once it is on disk, or are answered ``storage_error`` if it
 could not be written; a crash before it leaves nothing acknowledged, so the session starts
 afresh). If the log cannot be written, the scan is answered ``storage_error`` and the session is
-dropped from memory, to resume from the store with its next scan. **Saved before seen**: tiles are
-served (HTTP, the queryable, tile updates, listings) as last saved (:class:`DurableMap`), so a
-version seen outside is on disk and never goes back or repeats with other content after a crash.
+dropped from memory, to resume from the store with its next scan.
+
+**Snapshots, rarely**: the log is the trajectory's truth, so a running session's snapshot (its
+matcher state without the trajectory, :meth:`SessionMatcher.snapshot_state
+<service.matchers.SessionMatcher.snapshot_state>`, and its record) is written when the session
+opens, closes, expires, gives up its slot or the service stops, and in between only when one is
+due: ``snapshot_interval_s`` after the last (30 s), or once the vehicle is ``snapshot_distance_m``
+(20 m) from where the last was taken, so that a session resumed after a crash still matches
+against the snapshot's keyframes. A snapshot costs the same at any length of the session: the
+store writes no pose it already holds (:meth:`Store.save_session`). Everything the API shows of a
+running session comes from memory; the stored record (``session.json``, ``updated``) lags by up
+to a snapshot interval.
+
+**Saved before seen**: tiles are served (HTTP, the queryable, tile updates, listings) as last saved
+(:class:`DurableMap`), so a version seen outside is on disk and never goes back or repeats with
+other content after a crash.
 
 **Map folding**: a scan's map points (the matcher process sends only those the map can keep, in
 the map frame) wait with the session, and the points of ``fold_scans`` scans (10) are inserted
@@ -102,6 +116,7 @@ from service.matchers import (
     Registered,
     SessionMatcher,
     prior_of,
+    with_trajectory,
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
@@ -188,6 +203,11 @@ class SessionState:
     last_status: str = ""
     last_latency_ms: float = float("nan")
     dirty: bool = False
+    #: Poses the session's last snapshot covers (all of them on disk: its log holds the later ones).
+    saved_scans: int = 0
+    #: When (monotonic) and where (position, m; ``None`` before the first) the last snapshot was taken.
+    snapshot_at: float = field(default_factory=time.monotonic)
+    snapshot_xyz: np.ndarray | None = None
     state: RecordState = "active"
     #: Variance (m^2) of the position accumulated since the last prior pose: the prior's own
     #: variance, plus the trace of each registration's translational covariance (a random walk).
@@ -990,8 +1010,10 @@ class SessionManager:
             # The snapshot plus the poses logged since (Store.load_session): every pose published.
             stored, stamps, poses, state = self.store.load_session(*key)
             assert record.map is not None  # the service saves every session with its map
-            # The matcher resumes from its snapshot, brought to the last published pose
-            # (extend_state_dict: poses, velocity and stamp; the keyframes stay the snapshot's).
+            # The matcher resumes from its snapshot (its trajectory from the store's), brought to
+            # the last published pose (extend_state_dict: poses, velocity and stamp; the keyframes
+            # stay the snapshot's).
+            state = with_trajectory(state, poses)
             state = extend_state_dict(state, poses, stamps, settings=self.settings.session_matcher())
             info = SessionState(
                 scan.vehicle,
@@ -1002,6 +1024,8 @@ class SessionManager:
                 n_scans=stored.n_scans,
                 n_fallbacks=stored.n_fallbacks,
                 stamps_s=list(np.asarray(stamps, dtype=float)),
+                saved_scans=len(poses),  # every one of them on disk
+                snapshot_xyz=np.array(poses[-1][:3, 3]) if len(poses) else None,
             )
             log.info("session %s/%s resumed at seq %d (%d poses)", *key, info.last_seq, len(poses))
         else:
@@ -1192,7 +1216,7 @@ class SessionManager:
             self._save_tiles(workers)
         now = time.monotonic()
         for w in workers:
-            if w.info.dirty:
+            if self._snapshot_due(w, now):
                 self._save_session(w)
             if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
                 self.close(*w.key, state="expired")
@@ -1235,8 +1259,25 @@ class SessionManager:
         """The :class:`~wire.messages.TileUpdateMessage` of a saved tile (with its digest)."""
         return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
 
+    def _snapshot_due(self, w: SessionWorker, now: float) -> bool:
+        """Whether a running session's snapshot is due (module docstring, Snapshots): it changed,
+        and its last one is ``snapshot_interval_s`` old or ``snapshot_distance_m`` away."""
+        info = w.info
+        if not info.dirty:
+            return False
+        if now - info.snapshot_at >= self.settings.snapshot_interval_s:
+            return True
+        reach, poses = self.settings.snapshot_distance_m, w.matcher.poses
+        if reach <= 0 or info.snapshot_xyz is None or not poses:
+            return False
+        return bool(np.linalg.norm(poses[-1][:3, 3] - info.snapshot_xyz) >= reach)
+
     def _save_session(self, w: SessionWorker, state: RecordState | None = None) -> bool:
-        """Save a session's snapshot; whether the store now holds it (False: not saved)."""
+        """Write a session's snapshot; whether the store now holds it (False: not saved).
+
+        Its cost does not grow with the session's length: the matcher state comes without the
+        trajectory, and only the poses since the last snapshot are handed to the store (which has
+        them in its log already and appends them to ``trajectory.tum``)."""
         with w.lock:
             info = w.info
             if state is not None:
@@ -1253,19 +1294,25 @@ class SessionManager:
             )
             if w.broken:
                 return False  # its matcher died, or its log failed: the store keeps the truth
-            poses = np.array(w.matcher.poses).reshape(-1, 4, 4)
-            stamps = np.array(info.stamps_s[: len(poses)], dtype=float)
+            trajectory = w.matcher.poses
+            n = len(trajectory)
+            first = min(info.saved_scans, n)
+            poses = np.array(trajectory[first:n]).reshape(-1, 4, 4)
+            stamps = np.array(info.stamps_s[first:n], dtype=float)
+            position = np.array(trajectory[-1][:3, 3]) if n else None
             try:
-                matcher_state = w.matcher.state_dict()
+                matcher_state = w.matcher.snapshot_state()
             except MatcherProcessDiedError as exc:
                 log.error("session %s/%s: %s; not saved", *w.key, exc)
                 w.broken = True
                 return False
             info.dirty = False
         try:
-            self.store.save_session(record, poses, stamps, matcher_state)
+            self.store.save_session(record, poses, stamps, matcher_state, first_index=first)
             with self._lock:
                 self._records[w.key] = record
+            info.saved_scans = max(info.saved_scans, n)
+            info.snapshot_at, info.snapshot_xyz = time.monotonic(), position
         except (OSError, ValueError, RandtError):
             self.metrics.store_errors.inc()
             log.exception("saving session %s/%s failed", *w.key)

@@ -145,7 +145,25 @@ class ServiceSettings(BaseSettings):
     )
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
-    flush_interval_s: float = Field(default=1.0, gt=0, description="dirty sessions saved, idle ones expired")
+    flush_interval_s: float = Field(
+        default=1.0,
+        gt=0,
+        description="the flusher's period: sessions whose snapshot is due are saved, idle ones expired",
+    )
+    snapshot_interval_s: float = Field(
+        default=30.0,
+        gt=0,
+        description="a running session's snapshot (its matcher state, about 10 MB, and its record) is "
+        "written when it opens and ends, and in between at most this often (or after "
+        "snapshot_distance_m); its pose log holds every acknowledged pose meanwhile",
+    )
+    snapshot_distance_m: float = Field(
+        default=20.0,
+        ge=0,
+        description="a running session's snapshot is also due once its vehicle is this far from where "
+        "the last one was taken: after a crash the session resumes against the snapshot's keyframes, "
+        "which a sweep 40 m ahead still matched and one 50 m ahead no longer did (0: by time only)",
+    )
     tile_save_interval_s: float | None = Field(
         default=None,
         gt=0,

@@ -8,40 +8,57 @@ Layout
     DATA/maps/<map>/<ix>_<iy>.pcd                Autoware divided map, as core.tiles writes it
     DATA/maps/<map>/pointcloud_map_metadata.yaml
     DATA/maps/<map>/randt_tile_grid.yaml
-    DATA/sessions/<vehicle>/<session>/matcher.npz      matcher state + the session's commit record
-    DATA/sessions/<vehicle>/<session>/trajectory.tum   stamp_s tx ty tz qx qy qz qw, a line per scan
-    DATA/sessions/<vehicle>/<session>/session.json     the session's record (:class:`SessionRecord`)
-    DATA/sessions/<vehicle>/<session>/poses.log        poses acknowledged since matcher.npz (appended)
+    DATA/sessions/<vehicle>/<session>/matcher.npz      the last snapshot: matcher state + commit record
+    DATA/sessions/<vehicle>/<session>/poses.log        acknowledged poses, appended and fsync'd one by one
+    DATA/sessions/<vehicle>/<session>/poses.<i>.log    a closed-off poses.log: poses from the i-th on
+    DATA/sessions/<vehicle>/<session>/trajectory.tum   the snapshot's poses: stamp_s tx ty tz qx qy qz qw
+    DATA/sessions/<vehicle>/<session>/session.json     the snapshot's record (:class:`SessionRecord`)
     DATA/map-versions/<map>                            version floor of a deleted map's name
 
 Map, vehicle and session names are ids (:mod:`wire.ids`: letters, digits, ``_ . -``, at most 64
 characters, starting with a letter or digit); every path is built from checked names only.
 
+A session's trajectory
+----------------------
+The pose log is the trajectory's truth, and no pose in it is written twice: the session worker
+appends one fixed-size record per pose (:class:`PoseLogRecord`: the pose's index in the
+trajectory, its scan's ``seq`` and stamp, the pose, its status, a CRC-32) and fsyncs it *before*
+the pose is published (:meth:`Store.append_pose`). A snapshot (:meth:`Store.save_session`) closes
+the log off into a *segment*, ``poses.<index of its first pose, 10 digits>.log``, by one rename,
+once it holds :data:`SEGMENT_RECORDS` records; segments are never written again. The trajectory is
+the segments one after the other from pose 0, then the log. A snapshot is the matcher state and
+the session's record (how many poses it covers, ``n_scans``), written as ``matcher.npz``: its cost
+does not grow with the session's length, since the poses are on disk already. Poses handed to
+:meth:`Store.save_session` that were never logged (callers other than the service) are kept in
+that commit (keys ``_store_first``, ``_store_stamps``, ``_store_poses``) and moved into a segment
+by the next snapshot, before the commit that held them is replaced. A commit written before
+segments existed held the whole trajectory there, from pose 0; it loads as it did, and the next
+snapshot moves those poses into a segment (once).
+
 Crash safety
 ------------
-Every file is replaced atomically (:mod:`core.io.atomic`: temporary file, fsync, rename, fsync of
-the directory), so a reader, or a restart after a crash, sees each file whole: its old or its new
-content. What spans several files is ordered:
+Every file but the pose log and ``trajectory.tum`` (both appended to) is replaced atomically
+(:mod:`core.io.atomic`: temporary file, fsync, rename, fsync of the directory), so a reader, or a
+restart after a crash, sees each file whole: its old or its new content. What spans several files
+is ordered:
 
 * **maps** (:meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`): sidecar, changed
   tiles, metadata last; the metadata never names a tile file that does not exist.
-* **sessions**: three files cannot be replaced in one step, so ``matcher.npz`` is the *commit
-  record*. Besides the arrays of :meth:`IncrementalMatcher.state_dict
-  <core.odometry.IncrementalMatcher.state_dict>` it holds the session's stamps, poses and record
-  (keys starting with ``_store_``; :meth:`~core.odometry.IncrementalMatcher.load_state_dict`
-  ignores them). It is written first, then ``trajectory.tum`` and ``session.json``, which are
-  views of it for people and other tools (``trajectory.tum`` appears with the first scan). A crash
-  between the writes leaves the matcher state and its ``last_seq`` consistent (they are in one
-  file); :meth:`Store.load_session` notices views that lag behind and rewrites them.
-
-* **the pose log** (``poses.log``): the session worker appends one fixed-size record per pose
-  (:class:`PoseLogRecord`, with a CRC-32) and fsyncs it *before* the pose is published, so every
-  pose a vehicle received survives a crash (:meth:`Store.append_pose`). :meth:`Store.save_session`
-  drops from it the records its snapshot now holds (records are indexed by their pose's place in
-  the trajectory, not by ``seq``), by an atomic replace after the snapshot is written: a crash in
-  between leaves records the snapshot also holds, which loading skips. :meth:`Store.load_session`
-  returns the snapshot plus the logged poses beyond it; a torn last record (a crash during an
-  append) fails its CRC and is cut off.
+* **sessions**: a pose is in the log before it is acknowledged. A snapshot writes (1) the
+  commit's own poses into a segment (fsync'd, renamed into place), if it has any; (2) the log's
+  rename into a segment, if due (after a conversion, the records a segment already holds are
+  first dropped from the log by an atomic replace); (3) ``matcher.npz``, the *commit*: the matcher
+  state (any arrays, whatever the matcher; the service leaves the trajectory out,
+  :func:`service.matchers.without_trajectory`) and, under keys starting with ``_store_``, the
+  record; (4) the views for people and other tools: ``trajectory.tum`` (the commit's poses; the
+  rows since the last snapshot are appended; it appears with the first scan) and
+  ``session.json``. Steps 1 and 2 only move poses between files (a crash between leaves them in
+  both, the same: loading takes each pose once, by its index), and a commit never covers a pose
+  that is not on disk. A crash before step 3 leaves the previous snapshot, whose poses and the
+  ones logged after them are all there; after it, the new one. :meth:`Store.load_session` returns
+  the commit's matcher state and the trajectory as far as it is on disk (the record brought
+  forward over the poses logged after the commit), cuts off a torn last log record (a crash during
+  an append fails its CRC), and rewrites views that lag behind or are torn (a crash during step 4).
 * **map version floors** (``map-versions/<map>``): :meth:`Store.delete_map` first records the
   highest tile version the map reached, so a new map of that name continues above it and a
   ``(tile, version)`` pair is never reused for other content (:meth:`Store.version_floor`).
@@ -53,9 +70,11 @@ the clean-up never deletes the temporary file of a live writer.
 
 Damaged files
 -------------
-A file that cannot be read (say, a truncated ``matcher.npz`` written by a buggy older version)
-fails only its own map or session: :meth:`Store.list_sessions` and :meth:`Store.load_all` skip it,
-log an error and report it as a :class:`StoreProblem`; everything else still loads.
+A file that cannot be read (say, a truncated ``matcher.npz`` written by a buggy older version, a
+segment cut short, poses missing between segments) fails only its own map or session:
+:meth:`Store.list_sessions` and :meth:`Store.load_all` skip it, log an error and report it as a
+:class:`StoreProblem`; everything else still loads. Only the log's torn tail is repaired, by
+cutting it; a damaged segment is never cut.
 
 Thread safety
 -------------
@@ -93,10 +112,11 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
-from core.io.atomic import fsync_directory
+from core.io.atomic import atomic_open, fsync_directory
 from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME, read_sidecar
 from core.tiles import Tile, TileGrid, load_autoware
 from wire.ids import legacy_session_map_name, session_map_name, validate_id
@@ -111,6 +131,7 @@ __all__ = [
     "MAPS_DIRNAME",
     "MATCHER_FILENAME",
     "POSE_LOG_FILENAME",
+    "SEGMENT_RECORDS",
     "SESSIONS_DIRNAME",
     "SESSION_FILENAME",
     "TRAJECTORY_FILENAME",
@@ -124,6 +145,7 @@ __all__ = [
     "StoreContents",
     "StoreProblem",
     "check_data_dir_free",
+    "segment_name",
 ]
 
 logger = logging.getLogger(__name__)
@@ -135,6 +157,11 @@ TRAJECTORY_FILENAME = "trajectory.tum"
 MATCHER_FILENAME = "matcher.npz"
 LOCK_FILENAME = ".randt-store.lock"
 POSE_LOG_FILENAME = "poses.log"
+#: A closed-off pose log: ``poses.<index of its first pose, 10 digits>.log`` (:func:`segment_name`).
+_SEGMENT_RE = re.compile(r"^poses\.(\d{10})\.log$")
+#: A snapshot closes the pose log off into a segment once it holds this many records (5 min at
+#: 10 Hz, 516 kB): few files per session, and a torn-tail repair never touches more than that.
+SEGMENT_RECORDS = 3000
 VERSIONS_DIRNAME = "map-versions"
 
 SessionState = Literal["active", "closed", "expired"]
@@ -151,6 +178,7 @@ _RESERVED_PREFIX = "_store_"
 _KEY_RECORD = "_store_record"
 _KEY_STAMPS = "_store_stamps"
 _KEY_POSES = "_store_poses"
+_KEY_FIRST = "_store_first"  # index of the commit's own first pose (absent: 0, the whole trajectory)
 _STATE_KEY_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 # Views (trajectory.tum) agree with the commit record within this (TUM rounds stamps to 1 ns).
 _VIEW_TOLERANCE = 1e-6
@@ -301,6 +329,200 @@ class PoseLogRecord:
             return None
         pose = np.array(rest[:16], dtype=np.float64).reshape(4, 4)
         return cls(index, seq, stamp_ns, stamp_s, pose, _POSE_STATUSES[status])
+
+
+# The same record as a numpy structured type, to read and write whole segments at once.
+_LOG_DTYPE = np.dtype(
+    [
+        ("magic", "S4"),
+        ("index", "<u8"),
+        ("seq", "<i8"),
+        ("stamp_ns", "<i8"),
+        ("stamp_s", "<f8"),
+        ("pose", "<f8", (16,)),
+        ("status", "u1"),
+        ("pad", "V3"),
+        ("crc", "<u4"),
+    ]
+)
+assert _LOG_DTYPE.itemsize == POSE_LOG_RECORD_SIZE
+_STATUS_FIRST, _STATUS_OK, _STATUS_FALLBACK = range(3)
+
+
+@dataclass(frozen=True)
+class _Poses:
+    """Consecutive poses of a session's trajectory, from ``first`` on, as columns: the records of
+    a segment or of the log, a commit's own poses, or what a caller saved.
+
+    ``seq`` is -1 where the scan's sequence number is not known (poses given to
+    :meth:`Store.save_session` that were never logged); ``status`` indexes ``("first", "ok",
+    "fallback")``.
+    """
+
+    first: int
+    stamps: np.ndarray  # (n,) float64 seconds
+    poses: np.ndarray  # (n, 4, 4) float64
+    seq: np.ndarray  # (n,) int64
+    status: np.ndarray  # (n,) uint8
+
+    def __len__(self) -> int:
+        return int(self.stamps.shape[0])
+
+    @property
+    def end(self) -> int:
+        """One past the index of the last pose."""
+        return self.first + len(self)
+
+    @classmethod
+    def empty(cls, first: int = 0) -> _Poses:
+        return cls(
+            first, np.zeros(0), np.zeros((0, 4, 4)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8)
+        )
+
+    @classmethod
+    def given(cls, first: int, stamps: np.ndarray, poses: np.ndarray) -> _Poses:
+        """Poses a caller saved (their sequence numbers and statuses are not known)."""
+        n = stamps.shape[0]
+        status = np.full(n, _STATUS_OK, dtype=np.uint8)
+        if first == 0 and n:
+            status[0] = _STATUS_FIRST
+        return cls(first, stamps, poses, np.full(n, -1, dtype=np.int64), status)
+
+    @classmethod
+    def of_record(cls, r: PoseLogRecord) -> _Poses:
+        return cls(
+            r.index,
+            np.array([r.stamp_s]),
+            np.asarray(r.pose, dtype=np.float64).reshape(1, 4, 4),
+            np.array([r.seq], dtype=np.int64),
+            np.array([_POSE_STATUSES.index(r.status)], dtype=np.uint8),
+        )
+
+    def since(self, index: int) -> _Poses:
+        """The poses from ``index`` on (all of them if ``index <= first``)."""
+        k = min(max(index - self.first, 0), len(self))
+        if k == 0:
+            return self
+        return _Poses(self.first + k, self.stamps[k:], self.poses[k:], self.seq[k:], self.status[k:])
+
+    def until(self, index: int) -> _Poses:
+        """The poses before ``index``."""
+        k = min(max(index - self.first, 0), len(self))
+        return _Poses(self.first, self.stamps[:k], self.poses[:k], self.seq[:k], self.status[:k])
+
+    @classmethod
+    def joined(cls, parts: list[_Poses]) -> _Poses | None:
+        """``parts`` one after the other, each continuing the previous one (overlaps are skipped);
+        ``None`` if one leaves a gap."""
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return None
+        kept = [parts[0]]
+        for part in parts[1:]:
+            if part.first > kept[-1].end:
+                return None
+            rest = part.since(kept[-1].end)
+            if len(rest):
+                kept.append(rest)
+        if len(kept) == 1:
+            return kept[0]
+        return cls(
+            kept[0].first,
+            np.concatenate([p.stamps for p in kept]),
+            np.concatenate([p.poses for p in kept]),
+            np.concatenate([p.seq for p in kept]),
+            np.concatenate([p.status for p in kept]),
+        )
+
+    def to_bytes(self) -> bytes:
+        """The poses as pose-log records (:class:`PoseLogRecord`'s layout)."""
+        n = len(self)
+        table = np.zeros(n, dtype=_LOG_DTYPE)
+        table["magic"] = _LOG_MAGIC
+        table["index"] = self.first + np.arange(n)
+        table["seq"] = self.seq
+        table["stamp_ns"] = np.round(self.stamps * 1e9).astype(np.int64)
+        table["stamp_s"] = self.stamps
+        table["pose"] = self.poses.reshape(n, 16)
+        table["status"] = self.status
+        body = _LOG_BODY.size
+        data = table.tobytes()
+        view = memoryview(data)
+        size = POSE_LOG_RECORD_SIZE
+        table["crc"] = [zlib.crc32(view[o : o + body]) for o in range(0, n * size, size)]
+        return table.tobytes()
+
+
+def _parse_records(data: bytes) -> tuple[_Poses, int]:
+    """The whole, intact, consecutive pose-log records at the start of ``data``, and how many
+    bytes they take: reading stops at a torn or damaged record (its CRC, magic or status) or at
+    one whose index does not follow the previous one's."""
+    size = POSE_LOG_RECORD_SIZE
+    n = len(data) // size
+    if n == 0:
+        return _Poses.empty(), 0
+    table = np.frombuffer(data, dtype=_LOG_DTYPE, count=n)
+    view = memoryview(data)
+    body = _LOG_BODY.size
+    crc = np.fromiter((zlib.crc32(view[o : o + body]) for o in range(0, n * size, size)), np.uint32, count=n)
+    index = table["index"].astype(np.int64)
+    good = (crc == table["crc"]) & (table["magic"] == _LOG_MAGIC) & (table["status"] < len(_POSE_STATUSES))
+    good &= index == index[0] + np.arange(n)
+    k = n if good.all() else int(np.argmin(good))
+    if k == 0:
+        return _Poses.empty(), 0
+    part = _Poses(
+        int(index[0]),
+        table["stamp_s"][:k].copy(),
+        table["pose"][:k].reshape(k, 4, 4).copy(),
+        table["seq"][:k].copy(),
+        table["status"][:k].copy(),
+    )
+    return part, k * size
+
+
+def segment_name(first: int) -> str:
+    """The file name of a pose-log segment whose first pose is the trajectory's pose ``first``."""
+    return f"poses.{first:010d}.log"
+
+
+@dataclass
+class _Files:
+    """What this process knows of one session's trajectory files (kept under the session's lock,
+    so that a snapshot neither reads nor rewrites what is already on disk).
+
+    The trajectory on disk is the segments' poses ``[0, segments_end)``, then the commit's own
+    poses ``[own_first, commit_n)`` (poses a caller saved that were never logged; the format
+    before segments kept the whole trajectory there, from 0), then the active log's
+    ``[log_first, log_first + log_count)``; sources may overlap (only with that older format),
+    never leave a gap. ``end``: poses ``[0, end)`` are on disk. ``tum_rows``: ``trajectory.tum``
+    holds poses ``[0, tum_rows)`` (``None``: not known); ``recent``: poses from ``tum_rows`` on,
+    as appended or saved here, for the next append to that view.
+    """
+
+    segments_end: int = 0
+    commit_n: int = -1  # -1: no commit
+    own_first: int = 0
+    log_first: int = 0
+    log_count: int = 0
+    end: int = 0
+    tum_rows: int | None = 0
+    recent: list[_Poses] = field(default_factory=list)
+
+    def appended(self, part: _Poses) -> None:
+        """``part`` (continuing the trajectory) was appended to the active log."""
+        if self.log_count == 0:
+            self.log_first = part.first
+        self.log_count += len(part)
+        self.end = part.end
+        self.recent.append(part)
+
+    def view_rows(self, start: int, stop: int) -> _Poses | None:
+        """Poses ``[start, stop)`` from :attr:`recent`, ``None`` if it does not hold them all."""
+        rows = _Poses.joined([p.until(stop) for p in self.recent if p.end > start])
+        if rows is None or rows.first > start or rows.end < stop:
+            return None
+        return rows.since(start)
 
 
 @dataclass(frozen=True)
@@ -518,7 +740,7 @@ class Store:
         self._map_locks: dict[str, threading.Lock] = {}
         self._session_locks: dict[tuple[str, str], threading.RLock] = {}
         self._created: dict[tuple[str, str], datetime] = {}
-        self._saved_scans: dict[tuple[str, str], int] = {}  # n_scans of each session's last save
+        self._files: dict[tuple[str, str], _Files] = {}  # each session's trajectory files, as known
         self._versions = self._root / VERSIONS_DIRNAME
         self._problems: list[StoreProblem] = []
         if first:
@@ -787,76 +1009,103 @@ class Store:
         poses: np.ndarray,
         stamps: np.ndarray,
         matcher_state: dict[str, np.ndarray],
+        *,
+        first_index: int = 0,
     ) -> SessionRecord:
-        """Persist a session: its matcher state (with the commit record), trajectory and record.
+        """Write a session's snapshot: its matcher state and record (the commit), then the views.
 
-        Writes ``matcher.npz`` (the commit), then ``trajectory.tum`` and ``session.json``, each
-        atomically. A session without scans yet (N = 0) has no ``trajectory.tum``.
+        What a snapshot writes does not grow with the session's length (module docstring,
+        Crash safety): poses the store already holds (logged by :meth:`append_pose`, or saved
+        before) are not written again, and ``trajectory.tum`` is appended to. Only poses given
+        here that the store lacks go into the commit, and an earlier commit's such poses into a
+        segment first. A session without scans yet (N = 0) has no ``trajectory.tum``.
 
         Parameters
         ----------
         meta:
-            The session's record; ``n_scans`` must equal ``N``. ``created`` is kept from the
-            session's first save (``meta.created`` is used only then); ``updated`` is set to now.
+            The session's record; ``n_scans`` is N, the poses this snapshot covers. ``created`` is
+            kept from the session's first save (``meta.created`` is used only then); ``updated``
+            is set to now.
         poses:
-            (N, 4, 4) ``T_frame_sensor`` of every scan so far.
+            (N - first_index, 4, 4) ``T_frame_sensor`` of the scans ``first_index .. N - 1``.
         stamps:
-            (N,) scan times, seconds.
+            (N - first_index,) their scan times, seconds.
         matcher_state:
-            :meth:`IncrementalMatcher.state_dict <core.odometry.IncrementalMatcher.state_dict>`
-            (any name -> numeric array; names must not start with ``_store_``).
+            The matcher's state (any name -> numeric array; names must not start with
+            ``_store_``), returned as saved by :meth:`load_session`. The service leaves the
+            trajectory out of it (:func:`service.matchers.without_trajectory`).
+        first_index:
+            Index of the first pose given: the store must hold the poses before it already
+            (the service gives those since its last snapshot, all of them logged).
 
         Returns
         -------
         SessionRecord
-            The record as written.
+            The record as written (``meta`` unchanged if the store holds a snapshot of more scans:
+            an older snapshot arriving after a newer one is not written).
 
         Raises
         ------
         ValueError
             Invalid names.
         InvalidCloudError
-            ``meta.n_scans != N``, wrong shapes, non-finite values, or poses that are not
+            ``first_index + len(poses) != meta.n_scans``, poses before ``first_index`` that the
+            store does not hold, wrong shapes, non-finite values, or poses that are not
             homogeneous transforms (a ``ValueError`` too).
         FormatError
             An unusable matcher state (reserved or malformed key, object array; a ``ValueError``
-            too), or a file could not be written.
+            too), damaged trajectory files, or a file could not be written.
         """
         self._check_open()
         key = meta.key
         directory = self.session_dir(*key)
         what = f"session {key[0]}/{key[1]}"
         poses, stamps = _checked_trajectory(poses, stamps, what)
-        if meta.n_scans != poses.shape[0]:
+        if first_index < 0 or first_index + poses.shape[0] != meta.n_scans:
             raise InvalidCloudError(
-                f"{what}: the record says n_scans={meta.n_scans} but {poses.shape[0]} poses were given"
+                f"{what}: the record says n_scans={meta.n_scans} but poses {first_index}.."
+                f"{first_index + poses.shape[0] - 1} were given"
             )
         arrays = _checked_state(matcher_state)
         with self._session_lock(*key):
-            saved_n = self._saved_scans.get(key, -1)
-            if meta.n_scans < saved_n:
-                # An older snapshot arriving after a newer one (a flush racing a close): writing it
-                # would drop poses the newer one holds and the pose log no longer has.
+            files = self._files_of(*key)
+            if meta.n_scans < files.commit_n:
+                # An older snapshot arriving after a newer one (a flush racing a close): its
+                # matcher state is older than the one on disk.
                 logger.warning(
-                    "session %s/%s: not saving %d scans over a saved %d", *key, meta.n_scans, saved_n
+                    "session %s/%s: not saving %d scans over a saved %d", *key, meta.n_scans, files.commit_n
                 )
                 return meta
+            if first_index > files.end:
+                raise InvalidCloudError(
+                    f"{what}: the store holds poses 0..{files.end - 1}; poses {files.end}.."
+                    f"{first_index - 1} were neither logged nor given"
+                )
             record = meta.model_copy(update={"created": self._created_time(meta), "updated": _utcnow()})
-            arrays[_KEY_RECORD] = np.array(record.model_dump_json())
-            arrays[_KEY_STAMPS] = stamps
-            arrays[_KEY_POSES] = poses
-            buffer = io.BytesIO()
-            np.savez(buffer, **arrays)  # type: ignore[arg-type]  # mypy binds **arrays to allow_pickle: bool too
+            new = _Poses.given(first_index, stamps, poses).since(files.end)  # poses the files lack
             try:
                 directory.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise FormatError(f"cannot create {directory}: {exc}") from exc
-            atomic_write_bytes(directory / MATCHER_FILENAME, buffer.getvalue())
-            _write_trajectory(directory / TRAJECTORY_FILENAME, stamps, poses)
-            atomic_write_bytes(directory / SESSION_FILENAME, _record_json(record))
+            self._segment_commit_poses(directory, key, files)
+            if files.log_count and (len(new) or files.log_count >= SEGMENT_RECORDS):
+                self._close_log(directory, files)  # (the commit's own poses follow the segments)
+            arrays[_KEY_RECORD] = np.array(record.model_dump_json())
+            arrays[_KEY_FIRST] = np.array(new.first if len(new) else record.n_scans, dtype=np.int64)
+            arrays[_KEY_STAMPS] = new.stamps
+            arrays[_KEY_POSES] = new.poses
+            _write_commit(directory / MATCHER_FILENAME, arrays)
+            files.commit_n, files.own_first = record.n_scans, int(arrays[_KEY_FIRST])
+            if len(new):
+                files.end = new.end
+                files.recent.append(new)
             self._created[key] = record.created
-            self._saved_scans[key] = record.n_scans
-            self._compact_pose_log(directory, record.n_scans)
+            try:
+                self._extend_view(directory, key, files, record.n_scans)
+            except (RandtError, OSError):
+                files.tum_rows = None  # rewritten whole by the next snapshot (or load)
+                raise
+            atomic_write_bytes(directory / SESSION_FILENAME, _record_json(record))
         logger.debug(
             "saved session %s/%s: %d scans, last_seq %d",
             record.vehicle,
@@ -880,11 +1129,14 @@ class Store:
             return meta.created
 
     def load_session(self, vehicle: str, session: str) -> LoadedSession:
-        """Restore a session saved by :meth:`save_session`.
+        """Restore a session: its last snapshot, and the trajectory as far as it is on disk.
 
-        The commit record in ``matcher.npz`` is the truth; ``session.json`` and ``trajectory.tum``
-        are rewritten from it when they are missing, unreadable or lag behind (a crash between
-        the writes of one save), with a warning.
+        The trajectory is read from the segments, the commit's own poses and the pose log
+        (module docstring); a torn or damaged tail of the log (a crash during an append) is cut
+        off. The record is the commit's, brought forward over the poses logged after it
+        (``n_scans``, ``n_fallbacks``, ``last_seq``); the matcher state is the commit's.
+        ``session.json`` and ``trajectory.tum`` are rewritten when they are missing, unreadable
+        or disagree with the commit (a crash between the writes of a snapshot), with a warning.
 
         Returns
         -------
@@ -898,16 +1150,41 @@ class Store:
         NotFoundError
             No such session.
         FormatError
-            ``matcher.npz`` is damaged, or its record names another session.
+            ``matcher.npz`` is damaged or names another session, a segment is damaged, or poses
+            the commit covers are missing.
         """
         self._check_open()
         directory = self.session_dir(vehicle, session)
+        what = f"session {vehicle}/{session}"
         with self._session_lock(vehicle, session):
-            loaded = _read_commit(directory / MATCHER_FILENAME, vehicle, session)
-            self._repair_views(directory, loaded)
-            self._saved_scans.setdefault((vehicle, session), loaded.record.n_scans)
-            records = _read_pose_log(directory / POSE_LOG_FILENAME, repair=True)
-        return _with_logged(loaded, records)
+            record, state, own = _read_commit(directory / MATCHER_FILENAME, vehicle, session)
+            segments, log = _read_trajectory_files(directory, repair=True)
+            trajectory = _assemble(segments, own, log, what)
+            if trajectory.end < record.n_scans:
+                raise FormatError(
+                    f"{what}: its commit covers {record.n_scans} poses, its files hold {trajectory.end}"
+                )
+            self._repair_views(directory, record, trajectory.until(record.n_scans))
+            self._files[(vehicle, session)] = _Files(
+                segments_end=segments.end,
+                commit_n=record.n_scans,
+                own_first=own.first,
+                log_first=log.first,
+                log_count=len(log),
+                end=trajectory.end,
+                tum_rows=record.n_scans,
+                recent=[trajectory.since(record.n_scans)],
+            )
+        later = trajectory.since(record.n_scans)
+        if len(later):
+            record = record.model_copy(
+                update={
+                    "n_scans": trajectory.end,
+                    "n_fallbacks": record.n_fallbacks + int(np.sum(later.status == _STATUS_FALLBACK)),
+                    "last_seq": max(record.last_seq, int(later.seq.max())),
+                }
+            )
+        return LoadedSession(record=record, stamps=trajectory.stamps, poses=trajectory.poses, state=state)
 
     def append_pose(self, vehicle: str, session: str, record: PoseLogRecord) -> None:
         """Append one acknowledged pose to the session's ``poses.log`` and fsync it (module docstring).
@@ -919,14 +1196,23 @@ class Store:
         ValueError
             Invalid names.
         FormatError
-            The record could not be written and synced (disk full, read-only...); the file is cut
-            back to its previous length where possible, and a torn tail is cut when it is next read.
+            The record does not continue the stored trajectory (its index is not the number of
+            poses on disk), the session's files are damaged, or the record could not be written
+            and synced (disk full, read-only...); the file is cut back to its previous length
+            where possible, and a torn tail is cut when it is next read.
         """
         self._check_open()
+        key = (vehicle, session)
         directory = self.session_dir(vehicle, session)
         path = directory / POSE_LOG_FILENAME
         data = record.to_bytes()
         with self._session_lock(vehicle, session):
+            files = self._files_of(vehicle, session)
+            if record.index != files.end:
+                raise FormatError(
+                    f"session {vehicle}/{session}: pose {record.index} does not continue the stored "
+                    f"trajectory of {files.end} poses"
+                )
             try:
                 created = not path.exists()
                 if created:
@@ -943,6 +1229,7 @@ class Store:
                 except OSError as exc:
                     with contextlib.suppress(OSError):
                         os.ftruncate(fd, size)
+                    self._files.pop(key, None)  # read again (and repaired) before the next use
                     raise FormatError(f"cannot append to {path}: {exc}") from exc
             finally:
                 os.close(fd)
@@ -951,35 +1238,128 @@ class Store:
                     for d in (directory, directory.parent, directory.parent.parent):
                         fsync_directory(d)
                 except OSError as exc:
+                    self._files.pop(key, None)
                     raise FormatError(f"cannot sync {directory}: {exc}") from exc
+            files.appended(_Poses.of_record(record))
 
     def reset_pose_log(self, vehicle: str, session: str) -> None:
-        """Remove a session's ``poses.log`` (a session that starts afresh: nothing in it was
-        acknowledged, since a session's first pose is published only after its first save)."""
+        """Remove a session's ``poses.log`` and its segments (a session that starts afresh:
+        nothing in them was acknowledged, since a session's first pose is published only after
+        its first snapshot, and a session whose snapshot can be read is resumed, not restarted)."""
         self._check_open()
-        path = self.session_dir(vehicle, session) / POSE_LOG_FILENAME
+        directory = self.session_dir(vehicle, session)
         with self._session_lock(vehicle, session):
-            if path.exists():
+            old = [directory / POSE_LOG_FILENAME, *(path for _, path in _segment_files(directory))]
+            old = [path for path in old if path.exists()]
+            if old:
                 logger.warning(
-                    "session %s/%s starts afresh: removing its old %s", vehicle, session, path.name
+                    "session %s/%s starts afresh: removing its old %s",
+                    vehicle,
+                    session,
+                    ", ".join(path.name for path in old),
                 )
-                path.unlink()
-                fsync_directory(path.parent)
+                for path in old:
+                    path.unlink()
+                fsync_directory(directory)
+            self._files[(vehicle, session)] = _Files()
+            self._created.pop((vehicle, session), None)
 
-    def _compact_pose_log(self, directory: Path, n_saved: int) -> None:
-        """Drop the records of poses ``< n_saved`` (now in the snapshot) by an atomic replace."""
+    def _files_of(self, vehicle: str, session: str) -> _Files:
+        """What is known of the session's files; read from disk (the log's torn tail cut) when
+        this process has not read or written them yet. A commit that cannot be read counts as
+        none (a snapshot then replaces it, as before)."""
+        files = self._files.get((vehicle, session))
+        if files is not None:
+            return files
+        directory = self.session_dir(vehicle, session)
+        what = f"session {vehicle}/{session}"
+        commit_n, own = -1, _Poses.empty()
+        try:
+            record, _, own = _read_commit(directory / MATCHER_FILENAME, vehicle, session)
+            commit_n = record.n_scans
+        except NotFoundError:
+            pass
+        except (RandtError, OSError) as exc:
+            logger.warning("%s: its commit is unreadable (%s): a snapshot replaces it", what, exc)
+        segments, log = _read_trajectory_files(directory, repair=True)
+        trajectory = _assemble(segments, own if commit_n >= 0 else None, log, what)
+        files = _Files(
+            segments_end=segments.end,
+            commit_n=commit_n,
+            own_first=own.first if commit_n >= 0 else 0,
+            log_first=log.first,
+            log_count=len(log),
+            end=trajectory.end,
+            tum_rows=None,  # not compared: the next snapshot writes the view whole
+            recent=[trajectory],
+        )
+        self._files[(vehicle, session)] = files
+        return files
+
+    def _segment_commit_poses(self, directory: Path, key: tuple[str, str], files: _Files) -> None:
+        """Before a commit is replaced, write its own poses that no segment holds yet into one
+        (fsync'd, renamed into place): they stay on disk after the new commit, which does not
+        repeat them."""
+        if files.commit_n <= max(files.segments_end, files.own_first):
+            return
+        _, _, own = _read_commit(directory / MATCHER_FILENAME, *key, state=False)
+        if own.first > files.segments_end:
+            raise FormatError(f"{directory}: poses {files.segments_end}..{own.first - 1} are missing")
+        part = own.since(files.segments_end)
+        atomic_write_bytes(directory / segment_name(part.first), part.to_bytes())
+        files.segments_end = part.end
+
+    def _close_log(self, directory: Path, files: _Files) -> None:
+        """Close the active log off into a segment: one rename (and an fsync of the directory).
+        Records the segments already hold (only after a commit of the format before segments
+        was segmented) are dropped from it first."""
         path = directory / POSE_LOG_FILENAME
-        records = _read_pose_log(path, repair=False)
-        if not records and not path.exists():
-            return
-        keep = [r for r in records if r.index >= n_saved]
-        if len(keep) == len(records) and path.stat().st_size == len(records) * POSE_LOG_RECORD_SIZE:
-            return
-        if keep:
-            atomic_write_bytes(path, b"".join(r.to_bytes() for r in keep))
-        elif path.exists():
-            path.unlink()
-            fsync_directory(directory)
+        if files.log_first < files.segments_end:
+            skip = min(files.segments_end - files.log_first, files.log_count)
+            keep = path.read_bytes()[skip * POSE_LOG_RECORD_SIZE : files.log_count * POSE_LOG_RECORD_SIZE]
+            files.log_first, files.log_count = files.log_first + skip, files.log_count - skip
+            if not keep:
+                path.unlink()
+                fsync_directory(directory)
+                return
+            atomic_write_bytes(path, keep)
+        if files.log_first != files.segments_end:
+            raise FormatError(f"{directory}: poses {files.segments_end}..{files.log_first - 1} are missing")
+        try:
+            os.replace(path, directory / segment_name(files.log_first))
+        except OSError as exc:
+            raise FormatError(f"cannot close off {path}: {exc}") from exc
+        fsync_directory(directory)
+        files.segments_end = files.log_first + files.log_count
+        files.log_first, files.log_count = files.segments_end, 0
+
+    def _extend_view(self, directory: Path, key: tuple[str, str], files: _Files, n: int) -> None:
+        """Bring ``trajectory.tum`` to the commit's ``n`` poses: append the rows it lacks, or
+        write it whole (atomically) when its rows are not known or it does not exist yet."""
+        path = directory / TRAJECTORY_FILENAME
+        if n == 0:
+            _write_trajectory(path, np.zeros(0), np.zeros((0, 4, 4)))
+        elif files.tum_rows is not None and 0 < files.tum_rows <= n and path.exists():
+            rows = files.view_rows(files.tum_rows, n)
+            if rows is None:
+                files.tum_rows = None
+                self._extend_view(directory, key, files, n)
+                return
+            if len(rows):
+                try:
+                    with path.open("a", encoding="utf-8", newline="\n") as fh:
+                        fh.write(_tum_rows(rows.stamps, rows.poses))
+                except OSError as exc:
+                    raise FormatError(f"cannot append to {path}: {exc}") from exc
+        else:
+            rows = files.view_rows(0, n)
+            if rows is None:  # not in memory: read the trajectory (once)
+                segments, log = _read_trajectory_files(directory, repair=False)
+                _, _, own = _read_commit(directory / MATCHER_FILENAME, *key, state=False)
+                rows = _assemble(segments, own, log, f"session {key[0]}/{key[1]}").until(n)
+            _write_trajectory(path, rows.stamps, rows.poses)
+        files.tum_rows = n
+        files.recent = [p.since(n) for p in files.recent if p.end > n]
 
     def list_sessions(self) -> list[SessionRecord]:
         """The records of every saved session, sorted by ``(vehicle, session)``.
@@ -1181,36 +1561,37 @@ class Store:
             return False
         return True
 
-    def _repair_views(self, directory: Path, loaded: LoadedSession) -> None:
-        """Rewrite ``session.json`` / ``trajectory.tum`` where they disagree with the commit."""
-        name = f"{loaded.record.vehicle}/{loaded.record.session}"
+    def _repair_views(self, directory: Path, record: SessionRecord, trajectory: _Poses) -> None:
+        """Rewrite ``session.json`` / ``trajectory.tum`` where they disagree with the commit
+        (``record``, and ``trajectory``: the poses it covers)."""
+        name = f"{record.vehicle}/{record.session}"
         json_path = directory / SESSION_FILENAME
         try:
             current: SessionRecord | None = SessionRecord.model_validate_json(json_path.read_bytes())
         except (OSError, ValueError) as exc:
             logger.warning("session %s: %s unreadable (%s)", name, SESSION_FILENAME, exc)
             current = None
-        if current != loaded.record:
+        if current != record:
             logger.warning("session %s: rewriting %s from %s", name, SESSION_FILENAME, MATCHER_FILENAME)
-            atomic_write_bytes(json_path, _record_json(loaded.record))
+            atomic_write_bytes(json_path, _record_json(record))
 
         tum_path = directory / TRAJECTORY_FILENAME
-        if loaded.stamps.size == 0:
+        if len(trajectory) == 0:
             agrees = not tum_path.exists()
         else:
             try:
                 stamps, poses = read_tum(tum_path)
                 agrees = (
-                    stamps.shape == loaded.stamps.shape
-                    and np.allclose(stamps, loaded.stamps, rtol=0.0, atol=_VIEW_TOLERANCE)
-                    and np.allclose(poses, loaded.poses, rtol=0.0, atol=_VIEW_TOLERANCE)
+                    stamps.shape == trajectory.stamps.shape
+                    and np.allclose(stamps, trajectory.stamps, rtol=0.0, atol=_VIEW_TOLERANCE)
+                    and np.allclose(poses, trajectory.poses, rtol=0.0, atol=_VIEW_TOLERANCE)
                 )
             except RandtError as exc:
                 logger.warning("session %s: %s unreadable (%s)", name, TRAJECTORY_FILENAME, exc)
                 agrees = False
         if not agrees:
-            logger.warning("session %s: rewriting %s from %s", name, TRAJECTORY_FILENAME, MATCHER_FILENAME)
-            _write_trajectory(tum_path, loaded.stamps, loaded.poses)
+            logger.warning("session %s: rewriting %s from the stored trajectory", name, TRAJECTORY_FILENAME)
+            _write_trajectory(tum_path, trajectory.stamps, trajectory.poses)
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -1288,11 +1669,14 @@ def _parse_record(text: str, path: Path, vehicle: str, session: str) -> SessionR
     return record
 
 
-def _read_commit(path: Path, vehicle: str, session: str) -> LoadedSession:
-    """Everything in ``matcher.npz``, checked for consistency."""
+def _read_commit(
+    path: Path, vehicle: str, session: str, *, state: bool = True
+) -> tuple[SessionRecord, dict[str, np.ndarray], _Poses]:
+    """``matcher.npz``, checked: its record, the matcher state (unless ``state`` is false: then
+    ``{}``, and the state's arrays are not read) and the commit's own poses."""
     try:
         with np.load(path, allow_pickle=False) as npz:
-            arrays = {key: npz[key] for key in npz.files}
+            arrays = {key: npz[key] for key in npz.files if state or key.startswith(_RESERVED_PREFIX)}
     except FileNotFoundError as exc:
         raise NotFoundError(f"session {vehicle}/{session} does not exist") from exc
     except _NPZ_ERRORS as exc:
@@ -1301,14 +1685,133 @@ def _read_commit(path: Path, vehicle: str, session: str) -> LoadedSession:
     if missing:
         raise FormatError(f"{path}: not a session commit (missing {', '.join(missing)})")
     record = _parse_record(str(arrays.pop(_KEY_RECORD)[()]), path, vehicle, session)
+    first_array = arrays.pop(_KEY_FIRST, None)
     try:
+        first = 0 if first_array is None else int(first_array)
         poses, stamps = _checked_trajectory(arrays.pop(_KEY_POSES), arrays.pop(_KEY_STAMPS), str(path))
-    except (InvalidCloudError, ValueError) as exc:
+    except (InvalidCloudError, ValueError, TypeError) as exc:
         raise FormatError(f"{path}: invalid trajectory: {exc}") from exc
-    if record.n_scans != poses.shape[0]:
-        raise FormatError(f"{path}: record says {record.n_scans} scans, trajectory has {poses.shape[0]}")
-    state = {k: v for k, v in arrays.items() if not k.startswith(_RESERVED_PREFIX)}
-    return LoadedSession(record=record, stamps=stamps, poses=poses, state=state)
+    if first < 0 or first + poses.shape[0] != record.n_scans:
+        raise FormatError(
+            f"{path}: record says {record.n_scans} scans, its trajectory has poses {first}.."
+            f"{first + poses.shape[0] - 1}"
+        )
+    matcher_state = {k: v for k, v in arrays.items() if not k.startswith(_RESERVED_PREFIX)}
+    return record, matcher_state, _Poses.given(first, stamps, poses)
+
+
+def _write_commit(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """``matcher.npz``, atomically (written straight into the temporary file)."""
+    try:
+        with atomic_open(path, "wb") as fh:
+            np.savez(fh, **arrays)  # type: ignore[arg-type]  # mypy binds **arrays to allow_pickle: bool too
+    except OSError as exc:
+        raise FormatError(f"cannot write {path}: {exc}") from exc
+
+
+def _segment_files(directory: Path) -> list[tuple[int, Path]]:
+    """The session's pose-log segments, ``(first pose, path)``, in trajectory order."""
+    try:
+        names = os.listdir(directory)
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise FormatError(f"cannot list {directory}: {exc}") from exc
+    found = [(m, name) for name in names if (m := _SEGMENT_RE.fullmatch(name))]
+    return sorted((int(m.group(1)), directory / name) for m, name in found)
+
+
+def _read_trajectory_files(directory: Path, *, repair: bool) -> tuple[_Poses, _Poses]:
+    """The poses of the session's segments (one after the other from pose 0, each whole) and
+    of its active log (whole records up to the first torn or damaged one; with ``repair`` what
+    follows them is cut off the file, so the next append continues a clean log).
+
+    Raises
+    ------
+    FormatError
+        A segment is damaged or does not continue the previous one.
+    """
+    parts: list[_Poses] = []
+    end = 0
+    for first, path in _segment_files(directory):
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise FormatError(f"cannot read {path}: {exc}") from exc
+        part, good = _parse_records(data)
+        if good != len(data) or len(part) == 0 or part.first != first:
+            raise FormatError(
+                f"{path}: damaged pose-log segment ({good // POSE_LOG_RECORD_SIZE} intact records "
+                f"of {len(data) / POSE_LOG_RECORD_SIZE:g})"
+            )
+        if first != end:
+            raise FormatError(f"{path}: starts at pose {first}, but the segments before it end at {end}")
+        parts.append(part)
+        end = part.end
+    segments = _Poses.joined(parts) or _Poses.empty()
+    return segments, _read_log(directory / POSE_LOG_FILENAME, repair=repair)
+
+
+def _read_log(path: Path, *, repair: bool) -> _Poses:
+    """The whole records of a ``poses.log`` up to the first torn or damaged one (none if no file).
+
+    With ``repair``, what follows them (a torn tail: a crash during an append) is cut off the
+    file, so the next append continues a clean log.
+    """
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return _Poses.empty()
+    except OSError as exc:
+        raise FormatError(f"cannot read {path}: {exc}") from exc
+    log, good = _parse_records(data)
+    if good != len(data):
+        logger.warning(
+            "%s: cutting %d bytes after %d whole records (a torn or damaged tail)",
+            path,
+            len(data) - good,
+            len(log),
+        )
+        if repair:
+            try:
+                with open(path, "r+b") as fh:
+                    fh.truncate(good)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                raise FormatError(f"cannot cut the torn tail of {path}: {exc}") from exc
+    return log
+
+
+def _assemble(segments: _Poses, own: _Poses | None, log: _Poses, what: str) -> _Poses:
+    """The trajectory from pose 0: the segments, then the commit's own poses, then the log (each
+    may repeat poses of the ones before it, which are the same; none may leave a gap).
+
+    Raises
+    ------
+    FormatError
+        Poses are missing between them.
+    """
+    end, kept = 0, []
+    for name, part in (("segments", segments), ("commit", own), (POSE_LOG_FILENAME, log)):
+        if part is None or not len(part):
+            continue
+        if part.first > end:
+            raise FormatError(
+                f"{what}: poses {end}..{part.first - 1} are missing ({name} from pose {part.first})"
+            )
+        kept.append(part)
+        end = max(end, part.end)
+    return _Poses.joined(kept) or _Poses.empty()
+
+
+def _tum_rows(stamps: np.ndarray, poses: np.ndarray) -> str:
+    """Rows of a TUM trajectory as :func:`core.io.write_tum` writes them (``%.9f`` stamps, 17
+    significant digits, canonical quaternions), to append to one."""
+    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat(canonical=True)  # (x, y, z, w)
+    buffer = io.StringIO()
+    np.savetxt(buffer, np.column_stack([stamps, poses[:, :3, 3], quats]), fmt=["%.9f"] + ["%.17g"] * 7)
+    return buffer.getvalue()
 
 
 def _copy_tree_durably(source: Path, target: Path, parent: Path) -> None:
@@ -1393,73 +1896,3 @@ def _sidecar_tile_size(directory: Path) -> int:
     if not isinstance(doc, dict) or not isinstance(doc.get("tile_size_m"), int):
         raise FormatError(f"{directory / GRID_SIDECAR_NAME}: no tile_size_m")
     return int(doc["tile_size_m"])
-
-
-def _read_pose_log(path: Path, *, repair: bool) -> list[PoseLogRecord]:
-    """The whole records of a ``poses.log`` up to the first torn or damaged one (none if no file).
-
-    With ``repair``, what follows them (a torn tail: a crash during an append) is cut off the
-    file, so the next append continues a clean log.
-    """
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        return []
-    except OSError as exc:
-        raise FormatError(f"cannot read {path}: {exc}") from exc
-    records: list[PoseLogRecord] = []
-    size = POSE_LOG_RECORD_SIZE
-    for start in range(0, len(data) - size + 1, size):
-        record = PoseLogRecord.from_bytes(data[start : start + size])
-        if record is None:
-            break
-        records.append(record)
-    good = len(records) * size
-    if good != len(data):
-        logger.warning(
-            "%s: cutting %d bytes after %d whole records (a torn or damaged tail)",
-            path,
-            len(data) - good,
-            len(records),
-        )
-        if repair:
-            try:
-                with open(path, "r+b") as fh:
-                    fh.truncate(good)
-                    fh.flush()
-                    os.fsync(fh.fileno())
-            except OSError as exc:
-                raise FormatError(f"cannot cut the torn tail of {path}: {exc}") from exc
-    return records
-
-
-def _with_logged(loaded: LoadedSession, records: list[PoseLogRecord]) -> LoadedSession:
-    """The snapshot ``loaded`` extended by the logged poses beyond it (contiguous from its end)."""
-    n = loaded.poses.shape[0]
-    extra: list[PoseLogRecord] = []
-    for r in records:
-        if r.index < n:
-            continue  # the snapshot holds it already (a crash before the log was compacted)
-        if r.index != n + len(extra):
-            logger.error(
-                "session %s/%s: %s jumps from pose %d to %d; the rest is ignored",
-                loaded.record.vehicle,
-                loaded.record.session,
-                POSE_LOG_FILENAME,
-                n + len(extra),
-                r.index,
-            )
-            break
-        extra.append(r)
-    if not extra:
-        return loaded
-    poses = np.concatenate([loaded.poses, np.stack([r.pose for r in extra])])
-    stamps = np.concatenate([loaded.stamps, np.array([r.stamp_s for r in extra], dtype=np.float64)])
-    record = loaded.record.model_copy(
-        update={
-            "n_scans": poses.shape[0],
-            "n_fallbacks": loaded.record.n_fallbacks + sum(r.status == "fallback" for r in extra),
-            "last_seq": max(loaded.record.last_seq, extra[-1].seq),
-        }
-    )
-    return LoadedSession(record=record, stamps=stamps, poses=poses, state=loaded.state)

@@ -103,8 +103,15 @@ def test_a_pose_that_cannot_be_made_durable_is_answered_storage_error(tmp_path, 
         svc.stop()
 
 
-def test_pose_log_torn_tail_is_cut_and_compaction_drops_snapshotted_records(tmp_path) -> None:
-    from service.store import POSE_LOG_FILENAME, POSE_LOG_RECORD_SIZE, PoseLogRecord, SessionRecord, Store
+def test_pose_log_torn_tail_is_cut_and_a_snapshot_rewrites_no_logged_pose(tmp_path) -> None:
+    from service.store import (
+        POSE_LOG_FILENAME,
+        POSE_LOG_RECORD_SIZE,
+        PoseLogRecord,
+        SessionRecord,
+        Store,
+        segment_name,
+    )
 
     with Store(tmp_path) as store:
         poses = np.stack([make_transform(translation=(i, 0.0, 0.0)) for i in range(2)])
@@ -126,10 +133,16 @@ def test_pose_log_torn_tail_is_cut_and_compaction_drops_snapshotted_records(tmp_
         damaged[-20] ^= 0xFF
         path.write_bytes(bytes(damaged))
         assert store.load_session("v", "s").record.n_scans == 4
-        # a snapshot holding 4 poses drops the records of poses 0..3 from the log
+        # a snapshot of the 4 poses writes none of the logged ones again: the log is the truth
+        # and stays as it is (until it is closed off into a segment, test_snapshots.py); the
+        # commit's own poses 0..1 (saved, never logged) move into a segment
         loaded = store.load_session("v", "s")
         store.save_session(loaded.record, loaded.poses, loaded.stamps, loaded.state)
-        assert not path.exists()
+        assert path.read_bytes() == whole[: 2 * POSE_LOG_RECORD_SIZE]
+        assert (store.session_dir("v", "s") / segment_name(0)).stat().st_size == 2 * POSE_LOG_RECORD_SIZE
+        again = store.load_session("v", "s")
+        assert again.record.n_scans == 4
+        np.testing.assert_array_equal(again.poses, loaded.poses)
 
 
 def test_served_tile_versions_are_durable_never_reused_and_etags_name_the_content(tmp_path) -> None:

@@ -92,7 +92,8 @@ def test_kill9_during_ingest_ten_times(tmp_path) -> None:
         last_versions = versions
         store = Store(data)
         records = store.list_sessions()
-        # the snapshot's record plus the poses logged since (snapshots are saved every few seconds)
+        # the snapshot's record plus the poses logged since (here mostly the first snapshot's:
+        # one is due every 30 s or 20 m, and each run lasts 0.5-2 s at 2.5 m/s)
         stored = store.load_session(records[0].vehicle, records[0].session)[0] if records else None
         store.close()
         if stored is not None:

@@ -33,8 +33,11 @@ from core.transforms import invert, make_transform, transform_error, transform_p
 from service.store import (
     LOCK_FILENAME,
     MATCHER_FILENAME,
+    POSE_LOG_FILENAME,
+    POSE_LOG_RECORD_SIZE,
     SESSION_FILENAME,
     TRAJECTORY_FILENAME,
+    PoseLogRecord,
     SessionRecord,
     Store,
 )
@@ -563,6 +566,11 @@ def check_files_open(data_dir: Path) -> int:
             assert json.loads(path.read_text())["vehicle"] in ("car1", "car2")
         elif path.suffix == ".tum":
             assert read_tum(path)[0].size >= 1
+        elif path.suffix == ".log":  # a pose-log segment (whole) or the log (a torn tail aside)
+            data, size = path.read_bytes(), POSE_LOG_RECORD_SIZE
+            records = [PoseLogRecord.from_bytes(data[k : k + size]) for k in range(0, len(data), size)]
+            whole = records if path.name != POSE_LOG_FILENAME else records[:-1]
+            assert records and all(r is not None for r in whole), path
         else:
             pytest.fail(f"unexpected file {path}")
     return n_temp
