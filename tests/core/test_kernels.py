@@ -248,7 +248,9 @@ def test_conditioned_gaussians_match_the_numpy_fit(kitti_clouds) -> None:
     cov, inv, white, _ = got
     eye = np.broadcast_to(np.eye(3), cov.shape)
     np.testing.assert_allclose(cov @ inv, eye, atol=1e-6)
-    np.testing.assert_allclose(np.swapaxes(white, 1, 2) @ white, inv, rtol=1e-9, atol=1e-9 * np.abs(inv).max())
+    np.testing.assert_allclose(
+        np.swapaxes(white, 1, 2) @ white, inv, rtol=1e-9, atol=1e-9 * np.abs(inv).max()
+    )
     evals = np.linalg.eigvalsh(cov[-50:])
     np.testing.assert_allclose(evals[:, 0], 0.01 * evals[:, 2], rtol=1e-9)
 
