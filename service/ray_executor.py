@@ -26,7 +26,9 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
                  or a late answer from a host that Ray reports dead (a node whose machine died
                  cannot close its sockets), is a MatcherProcessDiedError, which the session layer
                  already handles: the session is dropped unsaved and resumed from the store with
-                 its next scan, on a live host
+                 its next scan, on a live host: not on the dead host's node for SUSPECT_NODE_S
+                 while another node can take it (Ray may report a dead machine's node alive
+                 for seconds, and a fresh host there fails too)
 
 Why hosts rather than one actor per session: a new actor is a new process that loads the kernels,
 and the session's first sweeps queue behind it for a second or two (bench/service.py: the
@@ -42,6 +44,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import socket
 import threading
@@ -250,6 +253,10 @@ ANSWER_CHECK_S = 2.0
 
 #: How long the service tries to connect to a matcher host's socket.
 CONNECT_TIMEOUT_S = 10.0
+#: After a host dies, its node gets no new host and no session for this long while another node
+#: can take them: Ray may still report a node alive for seconds after its machine died, and a
+#: session resumed on a new host there failed a second time (seen in CI under load).
+SUSPECT_NODE_S = 60.0
 
 
 @dataclass(eq=False)
@@ -308,6 +315,8 @@ class RayMatcherPool:
         self._lock = threading.Lock()
         self._hosts: list[_Host] = []
         self._placed: dict[Key, _Host] = {}
+        #: node -> when (monotonic) a host on it was last found dead (SUSPECT_NODE_S).
+        self._suspect: dict[str, float] = {}
         with self._lock:
             self._refresh()
 
@@ -353,7 +362,8 @@ class RayMatcherPool:
 
         nodes = self._nodes()
         self._hosts = [h for h in self._hosts if not h.dead and h.node in nodes]
-        for node, cpus in nodes.items():
+        trusted = {n: c for n, c in nodes.items() if not self._is_suspect(n)}
+        for node, cpus in (trusted or nodes).items():
             for _ in range(cpus - sum(1 for h in self._hosts if h.node == node)):
                 # Hard affinity: a soft one spilled over to another node while this one's worker
                 # was starting. Should the node die first, the first call fails and the session
@@ -398,10 +408,16 @@ class RayMatcherPool:
             host.channel = _SocketChannel(conn, f"{name} at {address[0]}:{address[1]}", self._ray, host.actor)
             return host.channel
 
+    def _is_suspect(self, node: str) -> bool:
+        """A host on ``node`` died less than :data:`SUSPECT_NODE_S` ago (called with the lock)."""
+        return time.monotonic() - self._suspect.get(node, -math.inf) < SUSPECT_NODE_S
+
     def _died(self, host: _Host) -> None:
-        """A call on ``host`` found its actor or node gone: place no one there again."""
+        """A call on ``host`` found its actor or node gone: place no one there again, and no one
+        on its node for a while (:data:`SUSPECT_NODE_S`)."""
         with self._lock:
             host.dead = True
+            self._suspect[host.node] = time.monotonic()
         if host.channel is not None:
             host.channel.close()
 
@@ -442,7 +458,8 @@ class RayMatcherPool:
             if not self._hosts:
                 raise MatcherProcessDiedError("the Ray cluster has no live node with CPUs for a matcher")
             per_node: dict[str, list[_Host]] = {}
-            for h in self._hosts:
+            trusted = [h for h in self._hosts if not self._is_suspect(h.node)]
+            for h in trusted or self._hosts:
                 per_node.setdefault(h.node, []).append(h)
             load = {n: sum(len(h.sessions) for h in hs) / len(hs) for n, hs in per_node.items()}
             node = min(per_node, key=lambda n: load[n])
