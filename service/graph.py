@@ -123,8 +123,12 @@ class YieldGate:
             self._pid = pid if hasattr(signal, "SIGSTOP") else None
             # A pidfd names this process and no other: once it has exited and been reaped, its
             # pid may be another process's, which a plain kill would stop (Linux >= 5.3).
-            with contextlib.suppress(AttributeError, OSError):
+            try:
                 self._pidfd = os.pidfd_open(pid) if self._pid is not None else None
+            except ProcessLookupError:  # gone already: nothing to hold (its pid may be reused)
+                self._pid = self._pidfd = None
+            except (AttributeError, OSError):  # no pidfd here: the plain pid
+                self._pidfd = None
 
     def detach(self) -> None:
         """Continue the process for good (before stopping it, or when it is gone)."""
@@ -391,14 +395,27 @@ def _send_refolds(conn: Connection, maps: dict[str, _ProcessMap]) -> None:
             conn.send(("refold", map_name, *refold, time.perf_counter() - t0))
 
 
-def _graph_main(conn: Connection, settings: FleetMapSettings, geometry: MapGeometry, refold_s: float) -> None:
+def _graph_main(
+    conn: Connection, settings: FleetMapSettings, geometry: MapGeometry, refold_s: float, parent: int
+) -> None:
     """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring).
+
+    First it asks to die with the service (``_die_with_parent``), quits if the service (pid
+    ``parent``) died before that, and says it is ``alive``: only then may the service's
+    :class:`YieldGate` stop it (stopped before, during its imports, it outlived a service killed
+    with SIGKILL: seen after the kill -9 cycles of tests/service/test_durability.py).
 
     Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
     old), and at once on a ``sync`` request."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
     _die_with_parent()
+    if os.getppid() != parent:  # the service died before the request: nobody would kill us
+        return
+    try:
+        conn.send(("alive",))
+    except (BrokenPipeError, OSError):
+        return
     single_threaded_blas()
     _lowest_priority()
     maps: dict[str, _ProcessMap] = {}
@@ -648,7 +665,9 @@ class ServiceGraph:
                 if self._closed:
                     return
             proc, conn = self._spawn()
-            receiver = threading.Thread(target=self._receive_loop, args=(conn,), name="graph-receiver")
+            receiver = threading.Thread(
+                target=self._receive_loop, args=(conn, proc.pid), name="graph-receiver"
+            )
             receiver.daemon = True
             receiver.start()
             started = time.monotonic()
@@ -669,15 +688,15 @@ class ServiceGraph:
         conn, child = ctx.Pipe()
         proc = ctx.Process(
             target=_graph_main,
-            args=(child, self.settings, self.geometry, self.refold_s),
+            args=(child, self.settings, self.geometry, self.refold_s, os.getpid()),
             name="randt-graph",
             daemon=True,
         )
         with _sigint_ignored_by_children():
             proc.start()
         child.close()
-        if self.gate is not None and proc.pid is not None:
-            self.gate.attach(proc.pid)
+        # The gate holds the process only once it says it is alive (_receive_loop): by then it
+        # dies with the service even while stopped.
         with self._cond:
             self._proc, self._conn = proc, conn
             self._cond.notify_all()  # the sender may go on
@@ -842,13 +861,17 @@ class ServiceGraph:
             self._retried.discard(id(self._inflight.pop(0)))
 
     # -- output (receiver thread) ------------------------------------------------------------
-    def _receive_loop(self, conn: Connection) -> None:
-        """One process's answers, until its pipe closes."""
+    def _receive_loop(self, conn: Connection, pid: int | None) -> None:
+        """One process's answers, until its pipe closes; its first, ``alive``, lets the gate hold it."""
         while True:
             try:
                 message = conn.recv()
             except (EOFError, OSError):
                 return
+            if message[0] == "alive":
+                if self.gate is not None and pid is not None and not self._closed:
+                    self.gate.attach(pid)
+                continue
             if message[0] in ("synced", "placed"):
                 with self._cond:
                     self._answered()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import httpx
@@ -196,3 +198,59 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     state = graph.snapshot("default")
     assert state is not None and state.revision == 8 and state.loops == [loop]
     assert state.placed == {("a", "d1")}
+
+
+def test_a_graph_process_held_while_starting_dies_with_a_killed_service() -> None:
+    """The service holds the graph process (YieldGate, SIGSTOP) while sweeps are matched, and the
+    process dies with the service by PR_SET_PDEATHSIG, which it can only ask for once its imports
+    are done. Held during them, it outlived a service killed with SIGKILL, stopped for good (seen
+    after CI's kill -9 cycles). Now it is held only once it says it is alive. Here a service
+    matches sweeps without a pause from before the process starts, and is killed while the
+    process is still starting: the process must be gone within 20 s, whatever the timing."""
+    program = (
+        "import sys, threading, time\n"
+        "from core.fleet_map import FleetMapSettings\n"
+        "from service.graph import ServiceGraph\n"
+        "from service.metrics import ServiceMetrics\n"
+        "graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics())\n"
+        "def sweeps():\n"
+        "    while True:\n"
+        "        with graph.gate.matching():\n"
+        "            time.sleep(0.02)\n"
+        "threading.Thread(target=sweeps, daemon=True).start()\n"
+        "with graph._cond:\n"
+        "    graph._start()\n"
+        "while graph.pid is None:\n"
+        "    time.sleep(0.005)\n"
+        "print(graph.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    for delay_s in (0.05, 0.5):
+        pid = -1
+        parent = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, text=True)
+        try:
+            assert parent.stdout is not None
+            pid = int(parent.stdout.readline())
+            time.sleep(delay_s)  # the graph process is still importing (it takes a second or more)
+            parent.kill()
+            parent.wait()
+            deadline = time.monotonic() + 20
+            while _alive(pid) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert not _alive(pid), f"the graph process outlived the killed service ({_state(pid)})"
+        finally:
+            parent.kill()
+            if pid > 0 and _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"
+
+
+def _alive(pid: int) -> bool:
+    return _state(pid) not in ("gone", "Z")
