@@ -6,10 +6,17 @@ Frames, units and time
   ground below the sensor; on a sloped town the vehicle's z axis is the ground normal.
 - Sensor frame: the vehicle frame raised by ``Lidar64.mount_height_m`` (1.73 m as KITTI's
   HDL-64E): ``T_world_sensor = T_world_vehicle @ T_vehicle_sensor``.
-- A route is a planar curve of straight pieces and circular arcs (constant curvature) in the
-  world xy plane, parametrised by its horizontal arc length ``s`` (m). Vehicles keep to the right
-  lane, ``lane_offset_m`` right of the street centreline, and round corners on arcs of
-  ``turn_radius_m``.
+- A route is a planar curve of pieces whose curvature is linear in arc length (straight lines,
+  circular arcs and clothoids) in the world xy plane, parametrised by its horizontal arc length
+  ``s`` (m). Vehicles keep to the right lane, ``lane_offset_m`` right of the street centreline,
+  and round corners as a car does: a clothoid of ``transition_m`` into an arc of ``turn_radius_m``
+  and a clothoid out, so the curvature (the steering) changes continuously.
+- A vehicle drives a route at ``speed_mps`` on the straights and slows for corners as a driver
+  would (:class:`Motion`): at most ``max_lateral_mps2`` of lateral acceleration, braking and
+  accelerating within ``max_decel_mps2`` and ``max_accel_mps2``. Before 2026-11-26 routes switched
+  from a line to a 9 m arc at once and vehicles kept 10 m/s through it: a yaw rate jumping from 0
+  to 64 deg/s inside one sweep (11 m/s^2 lateral), which no car drives and no constant-velocity
+  deskew follows (issue 32).
 - A sweep's reference time is its **start**: ``SimScan.stamp_ns`` is the time of the first firing,
   ``SimScan.T_world_sensor`` the exact sensor pose then, and ``time_offset_s`` in
   ``[0, 1/rate_hz)`` the firing time of each point after it.
@@ -30,7 +37,7 @@ import itertools
 import logging
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,6 +58,13 @@ log = logging.getLogger(__name__)
 
 _REPEAT_TOL_M = 1e-9
 
+#: Spacing of the speed profile's table along the route (m), :class:`Motion`.
+PROFILE_STEP_M = 0.05
+
+#: Length of the clothoid into and out of every corner (m): a driver turns the wheel over about a
+#: second at corner speed (5.2 m/s on a 9 m arc at 3 m/s^2 lateral).
+TRANSITION_M = 8.0
+
 
 def _right_normal(d: np.ndarray) -> np.ndarray:
     """(..., 2) unit vectors rotated -90 deg (to the right of travel)."""
@@ -59,11 +73,12 @@ def _right_normal(d: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Route:
-    """A planar route of P pieces (straight lines and circular arcs), continuous in heading.
+    """A planar route of P pieces (lines, circular arcs and clothoids), continuous in heading.
 
     Piece ``i`` starts at ``start_xy[i]`` with heading ``start_heading_rad[i]`` and curvature
-    ``curvature_per_m[i]`` (0 for a line, +1/R turning left, -1/R right) and covers arc length
-    ``[start_s_m[i], start_s_m[i] + piece_length_m[i]]``.
+    ``curvature_per_m[i]`` (0 for a line, +1/R turning left, -1/R right), which changes along it at
+    ``curvature_rate_per_m2[i]`` (0 for lines and arcs; a clothoid's curvature is linear in arc
+    length), and covers arc length ``[start_s_m[i], start_s_m[i] + piece_length_m[i]]``.
 
     Attributes
     ----------
@@ -80,6 +95,9 @@ class Route:
         ``[0, length_m]`` only.
     ground_gradient:
         (2,) ``g`` of the town's ground ``z = g·xy``; poses sit on it.
+    curvature_rate_per_m2:
+        (P,) float64 change of curvature per metre along each piece (1/m^2); zeros when empty
+        (the default).
     """
 
     start_xy: np.ndarray
@@ -88,13 +106,16 @@ class Route:
     piece_length_m: np.ndarray
     closed: bool
     ground_gradient: np.ndarray
+    curvature_rate_per_m2: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         p = np.asarray(self.piece_length_m).reshape(-1).shape[0]
         if p == 0 or np.any(np.asarray(self.piece_length_m) <= 0):
             raise ValueError("a route needs at least one piece, all of positive length")
+        if np.asarray(self.curvature_rate_per_m2).size == 0:  # lines and arcs only
+            object.__setattr__(self, "curvature_rate_per_m2", np.zeros(p))
         object.__setattr__(self, "start_xy", np.asarray(self.start_xy, np.float64).reshape(p, 2))
-        for name in ("start_heading_rad", "curvature_per_m", "piece_length_m"):
+        for name in ("start_heading_rad", "curvature_per_m", "piece_length_m", "curvature_rate_per_m2"):
             object.__setattr__(self, name, np.asarray(getattr(self, name), np.float64).reshape(p))
         object.__setattr__(self, "ground_gradient", np.asarray(self.ground_gradient, np.float64).reshape(2))
 
@@ -107,8 +128,12 @@ class Route:
         closed: bool,
         turn_radius_m: float = 9.0,
         ground_gradient: np.ndarray | None = None,
+        transition_m: float = TRANSITION_M,
     ) -> Route:
-        """A route along a polyline whose corners are rounded by arcs of ``turn_radius_m``.
+        """A route along a polyline whose corners are rounded as a car turns: a clothoid of
+        ``transition_m`` (curvature from 0 to 1/``turn_radius_m``), an arc of ``turn_radius_m``
+        and a clothoid back to a straight line. A corner too gentle for the two clothoids is two
+        clothoids of ``R |phi|`` each, meeting at the corner's sharpest curvature.
 
         Parameters
         ----------
@@ -118,10 +143,13 @@ class Route:
         closed:
             Whether the polyline is a loop.
         turn_radius_m:
-            Radius of every corner arc (m). An arc's tangent points lie ``R tan(phi/2)`` from its
-            corner, ``phi`` the turn angle; a leg too short for its two arcs raises ValueError.
+            Radius of every corner arc (m). A corner's curve starts and ends at tangent points
+            equally far from its corner (``R tan(phi/2)`` for a plain arc, ``phi`` the turn
+            angle; further with clothoids); a leg too short for its two curves raises ValueError.
         ground_gradient:
             (2,) ground plane gradient (zero by default).
+        transition_m:
+            Length of each clothoid (m); 0: plain arcs (the curvature jumps at their ends).
 
         Returns
         -------
@@ -144,28 +172,36 @@ class Route:
         phi = np.arctan2(u_in[:, 0] * u_out[:, 1] - u_in[:, 1] * u_out[:, 0], np.sum(u_in * u_out, axis=1))
         if np.any(np.abs(phi) > np.radians(179.0)):
             raise ValueError("a route cannot reverse (U-turn) at a vertex")
-        tangent = turn_radius_m * np.tan(0.5 * np.abs(phi))
+        corner = [_corner_curve(float(p), turn_radius_m, transition_m) for p in phi]
+        tangent = np.array([c[0] for c in corner])
         tan_next = np.roll(tangent, -1) if closed else tangent[1:]
         if np.any(tangent[: leg_len.size] + tan_next > leg_len + 1e-9):
-            raise ValueError(f"a leg is too short for corner arcs of radius {turn_radius_m} m")
+            raise ValueError(f"a leg is too short for corner curves of radius {turn_radius_m} m")
 
-        xy, heading, kappa, length = [], [], [], []
-        for i in range(leg_len.size):  # a line along leg i, then the arc at its end vertex
+        xy, heading, kappa, rate, length = [], [], [], [], []
+        for i in range(leg_len.size):  # a line along leg i, then the curve at its end vertex
             j = (i + 1) % n
             line_len = leg_len[i] - tangent[i] - tan_next[i]
-            theta = np.arctan2(u[i, 1], u[i, 0])
+            theta = float(np.arctan2(u[i, 1], u[i, 0]))
             if line_len > 1e-9:
                 xy.append(q[i] + tangent[i] * u[i])
                 heading.append(theta)
                 kappa.append(0.0)
+                rate.append(0.0)
                 length.append(line_len)
             if abs(phi[j]) > 1e-12 and (closed or j < n - 1):
-                xy.append(q[j] - tangent[j] * u[i])
-                heading.append(theta)
-                kappa.append(np.sign(phi[j]) / turn_radius_m)
-                length.append(turn_radius_m * abs(phi[j]))
+                at, th = q[j] - tangent[j] * u[i], theta
+                for k0, c, ell in corner[j][1]:
+                    xy.append(at)
+                    heading.append(th)
+                    kappa.append(k0)
+                    rate.append(c)
+                    length.append(ell)
+                    at, th = _piece_end(at, th, k0, c, ell)
         g = np.zeros(2) if ground_gradient is None else ground_gradient
-        return cls(np.array(xy), np.array(heading), np.array(kappa), np.array(length), closed, g)
+        return cls(
+            np.array(xy), np.array(heading), np.array(kappa), np.array(length), closed, g, np.array(rate)
+        )
 
     @classmethod
     def from_nodes(
@@ -343,24 +379,39 @@ class Route:
         Returns
         -------
         xy, heading:
-            (M,2) world xy (m) and (M,) heading (rad), exact on lines and arcs.
+            (M,2) world xy (m) and (M,) heading (rad): exact on lines and arcs, on clothoids to
+            rounding (Gauss-Legendre quadrature of a smooth integrand, :func:`_piece_point`).
         """
+        i, u = self._piece_at(self._checked_s(s_m))
+        xy, th = _piece_point(
+            self.start_xy[i],
+            self.start_heading_rad[i],
+            self.curvature_per_m[i],
+            self.curvature_rate_per_m2[i],
+            u,
+        )
+        return xy, th
+
+    def curvature_at(self, s_m: np.ndarray | float) -> np.ndarray:
+        """(M,) signed curvature (1/m) at arc lengths ``s_m`` (wrapped or checked as in
+        :meth:`xy_heading_at`)."""
+        i, u = self._piece_at(self._checked_s(s_m))
+        return self.curvature_per_m[i] + self.curvature_rate_per_m2[i] * u
+
+    def _checked_s(self, s_m: np.ndarray | float) -> np.ndarray:
         s = np.atleast_1d(np.asarray(s_m, dtype=np.float64))
         total = self.length_m
         if self.closed:
-            s = np.mod(s, total)
-        elif np.any(s < -1e-9) or np.any(s > total + 1e-9):
+            return np.mod(s, total)
+        if np.any(s < -1e-9) or np.any(s > total + 1e-9):
             raise ValueError(f"s outside the open route's [0, {total:.3f}] m")
+        return s
+
+    def _piece_at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The piece of each (wrapped) arc length and the arc length into it."""
         starts = self.start_s_m
         i = np.clip(np.searchsorted(starts, s, side="right") - 1, 0, starts.size - 1)
-        u = s - starts[i]
-        th0, k = self.start_heading_rad[i], self.curvature_per_m[i]
-        th = th0 + k * u
-        straight = k == 0.0
-        k_safe = np.where(straight, 1.0, k)
-        dx = np.where(straight, u * np.cos(th0), (np.sin(th) - np.sin(th0)) / k_safe)
-        dy = np.where(straight, u * np.sin(th0), (np.cos(th0) - np.cos(th)) / k_safe)
-        return self.start_xy[i] + np.column_stack([dx, dy]), th
+        return i, s - starts[i]
 
     def poses_at(self, s_m: np.ndarray | float) -> np.ndarray:
         """(M,4,4) world<-vehicle poses at arc lengths ``s_m`` (x forward, y left, z up, on the ground)."""
@@ -385,6 +436,67 @@ class Route:
     def polyline(self, step_m: float = 1.0) -> np.ndarray:
         """(M,2) world xy sampled every ``step_m`` along one lap (for plots and comparisons)."""
         return self.xy_heading_at(np.arange(0.0, self.length_m, step_m))[0]
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
+
+
+def _piece_point(
+    xy0: np.ndarray, th0: np.ndarray, k0: np.ndarray, c: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position and heading ``u`` metres into pieces that start at ``xy0`` (M,2) with heading
+    ``th0``, curvature ``k0`` and curvature rate ``c`` (all (M,)): closed forms on lines and arcs,
+    16-point Gauss-Legendre quadrature of ``(cos, sin)`` of the quadratic heading on clothoids (a
+    clothoid turns by less than 90 degrees here: the quadrature is exact to rounding)."""
+    xy0, th0 = np.atleast_2d(xy0), np.atleast_1d(th0)
+    k0, c, u = np.atleast_1d(k0), np.atleast_1d(c), np.atleast_1d(u)
+    th = th0 + k0 * u + 0.5 * c * u * u
+    straight = k0 == 0.0
+    k_safe = np.where(straight, 1.0, k0)
+    dx = np.where(straight, u * np.cos(th0), (np.sin(th) - np.sin(th0)) / k_safe)
+    dy = np.where(straight, u * np.sin(th0), (np.cos(th0) - np.cos(th)) / k_safe)
+    spiral = np.flatnonzero(c != 0.0)
+    if spiral.size:
+        us = u[spiral, None] * 0.5 * (_GL_X[None] + 1.0)  # (m, 16) nodes along each piece
+        ths = th0[spiral, None] + k0[spiral, None] * us + 0.5 * c[spiral, None] * us * us
+        half = 0.5 * u[spiral]
+        dx[spiral] = half * (np.cos(ths) @ _GL_W)
+        dy[spiral] = half * (np.sin(ths) @ _GL_W)
+    return xy0 + np.column_stack([dx, dy]), th
+
+
+def _piece_end(xy0: np.ndarray, th0: float, k0: float, c: float, length: float) -> tuple[np.ndarray, float]:
+    """Where a piece (:func:`_piece_point`) ends: position and heading."""
+    xy, th = _piece_point(
+        np.asarray(xy0)[None], np.array([th0]), np.array([k0]), np.array([c]), np.array([length])
+    )
+    return xy[0], float(th[0])
+
+
+def _corner_curve(
+    phi: float, radius_m: float, transition_m: float
+) -> tuple[float, list[tuple[float, float, float]]]:
+    """A corner of turn ``phi`` (rad, + left): its tangent length (m, from the corner to where
+    the curve leaves the straight, the same on both sides by symmetry) and its pieces
+    ``(curvature, curvature rate, length)``: clothoid, arc, clothoid."""
+    if abs(phi) <= 1e-12:
+        return 0.0, []
+    sign, turn = float(np.sign(phi)), abs(phi)
+    ell = min(transition_m, radius_m * turn)  # a gentle corner: two clothoids, no arc
+    if ell <= 1e-9:
+        pieces = [(sign / radius_m, 0.0, radius_m * turn)]
+    else:
+        k_max = sign / radius_m
+        arc = radius_m * turn - ell  # the clothoids turn ell / (2 R) each
+        pieces = [(0.0, k_max / ell, ell)]
+        if arc > 1e-9:
+            pieces.append((k_max, 0.0, arc))
+        pieces.append((k_max, -k_max / ell, ell))
+    at, th = np.zeros(2), 0.0
+    for k0, c, length in pieces:
+        at, th = _piece_end(at, th, k0, c, length)
+    chord = np.array([1.0 + np.cos(phi), np.sin(phi)])  # u_in + u_out with u_in = +x
+    return float(at @ chord / (chord @ chord)), pieces
 
 
 def _drop_collinear(q: np.ndarray, closed: bool) -> np.ndarray:
@@ -418,11 +530,17 @@ def _rectangles(town: Town) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Motion:
-    """A vehicle driving a route: arc length and exact poses as functions of time.
+    """A vehicle driving a route as a driver would: arc length and poses as functions of time.
 
-    The speed is ``speed_mps * (1 + speed_variation * sin(2 pi t / speed_period_s + phase_rad))``,
-    integrated analytically, so poses at any time are exact. Time 0 is the start of the first sweep,
-    at arc length ``start_s_m``.
+    The speed along the route is a profile ``v(s)``: ``speed_mps`` on the straights, at most
+    ``sqrt(max_lateral_mps2 / |curvature|)`` in corners, reached by braking at ``max_decel_mps2``
+    before them and accelerating at ``max_accel_mps2`` after (periodic over a closed route's lap).
+    ``speed_variation`` adds a slow change of pace, ``1 + speed_variation * sin(2 pi t /
+    speed_period_s + phase_rad)`` times the profile, integrated analytically. Time 0 is the start
+    of the first sweep, at arc length ``start_s_m``. Arc length follows from the profile's travel
+    time ``tau(s) = integral ds / v(s)``, tabulated every :data:`PROFILE_STEP_M` and inverted by
+    interpolation: poses are exact to about 0.01 mm. ``max_lateral_mps2=inf`` drives the whole
+    route at ``speed_mps``, as every vehicle did before 2026-11-26.
     """
 
     route: Route
@@ -432,17 +550,96 @@ class Motion:
     phase_rad: float = 0.0
     start_s_m: float = 0.0
     mount_height_m: float = 1.73
+    max_lateral_mps2: float = 3.0
+    max_accel_mps2: float = 1.5
+    max_decel_mps2: float = 2.5
+    _profile: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.speed_mps < 0 or not 0.0 <= self.speed_variation < 1.0 or self.speed_period_s <= 0:
             raise ValueError("Motion needs speed_mps >= 0, 0 <= speed_variation < 1, speed_period_s > 0")
+        if min(self.max_lateral_mps2, self.max_accel_mps2, self.max_decel_mps2) <= 0:
+            raise ValueError("Motion needs positive lateral, acceleration and braking limits")
+        object.__setattr__(self, "_profile", self._travel_times())
+
+    def _travel_times(self) -> tuple[np.ndarray, np.ndarray]:
+        """Arc lengths over one lap (closed) or the route (open), and the profile's travel time
+        from ``s = 0`` to each."""
+        total = self.route.length_m
+        n = max(2, int(np.ceil(total / PROFILE_STEP_M)) + 1)
+        s = np.linspace(0.0, total, n)
+        if self.speed_mps == 0.0:
+            return s, np.zeros(n)
+        v = self.speed_profile(s)
+        dt = np.diff(s) * 0.5 * (1.0 / v[1:] + 1.0 / v[:-1])
+        return s, np.concatenate([[0.0], np.cumsum(dt)])
+
+    def speed_profile(self, s_m: np.ndarray) -> np.ndarray:
+        """(M,) speed (m/s) at arc lengths ``s_m`` in ``[0, length_m]`` before ``speed_variation``:
+        the cruise speed, capped in corners, with braking and acceleration limits (the lowest of
+        every bound reachable from a cap, in ``v^2``)."""
+        s = np.asarray(s_m, dtype=np.float64)
+        route = self.route
+        if route.closed:  # the neighbouring laps' corners bound this lap's ends
+            total = route.length_m
+            s_all = np.concatenate([s - total, s, s + total])
+        else:
+            s_all = s
+        kappa = np.abs(route.curvature_at(np.mod(s_all, route.length_m) if route.closed else s_all))
+        with np.errstate(divide="ignore"):
+            cap2 = np.minimum(self.speed_mps**2, self.max_lateral_mps2 / kappa)
+        a, d = 2.0 * self.max_accel_mps2, 2.0 * self.max_decel_mps2
+        reach_after = a * s_all + np.minimum.accumulate(cap2 - a * s_all)  # accelerating out of caps
+        reach_before = -d * s_all + np.minimum.accumulate((cap2 + d * s_all)[::-1])[::-1]  # braking into
+        v = np.sqrt(np.minimum(reach_after, reach_before))
+        if route.closed:
+            v = v[s.size : 2 * s.size]
+        elif v.size and (v[0] == 0.0 or v[-1] == 0.0):
+            raise ValueError("the speed profile stops")
+        return v
+
+    @property
+    def lap_time_s(self) -> float:
+        """Time to drive the whole route (one lap of a closed one) on the profile, without
+        ``speed_variation`` (s); infinite at speed 0."""
+        return float(self._profile[1][-1]) if self.speed_mps > 0 else float("inf")
 
     def s_at(self, t_s: np.ndarray | float) -> np.ndarray:
-        """Arc length (m) at times ``t_s`` (s): (M,) float64."""
+        """Arc length (m, unwrapped) at times ``t_s`` (s): (M,) float64."""
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        if self.speed_mps == 0.0:
+            return np.full(t.shape, self.start_s_m)
         w = 2.0 * np.pi / self.speed_period_s
         wobble = self.speed_variation / w * (np.cos(self.phase_rad) - np.cos(w * t + self.phase_rad))
-        return self.start_s_m + self.speed_mps * (t + wobble)
+        return self._s_of_tau(self._tau_of_s(self.start_s_m) + t + wobble)
+
+    def _tau_of_s(self, s_m: float) -> float:
+        """The profile's travel time from ``s = 0`` to ``s_m`` (unwrapped on a closed route)."""
+        s_grid, tau = self._profile
+        total = s_grid[-1]
+        if self.route.closed:
+            laps = np.floor(s_m / total)
+            return float(laps * tau[-1] + np.interp(s_m - laps * total, s_grid, tau))
+        v0 = s_grid[1] / tau[1]
+        v1 = (total - s_grid[-2]) / (tau[-1] - tau[-2])
+        if s_m < 0.0:
+            return float(s_m / v0)
+        if s_m > total:
+            return float(tau[-1] + (s_m - total) / v1)
+        return float(np.interp(s_m, s_grid, tau))
+
+    def _s_of_tau(self, x: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`_tau_of_s`; an open route continues at its end speeds beyond its ends."""
+        s_grid, tau = self._profile
+        total, lap = s_grid[-1], tau[-1]
+        if self.route.closed:
+            laps = np.floor(x / lap)
+            return laps * total + np.interp(x - laps * lap, tau, s_grid)
+        v0 = s_grid[1] / tau[1]
+        v1 = (total - s_grid[-2]) / (tau[-1] - tau[-2])
+        out = np.interp(x, tau, s_grid)
+        out = np.where(x < 0.0, x * v0, out)
+        return np.where(x > lap, total + (x - lap) * v1, out)
 
     def vehicle_poses_at(self, t_s: np.ndarray | float) -> np.ndarray:
         """(M,4,4) world<-vehicle poses at times ``t_s`` (s)."""
@@ -527,8 +724,8 @@ def simulate(
     rate_hz:
         Sweeps per second; scan ``k`` starts at ``start_stamp_ns + k * round(1e9 / rate_hz)``.
     speed_mps:
-        Mean speed; consecutive sweeps start ``speed_mps / rate_hz`` metres apart along the route
-        when ``speed_variation`` is 0.
+        Cruise speed on straights; slower in corners (:class:`Motion`): consecutive sweeps start
+        ``speed_mps / rate_hz`` metres apart along a straight when ``speed_variation`` is 0.
     seed:
         Seed of the speed phase and of each sweep's noise (scan ``k`` uses ``[seed, k]``), so the
         same arguments give identical scans.

@@ -29,7 +29,7 @@ from core.fleet_map import FleetMapper, FleetMapSettings, Key, LoopRecord, level
 from core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
 from core.transforms import invert, transform_error, umeyama
 from core.voxel import voxel_downsample
-from sim.drive import plan_fleet, simulate_fleet
+from sim.drive import Motion, plan_fleet, simulate_fleet
 from sim.gnss import GnssReceiver
 from sim.lidar import Lidar64
 from sim.town import Town
@@ -123,7 +123,7 @@ def run_mapping_fleet(
     the mapping (:func:`sim.drive.simulate`'s ``workers``; 0: in this process, one at a time)."""
     town = Town.generate(seed)
     fleet = plan_fleet(town, n_vehicles, seed=seed, route_length_m=route_length_m, rate_hz=rate_hz)
-    n_scans = int(np.ceil(laps * min(v.route.length_m for v in fleet) / speed_mps * rate_hz))
+    n_scans = int(np.ceil(laps * min(Motion(v.route, speed_mps).lap_time_s for v in fleet) * rate_hz))
     names = [v.vehicle_id for v in fleet]
     no_gnss = [names[i] for i in without_gnss if i < n_vehicles]
     outages = () if gnss_outage_s is None else (gnss_outage_s,)

@@ -404,14 +404,16 @@ def test_a_caller_behind_rebuilds_once_for_two_keyframes(kitti00, kitti00_run, m
 
 
 def test_a_long_gap_through_a_corner_is_bridged() -> None:
-    """Gaps of 8 sweeps (0.8 s) over a corner's onset and end, as an overloaded service leaves
-    them: the constant-velocity prediction misses by 22-34 degrees (asserted from the ground truth
+    """Gaps of 13-14 sweeps (1.3 s) over a corner's onset and end, as an overloaded service leaves
+    them: the constant-velocity prediction misses by 17-28 degrees (asserted from the ground truth
     below, so the test keeps its teeth), the turns scored over the gap find the match, and the
-    session keeps its track. Without the gap search this drive lost its track for good at
-    sweep 39 (inlier ratio 0.20), found by bench/service.py with 4 vehicles."""
+    session keeps its track. Without the gap search a drive with gaps of 8 sweeps lost its track
+    for good (inlier ratio 0.20), found by bench/service.py with 4 vehicles; that was on the
+    simulator's old corners, whose yaw rate jumped to 64 deg/s at once (on the car-like ones an
+    8-sweep gap misses by 15 degrees at most)."""
     from core.transforms import rotation_angle_deg, scale_motion
 
-    keep = [*range(13), 14, 15, 18, 19, 23, 31, 39, 47, 52, 54, 59]
+    keep = [0, 1, 2, 3, 17, 18, 19, 33, 34, 47, 48, 59]
     scans = _fleet_sweeps()
     matcher = IncrementalMatcher()
     misses = []
@@ -428,20 +430,28 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
         assert r.status in ("first", "ok"), (i, r.message)
         err_m, err_deg = transform_error(r.T_world_sensor, scan.T_world_sensor)
         assert err_m < 0.05 and err_deg < 0.1, (i, err_m, err_deg)
-    assert max(misses) > 20.0 and sum(m > 20.0 for m in misses) >= 2, misses
+    assert max(misses) > 25.0 and sum(m > 15.0 for m in misses) >= 2, misses
 
 
 def test_a_caller_behind_still_bridges_a_long_gap() -> None:
     """A caller that never calls ``update_model`` (an overloaded matcher process: the model a
-    keyframe behind) and gaps of up to 14 sweeps (1.4 s, 14 m), one holding a whole corner: the
-    constant-velocity prediction misses the 25 -> 39 gap by 73 degrees. The gap search's turns
-    reach 100 degrees either way; with 60, as first built, this drive lost its track there
-    (found by replaying bench/service.py's drop patterns at 8 vehicles)."""
+    keyframe behind) and gaps of up to 14 sweeps (1.4 s, 14 m) through a corner: the
+    constant-velocity prediction misses the 25 -> 39 gap by 33 degrees (asserted). The gap search's
+    turns reach 100 degrees either way; with 60, as first built, this drive lost its track on the
+    simulator's old corners, where that gap was missed by 73 degrees (found by replaying
+    bench/service.py's drop patterns at 8 vehicles)."""
+    from core.transforms import rotation_angle_deg, scale_motion
+
     keep = [*range(13), 17, 25, 39, 44, 54, 58]
     scans = _fleet_sweeps()  # (its first 59 were simulated for it before they were shared)
     matcher = IncrementalMatcher()
-    for i in keep:
+    misses = []
+    for a, i in enumerate(keep):
         scan = scans[i]
+        if a > 0:
+            truth = invert(scans[keep[a - 1]].T_world_sensor) @ scan.T_world_sensor
+            predicted = scale_motion(matcher.state.delta, i - keep[a - 1])
+            misses.append(rotation_angle_deg((invert(predicted) @ truth)[:3, :3]))
         prior = PosePrior(scan.T_world_sensor, np.diag([1e-4] * 3 + [1e-5] * 3)) if i == 0 else None
         stamp_s = scan.stamp_ns * 1e-9
         r = matcher.register_scan(
@@ -450,6 +460,7 @@ def test_a_caller_behind_still_bridges_a_long_gap() -> None:
         assert r.status in ("first", "ok"), (i, r.message)
         err_m, err_deg = transform_error(r.T_world_sensor, scan.T_world_sensor)
         assert err_m < 0.05 and err_deg < 0.1, (i, err_m, err_deg)
+    assert max(misses) > 30.0, misses
 
 
 def test_a_sweep_failing_after_its_pose_was_appended_leaves_the_state_equal(monkeypatch) -> None:

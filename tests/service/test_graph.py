@@ -22,7 +22,7 @@ from core.transforms import invert, transform_error, umeyama
 from service.graph import MAX_TILE_SPAN, GraphState, MapGeometry, _ProcessMap, correct_trajectory
 from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
-from sim.drive import plan_fleet, simulate
+from sim.drive import Motion, plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from tests.service.api_server import LiveServer, live_server
@@ -139,7 +139,7 @@ def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
     to correct then depends on the machine's speed: live ATE 0.34 to 0.57 m were seen)."""
     town = Town.generate(0)
     vehicle = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
-    n = int(np.ceil(1.15 * vehicle.route.length_m))  # 10 m/s at 10 Hz: one sweep per metre
+    n = int(np.ceil(1.15 * Motion(vehicle.route).lap_time_s * 10))  # 1.15 laps at 10 Hz
     lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
     scans = list(
         simulate(

@@ -270,23 +270,54 @@ def test_full_scan_point_count_range_and_ground_ring(town: Town, route: Route) -
     np.testing.assert_allclose(hdl64e_elevations_deg()[[0, 31, 32, 63]], [2.0, -8.33, -8.83, -24.8])
 
 
-def test_consecutive_poses_are_speed_over_rate_apart(town: Town, route: Route) -> None:
+def test_a_corner_is_driven_as_a_car_drives_it(town: Town, route: Route) -> None:
     lidar = Lidar64(n_azimuth=32)
-    arc = np.flatnonzero(route.curvature_per_m != 0.0)[0]
-    start = route.start_s_m[arc] - 10.0  # drive through a corner arc
-    scans = list(simulate(town, route, n_scans=30, seed=1, lidar=lidar, speed_mps=10.0, start_s_m=start))
+    entry = np.flatnonzero(route.curvature_rate_per_m2 > 0.0)[0]
+    start = route.start_s_m[entry] - 40.0  # from the straight before a corner through it
+    scans = list(simulate(town, route, n_scans=60, seed=1, lidar=lidar, speed_mps=10.0, start_s_m=start))
     s = np.array([sc.route_s_m for sc in scans])
-    np.testing.assert_allclose(np.diff(s), 1.0, atol=1e-9)
+    step = np.diff(s)
+    np.testing.assert_allclose(step[:5], 1.0, atol=1e-6)  # 10 m/s on the straight
+    assert 0.515 < step.min() < 0.53  # 5.2 m/s at the apex: 3 m/s^2 on the 9 m arc
     p = np.array([sc.T_world_sensor[:3, 3] for sc in scans])
     chord = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    assert np.all(np.abs(chord - 1.0) < 1e-3)  # arcs of 9 m: chord 2R sin(0.5/R) is 0.5 mm short
-    assert chord.min() < 1.0 - 1e-4  # the corner was really driven
+    np.testing.assert_allclose(chord, step, atol=2e-3)  # chords of the same arc lengths
     # the pose is the route's pose raised by the mount, x along the route heading
     for sc in scans[::7]:
         T_v = route.pose_at(sc.route_s_m)
         np.testing.assert_allclose(sc.T_world_sensor[:3, :3], T_v[:3, :3], atol=1e-12)
         np.testing.assert_allclose(sc.T_world_sensor[:3, 3], T_v[:3, 3] + [0.0, 0.0, 1.73], atol=1e-12)
     assert [sc.stamp_ns for sc in scans[:3]] == [0, 100_000_000, 200_000_000]
+    # finely in time: lateral acceleration within 3 m/s^2, braking and accelerating within the
+    # limits, and a yaw rate that changes by a few deg/s per sweep (it jumped by 64 deg/s before)
+    motion = Motion(route, speed_mps=10.0, start_s_m=start)
+    t = np.arange(0.0, 6.0, 0.01)
+    s_fine = motion.s_at(t)
+    v = np.diff(s_fine) / 0.01
+    assert np.max(np.abs(route.curvature_at(s_fine[1:])) * v**2) < 3.0 + 0.02
+    accel = np.diff(v) / 0.01
+    assert accel.min() > -2.5 - 0.3 and accel.max() < 1.5 + 0.3  # finite differences of a 5 cm table
+    yaw_rate = np.degrees(np.diff(np.unwrap(route.xy_heading_at(s_fine)[1]))) / 0.01
+    assert np.degrees(np.abs(route.curvature_at(s_fine)).max()) * v.min() > 30.0  # really turned
+    assert np.abs(yaw_rate[10:] - yaw_rate[:-10]).max() < 6.0  # per 0.1 s
+
+
+def test_plain_arcs_and_constant_speed_remain_available(town: Town) -> None:
+    corners = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 80.0], [0.0, 80.0]])
+    plain = Route.from_corners(corners, closed=True, transition_m=0.0)
+    assert np.all(plain.curvature_rate_per_m2 == 0.0)
+    np.testing.assert_allclose(plain.length_m, 2 * (100 + 80) - 4 * 9.0 * (2.0 - np.pi / 2), atol=1e-9)
+    motion = Motion(plain, speed_mps=10.0, max_lateral_mps2=np.inf)
+    np.testing.assert_allclose(np.diff(motion.s_at(np.arange(0.0, 40.0, 0.1))), 1.0, atol=1e-6)
+    np.testing.assert_allclose(motion.lap_time_s, plain.length_m / 10.0, rtol=1e-9)
+    smooth = Route.from_corners(corners, closed=True)  # clothoids: continuous curvature, closed loop
+    s = np.arange(0.0, smooth.length_m, 0.01)
+    assert np.abs(np.diff(smooth.curvature_at(s))).max() < 0.01 * (1 / 9.0) / 8.0 + 1e-12
+    xy, heading = smooth.xy_heading_at(s)
+    chord_heading = np.arctan2(*np.diff(xy, axis=0).T[::-1])
+    mid = 0.5 * (np.unwrap(heading)[1:] + np.unwrap(heading)[:-1])
+    assert np.abs(np.angle(np.exp(1j * (chord_heading - mid)))).max() < 1e-6  # heading is the tangent
+    np.testing.assert_allclose(smooth.pose_at(smooth.length_m), smooth.pose_at(0.0), atol=1e-9)
 
 
 @pytest.mark.parametrize("deskewed", [True, False])
@@ -389,7 +420,7 @@ def test_fleet_vehicles_take_different_routes(town: Town) -> None:
 def test_bad_arguments_fail_at_the_call(town: Town) -> None:
     walk = Route.random_walk(town, 2, length_m=300.0)
     with pytest.raises(ValueError, match="open route"):
-        simulate(town, walk, n_scans=int(walk.length_m) + 50, lidar=SMALL)  # 1 m per scan: too far
+        simulate(town, walk, n_scans=int(1.5 * walk.length_m), lidar=SMALL)  # at most 1 m per scan: too far
     with pytest.raises(ValueError):
         simulate_fleet(town, 2, n_scans=1000, closed=False, route_length_m=300.0, lidar=SMALL)
     with pytest.raises(ValueError):
