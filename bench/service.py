@@ -311,6 +311,27 @@ def _peak_rss_mib(pid: int) -> float:
 
 
 # -- one fleet size --------------------------------------------------------------------------------
+def write_timeline(
+    path: Path,
+    sent: dict[tuple[str, int], float],
+    got: dict[tuple[str, int], float],
+    pose_of: dict[tuple[str, int], np.ndarray],
+    truth: dict[tuple[str, int], np.ndarray],
+) -> None:
+    """One row per scan sent: vehicle, seq, seconds since the first scan was sent, publish-to-pose
+    latency (ms, empty when not posed) and position error (cm), to see when a run stalled."""
+    t0 = min(sent.values(), default=0.0)
+    with path.open("w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(["vehicle", "seq", "sent_s", "latency_ms", "error_cm"])
+        for key in sorted(sent, key=sent.__getitem__):
+            row: list[object] = [key[0], key[1], f"{sent[key] - t0:.3f}", "", ""]
+            if key in got:
+                row[3] = f"{1e3 * (got[key] - sent[key]):.1f}"
+                row[4] = f"{100 * float(np.linalg.norm(pose_of[key][:3, 3] - truth[key][:3, 3])):.2f}"
+            out.writerow(row)
+
+
 def run_one(
     n_vehicles: int,
     spool_dir: Path,
@@ -318,6 +339,7 @@ def run_one(
     service_repo: Path = REPO,
     graph: bool = True,
     executor: str = "local",
+    timeline: Path | None = None,
 ) -> dict[str, Any]:
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
@@ -459,6 +481,8 @@ def run_one(
         by_vehicle[k[0]].append(pos_cm[-1])
         rot_deg.append(float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))))
     pos = np.array(pos_cm)
+    if timeline is not None:
+        write_timeline(timeline, sent, got, pose_of, truth)
     n_answered = len(got) + sum(errors.values())
     poses = max(len(got), 1)
     dropped = errors.get(ErrorCode.DROPPED, 0)
@@ -778,12 +802,22 @@ def main() -> None:
         action="store_true",
         help="skip the offline reference (the same sweeps through the session matcher here, one thread)",
     )
+    parser.add_argument(
+        "--timeline",
+        type=Path,
+        help="write each run's per-scan latency and pose error to this directory "
+        "(timeline-<vehicles>-<graph>-<executor>.csv), to see when a run stalled",
+    )
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
+        timeline = None
+        if args.timeline is not None:
+            args.timeline.mkdir(parents=True, exist_ok=True)
+            timeline = args.timeline / f"timeline-{args.one}-{args.graph}-{args.executor}.csv"
         result = run_one(
-            args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor
+            args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor, timeline
         )
         print(json.dumps(result))
         return
@@ -795,6 +829,7 @@ def main() -> None:
         spool = args.sweeps or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-sweeps-")))
         spool.mkdir(parents=True, exist_ok=True)
         meta = {"vehicles": max(args.vehicles), "scans": round(args.seconds * RATE_HZ), "link": args.link}
+        meta["routes"] = "car-like"  # sim.drive since 2026-11-26: clothoids, slower in corners
         meta_path = spool / "meta.json"
         if not meta_path.exists() or json.loads(meta_path.read_text()) != meta:
             meta_path.unlink(missing_ok=True)
@@ -815,6 +850,8 @@ def main() -> None:
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
                 command += ["--executor", executor]
+                if args.timeline is not None:
+                    command += ["--timeline", str(args.timeline.resolve())]
                 out = subprocess.run(command, capture_output=True, text=True)
                 if out.returncode != 0:
                     sys.stderr.write(out.stderr)

@@ -78,7 +78,7 @@ import os
 import re
 import threading
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +93,7 @@ from core.io.autoware import (
     tile_file_name,
     write_metadata,
     write_sidecar,
-    write_tile_file,
+    write_tile_table,
 )
 from core.kernels import (
     first_per_voxel_pair,
@@ -188,6 +188,9 @@ class Tile:
         (N,) float32 return intensity (zeros where scans had none); a read-only view (column 3).
     bounds:
         The nominal cell and the box around ``points``.
+    table:
+        (N, 4) float32 ``x y z intensity``, read-only, that ``points`` and ``intensity`` view (a
+        grid's tiles share it with their buffer); ``None``: :attr:`xyzi` builds one.
     """
 
     ix: int
@@ -196,6 +199,18 @@ class Tile:
     points: np.ndarray
     intensity: np.ndarray
     bounds: TileBounds
+    table: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def xyzi(self) -> np.ndarray:
+        """(N, 4) float32 ``x y z intensity``: what a tile's PCD file and tile update hold, with
+        no copy for a grid's tiles."""
+        if self.table is not None:
+            return self.table
+        xyzi = np.empty((self.n_points, 4), dtype=np.float32)
+        xyzi[:, :3] = self.points
+        xyzi[:, 3] = self.intensity
+        return xyzi
 
     @property
     def id(self) -> str:
@@ -244,6 +259,7 @@ def _tile_with_bounds(
         points=_readonly(xyzi[:, :3]),
         intensity=_readonly(xyzi[:, 3]),
         bounds=bounds,
+        table=_readonly(xyzi),
     )
 
 
@@ -821,7 +837,7 @@ class TileGrid:
             raise InvalidCloudError("the map is empty: nothing to export")
         directory = make_directory(directory)
         for t in tiles:
-            write_tile_file(directory, t.id, t.to_cloud())
+            write_tile_table(directory, t.id, t.xyzi)
         self._write_sidecar(directory, tiles)
         entries = write_metadata(directory, self._tile_size, _corners(tiles))
         remove_stale_tile_files(directory, entries)
@@ -894,7 +910,7 @@ class TileGrid:
         written: list[str] = []
         for t in tiles:
             if t.id in wanted or not (directory / tile_file_name(t.id)).is_file():
-                write_tile_file(directory, t.id, t.to_cloud())
+                write_tile_table(directory, t.id, t.xyzi)
                 written.append(t.id)
         write_metadata(directory, self._tile_size, _corners(tiles))
         logger.debug("wrote %d of %d tiles to %s", len(written), len(tiles), directory)

@@ -138,6 +138,7 @@ from wire.messages import (
     peek_seq,
     points_digest,
     tile_update_from_arrays,
+    tile_update_from_table,
 )
 
 __all__ = [
@@ -1084,16 +1085,21 @@ class SessionManager:
 
     def tile_digest(self, map_name: str, tile: Tile) -> str:
         """:func:`tile_digest` of a tile, cached by ``(map, tile, version)`` (versions never repeat)."""
-        key = (map_name, tile.id, tile.version)
-        with self._lock:
-            digest = self._digests.get(key)
+        digest = self._cached_digest(map_name, tile)
         if digest is None:
             digest = tile_digest(tile)
-            with self._lock:
-                if len(self._digests) > 100_000:
-                    self._digests.clear()
-                self._digests[key] = digest
+            self._remember_digest(map_name, tile, digest)
         return digest
+
+    def _cached_digest(self, map_name: str, tile: Tile) -> str | None:
+        with self._lock:
+            return self._digests.get((map_name, tile.id, tile.version))
+
+    def _remember_digest(self, map_name: str, tile: Tile, digest: str) -> None:
+        with self._lock:
+            if len(self._digests) > 100_000:
+                self._digests.clear()
+            self._digests[(map_name, tile.id, tile.version)] = digest
 
     def forget_empty_map(self, map_name: str) -> None:
         """Drop ``map_name`` if it holds no tile and no session uses it (a frame left unused)."""
@@ -1256,8 +1262,21 @@ class SessionManager:
                 self.outbox(self.tile_message(map_name, tile))
 
     def tile_message(self, map_name: str, tile: Tile) -> TileUpdateMessage:
-        """The :class:`~wire.messages.TileUpdateMessage` of a saved tile (with its digest)."""
-        return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
+        """The :class:`~wire.messages.TileUpdateMessage` of a saved tile, with its digest (which
+        its ETag names too: computed once, cached). The grid checked its points when they were
+        inserted, so the message is built from its table without checking them again."""
+        message = tile_update_from_table(
+            map_name,
+            tile.ix,
+            tile.iy,
+            tile.version,
+            tile.xyzi,
+            (tile.bounds.min_xyz, tile.bounds.max_xyz),
+            self._cached_digest(map_name, tile),
+        )
+        if message.digest is not None:
+            self._remember_digest(map_name, tile, message.digest)
+        return message
 
     def _snapshot_due(self, w: SessionWorker, now: float) -> bool:
         """Whether a running session's snapshot is due (module docstring, Snapshots): it changed,
@@ -1568,10 +1587,7 @@ def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> TileUpdateMessa
 def tile_digest(tile: Tile) -> str:
     """The digest of a tile's content: :func:`wire.messages.points_digest` of its float32
     ``x y z intensity`` table, as its tile update carries it and its ETag names it."""
-    table = np.empty((tile.n_points, 4), dtype="<f4")
-    table[:, :3] = tile.points
-    table[:, 3] = tile.intensity
-    return points_digest(table.tobytes())
+    return points_digest(np.ascontiguousarray(tile.xyzi, dtype="<f4").tobytes())
 
 
 #: Until a session has processed this many scans, overload drops its newest waiting scan rather

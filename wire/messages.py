@@ -1548,6 +1548,37 @@ def tile_update_from_arrays(
     return _validate(TileUpdateMessage, obj, _DEFAULT_LIMITS)
 
 
+def tile_update_from_table(
+    map_name: str,
+    ix: int,
+    iy: int,
+    version: int,
+    xyzi: np.ndarray,
+    bounds: tuple[Sequence[float], Sequence[float]],
+    digest: str | None = None,
+) -> TileUpdateMessage:
+    """A tile update from content its sender has checked already: an (N, 4) float32 ``x y z
+    intensity`` table of finite values (a service's saved map tile), its box ``(min, max)`` and
+    its :func:`points_digest` (computed here when ``None``). Built without validating the content
+    again (``model_construct``): :func:`tile_update_from_arrays` is the checked form, for content
+    from elsewhere. Every message still decodes as :func:`decode_tile_update` checks it (tests)."""
+    points = np.ascontiguousarray(xyzi, dtype=_F32).tobytes()
+    n = len(points) // _TILE_POINT_SIZE
+    lo, hi = ([float(v) for v in b] for b in bounds) if n else ([0.0] * 3, [0.0] * 3)
+    return TileUpdateMessage.model_construct(
+        v=SCHEMA_VERSION,
+        map=map_name,
+        tile=f"{int(ix)}_{int(iy)}",
+        ix=int(ix),
+        iy=int(iy),
+        version=int(version),
+        bounds=Bounds.model_construct(min=tuple(lo), max=tuple(hi)),
+        n_points=n,
+        points=points,
+        digest=points_digest(points) if digest is None else digest,
+    )
+
+
 def points_digest(points: bytes) -> str:
     """A tile content's name: the first 16 hex digits of the SHA-256 of its ``points`` bytes
     (float32 x y z intensity, little-endian), as :class:`TileUpdateMessage` carries them."""

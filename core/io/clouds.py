@@ -469,6 +469,9 @@ def read_cloud(
 # --------------------------------------------------------------------------------------------
 
 
+_PCD_FIELDS = ("x", "y", "z", "intensity")
+
+
 def _xyzi_float32(cloud: PointCloud, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Return (N, 3) float32 positions and (N,) float32 intensity (zeros when absent)."""
     if cloud.n_points == 0:
@@ -513,12 +516,47 @@ def write_pcd(path: str | os.PathLike[str], cloud: PointCloud) -> None:
     xyz, intensity = _xyzi_float32(cloud, path)
     pcd = pypcd4.PointCloud.from_points(
         [xyz[:, 0], xyz[:, 1], xyz[:, 2], intensity],
-        fields=("x", "y", "z", "intensity"),
+        fields=_PCD_FIELDS,
         types=(np.float32, np.float32, np.float32, np.float32),
     )
     with atomic_open(path, "wb") as fh:
         pcd.save(cast(BinaryIO, fh), encoding=pypcd4.Encoding.BINARY)  # atomic_open("wb"): a binary file
     logger.debug("wrote %s: %d points", path, cloud.n_points)
+
+
+def write_pcd_xyzi(path: str | os.PathLike[str], xyzi: np.ndarray) -> None:
+    """Write an (N, 4) float32 ``x y z intensity`` table as the binary PCD :func:`write_pcd`
+    writes (the same bytes), atomically, without copying the table into records or checking its
+    values again: a map tile's buffer, whose points were checked when they were inserted. The
+    header is pypcd4's; the body is the table's bytes.
+
+    Raises
+    ------
+    InvalidCloudError
+        Not an (N, 4) float32 table, or empty.
+    FormatError
+        The file could not be written.
+    """
+    path = Path(path)
+    if xyzi.ndim != 2 or xyzi.shape[1] != 4 or xyzi.dtype != np.dtype("<f4"):
+        raise InvalidCloudError(
+            f"{path}: expected an (N, 4) little-endian float32 table, got {xyzi.shape} {xyzi.dtype}"
+        )
+    n = int(xyzi.shape[0])
+    if n == 0:
+        raise InvalidCloudError(f"refusing to write an empty cloud to {path}")
+    metadata = pypcd4.MetaData(
+        fields=_PCD_FIELDS,
+        size=(4, 4, 4, 4),
+        type=("F", "F", "F", "F"),
+        count=(1, 1, 1, 1),
+        width=n,
+        points=n,
+    )
+    with atomic_open(path, "wb") as fh:
+        fh.write(metadata.compose_header(data=pypcd4.Encoding.BINARY).encode())
+        fh.write(np.ascontiguousarray(xyzi).data.cast("B"))
+    logger.debug("wrote %s: %d points", path, n)
 
 
 def write_ply(path: str | os.PathLike[str], cloud: PointCloud) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from core.errors import FormatError, NotFoundError
+from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io import PointCloud, read_cloud
 from core.io.autoware import (
     AUTOWARE_METADATA_NAME,
@@ -19,6 +19,7 @@ from core.io.autoware import (
     write_metadata,
     write_sidecar,
     write_tile_file,
+    write_tile_table,
 )
 
 
@@ -52,6 +53,45 @@ def test_sidecar_round_trip_and_mismatched_tile_size(tmp_path: Path) -> None:
     with pytest.raises(FormatError, match="disagrees"):
         read_sidecar(tmp_path, 40)
     assert (tmp_path / GRID_SIDECAR_NAME).is_file()
+
+
+def test_a_tile_written_from_its_table_is_the_same_file(tmp_path: Path) -> None:
+    xyzi = np.random.default_rng(4).uniform(-50.0, 50.0, size=(333, 4)).astype("<f4")
+    cloud = PointCloud(xyz=xyzi[:, :3].astype(np.float64), intensity=xyzi[:, 3])
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    from_cloud = write_tile_file(tmp_path / "a", "1_2", cloud)
+    from_table = write_tile_table(tmp_path / "b", "1_2", xyzi)
+    assert from_table.read_bytes() == from_cloud.read_bytes()
+    back = read_cloud(from_table)
+    np.testing.assert_array_equal(back.xyz, xyzi[:, :3].astype(np.float64))
+    with pytest.raises(InvalidCloudError):
+        write_tile_table(tmp_path, "0_0", xyzi[:0])
+    with pytest.raises(InvalidCloudError):
+        write_tile_table(tmp_path, "0_0", xyzi.astype(np.float64))
+
+
+def test_metadata_and_sidecar_text_is_pyyamls_at_a_fraction_of_its_cost(tmp_path: Path) -> None:
+    """The metadata is written as PyYAML writes it (Autoware reads that text), and the sidecar
+    loads back equal (its versions in block style), for ids PyYAML quotes (``'0_0'`` reads as an
+    integer in YAML 1.1) and ids it does not (``-1_2``)."""
+    import yaml
+
+    rng = np.random.default_rng(5)
+    ids = [f"{a}_{b}" for a, b in rng.integers(-300, 300, (400, 2))] + ["0_0", "-1_2", "12_-7"]
+    corners = {
+        tid: (int(x), int(y))
+        for tid, (x, y) in zip(ids, rng.integers(-6000, 6000, (len(ids), 2)), strict=True)
+    }
+    write_metadata(tmp_path, 20, corners)
+    document = {"x_resolution": 20.0, "y_resolution": 20.0}
+    document |= {f"{tid}.pcd": [x, y] for tid, (x, y) in corners.items()}
+    expected = yaml.dump(document, Dumper=yaml.SafeDumper, sort_keys=False, default_flow_style=None)
+    assert (tmp_path / AUTOWARE_METADATA_NAME).read_text() == expected
+    versions = {tid: int(v) for tid, v in zip(ids, rng.integers(1, 10**6, len(ids)), strict=True)}
+    write_sidecar(tmp_path, tile_size_m=20, voxel_size_m=0.2, max_points_per_voxel=1, versions=versions)
+    saved, back = read_sidecar(tmp_path, 20)
+    assert back == versions and saved["voxel_size_m"] == 0.2
 
 
 def test_tile_files_and_stale_removal(tmp_path: Path) -> None:

@@ -37,6 +37,7 @@ from wire.messages import (
     pose_to_matrix,
     scan_from_arrays,
     tile_update_from_arrays,
+    tile_update_from_table,
 )
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
@@ -313,6 +314,20 @@ def test_tile_update_built_as_the_service_does() -> None:
         points=xyzi.tobytes(),
     )
     np.testing.assert_array_equal(decode_tile_update(encode(msg)).points_f32(), xyzi)
+
+
+def test_a_tile_update_from_a_checked_table_is_the_checked_one() -> None:
+    """The service builds its saved tiles' updates without validating them again: the message,
+    its bytes and its digest are those of the validated form, and it decodes."""
+    rng = np.random.default_rng(3)
+    xyzi = rng.uniform(-30.0, 30.0, size=(700, 4)).astype("<f4")
+    checked = tile_update_from_arrays("default", -2, 5, 9, xyzi[:, :3], xyzi[:, 3])
+    bounds = (xyzi[:, :3].min(axis=0).tolist(), xyzi[:, :3].max(axis=0).tolist())
+    fast = tile_update_from_table("default", -2, 5, 9, xyzi, bounds)
+    assert fast == checked
+    assert encode(fast) == encode(checked)
+    assert decode_tile_update(encode(fast)) == checked
+    assert tile_update_from_table("default", -2, 5, 9, xyzi, bounds, digest=checked.digest) == checked
 
 
 def test_unknown_keys_are_ignored_within_v1() -> None:
