@@ -58,6 +58,8 @@ from core.transforms import (
     orthonormalize,
     rotation_angle_deg,
     scale_motion,
+    so3_exp,
+    so3_log,
     transform_points,
 )
 from core.voxel import voxel_downsample
@@ -356,7 +358,7 @@ def deskew(
     middle).
     """
     s = np.clip(np.asarray(time_offset_s, dtype=np.float64) / period_s, 0.0, 1.5) - reference_fraction
-    rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
+    rotvec = so3_log(delta[:3, :3])
     pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
     return deskew_points(
         pts, np.ascontiguousarray(s), rotvec, np.ascontiguousarray(delta[:3, 3], dtype=float)
@@ -1053,13 +1055,11 @@ class IncrementalMatcher:
         gmap = self._state.model.maps[0]
         consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
         pts = voxel_downsample(matching_xyz, 0.5 * gmap.voxel_size_m)
-        rotvec = Rotation.from_matrix(self._state.delta[:3, :3]).as_rotvec()
+        rotvec = so3_log(self._state.delta[:3, :3])
         scored = []
         for turn in GAP_TURN_DEG:
             motion = self._state.delta.copy()
-            motion[:3, :3] = Rotation.from_rotvec(
-                (rotvec[0], rotvec[1], np.radians(turn) / periods)
-            ).as_matrix()
+            motion[:3, :3] = so3_exp(np.array([rotvec[0], rotvec[1], np.radians(turn) / periods]))
             T = orthonormalize(self._state.poses[-1] @ scale_motion(motion, periods))
             if rotation_angle_deg((invert(T_pred) @ T)[:3, :3]) < 2.5:
                 continue  # the prediction, tried already

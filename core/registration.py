@@ -27,7 +27,6 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from core.config import Method, RegistrationSettings
 from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
@@ -50,6 +49,7 @@ from core.transforms import (
     invert,
     orthonormalize,
     rotation_angle_deg,
+    so3_log,
     transform_points,
     umeyama,
 )
@@ -541,7 +541,7 @@ def _svd_refine(
         T = D @ T
         # The step as a rotation about the matched points' centroid ``c`` (not the frame's
         # origin, which may be far away) and the centroid's translation.
-        step = np.concatenate([D[:3, :3] @ c + D[:3, 3] - c, Rotation.from_matrix(D[:3, :3]).as_rotvec()])
+        step = np.concatenate([D[:3, :3] @ c + D[:3, 3] - c, so3_log(D[:3, :3])])
         small = (
             np.linalg.norm(step[:3]) < settings.svd_translation_eps_m
             and np.linalg.norm(step[3:]) < settings.svd_rotation_eps_rad

@@ -11,6 +11,8 @@ covariances) updates a transform on the left: ``T <- exp(delta) @ T`` with
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
@@ -115,10 +117,71 @@ def transform_points(T: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
     return moved
 
 
+def so3_exp(rotvec: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a rotation vector (Rodrigues; series below 1e-4 rad): what
+    ``Rotation.from_rotvec(rotvec).as_matrix()`` gives, to rounding (tested), for one rotation
+    in a few microseconds where scipy's per-call overhead is about 0.1 ms (the matcher does this
+    several times a sweep: pose updates, motion scaling, convergence checks)."""
+    x, y, z = float(rotvec[0]), float(rotvec[1]), float(rotvec[2])
+    theta2 = x * x + y * y + z * z
+    if theta2 < 1e-8:
+        a, b = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0
+    else:
+        theta = math.sqrt(theta2)
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
+    return np.array(
+        [
+            [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+            [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+            [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+        ]
+    )
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(3,) rotation vector of a rotation matrix: ``Rotation.from_matrix(R).as_rotvec()`` to
+    rounding (tested, near 0 and 180 degrees too), by the same route (Shepperd's quaternion: the
+    largest of its four components first, then the angle by ``atan2``), without scipy's per-call
+    overhead (:func:`so3_exp`)."""
+    m = R.tolist()
+    r00, r01, r02 = m[0]
+    r10, r11, r12 = m[1]
+    r20, r21, r22 = m[2]
+    trace = r00 + r11 + r22
+    big = max(trace, r00, r11, r22)
+    if big == trace:
+        w = 0.5 * math.sqrt(max(1.0 + trace, 0.0))
+        f = 0.25 / w
+        qx, qy, qz, qw = (r21 - r12) * f, (r02 - r20) * f, (r10 - r01) * f, w
+    elif big == r00:
+        qx = 0.5 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        f = 0.25 / qx
+        qy, qz, qw = (r01 + r10) * f, (r02 + r20) * f, (r21 - r12) * f
+    elif big == r11:
+        qy = 0.5 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
+        f = 0.25 / qy
+        qx, qz, qw = (r01 + r10) * f, (r12 + r21) * f, (r02 - r20) * f
+    else:
+        qz = 0.5 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
+        f = 0.25 / qz
+        qx, qy, qw = (r02 + r20) * f, (r12 + r21) * f, (r10 - r01) * f
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if qw < 0.0:
+        norm = -norm
+    qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+    n = math.sqrt(qx * qx + qy * qy + qz * qz)
+    angle = 2.0 * math.atan2(n, qw)
+    if angle <= 1e-3:
+        scale = 2.0 + angle * angle / 12.0 + 7.0 * angle**4 / 2880.0
+    else:
+        scale = angle / math.sin(0.5 * angle)
+    return np.array([scale * qx, scale * qy, scale * qz])
+
+
 def apply_update(delta: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Left-update ``T`` by the 6-vector ``delta = (t, r)``: ``exp(delta) @ T`` (module docstring)."""
     U = np.eye(4)
-    U[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
+    U[:3, :3] = so3_exp(delta[3:6])
     U[:3, 3] = delta[:3]
     updated: np.ndarray = U @ T
     return updated
@@ -150,17 +213,17 @@ def scale_motion(T: np.ndarray, k: float) -> np.ndarray:
     """
     if k == 1.0:
         return T.copy()
-    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    w = so3_log(T[:3, :3])
     u = np.linalg.solve(_se3_left_jacobian(w), T[:3, 3])
     out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(k * w).as_matrix()
+    out[:3, :3] = so3_exp(k * w)
     out[:3, 3] = _se3_left_jacobian(k * w) @ (k * u)
     return out
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a 3x3 rotation in degrees (robust near 0 and 180 degrees)."""
-    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())))
+    return math.degrees(float(np.linalg.norm(so3_log(R))))
 
 
 def transform_error(T_estimate: np.ndarray, T_reference: np.ndarray) -> tuple[float, float]:

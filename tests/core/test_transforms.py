@@ -8,7 +8,17 @@ from scipy.linalg import fractional_matrix_power
 from scipy.spatial.transform import Rotation
 
 from core.errors import InvalidCloudError
-from core.transforms import invert, make_transform, scale_motion, transform_error, transform_points, umeyama
+from core.transforms import (
+    invert,
+    make_transform,
+    rotation_angle_deg,
+    scale_motion,
+    so3_exp,
+    so3_log,
+    transform_error,
+    transform_points,
+    umeyama,
+)
 
 
 @pytest.mark.parametrize("k", [0.0, 0.25, 0.5, 1.0, 2.0, 3.7, -1.0])
@@ -26,6 +36,31 @@ def test_scale_motion_composes_along_the_screw() -> None:
     step = make_transform(rotvec=(0.0, 0.0, np.radians(7.0)), translation=(1.2, 0.0, 0.0))
     np.testing.assert_allclose(scale_motion(step, 3.0), step @ step @ step, atol=1e-12)
     np.testing.assert_allclose(scale_motion(scale_motion(step, 3.0), 1 / 3), step, atol=1e-12)
+
+
+def test_so3_exp_and_log_are_scipys_everywhere() -> None:
+    """Random rotations, angles from 1e-9 rad to within 1e-9 rad of 180 degrees: the closed
+    forms give scipy's matrices and rotation vectors to rounding."""
+    rng = np.random.default_rng(7)
+    axes = rng.normal(size=(4000, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate(
+        [
+            10 ** rng.uniform(-9, -2, 1000),
+            rng.uniform(0, np.pi, 1000),
+            np.pi - 10 ** rng.uniform(-9, -1, 1000),
+        ]
+    )
+    angles = np.concatenate([angles, rng.uniform(0, 3, 1000)])
+    for rotvec in axes * angles[:, None]:
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        np.testing.assert_allclose(so3_exp(rotvec), R, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(so3_log(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
+    assert rotation_angle_deg(Rotation.from_rotvec([0.0, 0.0, np.pi - 1e-7]).as_matrix()) == pytest.approx(
+        180.0 - np.degrees(1e-7), abs=1e-9
+    )
+    np.testing.assert_array_equal(so3_exp(np.zeros(3)), np.eye(3))
+    np.testing.assert_array_equal(so3_log(np.eye(3)), np.zeros(3))
 
 
 def test_kabsch_recovers_exact_transform_and_is_rigid() -> None:
