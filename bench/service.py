@@ -311,6 +311,18 @@ def _peak_rss_mib(pid: int) -> float:
 
 
 # -- one fleet size --------------------------------------------------------------------------------
+def _spool_fits(meta_path: Path, meta: dict[str, Any]) -> bool:
+    """Whether a spool's sweeps serve a run: the same duration, link and routes, and at least as
+    many vehicles (a run with fewer takes the first ones of the spool's fleet, as every fleet
+    size of one run does)."""
+    if not meta_path.exists():
+        return False
+    held = json.loads(meta_path.read_text())
+    others = {k: v for k, v in held.items() if k != "vehicles"}
+    same = others == {k: v for k, v in meta.items() if k != "vehicles"}
+    return same and int(held.get("vehicles", 0)) >= int(meta["vehicles"])
+
+
 def write_timeline(
     path: Path,
     sent: dict[tuple[str, int], float],
@@ -717,7 +729,9 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     ax1.set_ylabel("publish-to-pose latency (ms)")
     ax1.legend()
     ax1.grid(True, which="both", alpha=0.3)
-    ax2.bar(n, [100 * r["dropped"] / max(r["sent"], 1) for r in results], color="tab:orange")
+    dropped_pct = [100 * r["dropped"] / max(r["sent"], 1) for r in results]
+    ax2.bar(n, dropped_pct, color="tab:orange")
+    ax2.set_ylim(0.0, max(1.0, 1.1 * max(dropped_pct, default=0.0)))  # none dropped: an empty axis at 0
     ax2.set_xlabel("vehicles at 10 Hz")
     ax2.set_ylabel("scans dropped (%)")
     ax2.set_xticks(n)
@@ -795,7 +809,8 @@ def main() -> None:
         "--sweeps",
         type=Path,
         help="keep the simulated sweeps in this directory and reuse them when a later run asks for "
-        "the same fleet, duration and link (default: a temporary directory)",
+        "as many vehicles or fewer (the first ones of its fleet), the same duration and link "
+        "(default: a temporary directory)",
     )
     parser.add_argument(
         "--no-offline",
@@ -831,7 +846,7 @@ def main() -> None:
         meta = {"vehicles": max(args.vehicles), "scans": round(args.seconds * RATE_HZ), "link": args.link}
         meta["routes"] = "car-like"  # sim.drive since 2026-11-26: clothoids, slower in corners
         meta_path = spool / "meta.json"
-        if not meta_path.exists() or json.loads(meta_path.read_text()) != meta:
+        if not _spool_fits(meta_path, meta):
             meta_path.unlink(missing_ok=True)
             simulate(meta["vehicles"], meta["scans"], args.link, spool)
             meta_path.write_text(json.dumps(meta))
