@@ -620,13 +620,18 @@ class Motion:
         if self.route.closed:
             laps = np.floor(s_m / total)
             return float(laps * tau[-1] + np.interp(s_m - laps * total, s_grid, tau))
-        v0 = s_grid[1] / tau[1]
-        v1 = (total - s_grid[-2]) / (tau[-1] - tau[-2])
+        v0, v1 = self._end_speeds()
         if s_m < 0.0:
             return float(s_m / v0)
         if s_m > total:
             return float(tau[-1] + (s_m - total) / v1)
         return float(np.interp(s_m, s_grid, tau))
+
+    def _end_speeds(self) -> tuple[float, float]:
+        """The profile's speed over its first and last table step (an open route continues at
+        them beyond its ends)."""
+        s_grid, tau = self._profile
+        return float(s_grid[1] / tau[1]), float((s_grid[-1] - s_grid[-2]) / (tau[-1] - tau[-2]))
 
     def _s_of_tau(self, x: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`_tau_of_s`; an open route continues at its end speeds beyond its ends."""
@@ -635,8 +640,7 @@ class Motion:
         if self.route.closed:
             laps = np.floor(x / lap)
             return laps * total + np.interp(x - laps * lap, tau, s_grid)
-        v0 = s_grid[1] / tau[1]
-        v1 = (total - s_grid[-2]) / (tau[-1] - tau[-2])
+        v0, v1 = self._end_speeds()
         out = np.interp(x, tau, s_grid)
         out = np.where(x < 0.0, x * v0, out)
         return np.where(x > lap, total + (x - lap) * v1, out)

@@ -26,7 +26,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, cast
+from typing import Any
 
 import numpy as np
 import pypcd4
@@ -514,14 +514,10 @@ def write_pcd(path: str | os.PathLike[str], cloud: PointCloud) -> None:
     """
     path = Path(path)
     xyz, intensity = _xyzi_float32(cloud, path)
-    pcd = pypcd4.PointCloud.from_points(
-        [xyz[:, 0], xyz[:, 1], xyz[:, 2], intensity],
-        fields=_PCD_FIELDS,
-        types=(np.float32, np.float32, np.float32, np.float32),
-    )
-    with atomic_open(path, "wb") as fh:
-        pcd.save(cast(BinaryIO, fh), encoding=pypcd4.Encoding.BINARY)  # atomic_open("wb"): a binary file
-    logger.debug("wrote %s: %d points", path, cloud.n_points)
+    table = np.empty((cloud.n_points, 4), dtype="<f4")
+    table[:, :3] = xyz
+    table[:, 3] = intensity
+    write_pcd_xyzi(path, table)
 
 
 def write_pcd_xyzi(path: str | os.PathLike[str], xyzi: np.ndarray) -> None:

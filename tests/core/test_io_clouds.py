@@ -497,11 +497,10 @@ def test_write_pcd_keeps_original_when_serialisation_fails(
     write_pcd(path, cloud)
     before = path.read_bytes()
 
-    def failing_save(self, fp, encoding=None) -> None:
-        fp.write(b"VERSION 0.7\n")
+    def failing_header(self, data=None) -> str:  # inside the open temporary file
         raise OSError("disk full")
 
-    monkeypatch.setattr(pypcd4.PointCloud, "save", failing_save)
+    monkeypatch.setattr(pypcd4.MetaData, "compose_header", failing_header)
     with pytest.raises(OSError, match="disk full"):
         write_pcd(path, cloud.select(slice(0, 3)))
     assert path.read_bytes() == before
