@@ -72,6 +72,7 @@ valid (and unchanged) while the map keeps growing.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
@@ -107,6 +108,7 @@ from core.metrics.cloud import pdu
 from core.voxel import pack_keys, voxel_coords
 
 __all__ = [
+    "SentVoxels",
     "Tile",
     "TileBounds",
     "TileGrid",
@@ -123,6 +125,41 @@ _TILE_ID_RE = re.compile(r"^(-?\d+)_(-?\d+)$")
 # this are not a map frame (and float32 would hold them to metres, not centimetres).
 _MAX_ABS_XY_M = 1.0e8
 _TILE_OFFSET = 1 << 30
+
+#: Numbers for :attr:`TileGrid.content_token` (a grid replaced by another with the same name,
+#: e.g. a map deleted and mapped again, is another grid).
+_grid_uids = itertools.count(1)
+
+_VoxelTable = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _empty_voxel_table(cap: int, size: int = 1024) -> _VoxelTable:
+    """An empty :func:`core.kernels.voxel_table_admit` table: tile keys (-1 empty), voxel keys,
+    counts, and the kept points when ``cap > 1`` (with one, a voxel is full at its first)."""
+    return (
+        np.full(size, -1, dtype=np.int64),
+        np.empty(size, dtype=np.int64),
+        np.zeros(size, dtype=np.int32),
+        np.empty((size, cap if cap > 1 else 0, 3), dtype=np.float32),
+    )
+
+
+def _admitted(
+    table: _VoxelTable, used: int, tkeys: np.ndarray, vkeys: np.ndarray, xyz: np.ndarray, cap: int
+) -> tuple[np.ndarray, _VoxelTable, int]:
+    """``(accept, table, used)``: which points the equalization policy keeps, in arrival order,
+    against the voxels ``table`` holds, which records them (grown when it would pass half full)."""
+    accept = np.zeros(tkeys.size, dtype=bool)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    i = 0
+    while True:
+        i, used = voxel_table_admit(*table, used, tkeys, vkeys, xyz, cap, i, accept)
+        if i >= tkeys.size:
+            return accept, table, used
+        size = table[0].size * 2
+        while size < 2 * (used + tkeys.size - i):
+            size *= 2
+        table = voxel_table_grow(*table, size)
 
 
 def tile_id(ix: int, iy: int) -> str:
@@ -331,13 +368,12 @@ class TileGrid:
         self._tiles: dict[tuple[int, int], _TileState] = {}
         #: Every occupied (tile, voxel) with its count (core.kernels.voxel_table_admit): the
         #: equalization's memory, so an insert costs its own points, not the tiles' (O(new)).
-        self._table = (
-            np.full(1024, -1, dtype=np.int64),
-            np.empty(1024, dtype=np.int64),
-            np.zeros(1024, dtype=np.int32),
-            np.empty((1024, self._cap if self._cap > 1 else 0, 3), dtype=np.float32),
-        )
+        self._table = _empty_voxel_table(self._cap)
         self._used = 0
+        #: This grid (:attr:`uid`, unique in the process) and how often voxels left it
+        #: (:attr:`generation`, advanced by :meth:`refold`): :attr:`content_token`.
+        self._uid = next(_grid_uids)
+        self._generation = 0
         #: A new tile's first version is ``version_floor + 1`` (0: versions start at 1). A store
         #: sets it for a map whose name an earlier, deleted map had, so versions never repeat.
         self.version_floor = 0
@@ -364,6 +400,13 @@ class TileGrid:
     def max_points_per_voxel(self) -> int:
         """The density cap."""
         return self._cap
+
+    @property
+    def content_token(self) -> tuple[int, int]:
+        """``(uid, generation)``: equal for two reads only if no voxel left this grid between
+        them (inserts only add). :class:`SentVoxels` of a session start over when it changes."""
+        with self._lock:
+            return self._uid, self._generation
 
     # ---------------------------------------------------------------------------- insert
 
@@ -415,19 +458,8 @@ class TileGrid:
     def _admit(self, tkeys: np.ndarray, vkeys: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """Which points the policy keeps, in arrival order, against the voxels held (under the
         lock; the table records them)."""
-        accept = np.zeros(tkeys.size, dtype=bool)
-        xyz = np.ascontiguousarray(xyz, dtype=np.float32)
-        i = 0
-        while True:
-            i, self._used = voxel_table_admit(
-                *self._table, self._used, tkeys, vkeys, xyz, self._cap, i, accept
-            )
-            if i >= tkeys.size:
-                return accept
-            size = self._table[0].size * 2
-            while size < 2 * (self._used + tkeys.size - i):
-                size *= 2
-            self._table = voxel_table_grow(*self._table, size)
+        accept, self._table, self._used = _admitted(self._table, self._used, tkeys, vkeys, xyz, self._cap)
+        return accept
 
     def _append(
         self, rows: np.ndarray, tkeys: np.ndarray, xyz: np.ndarray, inten: np.ndarray
@@ -502,6 +534,7 @@ class TileGrid:
                 versions[(ix, iy)] = old.tile.version
                 old_tk, old_vk = self._keys(old.tile.points)
                 self._used -= voxel_table_forget(*self._table, old_tk, old_vk)
+            self._generation += bool(versions)  # voxels left the map (SentVoxels start over)
             accept = self._admit(tkeys, vkeys, xyz)
             changed = self._append(np.flatnonzero(accept), tkeys, xyz, inten)
             for key in changed:
@@ -936,6 +969,59 @@ class TileGrid:
 # --------------------------------------------------------------------------------------------
 # Autoware divided maps (the files: core.io.autoware)
 # --------------------------------------------------------------------------------------------
+
+
+class SentVoxels:
+    """The voxels one session has already sent to its map, so that it sends only what the map
+    could still keep.
+
+    The map's own admission policy (:meth:`TileGrid.insert`: the first ``max_points_per_voxel``
+    distinct points of each voxel, in arrival order) run against the points sent, without
+    storing tiles. Every point sent reached the map, and inserts only add, so a point this
+    refuses the map would refuse too: sending only the admitted ones leaves the map exactly as
+    sending every point would. The service's matcher processes keep one per session, cutting
+    what crosses to the service process, and what its insert handles, to the sweep's new voxels
+    (docs/architecture.md).
+
+    :meth:`admitted` starts over (forgets every voxel) when the map's ``token`` changes, i.e.
+    voxels may have left the map (:attr:`TileGrid.content_token`: a re-fold) or the points go
+    to another map or frame; and when more than ``max_voxels`` voxels are held (the memory
+    bound: starting over only means sending more points once).
+    """
+
+    def __init__(
+        self,
+        tile_size_m: int = 20,
+        voxel_size_m: float = 0.2,
+        max_points_per_voxel: int = 1,
+        max_voxels: int = 1 << 20,
+    ) -> None:
+        self._keys_of = TileGrid(tile_size_m, voxel_size_m, max_points_per_voxel)  # sizes, keys
+        self._cap = int(max_points_per_voxel)
+        self._max = int(max_voxels)
+        self._token: object = None
+        self._table = _empty_voxel_table(self._cap)
+        self._used = 0
+
+    def __len__(self) -> int:
+        """Voxels held (sent since the last start)."""
+        return self._used
+
+    def admitted(self, points_xyz: np.ndarray, token: object) -> np.ndarray:
+        """Which of ``points_xyz`` (map frame; any real dtype, rounded to float32 as the map
+        stores them) the map could still keep, given everything admitted since the last start
+        (non-finite rows: False); they are recorded as sent. ``token`` names the map's content
+        and frame (compared with ``==``)."""
+        if token != self._token or self._used > self._max:
+            self._token, self._table, self._used = token, _empty_voxel_table(self._cap), 0
+        mask = np.zeros(np.asarray(points_xyz).shape[0], dtype=bool)
+        keys = self._keys_of._candidate_keys(points_xyz, compiled=True)
+        if keys is None:
+            return mask
+        finite, f32, tkeys, vkeys = keys
+        accept, self._table, self._used = _admitted(self._table, self._used, tkeys, vkeys, f32, self._cap)
+        mask[finite[accept]] = True
+        return mask
 
 
 def _corners(tiles: list[Tile]) -> dict[str, tuple[int, int]]:

@@ -48,13 +48,14 @@ import numpy as np
 from core.config import RegistrationSettings
 from core.errors import FormatError, RandtError
 from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
-from core.tiles import TileGrid
-from core.transforms import transform_points
+from core.tiles import SentVoxels, TileGrid
+from core.transforms import invert, transform_points
 from core.voxel import pack_keys, voxel_coords
 from wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
 
 __all__ = [
     "LocalMatcher",
+    "MapFrame",
     "MatcherExecutor",
     "MatcherPool",
     "MatcherProcessDiedError",
@@ -91,6 +92,7 @@ class SessionMatcher(Protocol):
         stamp_s: float | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered: ...
 
     def register_payload(
@@ -100,6 +102,7 @@ class SessionMatcher(Protocol):
         limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered: ...
 
     def update_model(self) -> float: ...
@@ -193,6 +196,26 @@ def _portable(exc: Exception) -> Exception:
     return exc
 
 
+@dataclass(frozen=True, eq=False)
+class MapFrame:
+    """Where a sweep's map points go, as the session thread knows it when it sends the sweep.
+
+    Attributes
+    ----------
+    token:
+        The map's content and identity (its name and :attr:`core.tiles.TileGrid.content_token`):
+        a matcher that knows the map sends only the voxels it has not sent under the same token
+        (:class:`core.tiles.SentVoxels`) and starts over when it changes.
+    correction:
+        The pose graph's newest correction of the session (4x4), which moves the map points
+        before they are folded (``None``: none yet). The matcher applies it with the pose, so
+        the points arrive in the frame they are folded in.
+    """
+
+    token: tuple[str, int, int]
+    correction: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class Registered:
     """A registered sweep and the points of it that the session's map may keep.
@@ -219,6 +242,8 @@ class Registered:
         From :meth:`register_payload` (the sweep decoded where it was matched): the intensity
         (float32) of each point of ``map_xyz`` and ``keyframe_xyz``; ``None`` when the sweep has
         none, or when the caller holds the sweep (``register``) and reads them by index.
+    correction:
+        The correction ``map_xyz`` was moved by (the :class:`MapFrame`'s), ``None`` for none.
     """
 
     result: ScanResult
@@ -228,6 +253,20 @@ class Registered:
     keyframe_index: np.ndarray | None = None
     map_intensity: np.ndarray | None = None
     keyframe_intensity: np.ndarray | None = None
+    correction: np.ndarray | None = None
+
+    def map_points_under(self, correction: np.ndarray | None) -> np.ndarray:
+        """``map_xyz`` moved from the correction they were sent with to ``correction`` (the
+        pose graph corrected the session while the sweep was matched); ``map_xyz`` itself when
+        the two are equal (``None``: no correction)."""
+        sent = self.correction
+        if correction is sent or (
+            correction is not None and sent is not None and np.array_equal(correction, sent)
+        ):
+            return self.map_xyz
+        C = np.eye(4) if correction is None else correction
+        D = C if sent is None else C @ invert(sent)
+        return transform_points(D, self.map_xyz).astype(np.float32)
 
 
 def decoded_sweep(
@@ -264,11 +303,17 @@ def _with_intensity(registered: Registered, intensity: np.ndarray | None) -> Reg
 
 
 def _registered(
-    result: ScanResult, grid: TileGrid | None, keyframe_voxel_m: float | None = None
+    result: ScanResult,
+    grid: TileGrid | None,
+    keyframe_voxel_m: float | None = None,
+    frame: MapFrame | None = None,
+    sent: SentVoxels | None = None,
 ) -> Registered:
-    """:class:`Registered` of a result: its points in the map frame (float32), cut to the
-    candidates of ``grid`` when given, and the keyframe's points when ``keyframe_voxel_m`` is
-    given. A fallback keeps no points."""
+    """:class:`Registered` of a result: its points in the map frame (float32, moved by the
+    frame's correction), cut to those the map could keep when its sizes are known (``grid``):
+    to the voxels not sent before under the frame's token (``sent``, with a ``frame``), else to
+    the candidates (:meth:`TileGrid.candidate_mask`); and the keyframe's points when
+    ``keyframe_voxel_m`` is given. A fallback keeps no points."""
     if result.status == "fallback":
         return Registered(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
     keyframe = keyframe_index = None
@@ -277,12 +322,18 @@ def _registered(
         _, first = np.unique(keys, return_index=True)
         keyframe = result.deskewed_xyz[first].astype(np.float32)
         keyframe_index = result.map_index[first]
-    world = transform_points(result.T_world_sensor, result.deskewed_xyz)
+    C = None if frame is None else frame.correction
+    T = result.T_world_sensor if C is None else C @ result.T_world_sensor
+    world = transform_points(T, result.deskewed_xyz)
     if grid is None:
-        return Registered(result, world.astype(np.float32), result.map_index, keyframe, keyframe_index)
-    keep = grid.candidate_mask(world)
+        return Registered(
+            result, world.astype(np.float32), result.map_index, keyframe, keyframe_index, correction=C
+        )
+    keep = grid.candidate_mask(world) if frame is None or sent is None else sent.admitted(world, frame.token)
     slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
-    return Registered(slim, world[keep].astype(np.float32), result.map_index[keep], keyframe, keyframe_index)
+    return Registered(
+        slim, world[keep].astype(np.float32), result.map_index[keep], keyframe, keyframe_index, correction=C
+    )
 
 
 def single_threaded_blas() -> None:
@@ -335,6 +386,7 @@ class _Sessions:
     def __init__(self) -> None:
         self.matchers: dict[Key, IncrementalMatcher] = {}
         self.grids: dict[Key, TileGrid | None] = {}
+        self.sent: dict[Key, SentVoxels] = {}
 
     def open(
         self,
@@ -349,6 +401,8 @@ class _Sessions:
             matcher.load_state_dict(state)
         self.matchers[key] = matcher
         self.grids[key] = None if grid_params is None else TileGrid(*grid_params)
+        if grid_params is not None:
+            self.sent[key] = SentVoxels(*grid_params)
 
     def register(
         self,
@@ -358,23 +412,32 @@ class _Sessions:
         prior: PosePrior | None,
         stamp_s: float | None,
         keyframe_voxel_m: float | None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """One sweep; the keyframe model is left for the caller to rebuild after replying
         (``self.matchers[key].model_pending``). With the session's map known, only the points it
-        can keep go back, already in the map frame (float32, as the map stores them): the service
-        process's insert then handles about a quarter of the sweep and transforms nothing."""
+        could keep go back, already in the frame they are folded in (float32, as the map stores
+        them): with a ``frame``, those of voxels not sent before (:class:`SentVoxels`, about a
+        tenth of a sweep once the map around the vehicle is built), else the candidates (about a
+        quarter); the service process's insert handles those and transforms nothing."""
         result = self.matchers[key].register_scan(
             xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
         )
-        return _registered(result, self.grids.get(key), keyframe_voxel_m)
+        return _registered(result, self.grids.get(key), keyframe_voxel_m, frame, self.sent.get(key))
 
     def register_payload(
-        self, key: Key, payload: bytes, limits: WireLimits | None, keyframe_voxel_m: float | None
+        self,
+        key: Key,
+        payload: bytes,
+        limits: WireLimits | None,
+        keyframe_voxel_m: float | None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`): the service
         process routes the bytes and reads only the header, the numeric work is the worker's."""
         xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
-        return _with_intensity(self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m), intensity)
+        registered = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
+        return _with_intensity(registered, intensity)
 
     def state(self, key: Key) -> dict[str, np.ndarray]:
         return self.matchers[key].state_dict()
@@ -385,6 +448,7 @@ class _Sessions:
 
     def drop(self, key: Key) -> bool:
         self.grids.pop(key, None)
+        self.sent.pop(key, None)
         return self.matchers.pop(key, None) is not None
 
     def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> tuple[Any, IncrementalMatcher | None]:
@@ -395,13 +459,13 @@ class _Sessions:
             self.open(key, *args)
             return None, None
         if op == "register":
-            xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m = args
-            value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m)
+            xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m, frame = args
+            value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
             matcher = self.matchers[key]
             return value, (matcher if matcher.model_pending and not behind else None)
         if op == "register_payload":
-            payload, limits, behind, keyframe_voxel_m = args
-            value = self.register_payload(key, payload, limits, keyframe_voxel_m)
+            payload, limits, behind, keyframe_voxel_m, frame = args
+            value = self.register_payload(key, payload, limits, keyframe_voxel_m, frame)
             matcher = self.matchers[key]
             return value, (matcher if matcher.model_pending and not behind else None)
         if op == "state":
@@ -685,6 +749,7 @@ class ForwardingMatcher:
         stamp_s: float | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         raise NotImplementedError
 
@@ -695,6 +760,7 @@ class ForwardingMatcher:
         limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         raise NotImplementedError
 
@@ -756,6 +822,7 @@ class RemoteMatcher(ForwardingMatcher):
         stamp_s: float | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`IncrementalMatcher.register_scan` in the session's process, with the points the
         session's map may keep (:class:`Registered`; with ``keyframe_voxel_m``, the keyframe's
@@ -768,7 +835,7 @@ class RemoteMatcher(ForwardingMatcher):
         newest keyframe, and the model is rebuilt once for two
         (:meth:`IncrementalMatcher.update_model`)."""
         registered: Registered = self._proc.call(
-            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m
+            "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
@@ -780,13 +847,14 @@ class RemoteMatcher(ForwardingMatcher):
         limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`register` of a scan payload, sent as the bytes that came (a reduced sweep's
         120 kB instead of its 0.6 MB of arrays) and decoded in the session's process
         (:func:`decoded_sweep`), which also returns the map points' intensities. A payload whose
         bodies do not decode raises the decoder's :class:`~core.errors.BadMessageError`."""
         registered: Registered = self._proc.call(
-            "register_payload", self._key, payload, limits, behind, keyframe_voxel_m
+            "register_payload", self._key, payload, limits, behind, keyframe_voxel_m, frame
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
@@ -837,6 +905,7 @@ class LocalMatcher(IncrementalMatcher):
         stamp_s: float | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`register_scan` (the model rebuild deferred: the caller runs :meth:`update_model`
         after publishing) and every point of the sweep in the map frame (:class:`Registered`;
@@ -849,7 +918,7 @@ class LocalMatcher(IncrementalMatcher):
             defer_model=True,
             behind=behind,
         )
-        return _registered(result, None, keyframe_voxel_m)
+        return _registered(result, None, keyframe_voxel_m, frame)
 
     def register_payload(
         self,
@@ -858,6 +927,7 @@ class LocalMatcher(IncrementalMatcher):
         limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`)."""
         xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
@@ -868,6 +938,7 @@ class LocalMatcher(IncrementalMatcher):
             stamp_s=stamp_s,
             behind=behind,
             keyframe_voxel_m=keyframe_voxel_m,
+            frame=frame,
         )
         return _with_intensity(registered, intensity)
 

@@ -63,6 +63,7 @@ from core.tiles import TileGrid
 from service.matchers import (
     _READY,
     ForwardingMatcher,
+    MapFrame,
     MatcherProcessDiedError,
     Registered,
     _Channel,
@@ -548,10 +549,11 @@ class RayMatcher(ForwardingMatcher):
         stamp_s: float | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`service.matchers.RemoteMatcher.register`, on the session's host."""
         registered: Registered = self._call(
-            "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m
+            "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
         )
         self.poses.append(registered.result.T_world_sensor)
         return registered
@@ -563,10 +565,13 @@ class RayMatcher(ForwardingMatcher):
         limits: WireLimits | None = None,
         behind: bool = False,
         keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`service.matchers.RemoteMatcher.register_payload`, on the session's host: the
         payload's bytes travel, the host decodes them."""
-        registered: Registered = self._call("register_payload", payload, limits, behind, keyframe_voxel_m)
+        registered: Registered = self._call(
+            "register_payload", payload, limits, behind, keyframe_voxel_m, frame
+        )
         self.poses.append(registered.result.T_world_sensor)
         return registered
 

@@ -12,7 +12,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from service.matchers import single_threaded_blas
+from service.matchers import MatcherExecutor, single_threaded_blas
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
@@ -28,8 +28,13 @@ log = logging.getLogger(__name__)
 class Service:
     """One running instance (module docstring)."""
 
-    def __init__(self, settings: ServiceSettings, *, with_zenoh: bool = True) -> None:
+    def __init__(
+        self, settings: ServiceSettings, *, with_zenoh: bool = True, executor: MatcherExecutor | None = None
+    ) -> None:
+        """``executor``: where the sessions' matchers run, instead of the one the settings name
+        (bench/main_process.py's stand-in that answers at once measures this process alone)."""
         self.settings = settings
+        self._executor = executor
         self.metrics = ServiceMetrics()
         self.started_at = time.time()
         self.store: Store | None = None
@@ -48,7 +53,7 @@ class Service:
             outbox = self.transport.send
         else:
             outbox = self._sent.append
-        self.sessions = SessionManager(s, self.store, outbox, self.metrics)
+        self.sessions = SessionManager(s, self.store, outbox, self.metrics, self._executor)
         self.metrics.watch(self.map_stats, instance=s.instance)
         if self.transport is not None:
             self.transport.open()

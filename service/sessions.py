@@ -109,6 +109,7 @@ from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
+    MapFrame,
     MatcherExecutor,
     MatcherPool,
     MatcherProcessDiedError,
@@ -395,7 +396,11 @@ class SessionWorker:
         try:
             # the keyframe model is rebuilt after the pose is out
             return self.matcher.register_payload(
-                job.payload, limits=m.limits, behind=behind, keyframe_voxel_m=keyframe_voxel_m
+                job.payload,
+                limits=m.limits,
+                behind=behind,
+                keyframe_voxel_m=keyframe_voxel_m,
+                frame=self._map_frame(),
             )
         except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
             log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
@@ -437,20 +442,30 @@ class SessionWorker:
             return False
         return True
 
+    def _fold_target(self) -> tuple[np.ndarray | None, str]:
+        """``(correction, map)`` for the session's new map points: the pose graph's newest
+        correction of the session (None: none) and the map they are folded into."""
+        graph, info = self._manager.graph, self.info
+        if graph is None:
+            return None, info.map_name
+        return graph.fold_target(info.vehicle, info.session, info.map_name)
+
+    def _map_frame(self) -> MapFrame:
+        """Where this sweep's map points go (:class:`~service.matchers.MapFrame`): the matcher
+        moves them by the correction and sends only voxels it has not sent to this map's content."""
+        C, fold_map = self._fold_target()
+        grid = self.grid if fold_map == self.info.map_name else self._manager.map_grid(fold_map)
+        return MapFrame((fold_map, *grid.content_token), C)
+
     def _queue_map_points(self, registered: Registered) -> None:
         """The scan's map points (none for a fallback) wait to be folded, into the map they go to
-        and moved by the session's newest correction: the map follows the pose graph."""
+        and moved by the session's newest correction: the map follows the pose graph. The matcher
+        moved them by the correction of when the sweep was sent; if the graph has corrected the
+        session since, they are moved on by the difference."""
         if not registered.map_xyz.shape[0]:
             return
-        map_xyz = registered.map_xyz
-        C, fold_map = None, self.info.map_name
-        graph = self._manager.graph
-        if graph is not None:
-            C, fold_map = graph.fold_target(self.info.vehicle, self.info.session, fold_map)
-        if C is not None:
-            R, t = C[:3, :3].T.astype(np.float32), C[:3, 3].astype(np.float32)
-            map_xyz = (map_xyz @ R + t).astype(np.float32)
-        self._unfolded.append((fold_map, map_xyz, registered.map_intensity))
+        C, fold_map = self._fold_target()
+        self._unfolded.append((fold_map, registered.map_points_under(C), registered.map_intensity))
 
     def _account(self, scan: ScanHeader, result: ScanResult, prior: PosePrior | None) -> None:
         """The session's counters, last figures and drift variance after a processed scan."""
@@ -662,6 +677,7 @@ class SessionManager:
         store: Store,
         outbox: Outbox,
         metrics: ServiceMetrics | None = None,
+        executor: MatcherExecutor | None = None,
     ) -> None:
         self.settings = settings
         self.store = store
@@ -685,12 +701,13 @@ class SessionManager:
         if n_procs < 0:
             cores = os.cpu_count() or 1
             n_procs = cores if cores > 1 else 0
-        self.pool: MatcherExecutor | None = None
-        if settings.executor == "ray":
+        # (an executor given: e.g. bench/main_process.py's stand-in that answers at once)
+        self.pool: MatcherExecutor | None = executor
+        if executor is None and settings.executor == "ray":
             from service.ray_executor import RayMatcherPool  # the ray extra
 
             self.pool = RayMatcherPool(settings.ray_address, settings.ray_transport)
-        elif n_procs > 0:
+        elif executor is None and n_procs > 0:
             self.pool = MatcherPool(n_procs)
         #: The shared map's pose graph (service/graph.py); its process starts with the first keyframe.
         self.graph: ServiceGraph | None = (

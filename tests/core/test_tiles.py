@@ -13,6 +13,7 @@ from core.errors import FormatError, InvalidCloudError, NotFoundError
 from core.io import PointCloud, read_cloud, write_pcd
 from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
 from core.tiles import (
+    SentVoxels,
     TileGrid,
     load_autoware,
     parse_tile_id,
@@ -610,6 +611,63 @@ def test_compiled_candidate_mask_equals_the_numpy_reference(cap: int) -> None:
         keep = grid.candidate_mask(pts)
         np.testing.assert_array_equal(keep, grid.candidate_mask_numpy(pts))
         assert 1000 < keep.sum() < len(kitti00_scan)
+
+
+@pytest.mark.parametrize("cap", [1, 3])
+def test_sent_voxels_send_only_what_the_map_could_still_keep(cap: int) -> None:
+    """Two sessions share a map; each sends only the points its SentVoxels admit. The map ends
+    exactly (points, intensities, versions, changed ids per insert) as it does when every point
+    is sent, and a sweep seen again admits nothing: an overlapping sweep sends a small share."""
+    rng = np.random.default_rng(20 + cap)
+    base, _ = dense_cloud(seed=cap)
+    full, cut = TileGrid(20, 0.2, cap), TileGrid(20, 0.2, cap)
+    sent = {s: SentVoxels(20, 0.2, cap) for s in "ab"}
+    counts = []
+    for i, shift in enumerate(((0.0, 0.0, 0.0), (0.03, -0.02, 0.0), (0.5, 0.0, 0.0), (0.0, 0.0, 0.0))):
+        for s in "ab":
+            pts = np.vstack(
+                [base + shift + (0.01 if s == "b" else 0.0), base[:200] + shift, [[np.inf, 0, 0]]]
+            )
+            inten = rng.uniform(0, 1, len(pts)).astype(np.float32)
+            keep = sent[s].admitted(pts, ("m", *cut.content_token))
+            assert not keep[-1]
+            counts.append(int(keep.sum()))
+            assert full.insert(pts, inten) == cut.insert(pts[keep], inten[keep]), (i, s)
+    assert full.tile_ids() == cut.tile_ids() and full.n_points == cut.n_points > 1000
+    for tid in full.tile_ids():
+        a, b = full.get(tid), cut.get(tid)
+        assert a.version == b.version
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+    # session a's last sweep repeats its first exactly: nothing new to send
+    assert counts[6] == 0 and counts[0] > 1000
+    # its 3 cm shifted second sweep: fewer than a third of its first (cap 1: most voxels full)
+    if cap == 1:
+        assert counts[2] < counts[0] / 3
+
+
+def test_sent_voxels_start_over_when_the_token_changes_or_they_are_full() -> None:
+    """A re-fold advances the grid's content token (voxels may have left it), so the same points
+    are admitted again; so they are under another map's token, and once more than ``max_voxels``
+    are held (the memory bound)."""
+    pts, _ = dense_cloud(seed=5, n=4000)
+    grid = TileGrid(20, 0.2, 1)
+    grid.insert(pts)
+    sent = SentVoxels(20, 0.2, 1, max_voxels=10_000)
+    token = ("m", *grid.content_token)
+    first = sent.admitted(pts, token)
+    n = int(first.sum())
+    assert n == len(sent) > 3000 and sent.admitted(pts, token).sum() == 0
+    assert sent.admitted(pts, ("other", *grid.content_token)).sum() == n  # another map: start over
+    assert sent.admitted(pts, token).sum() == n  # and back
+    grid.refold(["0_0"], pts + 0.05)  # voxels left tile 0_0
+    assert grid.content_token == (token[1], token[2] + 1)
+    assert grid.refold(["9_9"], pts) == [] and grid.content_token[1] == token[2] + 1  # nothing left
+    assert sent.admitted(pts, ("m", *grid.content_token)).sum() == n
+    assert TileGrid(20, 0.2, 1).content_token[0] != grid.content_token[0]  # every grid its own
+    small = SentVoxels(20, 0.2, 1, max_voxels=n // 2)
+    assert small.admitted(pts, token).sum() == n  # holds n > max_voxels: the next call starts over
+    assert small.admitted(pts, token).sum() == n and len(small) == n
 
 
 def test_candidate_mask_refuses_coordinates_beyond_the_key_range() -> None:

@@ -18,6 +18,7 @@ from core.tiles import TileGrid
 from core.transforms import invert, make_transform, transform_points
 from service.matchers import (
     LocalMatcher,
+    MapFrame,
     MatcherPool,
     MatcherProcessDiedError,
     MatcherProcessError,
@@ -145,6 +146,47 @@ def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
         np.testing.assert_array_equal(full.get(tid).points, local_grid.get(tid).points)
 
 
+def test_a_map_frame_sends_each_voxel_once_moved_by_the_correction() -> None:
+    """With a MapFrame the worker moves the points by its correction with the pose and sends only
+    the voxels it has not sent to the map under the frame's token: the map built from them equals
+    the map of every corrected point, with far fewer points sent; a new token (a re-fold) sends
+    the sweep's candidates again. Points sent under an older correction are moved on to the
+    newest one by the difference (Registered.map_points_under)."""
+    sweeps = _sweeps(4)
+    C = make_transform(euler_deg=(0.0, 0.0, 3.0), translation=(1.5, -0.4, 0.1))
+    local = IncrementalMatcher(MatcherSettings())
+    full, cut = TileGrid(20, 0.2), TileGrid(20, 0.2)
+    pool = MatcherPool(1)
+    sent, candidates = [], []
+    try:
+        remote = pool.open(("v", "s"), None, cut)
+        for xyz in sweeps:
+            a = local.register_scan(xyz.astype(np.float64))
+            b = remote.register(xyz, frame=MapFrame(("m", *cut.content_token), C))
+            np.testing.assert_array_equal(b.correction, C)
+            world = transform_points(C @ a.T_world_sensor, a.deskewed_xyz)
+            assert full.insert(world) == cut.insert(b.map_xyz)
+            sent.append(b.map_xyz.shape[0])
+            candidates.append(int(cut.candidate_mask(world).sum()))
+        cut.refold(cut.tile_ids()[:1], cut.get(cut.tile_ids()[0]).points)  # the content token moves
+        again = remote.register(sweeps[-1], frame=MapFrame(("m", *cut.content_token), C))
+    finally:
+        pool.close()
+    assert full.tile_ids() == cut.tile_ids() and full.n_points == cut.n_points > 1000
+    for tid in full.tile_ids():
+        np.testing.assert_array_equal(full.get(tid).points, cut.get(tid).points)
+    assert sent[0] == candidates[0] and sum(sent[1:]) < 0.5 * sum(candidates[1:]), (sent, candidates)
+    assert again.map_xyz.shape[0] > 0.8 * candidates[-1]
+    # moved on from C to C2 by the difference; to C itself: unchanged (the same array)
+    C2 = make_transform(euler_deg=(0.0, 0.0, -1.0), translation=(0.2, 0.3, 0.0)) @ C
+    moved = again.map_points_under(C2)
+    np.testing.assert_allclose(moved, transform_points(C2 @ invert(C), again.map_xyz), atol=1e-4)
+    assert again.map_points_under(C.copy()) is again.map_xyz
+    np.testing.assert_allclose(
+        again.map_points_under(None), transform_points(invert(C), again.map_xyz), atol=1e-4
+    )
+
+
 def test_an_error_raised_in_a_matcher_process_arrives_as_itself() -> None:
     """The worker sends the exception object back: same class, message and attributes, the
     worker's traceback as a note (it arrived as a bare RandtError or RuntimeError before)."""
@@ -237,7 +279,7 @@ def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
         channel.call("open", ("v", "s"), None, None, None, None)
         local = IncrementalMatcher(MatcherSettings())
         for xyz in _sweeps(4):
-            registered = channel.call("register", ("v", "s"), xyz, None, None, None, False, None)
+            registered = channel.call("register", ("v", "s"), xyz, None, None, None, False, None, None)
             a = local.register_scan(xyz.astype(np.float64))
             assert registered.result.status == a.status
             np.testing.assert_allclose(registered.result.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
