@@ -80,6 +80,7 @@ _SCRIPTS = [
     "link",
     "fleet_map",
     "global_registration",
+    "main_process",
 ]
 
 
