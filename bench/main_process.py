@@ -67,45 +67,25 @@ def _bench_service() -> Any:
 
 # -- the matchers' answers, prepared once ------------------------------------------------------------
 def prepare(spool_dir: Path, vehicles: list[str]) -> Path:
-    """Every vehicle's sweeps through the matcher processes' code (module docstring); pickled to
-    ``answers-<n>.pkl`` in the spool directory (reused when present): per vehicle, the
-    :class:`~service.matchers.Registered` of each sweep and its final state for snapshots."""
+    """Every vehicle's sweeps through the matcher processes' code (:func:`offline.matcher_process`),
+    pickled to ``answers-<n>.pkl`` in the spool directory (reused when present): per vehicle,
+    the :class:`~service.matchers.Registered` of each sweep, its final state for snapshots and
+    its CPU ms per sweep."""
+    from offline import matcher_process
+
     path = spool_dir / f"answers-{len(vehicles)}.pkl"
     if path.exists():
         return path
-    from service.matchers import MapFrame, _Sessions
-    from service.settings import ServiceSettings
-
-    s = ServiceSettings()
-    keyframe_voxel_m = min(s.fleet_map.keyframe_voxel_m, s.map_voxel_m)
     spool = _bench_service().Spool.load(spool_dir)
     answers: dict[str, Any] = {}
     try:
         for v in vehicles:
             progress(f"preparing {v}'s answers: its sweeps through the matcher processes' code")
-            sessions = _Sessions()
-            key = (v, "bench")
-            sessions.open(key, None, (s.tile_size_m, s.map_voxel_m, 1), s.session_matcher(), s.registration)
-            frame = MapFrame(("default", 0, 0), None)
-            regs: list[Any] = []
-            poses: list[np.ndarray] = []
-            last_kf, cpu = None, 0.0
-            for k in range(spool.n_scans()):
-                wants = _wants_keyframe(poses, last_kf, s.graph_keyframe_m)
-                c0 = time.process_time()
-                r = sessions.register_payload(
-                    key, spool.get(v, k), None, keyframe_voxel_m if wants else None, frame
-                )
-                sessions.matchers[key].update_model()
-                cpu += time.process_time() - c0
-                if r.keyframe_xyz is not None and len(r.keyframe_xyz) >= 10:
-                    last_kf = r.result.T_world_sensor
-                regs.append(r)
-                poses.append(r.result.T_world_sensor)
+            run = matcher_process((spool.get(v, k) for k in range(spool.n_scans())), keep=True)
             answers[v] = {
-                "registered": regs,
-                "state": sessions.snapshot(key),
-                "cpu_ms": 1e3 * cpu / len(regs),
+                "registered": run.registered,
+                "state": run.state,
+                "cpu_ms": 1e3 * np.mean(run.cpu_s),
             }
     finally:
         spool.close()
@@ -114,14 +94,6 @@ def prepare(spool_dir: Path, vehicles: list[str]) -> Path:
         pickle.dump(answers, f, protocol=pickle.HIGHEST_PROTOCOL)
     os.replace(tmp, path)
     return path
-
-
-def _wants_keyframe(poses: list[np.ndarray], last_kf: np.ndarray | None, keyframe_m: float) -> bool:
-    """service.graph.ServiceGraph.wants_keyframe's rule, on the matcher's own poses."""
-    if last_kf is None or not poses:
-        return True
-    step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
-    return float(np.linalg.norm(poses[-1][:3, 3] - last_kf[:3, 3])) + step >= keyframe_m
 
 
 # -- the service process with the stand-in ----------------------------------------------------------

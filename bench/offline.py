@@ -1,11 +1,17 @@
 """The service's session matcher run offline: what one matcher process does per sweep, timed.
 
-Used by ``bench/matcher.py`` (the matcher beside KISS-ICP) and ``bench/service.py`` (the same
-sweeps offline, the reference the service's poses and CPU are compared with). Per sweep: the
+:func:`service_matcher`, the matcher alone (``bench/matcher.py``, beside KISS-ICP): per sweep the
 payload decoded (``service.matchers.decoded_sweep``), ``IncrementalMatcher.register_scan`` with
 the model update deferred, then ``update_model``: the matcher process's order (it publishes the
 pose before it updates the model), with the settings every session gets
 (``ServiceSettings.session_matcher``, ``ServiceSettings.registration``).
+
+:func:`matcher_process`, the whole of a matcher process's work per sweep (``bench/service.py``'s
+offline reference, ``bench/main_process.py``'s prepared answers): the same through the process's
+own code (``service.matchers._Sessions.register_payload`` with a ``MapFrame``: the map points
+moved into the map frame and cut to the voxels not sent before; a keyframe's points where the
+pose graph's rule asks for one), then ``update_model``. Only the pipe and the service around it
+are missing.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.odometry import IncrementalMatcher
-from service.matchers import decoded_sweep
+from service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
 from service.settings import ServiceSettings
 
 
@@ -33,6 +39,10 @@ class Run:
     decode_s: list[float] = field(default_factory=list)
     model_s: list[float] = field(default_factory=list)
     points: list[int] = field(default_factory=list)
+    #: :func:`matcher_process`'s answers, when asked to keep them
+    registered: list[Registered] = field(default_factory=list)
+    #: :func:`matcher_process`: the matcher's state after the last sweep, without its trajectory
+    state: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def service_matcher(payloads: Iterable[bytes]) -> Run:
@@ -57,3 +67,41 @@ def service_matcher(payloads: Iterable[bytes]) -> Run:
         run.model_s.append(t3 - t2)
         run.points.append(int(xyz.shape[0]))
     return run
+
+
+def matcher_process(payloads: Iterable[bytes], *, graph: bool = True, keep: bool = False) -> Run:
+    """What a matcher process does for one session's ``payloads``, in order (module docstring):
+    with ``graph``, a keyframe's points where the pose graph would ask for them
+    (:func:`wants_keyframe`); ``keep``: the answers in ``run.registered``."""
+    s = ServiceSettings()
+    sessions, key = _Sessions(), ("offline", "offline")
+    sessions.open(key, None, (s.tile_size_m, s.map_voxel_m, 1), s.session_matcher(), s.registration)
+    frame = MapFrame(("default", 0, 0), None)
+    keyframe_voxel_m = min(s.fleet_map.keyframe_voxel_m, s.map_voxel_m)
+    last_keyframe: np.ndarray | None = None
+    run = Run("RANDT (matcher process)")
+    for payload in payloads:
+        wants = graph and wants_keyframe(run.poses, last_keyframe, s.graph_keyframe_m)
+        c0, t0 = time.process_time(), time.perf_counter()
+        registered = sessions.register_payload(key, payload, None, keyframe_voxel_m if wants else None, frame)
+        t2 = time.perf_counter()
+        sessions.matchers[key].update_model()
+        t3, c3 = time.perf_counter(), time.process_time()
+        if registered.keyframe_xyz is not None and len(registered.keyframe_xyz) >= 10:
+            last_keyframe = registered.result.T_world_sensor
+        run.poses.append(registered.result.T_world_sensor)
+        run.times_s.append(t3 - t0)
+        run.cpu_s.append(c3 - c0)
+        run.model_s.append(t3 - t2)
+        if keep:
+            run.registered.append(registered)
+    run.state = sessions.snapshot(key)
+    return run
+
+
+def wants_keyframe(poses: list[np.ndarray], last_keyframe: np.ndarray | None, keyframe_m: float) -> bool:
+    """``service.graph.ServiceGraph.wants_keyframe``'s rule on a session's poses so far."""
+    if last_keyframe is None or not poses:
+        return True
+    step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
+    return float(np.linalg.norm(poses[-1][:3, 3] - last_keyframe[:3, 3])) + step >= keyframe_m

@@ -31,9 +31,11 @@ core/odometry.py, so the truth is the sensor pose at stamp + 50 ms); peak RSS of
 main process and of its largest matcher process.
 
 **Offline reference** (issue 31): before the fleets run, every vehicle's spooled sweeps go through
-the service's session matcher in this process, one thread, none dropped (``bench/offline.py``: what a
-matcher process does per sweep). Per vehicle, its pose error p95 and its CPU per sweep (mean,
-median, max) are printed; each fleet size then gives its worst vehicle's error p95 against that
+a matcher process's own code in this process, one thread, none dropped
+(``bench/offline.py``'s ``matcher_process``: decoding, matching, the map points, a keyframe's
+points where the pose graph asks, the model update; only the pipe and the service are missing).
+Per vehicle, its pose error p95 and its CPU per sweep (mean, median, max) are printed; each
+fleet size then gives its worst vehicle's error p95 against that
 vehicle's offline p95 (the service must add no error) and its matchers' CPU per sweep against the
 offline CPU of the same vehicles' sweeps (issue 31: at most 1.1x). A fleet size *holds* when every
 scan got a pose (none dropped, refused or unanswered), p99 < 200 ms, and every vehicle's error p95
@@ -553,21 +555,23 @@ def run_one(
 
 
 # -- the same sweeps offline ------------------------------------------------------------------------
-def offline(spool_dir: Path, n_vehicles: int) -> dict[str, dict[str, Any]]:
-    """The first ``n_vehicles``' spooled sweeps through the service's session matcher in this process, one
-    thread, none dropped (:func:`offline.service_matcher`): per vehicle its pose error p95 and max
-    against the truth (cm, as :func:`run_one` measures the service's) and its CPU ms per sweep."""
-    from offline import service_matcher
+def offline(spool_dir: Path, n_vehicles: int, graph: bool = True) -> dict[str, dict[str, Any]]:
+    """The first ``n_vehicles``' spooled sweeps through a matcher process's code in this process,
+    one thread, none dropped (:func:`offline.matcher_process`: decoding, matching, the map points
+    cut to the voxels not sent before, a keyframe's points where the pose graph would ask for them
+    when ``graph``, the model update): per vehicle its pose error p95 and max against the truth
+    (cm, as :func:`run_one` measures the service's) and its CPU ms per sweep."""
+    from offline import matcher_process
 
     spool = Spool.load(spool_dir)
     try:
         n = spool.n_scans()
         vehicles = spool.vehicles()[:n_vehicles]
-        service_matcher(spool.get(vehicles[0], k) for k in range(3))  # kernels compiled or loaded: untimed
+        matcher_process(spool.get(vehicles[0], k) for k in range(3))  # kernels compiled or loaded: untimed
         out: dict[str, dict[str, Any]] = {}
         for v in vehicles:
-            progress(f"offline: {v}'s {n} sweeps through the service's session matcher, one thread")
-            run = service_matcher(spool.get(v, k) for k in range(n))
+            progress(f"offline: {v}'s {n} sweeps through a matcher process's code, one thread")
+            run = matcher_process((spool.get(v, k) for k in range(n)), graph=graph)
             err = np.array(
                 [100 * np.linalg.norm(P[:3, 3] - spool.truth[(v, k)][:3, 3]) for k, P in enumerate(run.poses)]
             )
@@ -855,7 +859,7 @@ def main() -> None:
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
         ref = None
         if not args.no_offline:
-            ref = offline(spool, max(args.vehicles))
+            ref = offline(spool, max(args.vehicles), graph=args.graph != "off")
         graphs = ["off", "on"] if args.graph == "both" else [args.graph]
         executors = ["local", "ray"] if args.executor == "both" else [args.executor]
         pairs = [(g, e) for g in graphs for e in executors]
