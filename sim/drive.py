@@ -212,6 +212,7 @@ class Route:
         closed: bool,
         lane_offset_m: float = 1.75,
         turn_radius_m: float = 9.0,
+        transition_m: float = TRANSITION_M,
     ) -> Route:
         """A route along street centreline vertices (e.g. intersections), in the right-hand lane.
 
@@ -227,6 +228,8 @@ class Route:
             Offset of the driving line to the right of the centreline (m).
         turn_radius_m:
             Corner arc radius (m).
+        transition_m:
+            The clothoids into and out of each corner arc (:meth:`from_corners`; 0: plain arcs).
 
         Returns
         -------
@@ -241,7 +244,11 @@ class Route:
         # where the two offset lines meet: N + o (r_in + r_out) / (1 + r_in . r_out)
         corners = q + lane_offset_m * (r_in + r_out) / (1.0 + np.sum(r_in * r_out, axis=1))[:, None]
         return cls.from_corners(
-            corners, closed=closed, turn_radius_m=turn_radius_m, ground_gradient=town.ground_gradient
+            corners,
+            closed=closed,
+            turn_radius_m=turn_radius_m,
+            ground_gradient=town.ground_gradient,
+            transition_m=transition_m,
         )
 
     @classmethod
@@ -257,6 +264,7 @@ class Route:
         start_corner: int = 0,
         lane_offset_m: float = 1.75,
         turn_radius_m: float = 9.0,
+        transition_m: float = TRANSITION_M,
     ) -> Route:
         """A closed loop around the blocks between streets ``i0 < i1`` (x) and ``j0 < j1`` (y).
 
@@ -271,7 +279,12 @@ class Route:
         if clockwise:
             nodes = np.vstack([nodes[:1], nodes[:0:-1]])
         return cls.from_nodes(
-            town, nodes, closed=True, lane_offset_m=lane_offset_m, turn_radius_m=turn_radius_m
+            town,
+            nodes,
+            closed=True,
+            lane_offset_m=lane_offset_m,
+            turn_radius_m=turn_radius_m,
+            transition_m=transition_m,
         )
 
     @classmethod
@@ -283,13 +296,14 @@ class Route:
         length_m: float = 600.0,
         lane_offset_m: float = 1.75,
         turn_radius_m: float = 9.0,
+        transition_m: float = TRANSITION_M,
     ) -> Route:
         """A random closed rectangular loop whose length is close to ``length_m``.
 
         Among the rectangles of the street grid, one whose centreline perimeter is within half a
         block pitch of the best match to ``length_m`` is drawn, with a random direction and
         starting corner. The route is periodic: a run longer than one lap goes round again (loop
-        closures for the mapper).
+        closures for the mapper). Corners as :meth:`rectangle` (``transition_m=0``: plain arcs).
         """
         rects = _rectangles(town)
         rng = np.random.default_rng(seed)
@@ -306,6 +320,7 @@ class Route:
             start_corner=int(rng.integers(4)),
             lane_offset_m=lane_offset_m,
             turn_radius_m=turn_radius_m,
+            transition_m=transition_m,
         )
 
     @classmethod
@@ -714,6 +729,7 @@ def simulate(
     start_s_m: float = 0.0,
     start_stamp_ns: int = 0,
     workers: int = 0,
+    max_lateral_mps2: float = 3.0,
 ) -> Iterator[SimScan]:
     """Drive ``route`` through ``town``: an iterator over ``n_scans`` sweeps, computed lazily.
 
@@ -749,6 +765,10 @@ def simulate(
         runs beside the consumer's work, or on several cores for a ``list(...)``. The scans are
         the same either way (sweep ``k`` depends only on ``k``); a simulated sweep takes about
         45 ms of ray casting (64 beams x 1000 columns).
+    max_lateral_mps2:
+        The driver's limit in corners (:class:`Motion`); ``inf``: the whole route at
+        ``speed_mps``, corners included (with ``Route.loop(transition_m=0)``, the yaw rate jumps
+        at a corner's onset as no car drives: a stress test for deskewing).
 
     Returns
     -------
@@ -768,6 +788,7 @@ def simulate(
         phase_rad=phase,
         start_s_m=start_s_m,
         mount_height_m=lidar.mount_height_m,
+        max_lateral_mps2=max_lateral_mps2,
     )
     period_ns = round(1e9 / rate_hz)
     if not route.closed:
