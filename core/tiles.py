@@ -986,7 +986,9 @@ class SentVoxels:
     :meth:`admitted` starts over (forgets every voxel) when the map's ``token`` changes, i.e.
     voxels may have left the map (:attr:`TileGrid.content_token`: a re-fold) or the points go
     to another map or frame; and when more than ``max_voxels`` voxels are held (the memory
-    bound: starting over only means sending more points once).
+    bound, about 10 MB a session with the default 262,144 and a cap of 1: a vehicle adding about
+    3,000 new voxels a sweep starts over every 8 s or so, and starting over only means sending
+    one sweep's candidates once).
     """
 
     def __init__(
@@ -994,7 +996,7 @@ class SentVoxels:
         tile_size_m: int = 20,
         voxel_size_m: float = 0.2,
         max_points_per_voxel: int = 1,
-        max_voxels: int = 1 << 20,
+        max_voxels: int = 1 << 18,
     ) -> None:
         self._keys_of = TileGrid(tile_size_m, voxel_size_m, max_points_per_voxel)  # sizes, keys
         self._cap = int(max_points_per_voxel)
