@@ -10,8 +10,8 @@ pose before it updates the model), with the settings every session gets
 offline reference, ``bench/main_process.py``'s prepared answers): the same through the process's
 own code (``service.matchers._Sessions.register_payload`` with a ``MapFrame``: the map points
 moved into the map frame and cut to the voxels not sent before; a keyframe's points where the
-pose graph's rule asks for one), then ``update_model``. Only the pipe and the service around it
-are missing.
+pose graph's rule asks for one, ``service.graph.wants_keyframe``), then ``update_model``. Only
+the pipe and the service around it are missing.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.odometry import IncrementalMatcher
+from service.graph import wants_keyframe
 from service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
 from service.settings import ServiceSettings
 
@@ -97,11 +98,3 @@ def matcher_process(payloads: Iterable[bytes], *, graph: bool = True, keep: bool
             run.registered.append(registered)
     run.state = sessions.snapshot(key)
     return run
-
-
-def wants_keyframe(poses: list[np.ndarray], last_keyframe: np.ndarray | None, keyframe_m: float) -> bool:
-    """``service.graph.ServiceGraph.wants_keyframe``'s rule on a session's poses so far."""
-    if last_keyframe is None or not poses:
-        return True
-    step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
-    return float(np.linalg.norm(poses[-1][:3, 3] - last_keyframe[:3, 3])) + step >= keyframe_m

@@ -547,6 +547,16 @@ def correct_trajectory(
     return Ci @ poses
 
 
+def wants_keyframe(poses: list[np.ndarray], last_keyframe: np.ndarray | None, keyframe_m: float) -> bool:
+    """The keyframe rule: a session's next sweep is a keyframe when it is its first, or when it is
+    expected to reach ``keyframe_m`` from the last keyframe (the last pose's distance plus the
+    last step). Also bench/offline.py's, to ask for keyframes where the service would."""
+    if last_keyframe is None or not poses:
+        return True
+    step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
+    return float(np.linalg.norm(poses[-1][:3, 3] - last_keyframe[:3, 3])) + step >= keyframe_m
+
+
 class ServiceGraph:
     """The service's pose graphs, one per map, in a process of their own (module docstring)."""
 
@@ -774,11 +784,7 @@ class ServiceGraph:
         sweep, or the one expected to reach ``keyframe_m`` from the last keyframe (the last
         pose's distance plus the last step), so that the matcher returns its points
         (``keyframe_voxel_m``)."""
-        last_kf = self._last.get((vehicle, session))
-        if last_kf is None or not poses:
-            return True
-        step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
-        return float(np.linalg.norm(poses[-1][:3, 3] - last_kf[:3, 3])) + step >= self.keyframe_m
+        return wants_keyframe(poses, self._last.get((vehicle, session)), self.keyframe_m)
 
     def offer(
         self,
