@@ -44,7 +44,10 @@ def run(
     return done
 
 
-def _daemon_up() -> bool:
+def daemon_up() -> bool:
+    """Whether a Docker daemon answers (False also when the CLI is missing)."""
+    if shutil.which("docker") is None:
+        return False
     return subprocess.run(["docker", "info"], capture_output=True, timeout=60).returncode == 0
 
 
@@ -63,18 +66,21 @@ def ensure_tools() -> list[str]:
 
 
 @contextlib.contextmanager
-def daemon() -> Iterator[bool]:
-    """A running Docker daemon; yields whether this process started it (then it is stopped after)."""
-    if _daemon_up():
+def daemon(nice: int = 0) -> Iterator[bool]:
+    """A running Docker daemon; yields whether this process started it (then it is stopped after).
+    ``nice``: the priority of one started here, and so of its builds and containers."""
+    if daemon_up():
         yield False
         return
     if os.geteuid() != 0:
         raise DockerUnavailableError("no Docker daemon runs and only root can start one")
     log = tempfile.NamedTemporaryFile(prefix="randt-dockerd-", suffix=".log", delete=False)  # noqa: SIM115
-    proc = subprocess.Popen(["dockerd"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        ["nice", "-n", str(nice), "dockerd"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+    )
     try:
         deadline = time.monotonic() + 60.0
-        while not _daemon_up():
+        while not daemon_up():
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise DockerUnavailableError(f"dockerd did not start: {Path(log.name).read_text()[-2000:]}")
             time.sleep(0.5)
@@ -109,7 +115,7 @@ def base_image() -> tuple[str, bool, str]:
         raise DockerUnavailableError(
             f"{OFFICIAL_BASE} cannot be pulled here and {LOCAL_BASE_SCRIPT} is missing"
         )
-    run(["bash", str(LOCAL_BASE_SCRIPT), LOCAL_BASE_TAG], timeout=900)
+    run(["nice", "-n", "10", "bash", str(LOCAL_BASE_SCRIPT), LOCAL_BASE_TAG], timeout=900)
     return (
         LOCAL_BASE_TAG,
         True,

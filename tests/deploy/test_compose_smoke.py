@@ -24,6 +24,7 @@ the images it built removed.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
@@ -31,6 +32,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -208,76 +210,150 @@ def _adapted_compose(
     return out, notes
 
 
+class Images:
+    """Docker, a daemon and the stack's images (base, router stand-in, the project's image), built
+    in a background thread from the moment the deployment tests are collected (``conftest.py``:
+    they run last, and the build, mostly waiting on disk and the package index, overlaps the rest of
+    the suite). Docker's daemon, when started here, runs at a lower priority (``nice``)."""
+
+    def __init__(self) -> None:
+        self.project = f"randtsmoke{os.getpid()}"
+        self.app_image = f"randt-smoke/randt-fleet:{os.getpid()}"
+        self.router_tag = f"randt-smoke/zenoh-router:{os.getpid()}"
+        self.tmp = Path(tempfile.gettempdir())  # its own folder once started
+        self.timings: dict[str, float] = {}
+        self.notes: list[str] = []
+        self.compose_notes: list[str] = []
+        self.base = ""
+        self.router_image: str | None = None
+        self.error: BaseException | None = None
+        self._built_base = False
+        self._daemon = contextlib.ExitStack()
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    def start(self) -> None:
+        if self._thread is None:
+            self.tmp = Path(tempfile.mkdtemp(prefix="randt-smoke-"))
+            self._thread = threading.Thread(target=self._run, name="deploy-images", daemon=True)
+            self._thread.start()
+
+    def wait(self, timeout_s: float = 1800.0) -> None:
+        """Until the images are built; raises what the build raised."""
+        self.start()
+        t = time.monotonic()
+        if not self._done.wait(timeout_s):
+            raise RuntimeError(f"the images were not built in {timeout_s:.0f} s")
+        self.timings["waited for the images"] = time.monotonic() - t
+        if self.error is not None:
+            raise self.error
+
+    def compose_file(self, http_port: int, zenoh_port: int) -> Path:
+        """The adapted compose file (module docstring), with these host ports."""
+        compose, notes = _adapted_compose(
+            self.tmp, self.project, self.base, self.router_image, self.app_image, http_port, zenoh_port
+        )
+        path = self.tmp / "compose.yaml"
+        path.write_text(yaml.safe_dump(compose, sort_keys=False))
+        self.compose_notes = notes
+        return path
+
+    def _run(self) -> None:
+        try:
+            self._build()
+        except BaseException as exc:  # handed to the fixture, which skips or fails
+            self.error = exc
+        finally:
+            self._done.set()
+
+    def _build(self) -> None:
+        t0 = time.monotonic()
+        installed = docker_env.ensure_tools()
+        started = self._daemon.enter_context(docker_env.daemon(nice=10))
+        self.timings["tools and daemon"] = time.monotonic() - t0
+        t = time.monotonic()
+        self.base, self._built_base, how = docker_env.base_image()
+        self.timings["base image"] = time.monotonic() - t
+        official_router = yaml.safe_load(COMPOSE_FILE.read_text())["services"]["zenoh"]["image"]
+        if not docker_env.image_exists(official_router):
+            t = time.monotonic()
+            docker_env.build_router(self.base, official_router.split(":", 1)[1], self.router_tag)
+            self.router_image = self.router_tag
+            self.timings["router image"] = time.monotonic() - t
+        self.notes += [
+            *(["started dockerd at nice 10 (stopped at the end)"] if started else []),
+            *([f"installed from Debian: {', '.join(installed)}"] if installed else []),
+            f"base image: {how}",
+        ]
+        compose_file = self.compose_file(free_port(), free_port())  # the ports are not built in
+        t = time.monotonic()
+        argv = ["docker-compose", "-f", str(compose_file), "-p", self.project, "build"]
+        docker_env.run(argv, timeout=900)
+        self.timings["image build"] = time.monotonic() - t
+
+    def close(self, timeout_s: float = 900.0) -> None:
+        """Removes the images built here and stops a daemon started here (once; also at session end
+        when the tests never ran); a build still running after ``timeout_s`` fails with the daemon."""
+        if self._closed or self._thread is None:
+            return
+        self._closed = True
+        self._done.wait(timeout_s)
+        if docker_env.daemon_up():
+            for tag in (
+                self.app_image,
+                self.router_tag,
+                *((docker_env.LOCAL_BASE_TAG,) if self._built_base else ()),
+            ):
+                docker_env.run(["docker", "image", "rm", "-f", tag], check=False)
+            # the Dockerfile's build stage, which the legacy builder keeps untagged
+            docker_env.run(
+                ["docker", "image", "prune", "-f", "--filter", "label=org.randt-fleet.stage=build"],
+                check=False,
+            )
+        self._daemon.close()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+#: Started by ``conftest.py`` when deployment tests are collected; the fixture waits for it.
+IMAGES = Images()
+
+
 @pytest.fixture(scope="module")
 def stack() -> Iterator[Stack]:
     t0 = time.monotonic()
-    timings: dict[str, float] = {}
     try:
-        installed = docker_env.ensure_tools()
-        daemon = docker_env.daemon()
-        started = daemon.__enter__()
+        IMAGES.wait()
     except (docker_env.DockerUnavailableError, RuntimeError, subprocess.TimeoutExpired) as exc:
+        IMAGES.close()
         if os.environ.get("CI") == "true":
             pytest.fail(f"the deployment smoke test cannot run: {exc}")
         pytest.skip(f"Docker unavailable: {exc}")
-    timings["tools and daemon"] = time.monotonic() - t0
-    project = f"randtsmoke{os.getpid()}"
-    app_image = f"randt-smoke/randt-fleet:{os.getpid()}"
-    router_tag = f"randt-smoke/zenoh-router:{os.getpid()}"
-    built_base = False
-    tmp = Path(tempfile.mkdtemp(prefix="randt-smoke-"))
-    stack_: Stack | None = None
+    compose_file = IMAGES.compose_file(free_port(), free_port())
+    compose = yaml.safe_load(compose_file.read_text())
+    zenoh_port = int(compose["services"]["zenoh"]["ports"][0].split(":")[0])
+    http_port = int(compose["services"]["randt"]["ports"][0].split(":")[0])
+    notes = IMAGES.notes + IMAGES.compose_notes
+    stack_ = Stack(
+        IMAGES.project, compose_file, http_port, zenoh_port, IMAGES.app_image, IMAGES.router_tag,
+        notes, IMAGES.timings,
+    )  # fmt: skip
+    print("\ndeployment smoke test, adapted to this machine:\n  - " + "\n  - ".join(notes), file=sys.stderr)
     try:
-        t = time.monotonic()
-        base, built_base, how = docker_env.base_image()
-        timings["base image"] = time.monotonic() - t
-        official_router = yaml.safe_load(COMPOSE_FILE.read_text())["services"]["zenoh"]["image"]
-        router_image: str | None = None
-        if not docker_env.image_exists(official_router):
-            t = time.monotonic()
-            docker_env.build_router(base, official_router.split(":", 1)[1], router_tag)
-            router_image = router_tag
-            timings["router image"] = time.monotonic() - t
-        compose, notes = _adapted_compose(
-            tmp, project, base, router_image, app_image, free_port(), free_port()
-        )
-        notes.insert(0, f"base image: {how}")
-        if installed:
-            notes.insert(0, f"installed from Debian: {', '.join(installed)}")
-        if started:
-            notes.insert(0, "started dockerd (stopped at the end)")
-        compose_file = tmp / "compose.yaml"
-        compose_file.write_text(yaml.safe_dump(compose, sort_keys=False))
-        zenoh_port = int(compose["services"]["zenoh"]["ports"][0].split(":")[0])
-        http_port = int(compose["services"]["randt"]["ports"][0].split(":")[0])
-        stack_ = Stack(project, compose_file, http_port, zenoh_port, app_image, router_tag, notes, timings)
-        print(
-            "\ndeployment smoke test, adapted to this machine:\n  - " + "\n  - ".join(notes), file=sys.stderr
-        )
-        t = time.monotonic()
-        stack_.compose("build", timeout=900)
-        timings["image build"] = time.monotonic() - t
         t = time.monotonic()
         stack_.compose("up", "-d", "zenoh", "randt")
         stack_.wait_healthy()
-        timings["up until healthy"] = time.monotonic() - t
+        IMAGES.timings["up until healthy"] = time.monotonic() - t
         yield stack_
     finally:
-        if stack_ is not None:
-            logs = stack_.compose("logs", "--tail", "30", check=False).stdout
-            print(f"\nlast compose logs:\n{logs[-4000:]}", file=sys.stderr)
-            stack_.compose("--profile", "cluster", "down", "-v", "--remove-orphans", timeout=300, check=False)
-        for tag in (app_image, router_tag, *((docker_env.LOCAL_BASE_TAG,) if built_base else ())):
-            docker_env.run(["docker", "image", "rm", "-f", tag], check=False)
-        # the Dockerfile's build stage, which the legacy builder keeps untagged
-        docker_env.run(
-            ["docker", "image", "prune", "-f", "--filter", "label=org.randt-fleet.stage=build"], check=False
-        )
-        shutil.rmtree(tmp, ignore_errors=True)
-        daemon.__exit__(None, None, None)
-        timings["total"] = time.monotonic() - t0
+        logs = stack_.compose("logs", "--tail", "30", check=False).stdout
+        print(f"\nlast compose logs:\n{logs[-4000:]}", file=sys.stderr)
+        stack_.compose("--profile", "cluster", "down", "-v", "--remove-orphans", timeout=300, check=False)
+        IMAGES.close()
+        IMAGES.timings["tests and teardown"] = time.monotonic() - t0
         print(
-            "deployment smoke test timings (s): " + json.dumps({k: round(v, 1) for k, v in timings.items()}),
+            "deployment smoke test timings (s): "
+            + json.dumps({k: round(v, 1) for k, v in IMAGES.timings.items()}),
             file=sys.stderr,
         )
 

@@ -1,0 +1,31 @@
+"""The deployment tests run last, and their images are built in the background from the moment they
+are collected: the build (a Debian base from packages, the router stand-in, the project's image,
+about three minutes that mostly wait on disk and the package index) overlaps the rest of the suite
+instead of adding to it (``test_compose_smoke.Images``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).parent
+
+
+@pytest.hookimpl(trylast=True)  # after -k/-m deselection: only when deployment tests will run
+def pytest_collection_modifyitems(
+    session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
+) -> None:
+    deploy = [item for item in items if HERE in Path(item.path).parents]
+    if not deploy or config.option.collectonly:
+        return
+    items[:] = [item for item in items if item not in deploy] + deploy
+    from tests.deploy.test_compose_smoke import IMAGES
+
+    IMAGES.start()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    from tests.deploy.test_compose_smoke import IMAGES
+
+    IMAGES.close(timeout_s=10.0 if exitstatus == pytest.ExitCode.INTERRUPTED else 900.0)
