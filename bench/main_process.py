@@ -37,21 +37,20 @@ import shlex
 import subprocess
 import sys
 import tempfile
-import threading
-import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import common
 import numpy as np
 from common import REPO, THREAD_VARS, free_port, git_line, heading, machine_line, progress, table
+from fleet_link import RATE_HZ, Answers, drive_fleet, fleet_link
 
 del common
 
 #: Issue 31: the service process with the matching elsewhere.
 RATE_TARGET = 300.0
 CPU_TARGET_MS = 3.0
-RATE_HZ = 10.0
 #: Sweeps per vehicle in the spool (60 s at 10 Hz, as bench/service.py's done-means runs).
 N_SCANS = 600
 
@@ -136,127 +135,70 @@ def virtual_vehicles(rate: float, vehicles: list[str]) -> dict[str, str]:
 
 
 def run_one(
-    rate: float, spool_dir: Path, answers: Path, vehicles: list[str], graph: bool, seconds: float
+    rate: float, spool_dir: Path, prepared: Path, vehicles: list[str], graph: bool, seconds: float
 ) -> dict[str, Any]:
     """``rate / 10`` vehicles publishing at 10 Hz for ``seconds`` (:func:`virtual_vehicles`)
     against a fresh service process with the stand-in; its flow, latency and CPU per sweep."""
     import msgpack
-    import zenoh
-
-    from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
-    from wire.messages import decode_error, decode_pose
-    from wire.zenoh_config import zenoh_config
 
     bench_service = _bench_service()
     spool = bench_service.Spool.load(spool_dir)
     n_scans = min(spool.n_scans(), round(seconds * RATE_HZ))
     fleet = virtual_vehicles(rate, vehicles)
+
+    def replayed(vehicle: str) -> Callable[[int], bytes]:
+        def payload_of(k: int) -> bytes:
+            message = msgpack.unpackb(spool.get(fleet[vehicle], k), raw=False)
+            message["vehicle"] = vehicle  # the spooled sweep under this vehicle's id
+            return bytes(msgpack.packb(message))
+
+        return payload_of
+
     with tempfile.TemporaryDirectory(prefix="randt-bench-main-") as tmp:
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}
         service = subprocess.Popen(
             [
                 sys.executable, "-c", SERVE_PROGRAM, str(REPO), str(Path(__file__).parent), endpoint,
-                str(Path(tmp) / "data"), str(answers), "on" if graph else "off",
+                str(Path(tmp) / "data"), str(prepared), "on" if graph else "off",
             ],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
         )  # fmt: skip
         assert service.stdin is not None and service.stdout is not None
         pid = int(json.loads(service.stdout.readline())["pid"])
-        sent: dict[tuple[str, int], float] = {}
-        got: dict[tuple[str, int], float] = {}
-        pose_of: dict[tuple[str, int], np.ndarray] = {}
-        errors: dict[str, int] = {}
-        example = [""]
-        last = [0.0]
-        lock = threading.Lock()
-
-        def on_pose(sample: zenoh.Sample) -> None:
-            t = time.monotonic()
-            m = decode_pose(sample.payload.to_bytes())
-            with lock:
-                got[(m.vehicle, m.seq)] = last[0] = t
-                pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
-
-        def on_error(sample: zenoh.Sample) -> None:
-            m = decode_error(sample.payload.to_bytes())
-            with lock:
-                errors[m.code] = errors.get(m.code, 0) + 1
-                if m.code != "dropped":
-                    example[0] = example[0] or f"{m.code}: {m.reason}"
-                last[0] = time.monotonic()
-
-        listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
-        subs = [
-            listener.declare_subscriber(ALL_POSES, on_pose),
-            listener.declare_subscriber(ALL_ERRORS, on_error),
-        ]
+        answers = Answers()
         # one Zenoh session per spooled vehicle, shared by its replays
-        sessions = {v: zenoh.open(zenoh_config("peer", connect=(endpoint,))) for v in vehicles}
-        time.sleep(1.0)
-
-        def drive(vehicle: str, start: float) -> None:
-            base = fleet[vehicle]
-            pub = sessions[base].declare_publisher(
-                scan_key(vehicle),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                reliability=zenoh.Reliability.RELIABLE,
-            )
-            for k in range(n_scans):
-                message = msgpack.unpackb(spool.get(base, k), raw=False)
-                message["vehicle"] = vehicle  # the spooled sweep under this vehicle's id
-                payload = msgpack.packb(message)
-                delay = start + k / RATE_HZ - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                with lock:
-                    sent[(vehicle, k)] = time.monotonic()
-                pub.put(payload)
-
-        cpu0 = bench_service._proc_cpu_s(pid)
-        t0 = time.monotonic() + 0.5
-        threads = [
-            threading.Thread(target=drive, args=(v, t0 + i / (RATE_HZ * len(fleet))))
-            for i, v in enumerate(fleet)
-        ]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            with lock:
-                if len(got) + sum(errors.values()) >= len(sent):
-                    break
-            time.sleep(0.05)
-        cpu = bench_service._proc_cpu_s(pid) - cpu0
-        with lock:
-            wall = max(last[0], t0 + 1e-3) - t0
-        for sub in subs:
-            sub.undeclare()
-        for session in sessions.values():
-            session.close()
-        listener.close()
+        with fleet_link(endpoint, vehicles, answers) as sessions:
+            cpu0 = bench_service._proc_cpu_s(pid)
+            t0 = drive_fleet({v: (sessions[fleet[v]], replayed(v)) for v in fleet}, n_scans, answers)
+            answers.wait_all_answered(60.0)
+            cpu = bench_service._proc_cpu_s(pid) - cpu0
+            wall = answers.wall_s(t0)
         service.stdin.close()
         final = json.loads(service.stdout.readline())
         service.wait(120)
     truth = spool.truth
     spool.close()
-    lat = np.array([got[k] - sent[k] for k in got if k in sent]) * 1e3
+    lat = answers.latencies_ms()
     err = np.array(
-        [100 * np.linalg.norm(T[:3, 3] - truth[(fleet[v], k)][:3, 3]) for (v, k), T in pose_of.items()]
+        [
+            100 * np.linalg.norm(T[:3, 3] - truth[(fleet[v], k)][:3, 3])
+            for (v, k), T in answers.pose_of.items()
+        ]
     )
-    poses = max(len(got), 1)
+    errors = answers.errors
+    poses = max(len(answers.got), 1)
     return {
         "rate": rate,
         "vehicles": len(fleet),
         "graph": graph,
-        "sent": len(sent),
-        "poses": len(got),
+        "sent": len(answers.sent),
+        "poses": len(answers.got),
         "dropped": errors.get("dropped", 0),
         "other_errors": sum(v for k, v in errors.items() if k != "dropped"),
-        "unanswered": len(sent) - len(got) - sum(errors.values()),
-        "poses_per_s": len(got) / wall,
+        "unanswered": len(answers.sent) - len(answers.got) - sum(errors.values()),
+        "not_in_map": answers.not_in_map,
+        "poses_per_s": len(answers.got) / wall,
         "mean_ms": float(lat.mean()) if lat.size else float("nan"),
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
@@ -266,7 +208,7 @@ def run_one(
         "err_max_cm": float(err.max()) if err.size else float("nan"),
         "missing_keyframes": final["missing_keyframes"],
         "error_codes": errors,
-        "error_example": example[0],
+        "error_example": answers.example,
     }
 
 

@@ -58,14 +58,13 @@ import argparse
 import contextlib
 import csv
 import datetime
+import functools
 import json
 import os
 import shlex
 import subprocess
 import sys
 import tempfile
-import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
@@ -73,11 +72,10 @@ from typing import IO, Any
 import common
 import numpy as np
 from common import REPO, THREAD_VARS, free_port, git_line, heading, machine_line, progress, table
+from fleet_link import RATE_HZ, Answers, drive_fleet, fleet_link
 
 del common
 
-
-RATE_HZ = 10.0
 #: Targets of issue 14 (a fleet size holds when it meets all of them).
 P99_TARGET_MS = 200.0
 ERROR_TARGET_CM = 5.0
@@ -358,13 +356,8 @@ def run_one(
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
     (``RANDT_EXECUTOR``)."""
-    import zenoh
-
     from core.transforms import invert
     from wire.codes import ErrorCode
-    from wire.keys import ALL_ERRORS, ALL_POSES, scan_key
-    from wire.messages import decode_error, decode_pose
-    from wire.zenoh_config import zenoh_config
 
     spool = Spool.load(spool_dir)
     vehicles = spool.vehicles()[:n_vehicles]
@@ -388,104 +381,35 @@ def run_one(
         main_pid = int(started["pid"])
         matcher_pids = [int(p) for p in started["matchers"]]
 
-        sent: dict[tuple[str, int], float] = {}
-        got: dict[tuple[str, int], float] = {}
-        pose_of: dict[tuple[str, int], np.ndarray] = {}
-        statuses: dict[str, int] = {}
-        errors: dict[str, int] = {}
-        not_in_map = [0]  # poses outside the shared map (a session that lost its anchor)
-        last_answer = [0.0]
-        lock = threading.Lock()
-
-        def on_pose(sample: zenoh.Sample) -> None:
-            t = time.monotonic()
-            m = decode_pose(sample.payload.to_bytes())
-            with lock:
-                got[(m.vehicle, m.seq)] = t
-                last_answer[0] = t
-                statuses[m.status] = statuses.get(m.status, 0) + 1
-                if m.map == "default":
-                    pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
-                else:
-                    not_in_map[0] += 1
-
-        def on_error(sample: zenoh.Sample) -> None:
-            m = decode_error(sample.payload.to_bytes())
-            with lock:
-                errors[m.code] = errors.get(m.code, 0) + 1
-                last_answer[0] = time.monotonic()
-
-        listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
-        subs = [
-            listener.declare_subscriber(ALL_POSES, on_pose),
-            listener.declare_subscriber(ALL_ERRORS, on_error),
-        ]
-        sessions = {v: zenoh.open(zenoh_config("peer", connect=(endpoint,))) for v in vehicles}
-        time.sleep(1.0)  # let the peers connect
-
-        def drive(vehicle: str, start: float) -> None:
-            # As the vehicle library publishes (clients/publisher.py): block under congestion
-            # rather than drop, so every scan reaches the service.
-            pub = sessions[vehicle].declare_publisher(
-                scan_key(vehicle),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                reliability=zenoh.Reliability.RELIABLE,
-            )
-            for k in range(n_scans):
-                payload = spool.get(vehicle, k)
-                delay = start + k / RATE_HZ - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                with lock:
-                    sent[(vehicle, k)] = time.monotonic()
-                pub.put(payload)
-
-        cpu0 = _proc_cpu_s(main_pid), sum(_proc_cpu_s(p) for p in matcher_pids)
-        ray_workers0, ray_own0 = _ray_processes() if executor == "ray" else ([], [])
-        ray_cpu0 = {p: _cpu_or_zero(p) for p in ray_workers0 + ray_own0}
-        t0 = time.monotonic()
-        # Vehicles staggered over one period, as unsynchronised sensors are (sim.drive.plan_fleet).
-        threads = [
-            threading.Thread(target=drive, args=(v, t0 + i / (RATE_HZ * len(vehicles))))
-            for i, v in enumerate(vehicles)
-        ]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            with lock:
-                if len(got) + sum(errors.values()) >= len(sent):
-                    break
-            time.sleep(0.05)
-        cpu_main = _proc_cpu_s(main_pid) - cpu0[0]
-        cpu_matchers = sum(_proc_cpu_s(p) for p in matcher_pids) - cpu0[1]
-        rss_main = _peak_rss_mib(main_pid)
-        rss_matcher = max((_peak_rss_mib(p) for p in matcher_pids), default=float("nan"))
-        cpu_ray_own = rss_ray_own = 0.0
-        if executor == "ray":  # the actors' processes are the matchers; Ray's own are its cost
-            ray_workers, ray_own = _ray_processes()
-            cpu_matchers = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_workers)
-            cpu_ray_own = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_own)
-            actors = [p for p in ray_workers if _rss_mib(p) > 0]
-            rss_matcher = max((_peak_rss_mib(p) for p in actors), default=float("nan"))
-            rss_ray_own = sum(_rss_mib(p) for p in ray_own)
-        with lock:
-            wall = max(last_answer[0], t0 + 1e-3) - t0  # first publication to last answer
-        for s in subs:
-            s.undeclare()
-        for session in sessions.values():
-            session.close()
-        listener.close()
+        answers = Answers()
+        with fleet_link(endpoint, vehicles, answers) as sessions:
+            cpu0 = _proc_cpu_s(main_pid), sum(_proc_cpu_s(p) for p in matcher_pids)
+            ray_workers0, ray_own0 = _ray_processes() if executor == "ray" else ([], [])
+            ray_cpu0 = {p: _cpu_or_zero(p) for p in ray_workers0 + ray_own0}
+            fleet = {v: (sessions[v], functools.partial(spool.get, v)) for v in vehicles}
+            t0 = drive_fleet(fleet, n_scans, answers)
+            answers.wait_all_answered(120.0)
+            cpu_main = _proc_cpu_s(main_pid) - cpu0[0]
+            cpu_matchers = sum(_proc_cpu_s(p) for p in matcher_pids) - cpu0[1]
+            rss_main = _peak_rss_mib(main_pid)
+            rss_matcher = max((_peak_rss_mib(p) for p in matcher_pids), default=float("nan"))
+            cpu_ray_own = rss_ray_own = 0.0
+            if executor == "ray":  # the actors' processes are the matchers; Ray's own are its cost
+                ray_workers, ray_own = _ray_processes()
+                cpu_matchers = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_workers)
+                cpu_ray_own = sum(_cpu_or_zero(p) - ray_cpu0.get(p, 0.0) for p in ray_own)
+                actors = [p for p in ray_workers if _rss_mib(p) > 0]
+                rss_matcher = max((_peak_rss_mib(p) for p in actors), default=float("nan"))
+                rss_ray_own = sum(_rss_mib(p) for p in ray_own)
+            wall = answers.wall_s(t0)
         service.stdin.close()
         final = json.loads(service.stdout.readline())
         received, graph_stats = final["received"], final["graph"]
         service.wait(120)
         spool.close()
 
-    keys = [k for k in got if k in sent]
-    lat_ms = np.array([got[k] - sent[k] for k in keys]) * 1e3
+    sent, got, pose_of, errors = answers.sent, answers.got, answers.pose_of, answers.errors
+    lat_ms = answers.latencies_ms()
     pct = {p: float(np.percentile(lat_ms, p)) if lat_ms.size else float("nan") for p in (50, 90, 99)}
     pos_cm, rot_deg = [], []
     by_vehicle: dict[str, list[float]] = {v: [] for v in vehicles}
@@ -503,8 +427,9 @@ def run_one(
     other = sum(v for k, v in errors.items() if k != ErrorCode.DROPPED)
     unanswered = len(sent) - n_answered
     err_max = float(pos.max()) if pos.size else float("nan")
+    not_in_map = answers.not_in_map
     flows = (  # every scan posed in time (the error criterion is main()'s: it has the offline run)
-        dropped == 0 and other == 0 and unanswered == 0 and not_in_map[0] == 0 and pct[99] < P99_TARGET_MS
+        dropped == 0 and other == 0 and unanswered == 0 and not_in_map == 0 and pct[99] < P99_TARGET_MS
     )
     return {
         "vehicles": n_vehicles,
@@ -521,8 +446,8 @@ def run_one(
         "sent": len(sent),
         "received": received,
         "poses": len(got),
-        "fallbacks": statuses.get("fallback", 0),
-        "not_in_map": not_in_map[0],
+        "fallbacks": answers.statuses.get("fallback", 0),
+        "not_in_map": not_in_map,
         "dropped": dropped,
         "other_errors": other,
         "other_codes": ", ".join(f"{k} {v}" for k, v in sorted(errors.items()) if k != ErrorCode.DROPPED),
