@@ -285,8 +285,23 @@ def _disk_fault_inner(kind: str, root: Path) -> FaultResult:
                     if done.returncode != 0:
                         raise SetupError(f"umount {data_dir}: {done.stderr.strip()}")
 
+            def store_errors() -> float:
+                value = live.service.metrics.registry.get_sample_value("randt_store_errors_total")
+                return value or 0.0
+
+            def loud_since(t: float, n_err: int) -> bool:  # ERROR lines, and the store or vehicle told
+                codes = {a.code for a in listener.of(good.vehicle, t) if a.kind == "error" and a.code}
+                return len(errors.lines) > n_err and (store_errors() > 0 or bool(codes))
+
+            def told(t: float) -> bool:  # the vehicle answered an error since t
+                return any(a.kind == "error" for a in listener.of(good.vehicle, t))
+
             try:
-                time.sleep(5.0)
+                # conditions, not clocks: each stage waits for what it checks (a busy machine only
+                # makes it slower)
+                listener.wait(
+                    lambda: _poses_after(listener, good.vehicle, 0.0) >= 5 and bool(listener.tiles), 60.0
+                )
                 ok_before = _poses_after(listener, good.vehicle, 0.0)
                 n_err0 = len(errors.lines)
                 if kind == "full_disk":
@@ -294,32 +309,30 @@ def _disk_fault_inner(kind: str, root: Path) -> FaultResult:
                     result.detail += f"a 24 MiB tmpfs, {used:.1f} MiB used before the fault; "
                 inject()
                 t_fault = time.monotonic()
-                time.sleep(6.0)
-                store_errors = (
-                    live.service.metrics.registry.get_sample_value("randt_store_errors_total") or 0.0
-                )
+                listener.wait(lambda: told(t_fault) and loud_since(t_fault, n_err0), 30.0)
                 during = [a for a in listener.of(good.vehicle, t_fault)]
                 err_codes = sorted({a.code for a in during if a.kind == "error" and a.code})
                 ready_status, _ = http_raw(live.port, "GET", "/readyz")
                 loud_lines = errors.lines[n_err0:]
-                result.checks["loud"] = bool(loud_lines) and (store_errors > 0 or bool(err_codes))
+                result.checks["loud"] = loud_since(t_fault, n_err0)
                 result.detail += (
                     f"before: {ok_before} poses; during ({kind}): "
                     f"{sum(a.kind == 'pose' for a in during)} poses, "
-                    f"error codes {err_codes}, store errors {store_errors:g}, /readyz {ready_status}, "
+                    f"error codes {err_codes}, store errors {store_errors():g}, /readyz {ready_status}, "
                     f"{len(loud_lines)} ERROR lines (first: {loud_lines[0] if loud_lines else '-'})"
                 )
                 lift()
                 t_lift = time.monotonic()
-                time.sleep(5.0)
+                listener.wait(lambda: _poses_after(listener, good.vehicle, t_lift + 1.0) > 0, 60.0)
                 result.checks["recovered"] = _poses_after(
                     listener, good.vehicle, t_lift + 1.0
                 ) > 0 and healthy(live.port)
                 # The fault again, and the service stops while it lasts: every pose a vehicle
                 # received must still be in the store (durable before acknowledged).
+                n_err1 = len(errors.lines)
                 inject()
                 t_second = time.monotonic()
-                time.sleep(3.0)
+                listener.wait(lambda: len(errors.lines) > n_err1, 30.0)
                 result.detail += (
                     f"; second fault: {_poses_after(listener, good.vehicle, t_second)} poses, "
                     "then the service stopped during it"
@@ -448,7 +461,7 @@ def run_router_fault() -> FaultResult:
                 listener = Listener((endpoint,), mode="client")
                 good = GoodVehicle((endpoint,), rate_hz=5.0, mode="client").start()
                 try:
-                    time.sleep(5.0)
+                    listener.wait(lambda: _poses_after(listener, good.vehicle, 0.0) >= 5, 60.0)
                     before = _poses_after(listener, good.vehicle, 0.0)
                     router.send_signal(signal.SIGKILL)
                     router.wait(10)

@@ -5,6 +5,7 @@ instead of adding to it (``test_compose_smoke.Images``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -29,3 +30,12 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     from tests.deploy.test_compose_smoke import IMAGES
 
     IMAGES.close(timeout_s=10.0 if exitstatus == pytest.ExitCode.INTERRUPTED else 900.0)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The deployment test's stage timings in every run's log (CI's too), not only on failure."""
+    from tests.deploy.test_compose_smoke import IMAGES
+
+    if IMAGES.timings:
+        timings = {k: round(v, 1) for k, v in IMAGES.timings.items()}
+        terminalreporter.write_line(f"deployment smoke test timings (s): {json.dumps(timings)}")
