@@ -25,10 +25,12 @@ Errors are the project's (:mod:`core.errors`), answered by :mod:`service.api.err
 from __future__ import annotations
 
 import hmac
+import re
 from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BeforeValidator
 
 from core.errors import AuthError, ForbiddenError, NotFoundError, UnavailableError
 from core.tiles import TileGrid
@@ -61,7 +63,22 @@ VehicleName = Annotated[str, Path(pattern=ID_REGEX, max_length=ID_MAX_LENGTH, de
 SessionName = Annotated[
     str, Path(pattern=ID_REGEX, max_length=ID_MAX_LENGTH, description="session id of the vehicle")
 ]
-TileIx = Annotated[int, Path(ge=-MAX_TILE_INDEX, le=MAX_TILE_INDEX, description="tile index")]
+#: A tile index as ``tile_id`` writes it: an optional minus, then digits without leading zeros.
+#: Python's and pydantic's lax ``int`` would also take ``1.0``, ``+1``, `` 1``, ``0_0`` and ``01``.
+TILE_INDEX_REGEX = re.compile(r"0|-?[1-9][0-9]{0,9}")
+
+
+def _strict_tile_index(value: object) -> object:
+    if isinstance(value, str) and TILE_INDEX_REGEX.fullmatch(value) is None:
+        raise ValueError(f"a tile index is an integer written as 0 or -?[1-9][0-9]*, not {value[:40]!r}")
+    return value
+
+
+TileIx = Annotated[
+    int,
+    BeforeValidator(_strict_tile_index),
+    Path(ge=-MAX_TILE_INDEX, le=MAX_TILE_INDEX, description="tile index (an integer as written: 0, 12, -3)"),
+]
 
 
 def get_service(request: Request) -> Service:
