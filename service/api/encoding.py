@@ -13,23 +13,24 @@ Every format carries float32 ``x y z intensity`` in the map frame, as the store'
   sensors (KITTI, the simulator); a sensor reporting 0-255 saturates there but not in
   ``intensity_raw``.
 
-PCD and PLY headers hold the point count, which is known up front from immutable tile
-snapshots, so :func:`stream_cloud` yields the header and then one chunk per tile: a merged export
-never holds a second copy of the map in memory. LAS headers also hold bounds and per-return
-counts that laspy fills in when the file closes, so LAS is written to a temporary file first.
+Headers hold the point count, which is known up front from immutable tile snapshots, so
+:func:`stream_cloud` yields the header and then one chunk per tile: a merged export never holds a
+second copy of the map in memory, whatever the format or the number of concurrent downloads. A
+LAS header also holds the bounds and per-return counts that laspy's writer fills in when its file
+closes: :func:`stream_cloud` computes them first with laspy's own ``LasHeader.grow`` over the
+chunks' records (built twice, one chunk at a time), so the bytes are those laspy writes.
 """
 
 from __future__ import annotations
 
 import io
-import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator, Sequence
 from typing import Literal
 
 import laspy
 import numpy as np
 
-__all__ = ["CLOUD_MEDIA_TYPES", "CloudFormat", "cloud_bytes", "las_file", "stream_cloud"]
+__all__ = ["CLOUD_MEDIA_TYPES", "CloudFormat", "cloud_bytes", "stream_cloud"]
 
 CloudFormat = Literal["pcd", "ply", "las"]
 
@@ -43,6 +44,9 @@ CLOUD_MEDIA_TYPES: dict[str, str] = {
 _LAS_SCALE = 1e-4  # metres per LAS integer unit
 _LAS_INTENSITY_MAX = 65535
 _CHUNK_POINTS = 65536
+#: LAS pieces are smaller: a record is built (with float64 coordinates on the way) for each piece,
+#: twice, and 20 concurrent downloads each hold one at a time.
+_LAS_CHUNK_POINTS = 8192
 
 Chunk = tuple[np.ndarray, np.ndarray]  # (N, 3) float32 xyz, (N,) float32 intensity
 
@@ -86,33 +90,68 @@ def _rows(xyz: np.ndarray, intensity: np.ndarray) -> bytes:
     return rows.tobytes()
 
 
-def stream_cloud(fmt: Literal["pcd", "ply"], n_points: int, chunks: Iterable[Chunk]) -> Iterator[bytes]:
-    """Yield a binary PCD or PLY of ``n_points`` points: the header, then the chunks' rows.
+def stream_cloud(fmt: CloudFormat, n_points: int, chunks: Sequence[Chunk]) -> Iterator[bytes]:
+    """Yield a binary PCD or PLY, or a LAS 1.4 file, of ``n_points`` points: the header, then the
+    chunks' points (at most ``_CHUNK_POINTS`` at a time).
 
     Parameters
     ----------
     fmt:
-        ``"pcd"`` or ``"ply"``.
+        ``"pcd"``, ``"ply"`` or ``"las"``.
     n_points:
         The total number of points the chunks hold (written in the header).
     chunks:
-        ``(xyz (N, 3), intensity (N,))`` pieces, e.g. one per tile; large ones are split.
+        ``(xyz (N, 3), intensity (N,))`` pieces, e.g. one per tile; large ones are split. LAS reads
+        them twice (bounds first).
 
     Raises
     ------
     ValueError
-        The chunks do not hold exactly ``n_points`` points (checked after the last one; the
-        body is then already incomplete, so callers compute ``n_points`` from the same snapshot).
+        The chunks do not hold exactly ``n_points`` points (checked before a LAS header and after
+        a PCD or PLY's last chunk; the body is then already incomplete, so callers compute
+        ``n_points`` from the same snapshot).
     """
+    if fmt == "las":
+        yield from _stream_las(n_points, chunks)
+        return
     yield _pcd_header(n_points) if fmt == "pcd" else _ply_header(n_points)
     sent = 0
-    for xyz, intensity in chunks:
-        for start in range(0, xyz.shape[0], _CHUNK_POINTS):
-            stop = start + _CHUNK_POINTS
-            yield _rows(xyz[start:stop], intensity[start:stop])
+    for xyz, intensity in _pieces(chunks):
+        yield _rows(xyz, intensity)
         sent += xyz.shape[0]
     if sent != n_points:
         raise ValueError(f"stream_cloud: header says {n_points} points, chunks held {sent}")
+
+
+def _pieces(chunks: Sequence[Chunk], size: int = _CHUNK_POINTS) -> Iterator[Chunk]:
+    for xyz, intensity in chunks:
+        for start in range(0, xyz.shape[0], size):
+            yield xyz[start : start + size], intensity[start : start + size]
+
+
+def _stream_las(n_points: int, chunks: Sequence[Chunk]) -> Iterator[bytes]:
+    """LAS 1.4 point format 6: the header as laspy's writer leaves it at close (bounds, counts and
+    the extra dimension's range grown over every record), then the records."""
+    lows = [xyz.min(axis=0) for xyz, _ in chunks if xyz.shape[0]]
+    header = _las_header(np.min(lows, axis=0) if lows else np.zeros(3))
+    header.partial_reset()
+    for xyz, intensity in _pieces(chunks, _LAS_CHUNK_POINTS):
+        header.grow(_las_points(header, xyz, intensity))
+    if header.point_count != n_points:
+        raise ValueError(f"stream_cloud: header says {n_points} points, chunks held {header.point_count}")
+    if n_points == 0:
+        header.maxs = header.mins = np.zeros(3)
+    # The extra dimension's range as the LAS 1.4 spec means it: laspy 2.7's ExtraBytesStruct.grow
+    # takes each record's *first* value as its min and max (``pts[..., 0]`` of a 1-D field)
+    (raw,) = header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs
+    ranges = [(float(i.min()), float(i.max())) for _, i in chunks if i.shape[0]]
+    raw._raw_min()[:] = min((lo for lo, _ in ranges), default=0.0)
+    raw._raw_max()[:] = max((hi for _, hi in ranges), default=0.0)
+    with io.BytesIO() as head:
+        header.write_to(head)
+        yield head.getvalue()
+    for xyz, intensity in _pieces(chunks, _LAS_CHUNK_POINTS):
+        yield _las_points(header, xyz, intensity).memoryview().tobytes()
 
 
 def _las_header(lo: np.ndarray) -> laspy.LasHeader:
@@ -135,28 +174,8 @@ def _las_points(
     return record
 
 
-def las_file(chunks: Iterable[Chunk], lo_xyz: np.ndarray) -> tempfile.SpooledTemporaryFile[bytes]:
-    """Write the chunks as one LAS 1.4 file (point format 6) into a rewound temporary file.
-
-    ``lo_xyz`` (3,) is a lower corner of the data (it sets the integer offset). Files up to
-    64 MiB stay in memory; the caller closes the file.
-    """
-    out: tempfile.SpooledTemporaryFile[bytes] = tempfile.SpooledTemporaryFile(max_size=64 << 20)  # noqa: SIM115
-    header = _las_header(np.asarray(lo_xyz, dtype=np.float64))
-    with laspy.open(out, mode="w", header=header, closefd=False) as writer:
-        for xyz, intensity in chunks:
-            if xyz.shape[0]:
-                writer.write_points(_las_points(header, xyz, intensity))
-    out.seek(0)
-    return out
-
-
 def cloud_bytes(fmt: CloudFormat, xyz: np.ndarray, intensity: np.ndarray) -> bytes:
     """One cloud (say, a tile) as a complete file body in ``fmt``."""
-    if fmt == "las":
-        lo = xyz.min(axis=0) if xyz.shape[0] else np.zeros(3)
-        with las_file([(xyz, intensity)], lo) as fh:
-            return fh.read()
     buffer = io.BytesIO()
     for part in stream_cloud(fmt, xyz.shape[0], [(xyz, intensity)]):
         buffer.write(part)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterator
 from typing import Annotated, Any
 
 import numpy as np
@@ -36,7 +35,7 @@ from service.api.deps import (
     require_reader,
     require_writer,
 )
-from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, las_file, stream_cloud
+from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, stream_cloud
 from service.api.models import (
     DeletedMap,
     ErrorBody,
@@ -363,14 +362,6 @@ def _chunks(tiles: list[Tile], box: tuple[tuple[float, float], tuple[float, floa
     return out
 
 
-def _file_chunks(fh: object, size: int = 1 << 20) -> Iterator[bytes]:
-    try:
-        while block := fh.read(size):  # type: ignore[attr-defined]
-            yield block
-    finally:
-        fh.close()  # type: ignore[attr-defined]
-
-
 @router.get(
     "/{map}/export",
     response_class=StreamingResponse,
@@ -386,7 +377,8 @@ def export_map(
     """The whole map (or the points in ``bbox``) as one cloud, streamed tile by tile.
 
     One consistent snapshot of the tiles is taken when the request arrives; later inserts are
-    not in this download. LAS is assembled in a temporary file first (its header holds bounds).
+    not in this download. Every format streams (LAS's bounds are computed from the snapshot
+    first), so a download holds one tile's worth of output at a time.
     """
     saved = _saved_map(mgr, map)
     box = parse_bbox(bbox) if bbox is not None else None
@@ -401,10 +393,6 @@ def export_map(
         "X-Randt-Points": str(n_points),
         "X-Randt-Tiles": str(len(tiles)),
     }
-    if format == "las":
-        lo = np.min([xyz.min(axis=0) for xyz, _ in chunks], axis=0) if n_points else np.zeros(3)
-        fh = las_file(chunks, lo)
-        return StreamingResponse(_file_chunks(fh), media_type=CLOUD_MEDIA_TYPES["las"], headers=headers)
     return StreamingResponse(
         stream_cloud(format, n_points, chunks), media_type=CLOUD_MEDIA_TYPES[format], headers=headers
     )
