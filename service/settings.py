@@ -30,7 +30,7 @@ from core.config import RegistrationSettings
 from core.fleet_map import FleetMapSettings
 from core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from wire.ids import ID_REGEX
-from wire.zenoh_config import check_endpoints, load_config_file
+from wire.zenoh_config import check_endpoints, check_protocols, load_config_file
 
 __all__ = ["ServiceSettings"]
 
@@ -263,6 +263,14 @@ class ServiceSettings(BaseSettings):
         if value is not None:
             load_config_file(value)  # a missing or invalid file is one clear error, before anything starts
         return value
+
+    @model_validator(mode="after")
+    def _endpoints_fit_the_config_file(self) -> ServiceSettings:
+        if self.zenoh_config is not None:  # e.g. --listen tcp/... with a TLS-only file: one error now
+            check_protocols(
+                load_config_file(self.zenoh_config), self.listen + self.connect, self.zenoh_config
+            )
+        return self
 
     @model_validator(mode="after")
     def _reads_need_a_token(self) -> ServiceSettings:

@@ -70,9 +70,12 @@ class ZenohTransport:
 
     def open(self) -> None:
         s = self.settings
-        self._session = zenoh.open(
-            zenoh_config(s.zenoh_mode, s.listen, s.connect, config_file=s.zenoh_config)
-        )
+        config = zenoh_config(s.zenoh_mode, s.listen, s.connect, config_file=s.zenoh_config)
+        try:
+            self._session = zenoh.open(config)
+        except zenoh.ZError as exc:  # e.g. a certificate file that does not read: Zenoh's reason, one line
+            reason = str(exc).split(" at /", 1)[0]  # without the Rust source location
+            raise ValueError(f"Zenoh cannot open the service's session: {reason}") from exc
         self._sender = threading.Thread(target=self._send_loop, name="zenoh-sender", daemon=True)
         self._sender.start()
         sess = self._session

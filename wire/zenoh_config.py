@@ -61,6 +61,25 @@ def _get(cfg: zenoh.Config, key: str) -> object:
     return json.loads(cfg.get_json(key))
 
 
+def check_protocols(cfg: zenoh.Config, endpoints: tuple[str, ...], source: Path | str) -> None:
+    """Raise ValueError naming the first endpoint whose protocol the config's
+    ``transport/link/protocols`` leaves out (e.g. ``tcp/...`` with ``randt security init``'s
+    TLS-only config), instead of Zenoh's failure when the session opens."""
+    allowed = _get(cfg, "transport/link/protocols")
+    if not isinstance(allowed, list):
+        return
+    for ep in endpoints:
+        proto = ep.split("/", 1)[0]
+        if proto not in allowed:
+            address = ep.split("/", 1)[1] if "/" in ep else ""
+            hint = f" (e.g. {allowed[0]}/{address})" if allowed else ""
+            listed = ", ".join(map(str, allowed)) or "none"
+            raise ValueError(
+                f"endpoint {ep} uses {proto}, which Zenoh config file {str(source)!r} does not allow "
+                f"(transport.link.protocols: {listed}): use one of those{hint}"
+            )
+
+
 def zenoh_config(
     mode: str,
     listen: tuple[str, ...] = (),
@@ -96,6 +115,7 @@ def zenoh_config(
                     "options: docs/security.md)",
                     config_file, key, json.dumps(theirs), json.dumps(value),
                 )  # fmt: skip
+        check_protocols(cfg, listen + connect, config_file)
         # explicit, even when empty: a peer listens on tcp/[::]:0 (every interface) by default
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
         cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))

@@ -328,4 +328,12 @@ def test_security_init_writes_a_deployment_and_serve_refuses_a_bad_zenoh_config(
         assert proc.returncode == ExitCode.INVALID_VALUE, proc.stderr
         line = _one_error_line(proc)
         assert "zenoh_config" in line and reason in line, line
+    # the generated TLS-only config with a tcp endpoint: one line naming both (issue 32: exit 3
+    # and a 52-line traceback from Zenoh's session)
+    tls_only = target / "service.json5"
+    proc = _randt("serve", "--data-dir", str(tmp_path / "data"), "--listen", "tcp/127.0.0.1:17447",
+                  "--zenoh-config", str(tls_only))  # fmt: skip
+    assert proc.returncode == ExitCode.INVALID_VALUE, proc.stderr
+    line = _one_error_line(proc)
+    assert "tcp/127.0.0.1:17447 uses tcp" in line and "tls/127.0.0.1:17447" in line, line
     assert not (tmp_path / "data").exists()  # refused before anything started

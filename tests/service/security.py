@@ -31,10 +31,11 @@ def open_session(
 
 
 def refused(config: Path, endpoint: str) -> str:
-    """Open a client session with ``config`` to ``endpoint``; return Zenoh's error (fails if it opened)."""
+    """Open a client session with ``config`` to ``endpoint``; return Zenoh's error, or randt's when
+    the config cannot reach the endpoint at all (fails if it opened)."""
     try:
         session = zenoh.open(zenoh_config("client", connect=(endpoint,), config_file=config))
-    except zenoh.ZError as exc:
+    except (zenoh.ZError, ValueError) as exc:
         return str(exc)
     session.close()
     raise AssertionError(f"a session with {config.name} was let in at {endpoint}")

@@ -297,11 +297,22 @@ def test_a_generated_config_opens_no_cleartext_link(deployment: Deployment, tmp_
     """``transport/link/protocols`` is TLS (or QUIC) only: the service cannot listen on ``tcp/`` and
     a vehicle does not connect to a ``tcp/`` endpoint, so a password never crosses in clear."""
     endpoint = tls_endpoint().replace("tls/", "tcp/")
+    with pytest.raises(ValueError, match=f"endpoint {endpoint} uses tcp, which Zenoh config file"):
+        open_session(deployment.service_config, "peer", listen=(endpoint,)).close()  # refused by randt
+    raw = zenoh.Config.from_file(str(deployment.service_config))  # and by Zenoh itself
+    raw.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    raw.insert_json5("scouting/multicast/enabled", "false")
     with pytest.raises(zenoh.ZError, match="Unsupported protocol: tcp"):
-        open_session(deployment.service_config, "peer", listen=(endpoint,)).close()
+        zenoh.open(raw).close()
     plain = open_session(write_config(tmp_path / "plain.json5", {}), "peer", listen=(endpoint,))
     try:
         open_session(write_config(tmp_path / "other.json5", {}), "client", connect=(endpoint,)).close()
-        assert "Unable to connect" in refused(deployment.vehicle_config("victim"), endpoint)
+        assert f"endpoint {endpoint} uses tcp" in refused(deployment.vehicle_config("victim"), endpoint)
+        raw = zenoh.Config.from_file(str(deployment.vehicle_config("victim")))  # Zenoh alone too
+        raw.insert_json5("mode", '"client"')
+        raw.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        raw.insert_json5("scouting/multicast/enabled", "false")
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            zenoh.open(raw).close()
     finally:
         plain.close()
