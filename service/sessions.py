@@ -156,6 +156,8 @@ log = logging.getLogger(__name__)
 
 #: ``max_sessions=-1``: this many running sessions per core (ServiceSettings.max_sessions).
 SESSIONS_PER_CORE = 4
+#: A lost session answers poses again after this many consecutive matches (SessionWorker._track).
+VERIFY_MATCHES = 2
 
 #: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
 Outbox = Callable[[WireMessage], None]
@@ -217,6 +219,14 @@ class SessionState:
     #: The shared map the pose graph placed this session (one without priors) into: its points
     #: fold there from then on (service/graph.py); ``None`` otherwise.
     joined_map: str | None = None
+    #: The stamp (ns) of the session's last matched (or first) scan in this process; ``None``
+    #: before one (a resumed session's first fallback is then beyond any horizon).
+    matched_stamp_ns: int | None = None
+    #: Lost (:meth:`SessionWorker._track`): answered ``lost`` without a pose and folding nothing
+    #: until :data:`VERIFY_MATCHES` consecutive matches; how many so far; scans answered lost.
+    lost: bool = False
+    verified_matches: int = 0
+    n_lost: int = 0
 
 
 class SessionWorker:
@@ -371,12 +381,17 @@ class SessionWorker:
             registered = self._match(job, prior, behind)
             if registered is None or not self._log_pose(scan, registered.result):
                 return
-            self._queue_map_points(registered)
+            lost = self._track(scan, registered.result)
+            if lost is None:
+                self._queue_map_points(registered)
             self._account(scan, registered.result, prior)
         if len(self._unfolded) >= self._manager.settings.fold_scans:  # (module docstring, Map folding)
             self.fold()
-        self._answer(job, registered.result)
-        self._offer_keyframe(scan, registered, prior)
+        if lost is None:
+            self._answer(job, registered.result)
+            self._offer_keyframe(scan, registered, prior)
+        else:
+            self._manager.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.LOST, lost)
         if not behind:
             with self.lock:
                 self.matcher.update_model()  # in-process matchers; a matcher process does it itself
@@ -418,6 +433,38 @@ class SessionWorker:
             m.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
         except RandtError as exc:
             m.reject(scan.vehicle, scan.session, scan.seq, ErrorCode.REGISTRATION_FAILED, str(exc))
+        return None
+
+    def _track(self, scan: ScanHeader, result: ScanResult) -> str | None:
+        """Whether the scan's pose may be answered (``None``) or the session is lost (why).
+
+        A fallback's pose is the motion prediction, right only over a short gap: it is answered
+        while the last match is at most ``fallback_horizon_s`` old (scan stamps). Past that the
+        session is lost: no pose, nothing folded or offered to the graph, until
+        :data:`VERIFY_MATCHES` consecutive scans match (the second matched from the first's
+        prediction, within the matcher's correction gate: two agreeing registrations)."""
+        info, horizon = self.info, self._manager.settings.fallback_horizon_s
+        if result.status == "fallback":
+            info.verified_matches = 0
+            since_ns = None if info.matched_stamp_ns is None else scan.stamp_ns - info.matched_stamp_ns
+            if not info.lost and since_ns is not None and since_ns <= horizon * 1e9:
+                return None
+            if not info.lost:
+                log.warning("session %s/%s lost its track at scan %d", *self.key, scan.seq)
+            info.lost = True
+            gap = "since it resumed" if since_ns is None else f"for {since_ns * 1e-9:.2f} s"
+            return (
+                f"lost: no match {gap} (a prediction is answered for {horizon:g} s at most); "
+                "poses resume after two consecutive matches"
+            )
+        info.matched_stamp_ns = scan.stamp_ns
+        if not info.lost:
+            return None
+        info.verified_matches += 1
+        if info.verified_matches < VERIFY_MATCHES:
+            return f"lost: relocalizing, {info.verified_matches} of {VERIFY_MATCHES} consecutive matches"
+        log.info("session %s/%s found its track again at scan %d", *self.key, scan.seq)
+        info.lost, info.verified_matches = False, 0
         return None
 
     def _log_pose(self, scan: ScanHeader, result: ScanResult) -> bool:
@@ -472,6 +519,7 @@ class SessionWorker:
         info = self.info
         info.n_scans += 1
         info.n_fallbacks += result.status == "fallback"
+        info.n_lost += info.lost
         info.stamps_s.append(scan.stamp_ns * 1e-9)
         info.last_fitness = result.fitness
         info.last_status = result.status

@@ -113,6 +113,14 @@ class ServiceSettings(BaseSettings):
         description="a session idle this long gives its slot to a new one when a limit is reached "
         "(saved as expired; it resumes with its next scan)",
     )
+    fallback_horizon_s: float = Field(
+        default=0.5,
+        gt=0,
+        description="a scan that does not match is answered with the motion prediction (status "
+        "fallback) only while the session's last match is at most this old (scan stamps); after that "
+        "the session is lost: answered `lost` without a pose, folding nothing, until two consecutive "
+        "matches agree",
+    )
     matcher_processes: int = Field(
         default=-1,
         ge=-1,

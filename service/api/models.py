@@ -114,6 +114,12 @@ class SessionSummary(BaseModel):
     )
     scans: int
     fallbacks: int
+    lost: bool | None = Field(
+        default=None,
+        description="the session has lost its track: its scans are answered `lost` without a pose "
+        "until two consecutive matches (running sessions only)",
+    )
+    lost_scans: int | None = Field(default=None, description="scans answered `lost` (running sessions only)")
     errors: int | None = Field(description="scans answered with an error (running sessions only)")
     last_seq: int
     last_status: str | None

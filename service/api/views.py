@@ -55,6 +55,8 @@ def session_summary(
             state="active",
             scans=info.n_scans,
             fallbacks=info.n_fallbacks,
+            lost=info.lost,
+            lost_scans=info.n_lost,
             errors=info.n_errors,
             last_seq=info.last_seq,
             last_status=info.last_status or None,
