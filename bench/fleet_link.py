@@ -30,6 +30,8 @@ class Answers:
     #: the poses in ``map_name`` (others are only counted: a session that lost its anchor)
     pose_of: dict[Key, np.ndarray] = field(default_factory=dict)
     not_in_map: int = 0
+    #: each pose's status (``first``, ``ok``, ``fallback``)
+    status_of: dict[Key, str] = field(default_factory=dict)
     statuses: dict[str, int] = field(default_factory=dict)
     errors: dict[str, int] = field(default_factory=dict)
     #: the first error other than ``dropped``, as "code: reason"
@@ -44,6 +46,7 @@ class Answers:
         m = decode_pose(sample.payload.to_bytes())
         with self.lock:
             self.got[(m.vehicle, m.seq)] = self.last_answer = t
+            self.status_of[(m.vehicle, m.seq)] = m.status
             self.statuses[m.status] = self.statuses.get(m.status, 0) + 1
             if m.map == self.map_name:
                 self.pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))

@@ -344,6 +344,26 @@ def write_timeline(
             out.writerow(row)
 
 
+def map_quality(data_dir: Path, map_name: str = "default") -> dict[str, float]:
+    """The shared map as the service saved it, against the simulated town's true surfaces (town
+    seed 1, the spool's): its points and their distance to the nearest surface (p50, p90 cm) and
+    how many lie more than 0.3 m off (what a wrong pose folds in)."""
+    from core.io import read_cloud
+    from sim.town import Town
+
+    tiles = sorted((data_dir / "maps" / map_name).glob("*.pcd"))
+    if not tiles:
+        return {"map_points": 0, "map_p50_cm": float("nan"), "map_p90_cm": float("nan"), "map_off": 0}
+    xyz = np.concatenate([read_cloud(t).xyz for t in tiles])
+    d = Town.generate(1).surface_distance(xyz.astype(np.float64))
+    return {
+        "map_points": int(xyz.shape[0]),
+        "map_p50_cm": float(100 * np.percentile(d, 50)),
+        "map_p90_cm": float(100 * np.percentile(d, 90)),
+        "map_off": int(np.count_nonzero(d > 0.3)),
+    }
+
+
 def run_one(
     n_vehicles: int,
     spool_dir: Path,
@@ -407,6 +427,7 @@ def run_one(
         received, graph_stats = final["received"], final["graph"]
         service.wait(120)
         spool.close()
+        quality = map_quality(Path(tmp) / "data")
 
     sent, got, pose_of, errors = answers.sent, answers.got, answers.pose_of, answers.errors
     lat_ms = answers.latencies_ms()
@@ -431,7 +452,21 @@ def run_one(
     flows = (  # every scan posed in time (the error criterion is main()'s: it has the offline run)
         dropped == 0 and other == 0 and unanswered == 0 and not_in_map == 0 and pct[99] < P99_TARGET_MS
     )
+
+    def status_err_max(status: str) -> float:
+        errs = [
+            100 * float(np.linalg.norm(T[:3, 3] - truth[k][:3, 3]))
+            for k, T in pose_of.items()
+            if answers.status_of.get(k) == status
+        ]
+        return max(errs, default=float("nan"))
+
     return {
+        **quality,
+        "ok_err_max_cm": status_err_max("ok"),
+        "fallback_err_max_cm": status_err_max("fallback"),
+        "lost": errors.get(ErrorCode.LOST, 0),
+        "refused": errors.get(ErrorCode.SESSIONS_FULL, 0) + errors.get(ErrorCode.VEHICLE_SESSIONS_FULL, 0),
         "vehicles": n_vehicles,
         "graph": graph,
         "graph_keyframes": int(graph_stats.get("keyframes", 0)),
@@ -611,6 +646,45 @@ def _rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], li
         for r in results
     ]
     return flow_head, flow, cost_head, cost
+
+
+def _err(cm: float) -> str:
+    return "" if np.isnan(cm) else f" ({cm:.1f})"
+
+
+def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
+    """Every scan by its answer, the error of the poses answered by status, and the shared map's
+    points against the true surfaces (issue 32: what overload does to the answers and the map)."""
+    head = [
+        "vehicles",
+        "graph",
+        "scans sent",
+        "ok (error max cm)",
+        "fallback (error max cm)",
+        "lost",
+        "dropped",
+        "refused",
+        "map points",
+        "map to true surfaces p50 / p90 cm",
+        "map points > 0.3 m off",
+    ]
+    rows = [
+        [
+            str(r["vehicles"]),
+            "on" if r["graph"] else "off",
+            str(r["sent"]),
+            f"{r['poses'] - r['fallbacks']}" + _err(r["ok_err_max_cm"]),
+            f"{r['fallbacks']}" + _err(r["fallback_err_max_cm"]),
+            str(r["lost"]),
+            str(r["dropped"]),
+            str(r["refused"]),
+            f"{r['map_points']:,}",
+            f"{r['map_p50_cm']:.1f} / {r['map_p90_cm']:.1f}",
+            f"{r['map_off']:,}",
+        ]
+        for r in results
+    ]
+    return head, rows
 
 
 def plot(results: list[dict[str, Any]], path: Path) -> None:
@@ -812,6 +886,8 @@ def main() -> None:
     print(table(flow_head, flow, args.markdown))
     print(heading(f"{title}: cost", args.markdown))
     print(table(cost_head, cost, args.markdown))
+    print(heading(f"{title}: answers by status, and the shared map", args.markdown))
+    print(table(*status_rows(results), args.markdown))
     if args.graph == "both" and args.executor != "both":
         print("\nPer-sweep latency, pose graph on against off (issue 15: at most +10 % by the mean):")
         for off, on in zip(results[0::2], results[1::2], strict=True):
