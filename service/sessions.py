@@ -455,7 +455,7 @@ class SessionWorker:
             gap = "since it resumed" if since_ns is None else f"for {since_ns * 1e-9:.2f} s"
             return (
                 f"lost: no match {gap} (a prediction is answered for {horizon:g} s at most); "
-                "poses resume after two consecutive matches"
+                f"poses resume after {VERIFY_MATCHES} consecutive matches"
             )
         info.matched_stamp_ns = scan.stamp_ns
         if not info.lost:
