@@ -14,8 +14,9 @@ init DIR``; the recipe is ``docs/security.md``)::
 
 The access control (:func:`access_control`) is the heart: default **deny**, and per vehicle an allow
 list derived from :mod:`wire.keys`: a vehicle may put only on its own ``randt/fleet/<vehicle>/scan``,
-read only its own pose and error, the tiles and the service's liveliness token; only the service's
-user may put poses, errors and tile updates, answer tile queries and hold ``randt/service/*``.
+read only its own poses, errors and corrections, the tiles and the service's liveliness token; only
+the service's user may put poses, errors, corrections and tile updates, answer tile queries and hold
+``randt/service/*``.
 Zenoh checks a message's key expression against the rules with *inclusion* (a rule ``a/b/**``
 allows ``a/b/c``, not ``a/*/c``), so a wildcard put (``randt/fleet/**``) matches no allow rule of a
 vehicle and is denied. Subjects are bound by user name and, with mTLS, also by the certificate's
@@ -38,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from wire.ids import validate_id
-from wire.keys import ALL_SCANS, ROOT, error_key, pose_key, scan_key
+from wire.keys import ALL_SCANS, ROOT, correction_key, error_key, pose_key, scan_key
 
 __all__ = [
     "EXAMPLE_DIRECTORY",
@@ -143,10 +144,13 @@ def access_control(
         rules = rules[2:]
     common = [r["id"] for r in rules if r["id"].startswith("vehicle-")]
     for v in vehicles:
+        # what is said to this vehicle: its poses, its errors, the pose graph's corrections of its
+        # keyframes (without the last, a vehicle of a secured deployment was never corrected)
+        answers = [pose_key(v), error_key(v), correction_key(v)]
         rules += [
             _rule(f"{v}/scan", "ingress", ["put"], [scan_key(v)]),
-            _rule(f"{v}/answers-in", "ingress", ["declare_subscriber"], [pose_key(v), error_key(v)]),
-            _rule(f"{v}/answers-out", "egress", ["put"], [pose_key(v), error_key(v)]),
+            _rule(f"{v}/answers-in", "ingress", ["declare_subscriber"], answers),
+            _rule(f"{v}/answers-out", "egress", ["put"], answers),
         ]
         subjects.append(subject(f"vehicle/{v}", v))
         policies.append(

@@ -27,7 +27,7 @@ from tests.service.security import (
     wait_for,
     write_config,
 )
-from wire.keys import ALL_SCANS, pose_key, scan_key, service_token_key, tile_key
+from wire.keys import ALL_SCANS, correction_key, pose_key, scan_key, service_token_key, tile_key
 from wire.zenoh_security import (
     Deployment,
     make_certificates,
@@ -210,7 +210,9 @@ def _acl_scenario(deployment: Deployment, tmp_path: Path, *, topology: str, acl:
             victim.liveliness().declare_subscriber(
                 "randt/service/**", inbox.callback("victim tokens"), history=True
             ),
+            victim.declare_subscriber(correction_key("victim"), inbox.callback("victim correction")),
             evil.declare_subscriber(pose_key("victim"), inbox.callback("evil reads victim pose")),
+            evil.declare_subscriber(correction_key("victim"), inbox.callback("evil reads victim correction")),
         ]
         publisher = victim.declare_publisher(scan_key("victim"))
         assert wait_for(lambda: publisher.matching_status.matching), "the victim never saw the service"
@@ -226,6 +228,7 @@ def _acl_scenario(deployment: Deployment, tmp_path: Path, *, topology: str, acl:
         evil.put(tile_key("default", "0_0"), b"forged tile")
         handles.append(evil.liveliness().declare_token(service_token_key("fake")))
         service.put(pose_key("victim"), b"real pose")
+        service.put(correction_key("victim"), b"real correction")
         service.put(tile_key("default", "0_0"), b"real tile")
 
         def arrived(who: str, *payloads: bytes) -> Callable[[], bool]:
@@ -234,6 +237,7 @@ def _acl_scenario(deployment: Deployment, tmp_path: Path, *, topology: str, acl:
         real = [
             arrived("service", b"real scan", b"evil's own scan"),
             arrived("victim pose", b"real pose"),
+            arrived("victim correction", b"real correction"),
             arrived("victim tiles", b"real tile"),
         ]
         forged = [
@@ -253,6 +257,8 @@ def _acl_scenario(deployment: Deployment, tmp_path: Path, *, topology: str, acl:
         return {
             "service": sorted(inbox.payloads("service")),
             "victim pose": sorted(inbox.payloads("victim pose")),
+            "victim correction": inbox.payloads("victim correction"),
+            "evil reads victim correction": inbox.payloads("evil reads victim correction"),
             "victim tiles": sorted(inbox.payloads("victim tiles")),
             "evil reads victim pose": inbox.payloads("evil reads victim pose"),
             "tile replies": replies,
@@ -271,12 +277,14 @@ def test_acl_binds_keys_to_credentials(deployment: Deployment, tmp_path, topolog
     assert got["service"] == [b"evil's own scan", b"real scan"]
     # only the service's poses, tiles and token reach a vehicle
     assert got["victim pose"] == [b"real pose"]
+    assert got["victim correction"] == [b"real correction"]  # (once denied: issue 33)
     assert got["victim tiles"] == [b"real tile"]
     assert got["tokens"] == ["randt/service/randt-1"]
     assert got["tile replies"] == [b"tile by query"]
     # a vehicle cannot read another's poses
     # (what evil's session delivers to itself locally is its own forgeries)
     assert sorted(got["evil reads victim pose"]) == [b"forged pose", b"forged wildcard scan"]
+    assert got["evil reads victim correction"] == [b"forged wildcard scan"]  # nor its corrections
     # the hub knows the links by certificate CN (the chimera's is evil's)
     expected = ["evil", "evil", "victim"] + (["randt-service"] if topology == "router" else [])
     assert got["identities"] == sorted(expected)
@@ -291,6 +299,7 @@ def test_without_the_acl_the_forgeries_arrive(deployment: Deployment, tmp_path, 
     assert b"forged tile" in got["victim tiles"]
     assert got["tokens"] == ["randt/service/fake", "randt/service/randt-1"]
     assert b"real pose" in got["evil reads victim pose"]
+    assert b"real correction" in got["evil reads victim correction"]
 
 
 def test_a_generated_config_opens_no_cleartext_link(deployment: Deployment, tmp_path) -> None:

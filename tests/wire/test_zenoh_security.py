@@ -44,17 +44,11 @@ def test_each_vehicle_may_put_only_its_own_scan_key() -> None:
     assert _allowed(acl, "car-01", "ingress", "liveliness_token") == set()
     assert _allowed(acl, "car-01", "ingress", "declare_queryable") == set()
     assert _allowed(acl, "car-01", "ingress", "reply") == set()
-    # it reads its own answers, the tiles and the service's token; not another vehicle's answers
-    assert _allowed(acl, "car-01", "ingress", "declare_subscriber") == {
-        "randt/fleet/car-01/pose",
-        "randt/fleet/car-01/error",
-        "randt/map/**",
-    }
-    assert _allowed(acl, "car-01", "egress", "put") == {
-        "randt/fleet/car-01/pose",
-        "randt/fleet/car-01/error",
-        "randt/map/**",
-    }
+    # it reads its own answers (poses, errors, the pose graph's corrections), the tiles and the
+    # service's token; not another vehicle's answers
+    own = {"randt/fleet/car-01/pose", "randt/fleet/car-01/error", "randt/fleet/car-01/correction"}
+    assert _allowed(acl, "car-01", "ingress", "declare_subscriber") == own | {"randt/map/**"}
+    assert _allowed(acl, "car-01", "egress", "put") == own | {"randt/map/**"}
     # subjects: user name and certificate CN must both be the vehicle's
     car = next(s for s in acl["subjects"] if s["usernames"] == ["car-01"])
     assert car["cert_common_names"] == ["car-01"]
