@@ -9,7 +9,8 @@ Flow of a keyframe::
         one core.fleet_map.FleetMapper per map: placement, place recognition, global
         registration, iSAM2 (docs/mapping.md)
     graph process --> after each keyframe: the keyframes that moved since last reported (more
-        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the new loop verifications, the placed sessions;
+        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the keyframes it newly holds where they were
+        answered, the new loop verifications, the placed sessions;
         at most every ``graph_refold_s``, in a pause between keyframes: the tiles of the keyframes
         that moved, re-folded (SessionManager.refold_tiles swaps them in)
     receiver thread --> GraphState (per session: each keyframe's live and optimized pose) -->
@@ -231,6 +232,9 @@ class _ProcessMap:
         self.geometry = geometry
         self.meta: dict[tuple[str, int], tuple[str, str, int, int]] = {}  # vehicle, session, seq, index
         self.reported: dict[tuple[str, int], np.ndarray] = {}
+        #: Keyframes whose pose in this map was sent (moved or held): the service corrects a
+        #: trajectory only from keyframes this graph holds, at the pose it holds them.
+        self.announced: set[tuple[str, int]] = set()
         self.sent: list[bool] = []  # each loop record's ``accepted`` as last sent
         self.revision = 0
         self.cloud: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -331,11 +335,14 @@ class _ProcessMap:
         poses = self.poses = mapper.poses()
         if set(mapper.placed_sessions()) != was_placed:
             self.refold_pending = True
-        moved = []
+        moved, held = [], []
         for k, P in poses.items():
             if _moved(P, self.reported[k]):
                 self.reported[k] = P
                 moved.append((*self.meta[k], P))
+            elif k not in self.announced:  # in the graph where it was answered: no correction
+                held.append((*self.meta[k], P))
+            self.announced.add(k)
         if moved:
             self.revision += 1
             self.refold_pending = True
@@ -357,10 +364,9 @@ class _ProcessMap:
             for r in mapper.loops[start:]
         ]
         self.sent = [r.accepted for r in mapper.loops]
-        processed = (vehicle, session, index)
         placed = {n: mapper.sessions[n].T_world_session for n in mapper.placed_sessions()}
         kind = "join" if joining else "update"
-        return (kind, self.name, self.revision, moved, start, loops, placed, processed)
+        return (kind, self.name, self.revision, moved, held, start, loops, placed)
 
 
 def _lowest_priority() -> None:
@@ -912,7 +918,7 @@ class ServiceGraph:
             with self._lock:
                 self._states[map_name].n_refused += 1
             return
-        kind, map_name, revision, moved, start, loops, placed, processed, elapsed = message
+        kind, map_name, revision, moved, held, start, loops, placed, elapsed = message
         base_revision, base_loops = self._bases.get(map_name, (0, 0))
         revision += base_revision
         start += base_loops
@@ -939,14 +945,20 @@ class ServiceGraph:
                     moving.optimized = None
                     st.keyframes.setdefault(key, {})[moving.index] = moving
                 joins.append((key, T_map_session))  # (logged by on_join)
-            for vehicle, session, _seq, index, P in moved:
+            # Moved keyframes are corrected (and said to their vehicle); held ones are in the graph
+            # where they were answered. A keyframe the graph never held (dropped, refused, offered
+            # before this map's graph existed) keeps no optimized pose: trajectories are corrected
+            # only from keyframes the graph holds.
+            reports = [(r, True) for r in moved] + [(r, False) for r in held]
+            for (vehicle, session, _seq, index, P), was_moved in reports:
                 if self._session_map.get((vehicle, session)) != map_name:
                     continue  # a session that joined another map, or still joining this one
                 kf = st.keyframes.get((vehicle, session), {}).get(index)
                 if kf is None:
                     continue
                 kf.optimized = P
-                by_session.setdefault((vehicle, session), []).append(kf)
+                if was_moved:
+                    by_session.setdefault((vehicle, session), []).append(kf)
                 newest = self._correction.get((vehicle, session))
                 if newest is None or newest[0] <= index:
                     self._correction[(vehicle, session)] = (index, P @ np.linalg.inv(kf.live))
@@ -975,13 +987,6 @@ class ServiceGraph:
                 if self._session_map.get(key) == map_name
             }
             st.revision = max(st.revision, revision)
-            # The keyframes of a placed session up to this one are in the graph: those it has not
-            # moved (within MOVE_TOL_*) are where they were answered.
-            key = (processed[0], processed[1])
-            if key in st.placed and kind == "update":
-                for kf in st.keyframes.get(key, {}).values():
-                    if kf.optimized is None and kf.index <= processed[2]:
-                        kf.optimized = kf.live
         for (vehicle, session), T_map_session in joins:
             if self._on_join is not None:
                 self._on_join(vehicle, session, map_name, T_map_session)

@@ -42,10 +42,11 @@ class LiveServer:
 
 
 @contextmanager
-def live_server(data_dir: Path, **overrides: object) -> Iterator[LiveServer]:
-    """Serve ``create_app(settings, with_zenoh=False)`` with uvicorn on a free loopback port."""
+def live_server(data_dir: Path, *, with_zenoh: bool = False, **overrides: object) -> Iterator[LiveServer]:
+    """Serve ``create_app(settings, with_zenoh=with_zenoh)`` with uvicorn on a free loopback port
+    (without Zenoh by default: the test feeds the session manager and reads ``service._sent``)."""
     settings = ServiceSettings(data_dir=data_dir, flush_interval_s=0.3, queue_size=64, **overrides)
-    app = create_app(settings, with_zenoh=False)
+    app = create_app(settings, with_zenoh=with_zenoh)
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)

@@ -9,6 +9,7 @@ and serve a corrected trajectory closer to the truth than the live one.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -16,17 +17,22 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
+import zenoh
 from scipy.spatial import cKDTree
 
+from core.fleet_map import FleetMapSettings
 from core.transforms import invert, transform_error, umeyama
 from service.graph import MAX_TILE_SPAN, GraphState, MapGeometry, _ProcessMap, correct_trajectory
 from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
+from service.transport import ZenohTransport
 from sim.drive import Motion, plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from tests.service.api_server import LiveServer, live_server
 from tests.service.browser import chromium_page, require_chromium
+from tests.service.security import open_session, tls_endpoint, wait_for
+from wire.keys import correction_key, error_key, pose_key
 from wire.messages import (
     CorrectionMessage,
     ErrorMessage,
@@ -34,9 +40,12 @@ from wire.messages import (
     ScanMessage,
     TileUpdateMessage,
     decode_correction,
+    decode_error,
+    decode_pose,
     encode,
     scan_from_arrays,
 )
+from wire.zenoh_security import Deployment, write_deployment
 
 
 def _pose(yaw_deg: float, xyz: tuple[float, float, float]) -> np.ndarray:
@@ -86,12 +95,71 @@ def test_the_tiles_a_keyframe_touches_are_counted_exactly() -> None:
         assert pm._tiles(T, xyz) == expected, i
 
 
+def test_the_graph_process_says_which_keyframes_it_holds() -> None:
+    """Each keyframe the graph takes is reported once: as held (where it was answered) or moved;
+    one it refuses is not reported, so the service corrects nothing from it."""
+    pm = _ProcessMap(
+        "m", FleetMapSettings(), MapGeometry(tile_size_m=20, voxel_size_m=0.5, max_points_per_voxel=1)
+    )
+    rng = np.random.default_rng(5)
+    reported: list[int] = []
+    for i in range(3):
+        T = _pose(0.0, (10.0 * i, 0.0, 0.0))
+        xyz = (rng.normal(size=(3000, 3)) * 15.0).astype(np.float32)
+        message = ("keyframe", "m", "car", "d1", 10 * i, 10 * i, T, xyz, None, None, None)
+        kind, _, _, moved, held, *_ = pm.add(message)
+        assert kind == "update" and moved == []
+        reported += [r[3] for r in held]
+        for r in held:
+            np.testing.assert_allclose(r[4], _pose(0.0, (float(r[3]), 0.0, 0.0)), atol=1e-6)
+    assert reported == [0, 10, 20]
+
+
 def test_correct_trajectory_with_one_or_no_keyframe() -> None:
     poses = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(5)])
     C = _pose(10.0, (3.0, 1.0, 0.0))
     out = correct_trajectory(poses, np.array([2]), poses[2:3], (C @ poses[2])[None])
     np.testing.assert_allclose(out, C @ poses, atol=1e-12)
     np.testing.assert_array_equal(correct_trajectory(poses, np.array([], int), poses[:0], poses[:0]), poses)
+
+
+def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() -> None:
+    """A session without priors joins the shared map; its first keyframe never reached that map's
+    graph (offered before the graph existed: seen when its first sweep was matched before the
+    other vehicle's). Its corrected trajectory must come from the keyframes the graph holds, in
+    the shared map's frame: it used to take such a keyframe's live pose (its own frame) as
+    optimized, and the corrected trajectory was 31 m off on average, 106 m at worst."""
+    from service.graph import ServiceGraph, _Keyframe
+
+    sent: list[CorrectionMessage] = []
+    graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
+    key = ("nognss", "d1")
+    T_map_session = _pose(90.0, (-34.0, -5.5, 1.7))
+    live = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
+    graph._session_map[key] = "nognss.d1"
+    graph._states["nognss.d1"] = GraphState(
+        "nognss.d1",
+        keyframes={key: {i: _Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
+        placed={key},
+    )
+    graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
+    graph._session_map[("gnss", "d1")] = "default"
+    # the shared map's graph places it, with the two keyframes it holds (10 and 20), moved
+    moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (10, 20)]
+    placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
+    graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
+    assert graph.joined(*key) is not None
+    # its next keyframe, in the shared map now: held where it was answered (no correction)
+    graph._states["default"].keyframes[key][29] = _Keyframe(29, 29, 2.9, live[29])
+    held = [("nognss", "d1", 29, 29, T_map_session @ live[29])]
+    graph._apply(("update", "default", 4, [], held, 0, [], placed, 0.01))
+    corrected, graph_map = graph.corrected(*key, live)
+    assert graph_map == "default"
+    err = np.linalg.norm(corrected[:, :3, 3] - (T_map_session @ live)[:, :3, 3], axis=1)
+    assert err.max() < 1e-9, f"corrected up to {err.max():.1f} m off"
+    kf0 = graph.snapshot("default").keyframes[key][0]  # type: ignore[union-attr]
+    assert kf0.optimized is None  # never in the graph: not corrected from
+    assert [m.seqs().tolist() for m in sent if m.vehicle == "nognss"] == [[10, 20]]  # held: not said
 
 
 @dataclass
@@ -360,13 +428,59 @@ class JoinDrive:
     out: list
     server: LiveServer
     town: Town
+    #: What each vehicle received over the secured link, decoded: ``received[v]`` is ``v``'s own
+    #: poses, errors and corrections; ``received["evil"]`` the others' corrections it asked for.
+    received: dict[str, list]
+
+
+class _Vehicles:
+    """The vehicles' own Zenoh sessions, each with the config ``randt security init`` wrote for it
+    (TLS, mTLS, user/password, the service's access control), subscribed to their answers."""
+
+    def __init__(self, deployment: Deployment, endpoint: str) -> None:
+        self.received: dict[str, list] = {"gnss": [], "nognss": [], "evil": []}
+        self._lock = threading.Lock()
+        self.sessions = [
+            open_session(deployment.vehicle_config(v), "client", connect=(endpoint,)) for v in self.received
+        ]
+        decoders = {"pose": decode_pose, "error": decode_error, "correction": decode_correction}
+        self._handles = [
+            s.declare_subscriber(key(v), self._on(v, decoders[kind]))
+            for s, v in zip(self.sessions, self.received, strict=True)
+            if v != "evil"
+            for kind, key in (("pose", pose_key), ("error", error_key), ("correction", correction_key))
+        ] + [  # another vehicle asks for theirs: the access control must give it nothing
+            self.sessions[2].declare_subscriber(correction_key(v), self._on("evil", decode_correction))
+            for v in ("gnss", "nognss")
+        ]
+
+    def _on(self, who: str, decode):
+        def on_sample(sample: zenoh.Sample) -> None:
+            message = decode(sample.payload.to_bytes())
+            with self._lock:
+                self.received[who].append(message)
+
+        return on_sample
+
+    def snapshot(self) -> dict[str, list]:
+        with self._lock:
+            return {k: list(v) for k, v in self.received.items()}
+
+    def close(self) -> None:
+        for s in self.sessions:
+            s.close()
 
 
 @pytest.fixture(scope="module")
 def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
     """Two vehicles on one 400 m loop, sweeps interleaved: ``gnss`` carries a prior on its first
     sweep (it maps the shared map, ``default``), ``nognss`` none (it starts in a map of its own)
-    and starts 100 m behind, so from its 10th second it drives streets ``gnss`` has mapped."""
+    and starts 100 m behind, so from its 10th second it drives streets ``gnss`` has mapped.
+
+    The service runs as a secured deployment does (``randt security init``'s files: TLS, mTLS,
+    passwords, access control), and each vehicle listens with its own generated config for its
+    poses, errors and corrections. (The scans go to the session manager directly, one at a time,
+    each once the one before is answered: see :func:`_feed`.)"""
     town = Town.generate(0)
     route = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
     n = int(0.8 * route.route.length_m)
@@ -390,13 +504,54 @@ def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
         for pair in zip(drives["gnss"], drives["nognss"], strict=True)
         for v, s in zip(("gnss", "nognss"), pair, strict=True)
     ]  # fmt: skip
-    with live_server(tmp_path_factory.mktemp("join") / "data") as server:
-        _feed(server, scans)
-        mgr = server.service.sessions
-        assert mgr is not None and mgr.graph is not None and mgr.graph.wait_idle(300)
-        mgr.flush()
-        truth = {v: {s.index: s.T_world_sensor for s in d} for v, d in drives.items()}
-        yield JoinDrive(truth, list(server.service._sent), server, town)
+    root = tmp_path_factory.mktemp("join")
+    deployment = write_deployment(root / "security", ["gnss", "nognss", "evil"])
+    endpoint = tls_endpoint()
+    secured = {"listen": (endpoint,), "zenoh_config": deployment.service_config, "zenoh_mode": "peer"}
+    with pytest.MonkeyPatch.context() as mp:
+        # the test also reads what the service published (``service._sent``), as without Zenoh
+        sent: list = []
+        publish = ZenohTransport.send
+        mp.setattr(ZenohTransport, "send", lambda self, m: (sent.append(m), publish(self, m))[1])
+        with live_server(root / "data", with_zenoh=True, **secured) as server:  # type: ignore[arg-type]
+            server.service._sent = sent
+            vehicles = _Vehicles(deployment, endpoint)
+            try:
+                token = vehicles.sessions[1].liveliness().get("randt/service/**", timeout=10)
+                assert [r.ok for r in token if r.ok], "the vehicle does not see the service"
+                time.sleep(0.5)  # the vehicles' subscriptions reach the service
+                _feed(server, scans)
+                mgr = server.service.sessions
+                assert mgr is not None and mgr.graph is not None and mgr.graph.wait_idle(300)
+                mgr.flush()
+                corrections = [m for m in sent if isinstance(m, CorrectionMessage)]
+                wait_for(lambda: len(_corrections(vehicles.snapshot())) >= len(corrections), 30)
+                truth = {v: {s.index: s.T_world_sensor for s in d} for v, d in drives.items()}
+                yield JoinDrive(truth, list(sent), server, town, vehicles.snapshot())
+            finally:
+                vehicles.close()
+
+
+def _corrections(received: dict[str, list]) -> list[CorrectionMessage]:
+    return [m for v in ("gnss", "nognss") for m in received[v] if isinstance(m, CorrectionMessage)]
+
+
+def test_over_tls_each_vehicle_receives_its_own_corrections_and_only_its_own(join_drive) -> None:
+    """Issue 33: with the configs ``randt security init`` writes, a vehicle received no correction
+    (the access control had no rule for ``randt/fleet/<vehicle>/correction``). Each vehicle
+    receives every answer and correction the service published for it, the joined one included,
+    and another vehicle's subscription to them receives nothing."""
+    published = [m for m in join_drive.out if isinstance(m, PoseMessage | ErrorMessage | CorrectionMessage)]
+    for v in ("gnss", "nognss"):
+        mine = [m for m in published if m.vehicle == v]
+        got = join_drive.received[v]
+        assert len(got) == len(mine) and {type(m) for m in got} == {type(m) for m in mine}, (v, len(got))
+        assert all(m.vehicle == v for m in got)
+    joined = [
+        m for m in join_drive.received["nognss"] if isinstance(m, CorrectionMessage) and m.map == "default"
+    ]
+    assert joined, "the joined vehicle received no correction in the shared map"
+    assert join_drive.received["evil"] == []
 
 
 def test_a_session_without_priors_joins_the_shared_map(join_drive) -> None:

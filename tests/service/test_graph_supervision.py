@@ -194,7 +194,7 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     assert graph._bases["default"] == (7, 1) and graph._placed_before["default"] == {("a", "d1")}
     # an update from the new process (its revision 1, its loop records from 0) is numbered on
     graph._session_map[("a", "d1")] = "default"
-    graph._apply(("update", "default", 1, [], 0, [], {"a/d1": np.eye(4)}, ("a", "d1", 100), 0.01))
+    graph._apply(("update", "default", 1, [], [], 0, [], {"a/d1": np.eye(4)}, 0.01))
     state = graph.snapshot("default")
     assert state is not None and state.revision == 8 and state.loops == [loop]
     assert state.placed == {("a", "d1")}
