@@ -93,7 +93,7 @@ class ServiceMetrics:
             "randt_scans_rejected", "Scans rejected with an error message", ["reason"], registry=r
         )
         self.scans_dropped = Counter(
-            "randt_scans_dropped", "Scans dropped by the overload policy (oldest first)", registry=r
+            "randt_scans_dropped", "Scans dropped by the overload policy (shed evenly)", registry=r
         )
         self.registration_seconds = Histogram(
             "randt_registration_seconds",

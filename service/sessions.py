@@ -5,7 +5,7 @@ Flow of a scan::
     transport callback --> SessionManager.submit --> Intake (service/intake.py): bounded queue per
           (only enqueues bytes)                      vehicle, drained round-robin by intake workers
     intake worker --> SessionManager.handle: decode (bounded cost) --> admission --> seq check -->
-          SessionWorker queue (bounded, drop oldest), or the queue of an _Opening placeholder
+          SessionWorker queue (bounded, shed evenly), or the queue of an _Opening placeholder
           while an opener thread opens the session (store read, matcher start) outside the lock
     SessionWorker thread --> matcher (a worker process, service/matchers.py: float32 points in,
         the map's candidate points in the map frame out) --> the pose appended to the session's
@@ -72,8 +72,12 @@ says why (bad message, duplicate or out-of-order sequence number, dropped by ove
 registration). One session's failure never touches another's worker, queue or map data.
 
 **Overload policy**: each session queue holds ``queue_size`` scans; when a new scan arrives at a
-full queue, the *oldest* waiting scan is dropped (a newer scan is worth more to a moving vehicle),
-counted in ``randt_scans_dropped`` and answered with error code ``dropped``. One exception: a
+full queue, a waiting scan is dropped, counted in ``randt_scans_dropped`` and answered with error
+code ``dropped``: the one whose removal leaves the shortest gap (by the scans' stamps) between the
+scans around it (:func:`drop_index`). A session that falls behind so sheds evenly (every second
+scan, then every third) and never loses the newest, and the gaps its matcher predicts over stay
+short: dropping the oldest instead left one gap as long as the stall that filled the queue,
+past the fallback horizon (the session was then lost). One exception: a
 young session (fewer than ``YOUNG_SESSION_SCANS`` processed) keeps its oldest waiting scans and
 loses the newest waiting one instead: its first scan anchors it (a prior pose places it in the map
 frame) and its first sweeps must be consecutive for the matcher to learn its velocity (with none,
@@ -244,6 +248,7 @@ class SessionWorker:
         self.grid = grid
         self._manager = manager
         self._queue: deque[_Job] = deque()
+        self._taken_ns: int | None = None  # the stamp of the scan taken from the queue last
         self._cond = threading.Condition()
         self._stopping = False
         # Its matcher process died, or a pose could not be made durable: abandon (not save) and
@@ -280,7 +285,12 @@ class SessionWorker:
         with self._cond:
             dropped = None
             if len(self._queue) >= self._manager.settings.queue_size:
-                k = drop_index(self._queue, n_processed=self.info.n_scans)
+                k = drop_index(
+                    self._queue,
+                    n_processed=self.info.n_scans,
+                    arriving_ns=job.scan.stamp_ns,
+                    taken_ns=self._taken_ns,
+                )
                 dropped = self._queue[k]
                 del self._queue[k]
             self._queue.append(job)
@@ -307,6 +317,7 @@ class SessionWorker:
                 if not self._queue and self._stopping:
                     return
                 job = self._queue.popleft()
+                self._taken_ns = job.scan.stamp_ns
                 self._manager.metrics.queue_depth.labels(queue_label(*self.key)).set(len(self._queue))
             graph = self._manager.graph
             try:
@@ -943,7 +954,8 @@ class SessionManager:
             dropped.scan.session,
             dropped.scan.seq,
             ErrorCode.DROPPED,
-            f"dropped: the session queue was full ({self.settings.queue_size} scans waiting)",
+            f"dropped: the session's queue was full ({self.settings.queue_size} scans waiting): the "
+            "service is behind and sheds this session's scans evenly until it catches up",
             count=False,
         )
 
@@ -1656,11 +1668,26 @@ def tile_digest(tile: Tile) -> str:
 
 
 #: Until a session has processed this many scans, overload drops its newest waiting scan rather
-#: than its oldest (module docstring, Overload policy).
+#: than shedding evenly (module docstring, Overload policy).
 YOUNG_SESSION_SCANS = 3
 
 
-def drop_index(queue: deque[_Job], *, n_processed: int) -> int:
-    """Which waiting job the overload policy drops: the oldest (0), or the newest waiting one
-    while the session has processed fewer than :data:`YOUNG_SESSION_SCANS` scans."""
-    return len(queue) - 1 if n_processed < YOUNG_SESSION_SCANS else 0
+def drop_index(
+    queue: deque[_Job], *, n_processed: int, arriving_ns: int | None = None, taken_ns: int | None = None
+) -> int:
+    """Which waiting job the overload policy drops to make room for one arriving (module
+    docstring, Overload policy): while the session has processed fewer than
+    :data:`YOUNG_SESSION_SCANS` scans, the newest waiting one; after that, the one whose removal
+    leaves the shortest gap between the scans around it (the scan taken last for matching,
+    ``taken_ns``, before the first; the arriving one, ``arriving_ns``, after the last), the
+    oldest of equals. Repeated, this sheds evenly (every second scan, then every third...), so
+    the gaps the matcher predicts over stay as short as the session's share of the cores allows,
+    where dropping the oldest left one gap as long as the stall that filled the queue."""
+    n = len(queue)
+    if n_processed < YOUNG_SESSION_SCANS:
+        return n - 1
+    stamps = [job.scan.stamp_ns for job in queue]
+    left = [stamps[0] if taken_ns is None else taken_ns, *stamps[:-1]]
+    right = [*stamps[1:], stamps[-1] if arriving_ns is None else arriving_ns]
+    gaps = [r - lo for lo, r in zip(left, right, strict=True)]  # (at most queue_size of them)
+    return gaps.index(min(gaps))

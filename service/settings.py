@@ -72,7 +72,9 @@ class ServiceSettings(BaseSettings):
         default=False, description="read endpoints (not /healthz, /readyz) require the token too"
     )
     # sessions
-    queue_size: int = Field(default=8, ge=1, description="scans waiting per session; oldest dropped")
+    queue_size: int = Field(
+        default=8, ge=1, description="scans waiting per session; beyond, one is shed (evenly over time)"
+    )
     max_sessions: int = Field(
         default=-1,
         ge=-1,

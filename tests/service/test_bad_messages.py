@@ -3,6 +3,7 @@ session running at the same time is untouched (no Zenoh here: the transport is a
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import msgpack
@@ -242,6 +243,51 @@ def test_overload_keeps_a_young_sessions_first_scans() -> None:
     queue = deque([job(0), job(1), job(2)])
     assert [drop_index(queue, n_processed=n) for n in (0, 1, 2, 3, 50)] == [2, 2, 2, 0, 0]
     assert drop_index(deque([job(5)]), n_processed=0) == 0
+
+
+def _taken_gaps(policy: str, *, stall: tuple[float, float], seconds: float = 12.0) -> list[float]:
+    """A session behind: scans arrive at 10 Hz, the worker takes one every 0.25 s from a queue of
+    8 (the default), and stops for ``stall`` (a slower neighbour, a model rebuild). The gaps (s)
+    between the scans it takes, by their stamps, with ``drop_index`` or dropping the oldest."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from service.sessions import drop_index
+
+    queue: deque = deque()
+    taken: list[int] = []
+    ms = 0
+    next_take = 0
+    while ms < seconds * 1000:
+        if ms % 100 == 0:  # a scan arrives
+            job = SimpleNamespace(scan=SimpleNamespace(stamp_ns=ms * 1_000_000))
+            if len(queue) >= 8:
+                k = 0 if policy == "oldest" else drop_index(
+                    queue, n_processed=len(taken), arriving_ns=job.scan.stamp_ns,
+                    taken_ns=taken[-1] if taken else None,
+                )  # fmt: skip
+                del queue[k]
+            queue.append(job)
+        stalled = stall[0] * 1000 <= ms < stall[1] * 1000
+        if ms >= next_take and queue and not stalled:
+            taken.append(queue.popleft().scan.stamp_ns)
+            next_take = ms + 250
+        ms += 10
+    return [(b - a) * 1e-9 for a, b in itertools.pairwise(taken)]
+
+
+def test_a_session_behind_sheds_evenly_and_its_gaps_stay_short() -> None:
+    """Issue 32: shedding keeps tracking. At 2.5 of 10 scans a second, the session's matched
+    scans stay at most 0.3 s apart, and after a 2 s stall at most 0.6 s (the queue's 8 scans
+    spread over the stall); dropping the oldest (the old policy) left one gap of 2.3 s after it,
+    which no constant-velocity prediction bridges."""
+    even = _taken_gaps("even", stall=(5.0, 7.0))
+    oldest = _taken_gaps("oldest", stall=(5.0, 7.0))
+    steady = _taken_gaps("even", stall=(0.0, 0.0))
+    assert max(steady) <= 0.3 + 1e-9, steady
+    assert max(even) <= 0.6 + 1e-9, even
+    assert max(oldest) >= 2.0, oldest  # the control: the stall's gap
+    assert len(even) >= len(oldest) - 1  # (as many scans matched)
 
 
 def test_a_session_beyond_max_sessions_is_refused_and_others_go_on(tmp_path) -> None:
