@@ -36,6 +36,8 @@ class Answers:
     errors: dict[str, int] = field(default_factory=dict)
     #: the first error other than ``dropped``, as "code: reason"
     example: str = ""
+    #: per vehicle, the ``retry_after_s`` of its refusals (``sessions_full``: when to send again)
+    retry_after: dict[str, float] = field(default_factory=dict)
     last_answer: float = 0.0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -59,6 +61,8 @@ class Answers:
         m = decode_error(sample.payload.to_bytes())
         with self.lock:
             self.errors[m.code] = self.errors.get(m.code, 0) + 1
+            if m.retry_after_s is not None:
+                self.retry_after[m.vehicle] = m.retry_after_s
             if m.code != "dropped":
                 self.example = self.example or f"{m.code}: {m.reason}"
             self.last_answer = time.monotonic()

@@ -312,7 +312,10 @@ def run_service_cases(
     flush_s = 0.3
     with tempfile.TemporaryDirectory(prefix="randt-hostile-") as tmp:
         data_dir = Path(tmp)
-        with live_service(data_dir, flush_interval_s=flush_s, max_sessions=0, queue_size=8) as live:
+        # (no admission limit: the cases open many one-scan sessions; admission has its own tests)
+        with live_service(
+            data_dir, flush_interval_s=flush_s, max_sessions=0, capacity_target=0, queue_size=8
+        ) as live:
             listener = Listener((live.zenoh_endpoint,))
             publisher = zenoh.open(zenoh_config("peer", connect=(live.zenoh_endpoint,)))
             good = GoodVehicle((live.zenoh_endpoint,)).start()

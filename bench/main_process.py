@@ -111,7 +111,7 @@ from service.settings import ServiceSettings
 stand_in = StandIn(Path(sys.argv[5]))
 settings = ServiceSettings(
     data_dir=Path(sys.argv[4]), listen=(sys.argv[3],), http_port=0, graph=sys.argv[6] == "on",
-    max_sessions=0,
+    max_sessions=0, capacity_target=0,  # (this process's own limit is what is measured)
 )
 service = Service(settings, executor=stand_in)
 service.start()

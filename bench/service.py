@@ -461,8 +461,19 @@ def run_one(
         ]
         return max(errs, default=float("nan"))
 
+    # Admitted vehicles (a pose at least) and the share of their scans answered ok (issue 32:
+    # shedding keeps them tracking: at least a third); refused ones (never a pose) and whether
+    # every refusal said when to retry.
+    admitted = {k[0] for k in got}
+    admitted_sent = sum(1 for k in sent if k[0] in admitted)
+    admitted_ok = sum(1 for k, st in answers.status_of.items() if st == "ok" and k[0] in admitted)
+    refused_vehicles = sorted(set(vehicles) - admitted)
     return {
         **quality,
+        "admitted_vehicles": len(admitted),
+        "refused_vehicles": len(refused_vehicles),
+        "refused_told_retry": all(v in answers.retry_after for v in refused_vehicles),
+        "admitted_ok_share": admitted_ok / admitted_sent if admitted_sent else float("nan"),
         "ok_err_max_cm": status_err_max("ok"),
         "fallback_err_max_cm": status_err_max("fallback"),
         "lost": errors.get(ErrorCode.LOST, 0),
@@ -664,6 +675,8 @@ def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str
         "lost",
         "dropped",
         "refused",
+        "vehicles admitted / refused (told when to retry)",
+        "admitted vehicles' scans ok",
         "map points",
         "map to true surfaces p50 / p90 cm",
         "map points > 0.3 m off",
@@ -678,6 +691,15 @@ def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str
             str(r["lost"]),
             str(r["dropped"]),
             str(r["refused"]),
+            f"{r['admitted_vehicles']} / {r['refused_vehicles']}"
+            + (
+                " (yes)"
+                if r["refused_vehicles"] and r["refused_told_retry"]
+                else " (no)"
+                if r["refused_vehicles"]
+                else ""
+            ),
+            f"{100 * r['admitted_ok_share']:.0f} %",
             f"{r['map_points']:,}",
             f"{r['map_p50_cm']:.1f} / {r['map_p90_cm']:.1f}",
             f"{r['map_off']:,}",

@@ -325,8 +325,10 @@ def demo(
         http_host="127.0.0.1",
         http_port=hport,
         # Every requested vehicle is admitted: the demo's vehicles wait for their answers
-        # (clients/fleet.py's window), so they pace themselves instead of overloading.
+        # (clients/fleet.py's window), so they pace themselves instead of overloading (neither
+        # the count cap nor the measured capacity, which real-time vehicles need, applies).
         max_sessions=0,
+        capacity_target=0,
     )
     base = f"http://127.0.0.1:{hport}"
     server = uvicorn.Server(

@@ -54,6 +54,7 @@ from core.voxel import pack_keys, voxel_coords
 from wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
 
 __all__ = [
+    "CpuLedger",
     "LocalMatcher",
     "MapFrame",
     "MatcherExecutor",
@@ -244,6 +245,9 @@ class Registered:
         none, or when the caller holds the sweep (``register``) and reads them by index.
     correction:
         The correction ``map_xyz`` was moved by (the :class:`MapFrame`'s), ``None`` for none.
+    cpu_s:
+        CPU seconds the matcher's thread spent on this sweep where it ran: decoding, matching, and
+        the keyframe model's rebuild after the session's previous sweep (service/capacity.py).
     """
 
     result: ScanResult
@@ -254,6 +258,7 @@ class Registered:
     map_intensity: np.ndarray | None = None
     keyframe_intensity: np.ndarray | None = None
     correction: np.ndarray | None = None
+    cpu_s: float = 0.0
 
     def map_points_under(self, correction: np.ndarray | None) -> np.ndarray:
         """``map_xyz`` moved from the correction they were sent with to ``correction`` (the
@@ -500,6 +505,7 @@ def _serve(conn: Connection) -> None:
 def serve_requests(conn: Connection, sessions: _Sessions) -> None:
     """The loop of a matcher process (or of a Ray matcher host's connection): one request at a
     time, ``(op, key, args)`` in, ``(ok, value)`` out, until ``quit`` or the connection closes."""
+    ledger = CpuLedger()
     while True:
         try:
             op, key, args = conn.recv()
@@ -511,7 +517,9 @@ def serve_requests(conn: Connection, sessions: _Sessions) -> None:
         deferred: IncrementalMatcher | None = None
         try:
             # The keyframe model is rebuilt after the reply (below), while the service publishes.
+            t0 = time.thread_time()
             value, deferred = sessions.handle(op, key, args)
+            value = ledger.bill(op, key, value, time.thread_time() - t0)
         except Exception as exc:  # raised again in the session thread, as itself (module docstring)
             conn.send((False, _portable(exc)))
         else:
@@ -524,9 +532,39 @@ def serve_requests(conn: Connection, sessions: _Sessions) -> None:
         # waits NEXT_REQUEST_WAIT_S, with the pose already out.
         if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
-                deferred.update_model()
+                with ledger.carry(key):
+                    deferred.update_model()
             except Exception:  # a bug, not bad input: the next request would meet it too
                 log.exception("matcher process: keyframe model update failed")
+
+
+class CpuLedger:
+    """Each session's CPU time where its matcher runs, billed to its sweeps
+    (:attr:`Registered.cpu_s`): a request's own thread CPU time, plus what the session's model
+    rebuilds cost since its last sweep (:meth:`carry`). Thread CPU time: the matchers' kernels and
+    BLAS run single-threaded on the calling thread, and it does not count the time a busy machine
+    gives to other processes."""
+
+    def __init__(self) -> None:
+        self._carried: dict[Key, float] = {}
+
+    @contextlib.contextmanager
+    def carry(self, key: Key) -> Iterator[None]:
+        """Around work for ``key`` that is billed to its next sweep (a model rebuild)."""
+        t0 = time.thread_time()
+        try:
+            yield
+        finally:
+            self._carried[key] = self._carried.get(key, 0.0) + time.thread_time() - t0
+
+    def bill(self, op: str, key: Key, value: Any, spent_s: float) -> Any:
+        """Request ``op``'s value: a :class:`Registered` with the request's CPU (``spent_s``) and
+        what was carried in ``cpu_s``; any other value as it is (``drop`` forgets the carry)."""
+        if op == "drop":
+            self._carried.pop(key, None)
+        if not isinstance(value, Registered):
+            return value
+        return replace(value, cpu_s=spent_s + self._carried.pop(key, 0.0))
 
 
 @contextlib.contextmanager
@@ -879,6 +917,17 @@ class RemoteMatcher(ForwardingMatcher):
 class LocalMatcher(IncrementalMatcher):
     """An in-process matcher with :class:`RemoteMatcher`'s ``close`` (``matcher_processes=0``)."""
 
+    #: CPU seconds of model rebuilds not billed to a sweep yet (:attr:`Registered.cpu_s`)
+    _carried_cpu_s: float = 0.0
+
+    def update_model(self) -> float:
+        """:meth:`IncrementalMatcher.update_model`, its CPU time billed to the next sweep."""
+        t0 = time.thread_time()
+        try:
+            return super().update_model()
+        finally:
+            self._carried_cpu_s += time.thread_time() - t0
+
     def register_scan(
         self,
         points_xyz: np.ndarray,
@@ -910,6 +959,7 @@ class LocalMatcher(IncrementalMatcher):
         """:meth:`register_scan` (the model rebuild deferred: the caller runs :meth:`update_model`
         after publishing) and every point of the sweep in the map frame (:class:`Registered`;
         with ``keyframe_voxel_m``, the keyframe's points too)."""
+        t0 = time.thread_time()
         result = self.register_scan(
             points_xyz,
             time_offset_s=time_offset_s,
@@ -918,7 +968,9 @@ class LocalMatcher(IncrementalMatcher):
             defer_model=True,
             behind=behind,
         )
-        return _registered(result, None, keyframe_voxel_m, frame)
+        registered = _registered(result, None, keyframe_voxel_m, frame)
+        cpu_s, self._carried_cpu_s = time.thread_time() - t0 + self._carried_cpu_s, 0.0
+        return replace(registered, cpu_s=cpu_s)
 
     def register_payload(
         self,
@@ -930,7 +982,9 @@ class LocalMatcher(IncrementalMatcher):
         frame: MapFrame | None = None,
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`)."""
+        t0 = time.thread_time()
         xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
+        self._carried_cpu_s += time.thread_time() - t0  # (the decoding, billed by register)
         registered = self.register(
             xyz,
             time_offset_s=offsets,

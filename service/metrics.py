@@ -141,6 +141,24 @@ class ServiceMetrics:
         self.graph_restarts = Counter(
             "randt_graph_restarts", "Times the pose graph process died and was started again", registry=r
         )
+        # admission by measured capacity (service/capacity.py), updated every flush
+        self.capacity_cores = Gauge("randt_capacity_cores", "CPUs the matchers run on", registry=r)
+        self.capacity_load = Gauge(
+            "randt_capacity_load",
+            "The running sessions' measured CPU as a share of what admission may fill (1: full)",
+            registry=r,
+        )
+        self.capacity_sessions_more = Gauge(
+            "randt_capacity_sessions_more", "New sessions that fit, at the expected cost of one", registry=r
+        )
+        self.capacity_sweep_cpu_seconds = Gauge(
+            "randt_capacity_sweep_cpu_seconds",
+            "Matcher CPU per sweep, mean of the measured sessions",
+            registry=r,
+        )
+        self.capacity_service_cpu_seconds = Gauge(
+            "randt_capacity_service_cpu_seconds", "The service process's own CPU per sweep", registry=r
+        )
         self._map_collector: _MapCollector | None = None
 
     #: The counters whose totals persist across restarts (DATA/counters.json, service/store.py).

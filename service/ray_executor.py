@@ -58,10 +58,11 @@ import numpy as np
 
 from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import MatcherSettings, PosePrior
+from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
 from core.tiles import TileGrid
 from service.matchers import (
     _READY,
+    CpuLedger,
     ForwardingMatcher,
     MapFrame,
     MatcherProcessDiedError,
@@ -123,6 +124,7 @@ class _MatcherHost:
             log.exception("matcher host warm-up failed")
         self.sessions = _Sessions()
         self._rebuilds: list[threading.Thread] = []
+        self._ledger = CpuLedger()  # the CPU each sweep costs, as the local executor measures it
 
     def ready(self) -> str:
         """The node this host runs on, once warmed up."""
@@ -194,12 +196,18 @@ class _MatcherHost:
         model is rebuilt on a thread once the answer is on its way (as a matcher process rebuilds
         after replying), and the host's next request waits for it: one remote call per sweep."""
         self._rebuilt()
+        t0 = time.thread_time()
         value, deferred = self.sessions.handle(op, key, args)
+        value = self._ledger.bill(op, key, value, time.thread_time() - t0)
         if deferred is not None:
-            thread = threading.Thread(target=deferred.update_model, daemon=True)
+            thread = threading.Thread(target=self._rebuild, args=(key, deferred), daemon=True)
             thread.start()
             self._rebuilds.append(thread)
         return value
+
+    def _rebuild(self, key: Key, matcher: IncrementalMatcher) -> None:
+        with self._ledger.carry(key):  # billed to the session's next sweep
+            matcher.update_model()
 
 
 def _normal_priority() -> None:
@@ -343,6 +351,14 @@ class RayMatcherPool:
                 with contextlib.suppress(Exception):
                     self._ray.shutdown()
                 time.sleep(2.0)
+
+    def cpus(self) -> float:
+        """The CPUs of the live nodes that run matchers (admission's capacity: service/capacity.py)."""
+        try:
+            return float(sum(self._nodes().values()))
+        except Exception:  # Ray unreachable for a moment: say none rather than fail an admission
+            log.warning("executor ray: could not read the cluster's CPUs", exc_info=True)
+            return 0.0
 
     # -- hosts ------------------------------------------------------------------------------------
     def _nodes(self) -> dict[str, int]:

@@ -109,6 +109,7 @@ import numpy as np
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
 from core.odometry import PosePrior, ScanResult, extend_state_dict
 from core.tiles import Tile, TileGrid
+from service.capacity import Capacity, CapacityFigures
 from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
 from service.matchers import (
@@ -390,6 +391,10 @@ class SessionWorker:
         behind = self.depth() > 0
         with self.lock:
             registered = self._match(job, prior, behind)
+            if registered is not None and self._manager.capacity is not None:
+                self._manager.capacity.matched(
+                    self.key, registered.cpu_s, in_process=self._manager.pool is None
+                )
             if registered is None or not self._log_pose(scan, registered.result):
                 return
             lost = self._track(scan, registered.result)
@@ -768,6 +773,22 @@ class SessionManager:
             self.pool = RayMatcherPool(settings.ray_address, settings.ray_transport)
         elif executor is None and n_procs > 0:
             self.pool = MatcherPool(n_procs)
+        #: Admission by measured capacity (service/capacity.py); None: by max_sessions only.
+        self.capacity: Capacity | None = None
+        if settings.capacity_target > 0:
+            cpus = getattr(self.pool, "cpus", None)  # a Ray cluster's CPUs (they change)
+            self.capacity = Capacity(
+                cores=cpus
+                if callable(cpus)
+                else float(os.cpu_count() or 1)
+                if self.pool is not None
+                else 1.0,
+                shares_cores=cpus is None,
+                target=settings.capacity_target,
+                rate_hz=settings.session_rate_hz,
+                sweep_cpu_s=settings.sweep_cpu_estimate_s,
+                retry_after_s=settings.admission_retry_s,
+            )
         #: The shared map's pose graph (service/graph.py); its process starts with the first keyframe.
         self.graph: ServiceGraph | None = (
             ServiceGraph(
@@ -860,6 +881,8 @@ class SessionManager:
         """
         try:
             scan = decode_scan_header(payload, self.limits)  # the bodies: the matcher's
+            if self._refused_for_capacity(scan, key_vehicle):  # (before its body costs anything)
+                return
             if (scan.vehicle, scan.session) not in self._workers and scan.v == SCAN_V2:
                 # A scan that may open a session is decoded whole first (rare: once a session):
                 # a body that does not decode never takes a slot, opens a session or reads the store.
@@ -877,7 +900,9 @@ class SessionManager:
         key = (scan.vehicle, scan.session)
         job = _Job(scan, received_ns, payload)
         dropped: _Job | None = None
-        refusal: tuple[str, str] | None = None
+        refusal: tuple[str, str] | tuple[str, str, float] | None = None
+        if self.capacity is not None:
+            self.capacity.arrived(key)
         with self._lock:
             worker = self._workers.get(key)
             opening = self._opening.get(key)
@@ -920,6 +945,32 @@ class SessionManager:
         if dropped is not None:
             self._answer_dropped(dropped)
 
+    def _refused_for_capacity(self, scan: ScanHeader, key_vehicle: str) -> bool:
+        """A scan that would open a session the node cannot carry is refused on its header alone
+        (answered ``sessions_full`` with ``retry_after_s``): a vehicle refused at 10 Hz must cost
+        no body decoding. :meth:`_admit` checks again under the lock."""
+        key = (scan.vehicle, scan.session)
+        if (
+            self.capacity is None
+            or scan.vehicle != key_vehicle
+            or key in self._workers
+            or key in self._opening
+        ):
+            return False
+        why = self.capacity.refusal([*self._workers, *self._opening])
+        if why is None:
+            return False
+        retry = self.capacity.retry_after_s
+        self.reject(
+            scan.vehicle,
+            scan.session,
+            scan.seq,
+            ErrorCode.SESSIONS_FULL,
+            f"{why}: send again in {retry:g} s, or add capacity",
+            retry,
+        )
+        return True
+
     def _enqueue(self, worker: SessionWorker, job: _Job) -> _Job | None:
         """Seq check and enqueue on a running session (under the manager lock); the job dropped."""
         scan, info = job.scan, worker.info
@@ -960,9 +1011,9 @@ class SessionManager:
         )
 
     # -- admission (under the manager lock; module docstring, Admission) ---------------------------
-    def _admit(self, key: tuple[str, str]) -> SessionWorker | tuple[str, str] | None:
+    def _admit(self, key: tuple[str, str]) -> SessionWorker | tuple[str, str, float] | None:
         """May ``key`` open a session? ``None``: yes; a worker: yes, after that idle session gives
-        up its slot (already out of the running set); ``(code, reason)``: refused."""
+        up its slot (already out of the running set); ``(code, reason, retry_after_s)``: refused."""
         vehicle = key[0]
         evict: SessionWorker | None = None
         per_vehicle = self.settings.max_sessions_per_vehicle
@@ -977,6 +1028,7 @@ class SessionManager:
                         f"vehicle {vehicle!r} runs its maximum of {per_vehicle} sessions "
                         "(RANDT_MAX_SESSIONS_PER_VEHICLE), none idle for "
                         f"{self.settings.vehicle_slot_idle_s:g} s: close one or send again later",
+                        self.settings.vehicle_slot_idle_s,
                     )
         if evict is None and 0 < self.max_sessions <= len(self._workers) + len(self._opening):
             evict = self._idlest(list(self._workers.values()), self.settings.slot_idle_s)
@@ -986,7 +1038,15 @@ class SessionManager:
                     f"the service runs its maximum of {self.max_sessions} sessions (RANDT_MAX_SESSIONS), "
                     f"none idle for {self.settings.slot_idle_s:g} s: send again later, close a session "
                     "or add capacity",
+                    self.settings.slot_idle_s,
                 )
+        if self.capacity is not None:  # before the session costs anything (module docstring)
+            why = self.capacity.refusal(
+                [*self._workers, *self._opening], exclude=() if evict is None else (evict.key,)
+            )
+            if why is not None:
+                retry = self.capacity.retry_after_s
+                return (ErrorCode.SESSIONS_FULL, f"{why}: send again in {retry:g} s, or add capacity", retry)
         if evict is not None:
             log.info(
                 "session %s/%s gives its slot to %s/%s (idle %.1f s): saved as expired",
@@ -1052,10 +1112,19 @@ class SessionManager:
                 self._openers.discard(threading.current_thread())
 
     def reject(
-        self, vehicle: str, session: str, seq: int | None, code: str, reason: str, *, count: bool = True
+        self,
+        vehicle: str,
+        session: str,
+        seq: int | None,
+        code: str,
+        reason: str,
+        retry_after_s: float | None = None,
+        *,
+        count: bool = True,
     ) -> None:
-        """Answer one scan with an error (``code``: an :class:`~wire.codes.ErrorCode`) on its
-        vehicle's error key and count it."""
+        """Answer one scan with an error (``code``: an :class:`~wire.codes.ErrorCode`; a refusal
+        that passes says when to send again, ``retry_after_s``) on its vehicle's error key and
+        count it."""
         if count:
             self.metrics.scans_rejected.labels(code).inc()
         if not self.limits.id_ok(vehicle):
@@ -1069,7 +1138,16 @@ class SessionManager:
         w = self._workers.get((vehicle, session))  # no lock: reject runs on the callback's thread too
         if w is not None:
             w.info.n_errors += 1
-        self.outbox(ErrorMessage(vehicle=vehicle, session=session, seq=seq, code=code, reason=reason))
+        self.outbox(
+            ErrorMessage(
+                vehicle=vehicle,
+                session=session,
+                seq=seq,
+                code=code,
+                reason=reason,
+                retry_after_s=retry_after_s,
+            )
+        )
 
     def _open_session(self, scan: ScanHeader) -> SessionWorker:
         key = (scan.vehicle, scan.session)
@@ -1492,8 +1570,33 @@ class SessionManager:
             due = time.monotonic() - self._tiles_saved_at >= self.settings.tile_save_s - 1e-3
             try:
                 self.flush(tiles=due)
+                self._measure_capacity()
             except Exception:  # keep flushing whatever one failure was
                 log.exception("flush failed")
+
+    def _measure_capacity(self) -> None:
+        """The service process's own CPU per sweep sampled, ended sessions forgotten, and the
+        capacity's figures to ``/metrics`` (the flusher, every flush)."""
+        if self.capacity is None:
+            return
+        self.capacity.service_sample()
+        with self._lock:
+            running = [*self._workers, *self._opening]
+        self.capacity.forget(running)
+        f, m = self.capacity.figures(running), self.metrics
+        m.capacity_cores.set(f.cores)
+        m.capacity_load.set(f.load)
+        m.capacity_sessions_more.set(f.sessions_more)
+        m.capacity_sweep_cpu_seconds.set(f.sweep_cpu_s)
+        m.capacity_service_cpu_seconds.set(f.service_cpu_s)
+
+    def capacity_figures(self) -> CapacityFigures | None:
+        """The node's capacity as measured now (``/status``), or None without capacity admission."""
+        if self.capacity is None:
+            return None
+        with self._lock:
+            running = [*self._workers, *self._opening]
+        return self.capacity.figures(running)
 
     def stop(self) -> None:
         """Drain the intake and every session, save everything, stop the flusher (SIGTERM path)."""

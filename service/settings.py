@@ -82,6 +82,28 @@ class ServiceSettings(BaseSettings):
         "(sessions_full): -1 = 4 per core (8 on 2 cores, which track 8 vehicles at 10 Hz with the "
         "vehicle library's reduced sweeps, docs/benchmarks.md), 0 = no limit",
     )
+    capacity_target: float = Field(
+        default=0.85,
+        ge=0,
+        le=1,
+        description="admission by measured capacity (service/capacity.py): a scan that would open a "
+        "session is refused (sessions_full, with retry_after_s) when the running sessions' measured "
+        "CPU (rate x CPU per sweep) and a new one's expected share would pass this share of the "
+        "cores (the Ray cluster's with executor ray); 0 = by max_sessions only",
+    )
+    session_rate_hz: float = Field(
+        default=10.0, gt=0, description="scan rate a new or not yet measured session is expected to send"
+    )
+    sweep_cpu_estimate_s: float = Field(
+        default=0.06,
+        gt=0,
+        description="matcher CPU per sweep a new session is expected to cost until a session has been "
+        "measured (then the measured sessions' mean); 0.06: a reduced simulated sweep's matcher "
+        "process work on a 2-core Xeon (docs/benchmarks.md, 46-60 ms)",
+    )
+    admission_retry_s: float = Field(
+        default=10.0, gt=0, description="retry_after_s told to a vehicle refused for lack of capacity"
+    )
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
     # intake and fair admission (service/intake.py, service/sessions.py: Admission)
     intake_workers: int = Field(

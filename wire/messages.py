@@ -741,6 +741,9 @@ class ErrorMessage(_Message):
         for the service's own refusals (:data:`~wire.codes.CODE_REGEX`).
     reason:
         Human-readable: what was wrong and where.
+    retry_after_s:
+        For a refusal that passes (``sessions_full``, ``vehicle_sessions_full``): seconds after
+        which sending again may be admitted; ``None`` otherwise.
     """
 
     vehicle: str
@@ -748,6 +751,8 @@ class ErrorMessage(_Message):
     seq: Count | None = None
     code: str = Field(pattern=CODE_REGEX)
     reason: str
+    # (absent from the wire when None: an error without it is byte for byte what it was)
+    retry_after_s: float | None = Field(default=None, ge=0, exclude_if=lambda v: v is None)
 
     @field_validator("vehicle", "session")
     @classmethod

@@ -9,9 +9,10 @@ from fastapi.responses import JSONResponse
 from prometheus_client import Metric
 
 from service.api.deps import ServiceDep, require_reader
-from service.api.models import GraphStatus, Health, MapSummary, Ready, Status
+from service.api.models import CapacityStatus, GraphStatus, Health, MapSummary, Ready, Status
 from service.api.views import map_summary, session_summary
 from service.runtime import Service
+from service.sessions import SessionManager
 
 __all__ = ["router"]
 
@@ -84,4 +85,21 @@ def status(svc: ServiceDep) -> Status:
             restarts=0 if g is None else g.restarts,
             last_exit=None if g is None else g.last_exit,
         ),
+        capacity=_capacity(mgr),
+    )
+
+
+def _capacity(mgr: SessionManager | None) -> CapacityStatus | None:
+    f = None if mgr is None else mgr.capacity_figures()
+    if f is None:
+        return None
+    return CapacityStatus(
+        cores=f.cores,
+        target=f.target,
+        load=round(f.load, 4),
+        used_cores=round(f.used_cores, 4),
+        sweep_cpu_ms=round(1000 * f.sweep_cpu_s, 3),
+        service_cpu_ms=round(1000 * f.service_cpu_s, 3),
+        sessions_more=f.sessions_more,
+        measured_sessions=f.measured_sessions,
     )

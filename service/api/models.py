@@ -73,6 +73,21 @@ class GraphStatus(BaseModel):
     last_exit: str | None = Field(description="how the process last died ('signal 9', 'exit code 1')")
 
 
+class CapacityStatus(BaseModel):
+    """Admission by measured capacity (service/capacity.py)."""
+
+    cores: float = Field(description="CPUs the matchers run on (this node's, or the Ray cluster's)")
+    target: float = Field(description="the share of them admission fills at most (capacity_target)")
+    load: float = Field(
+        description="the running sessions' measured CPU as a share of cores x target (1: full)"
+    )
+    used_cores: float = Field(description="the same in cores, matchers and service process together")
+    sweep_cpu_ms: float = Field(description="matcher CPU per sweep, mean of the measured sessions")
+    service_cpu_ms: float = Field(description="the service process's own CPU per sweep")
+    sessions_more: int = Field(description="new sessions that fit, each at session_rate_hz and sweep_cpu_ms")
+    measured_sessions: int = Field(description="running sessions counted at their own measured cost")
+
+
 class MapExtent(BaseModel):
     min_xyz: tuple[float, float, float]
     max_xyz: tuple[float, float, float]
@@ -244,3 +259,6 @@ class Status(BaseModel):
     queue_depths: dict[str, int] = Field(description="'<vehicle>/<session>' -> scans waiting")
     maps: dict[str, MapSummary]
     graph: GraphStatus = Field(description="the pose graph process (service/graph.py)")
+    capacity: CapacityStatus | None = Field(
+        default=None, description="what the node can carry, measured; null when admission is by count only"
+    )

@@ -113,7 +113,11 @@ def main() -> None:
 
         # 2. a node dies under a running service
         data = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-ray-")))
-        settings = ServiceSettings(data_dir=data, executor="ray", flush_interval_s=0.2, graph=False)
+        # (capacity_target=0: three young sessions at once on this small cluster would be refused
+        # one by admission's expected cost; the node's death is this scenario's subject)
+        settings = ServiceSettings(
+            data_dir=data, executor="ray", flush_interval_s=0.2, graph=False, capacity_target=0
+        )
         answers: list[object] = []
         mgr = SessionManager(settings, Store(data), answers.append, ServiceMetrics())
 

@@ -146,7 +146,10 @@ def test_status_and_other_vehicles_do_not_wait_for_a_stuck_session_open(tmp_path
         return original(self, scan)
 
     monkeypatch.setattr(SessionManager, "_open_session", slow_open)
-    settings = ServiceSettings(data_dir=tmp_path, matcher_processes=0, flush_interval_s=0.2)
+    # (admission by count: two sessions on one in-process core pass the measured capacity)
+    settings = ServiceSettings(
+        data_dir=tmp_path, matcher_processes=0, flush_interval_s=0.2, capacity_target=0
+    )
     with TestClient(create_app(settings, with_zenoh=False)) as client:
         svc: Service = client.app.state.service  # type: ignore[attr-defined]
         out = svc._sent
@@ -186,7 +189,10 @@ def test_one_scan_squatters_give_their_slots_to_a_live_vehicle(tmp_path) -> None
     """Four sessions that sent one scan each fill max_sessions=4; a fifth vehicle arriving after
     they idled slot_idle_s gets poses (old code: sessions_full), the squatter that gave up its slot
     is saved as expired, and it resumes where it stopped when it comes back."""
-    settings = ServiceSettings(data_dir=tmp_path, max_sessions=4, matcher_processes=0, flush_interval_s=0.2)
+    # (the count cap and its slots: four sessions on one in-process core pass the measured capacity)
+    settings = ServiceSettings(
+        data_dir=tmp_path, max_sessions=4, matcher_processes=0, flush_interval_s=0.2, capacity_target=0
+    )
     # (set without validation, so the old code, which has no such setting, runs the same test)
     settings = settings.model_copy(update={"slot_idle_s": 1.0})
     out: list[object] = []
@@ -227,6 +233,7 @@ def test_one_vehicle_cannot_hold_more_than_its_sessions(tmp_path) -> None:
         vehicle_slot_idle_s=1.0,
         matcher_processes=0,
         flush_interval_s=0.2,
+        capacity_target=0,  # (the per-vehicle cap alone: test_admission.py has the measured capacity)
     )
     out: list[object] = []
     mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())

@@ -1,0 +1,248 @@
+"""What the node can carry: admission by measured capacity.
+
+A session costs the node its scan rate times the CPU each of its sweeps takes, and both are
+measured here, never assumed from a count of sessions:
+
+- **rate**: the scans that *arrive* for the session (``arrived``, at intake: shed scans cost
+  nothing but still say what the vehicle asks for), a moving average of the intervals;
+- **CPU per sweep**: what its matcher spent on each sweep where it runs (``matched``:
+  :attr:`service.matchers.Registered.cpu_s`, the thread's CPU time for decoding, matching and
+  the keyframe model's rebuild after its previous sweep), a moving average;
+- **the service process's own CPU per sweep** (``service_sample``: this process's CPU time over
+  the sweeps matched since the last sample, less what in-process matchers spent in it).
+
+The node's load is ``sum(rate * (matcher CPU + service CPU))`` against ``cores * target``, where
+matchers share the node's cores with the service process (local worker processes, or in-process
+matchers on one core); with Ray the matchers' share is measured against the cluster's CPUs and
+the service process's against its one core (its threads share one GIL), and the larger of the two
+fractions is the load. A session that has sent nothing for ``idle_s`` costs nothing. A session
+not measured yet (young, or opening) is counted at the expected cost of a new one: ``rate_hz``
+(the sensor rate the vehicle library publishes at) times the mean CPU per sweep of the measured
+sessions (of the last measured ones when none runs; ``sweep_cpu_s`` before any).
+
+:meth:`Capacity.refusal` says why a new session cannot be admitted (its expected cost does not fit
+in what is left) or ``None``; the session manager answers such a scan ``sessions_full`` with
+``retry_after_s``, before the session costs anything. The pose graph's process runs at the lowest
+priority on what is left over (service/graph.py), so it is not counted.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Collection, Hashable
+from dataclasses import dataclass
+
+__all__ = ["Capacity", "CapacityFigures"]
+
+#: Weight of the newest sample in the moving averages.
+ALPHA = 0.2
+#: A session's rate is its own once this many of its scans arrived; its CPU once this many matched.
+MIN_ARRIVALS = 5
+MIN_SWEEPS = 3
+#: The service process's CPU per sweep is sampled over at least this many sweeps.
+MIN_SERVICE_SWEEPS = 10
+
+
+@dataclass(frozen=True)
+class CapacityFigures:
+    """The node's capacity as measured now (``/status``' ``capacity``, ``/metrics``).
+
+    Attributes
+    ----------
+    cores:
+        CPUs the matchers run on (this node's, or the Ray cluster's).
+    target:
+        The share of them admission fills at most (``capacity_target``).
+    load:
+        The running sessions' measured cost as a share of ``cores * target`` (1.0: full).
+    used_cores:
+        The same in cores (matchers and service process together).
+    sweep_cpu_s, service_cpu_s:
+        Mean CPU seconds per sweep of the measured sessions' matchers, and of the service process.
+    new_session_load:
+        What a new session is expected to add to ``load``.
+    sessions_more:
+        How many more sessions at that cost fit.
+    measured_sessions, running_sessions:
+        Sessions counted at their own measured cost, and all counted.
+    """
+
+    cores: float
+    target: float
+    load: float
+    used_cores: float
+    sweep_cpu_s: float
+    service_cpu_s: float
+    new_session_load: float
+    sessions_more: int
+    measured_sessions: int
+    running_sessions: int
+
+
+@dataclass
+class _Load:
+    interval_s: float | None = None  # moving average of the intervals between arrivals
+    last_arrival: float | None = None
+    arrivals: int = 0
+    cpu_s: float | None = None  # moving average of the matcher's CPU per sweep
+    sweeps: int = 0
+
+
+def _average(old: float | None, new: float) -> float:
+    return new if old is None else (1.0 - ALPHA) * old + ALPHA * new
+
+
+class Capacity:
+    """Measured load and admission (module docstring). Thread-safe: intake workers, session
+    threads, the flusher and HTTP handlers call it."""
+
+    def __init__(
+        self,
+        *,
+        cores: float | Callable[[], float],
+        shares_cores: bool,
+        target: float = 0.85,
+        rate_hz: float = 10.0,
+        sweep_cpu_s: float = 0.06,
+        retry_after_s: float = 10.0,
+        idle_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not 0 < target <= 1:
+            raise ValueError(f"capacity needs 0 < target <= 1, got {target}")
+        self._cores = cores if callable(cores) else (lambda: float(cores))
+        self.shares_cores = shares_cores
+        self.target = target
+        self.rate_hz = rate_hz
+        self.retry_after_s = retry_after_s
+        self.idle_s = idle_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._loads: dict[Hashable, _Load] = {}
+        self._last_cpu_s = sweep_cpu_s  # the mean of the last measured sessions (a prior at first)
+        self._service_cpu_s = 0.0
+        self._service_mark: tuple[float, int, float] | None = None  # process CPU, sweeps, local CPU
+        self._sweeps = 0
+        self._local_cpu_s = 0.0
+
+    # -- measurements ---------------------------------------------------------------------------
+    def arrived(self, key: Hashable) -> None:
+        """A scan for session ``key`` arrived (admitted or not, shed or not)."""
+        now = self._clock()
+        with self._lock:
+            load = self._loads.setdefault(key, _Load())
+            if load.last_arrival is not None:
+                load.interval_s = _average(load.interval_s, max(now - load.last_arrival, 0.0))
+            load.last_arrival = now
+            load.arrivals += 1
+
+    def matched(self, key: Hashable, cpu_s: float, *, in_process: bool = False) -> None:
+        """Session ``key``'s matcher spent ``cpu_s`` on one sweep (``in_process``: in this process)."""
+        with self._lock:
+            load = self._loads.setdefault(key, _Load())
+            load.cpu_s = _average(load.cpu_s, max(cpu_s, 0.0))
+            load.sweeps += 1
+            self._sweeps += 1
+            if in_process:
+                self._local_cpu_s += cpu_s
+
+    def service_sample(self, process_cpu_s: float | None = None) -> None:
+        """Sample the service process's own CPU per sweep (the flusher, every flush):
+        ``process_cpu_s`` is this process's CPU time so far (``time.process_time()``)."""
+        cpu = time.process_time() if process_cpu_s is None else process_cpu_s
+        with self._lock:
+            mark = (cpu, self._sweeps, self._local_cpu_s)
+            if self._service_mark is None:
+                self._service_mark = mark
+                return
+            d_cpu, d_sweeps, d_local = (a - b for a, b in zip(mark, self._service_mark, strict=True))
+            if d_sweeps < MIN_SERVICE_SWEEPS:
+                return
+            self._service_mark = mark
+            self._service_cpu_s = _average(self._service_cpu_s or None, max(d_cpu - d_local, 0.0) / d_sweeps)
+
+    def forget(self, keep: Collection[Hashable]) -> None:
+        """Drop what is known of sessions not in ``keep`` (ended, expired, evicted)."""
+        with self._lock:
+            for key in [k for k in self._loads if k not in keep]:
+                del self._loads[key]
+
+    # -- the model ------------------------------------------------------------------------------
+    def _expected_cpu_s(self) -> float:
+        measured = [
+            ld.cpu_s for ld in self._loads.values() if ld.cpu_s is not None and ld.sweeps >= MIN_SWEEPS
+        ]
+        if measured:
+            self._last_cpu_s = sum(measured) / len(measured)
+        return self._last_cpu_s
+
+    def _rate_hz(self, load: _Load, now: float) -> float:
+        if load.last_arrival is not None and now - load.last_arrival > self.idle_s:
+            return 0.0  # it stopped sending: it costs nothing until it sends again
+        if load.arrivals >= MIN_ARRIVALS and load.interval_s:
+            return 1.0 / load.interval_s
+        return self.rate_hz
+
+    @property
+    def cores(self) -> float:
+        """CPUs the matchers run on now (a Ray cluster's change as nodes come and go); at least 1."""
+        return max(float(self._cores()), 1.0)
+
+    def _share(self, matcher_cores: float, service_cores: float, cores: float) -> float:
+        """Cores used as a share of what admission may fill (1.0: full)."""
+        if self.shares_cores:
+            return (matcher_cores + service_cores) / (cores * self.target)
+        return max(matcher_cores / (cores * self.target), service_cores / self.target)
+
+    def _figures(self, running: Collection[Hashable], exclude: Collection[Hashable]) -> CapacityFigures:
+        now, cores = self._clock(), self.cores
+        expected = self._expected_cpu_s()
+        matcher = service = 0.0
+        measured = 0
+        for key in running:
+            if key in exclude:
+                continue
+            load = self._loads.get(key) or _Load()
+            own = load.cpu_s is not None and load.sweeps >= MIN_SWEEPS
+            measured += own
+            rate = self._rate_hz(load, now)
+            matcher += rate * (load.cpu_s if own and load.cpu_s is not None else expected)
+            service += rate * self._service_cpu_s
+        new = self._share(self.rate_hz * expected, self.rate_hz * self._service_cpu_s, cores)
+        share = self._share(matcher, service, cores)
+        more = math.floor((1.0 - share) / new + 1e-9) if new > 0 else 0
+        return CapacityFigures(
+            cores=cores,
+            target=self.target,
+            load=share,
+            used_cores=matcher + service,
+            sweep_cpu_s=expected,
+            service_cpu_s=self._service_cpu_s,
+            new_session_load=new,
+            sessions_more=max(more, 0),
+            measured_sessions=measured,
+            running_sessions=len([k for k in running if k not in exclude]),
+        )
+
+    def figures(self, running: Collection[Hashable]) -> CapacityFigures:
+        """The capacity as measured now, over the running (and opening) sessions ``running``."""
+        with self._lock:
+            return self._figures(running, ())
+
+    def refusal(self, running: Collection[Hashable], exclude: Collection[Hashable] = ()) -> str | None:
+        """Why a new session cannot be admitted beside ``running`` (less ``exclude``: a session
+        that gives up its slot for it), or ``None``: it fits. A node that carries nothing (no
+        session, or none sending) admits one whatever it is expected to cost."""
+        with self._lock:
+            f = self._figures(running, exclude)
+        if f.load <= 0.0 or f.load + f.new_session_load <= 1.0 + 1e-9:
+            return None
+        return (
+            f"the node is at its measured capacity: its {f.running_sessions} sessions use "
+            f"{100 * f.load:.0f} % of what it may fill ({f.used_cores:.2f} of {f.cores:g} cores x "
+            f"{f.target:g}; {1000 * f.sweep_cpu_s:.0f} ms of matcher and {1000 * f.service_cpu_s:.0f} ms "
+            f"of service CPU per sweep) and a new session at {self.rate_hz:g} Hz needs "
+            f"{100 * f.new_session_load:.0f} % more"
+        )

@@ -1,0 +1,180 @@
+"""Admission by measured capacity (service/capacity.py, issue 32).
+
+The model on its own, with a clock of its own: a node's load is the running sessions' rate times
+their CPU per sweep (the matcher's and the service process's) against its cores times the target,
+and a new session is admitted only if its expected cost still fits. Then the real session manager:
+the CPU each sweep costs is measured where the matcher runs (a worker process, or in process), and
+a vehicle the node cannot carry is refused ``sessions_full`` with ``retry_after_s`` before it
+costs anything, and admitted once the load is gone.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from core.protocol import synthetic_room
+from service.capacity import Capacity
+from service.matchers import MatcherPool
+from service.metrics import ServiceMetrics
+from service.sessions import SessionManager
+from service.settings import ServiceSettings
+from service.store import Store
+from wire.codes import ErrorCode
+from wire.messages import ErrorMessage, PoseMessage, decode_scan, encode, scan_from_arrays
+
+ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _drive(
+    cap: Capacity, clock: Clock, keys: str | list[str], *, hz: float, cpu_s: float, n: int = 10
+) -> None:
+    """``n`` scans of each session of ``keys`` at ``hz`` (interleaved), each matched at ``cpu_s``."""
+    keys = [keys] if isinstance(keys, str) else keys
+    for _ in range(n):
+        for key in keys:
+            cap.arrived(key)
+            cap.matched(key, cpu_s)
+        clock.t += 1.0 / hz
+
+
+def test_the_load_is_rate_times_cpu_per_sweep_against_the_cores() -> None:
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, clock=clock)
+    cap.service_sample(0.0)
+    _drive(cap, clock, ["a", "b"], hz=10.0, cpu_s=0.045)
+    cap.service_sample(0.0)  # (no service CPU measured: 0 ms per sweep)
+    f = cap.figures(["a", "b"])
+    # 2 sessions x 10 Hz x 45 ms = 0.9 cores of 2 x 0.85
+    assert f.measured_sessions == 2 and f.used_cores == pytest.approx(0.9, rel=0.05)
+    assert f.load == pytest.approx(0.9 / 1.7, rel=0.05)
+    assert f.new_session_load == pytest.approx(0.45 / 1.7, rel=1e-6) and f.sessions_more == 1
+    assert cap.refusal(["a", "b"]) is None  # a third fits: 0.79
+    why = cap.refusal(["a", "b", "c"])  # a fourth does not: 0.79 + 0.26
+    assert why is not None and "measured capacity" in why and "45 ms of matcher" in why
+    # one of them gives up its slot: it fits again
+    assert cap.refusal(["a", "b", "c"], exclude=["c"]) is None
+
+
+def test_the_service_processes_own_cpu_counts_and_a_cluster_is_measured_apart() -> None:
+    clock = Clock()
+    shared = Capacity(cores=2, shares_cores=True, target=1.0, clock=clock)
+    shared.service_sample(10.0)
+    _drive(shared, clock, "a", hz=10.0, cpu_s=0.02, n=20)
+    shared.service_sample(10.0 + 20 * 0.03)  # 30 ms of this process's CPU per sweep
+    f = shared.figures(["a"])
+    assert f.service_cpu_s == pytest.approx(0.03) and f.used_cores == pytest.approx(0.5, rel=0.05)
+    # A Ray cluster of 8 CPUs: the matchers' share against them, the service process's against
+    # its one core: 3 sessions use 0.6 of 8 matcher cores but 0.9 of the service's core.
+    clock2 = Clock()
+    cluster = Capacity(cores=lambda: 8.0, shares_cores=False, target=1.0, clock=clock2)
+    cluster.service_sample(0.0)
+    _drive(cluster, clock2, ["a", "b", "c"], hz=10.0, cpu_s=0.02, n=20)
+    cluster.service_sample(60 * 0.03)
+    f = cluster.figures(["a", "b", "c"])
+    assert f.load == pytest.approx(0.9, rel=0.05) and f.sessions_more == 0
+    assert cluster.refusal(["a", "b", "c"]) is not None
+
+
+def test_a_silent_session_costs_nothing_and_a_young_one_its_expected_cost() -> None:
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
+    # A burst at shift start: nothing measured yet, each counts 10 Hz x 50 ms = 0.5 cores.
+    running: list[str] = []
+    for key in "abcdefgh":
+        if cap.refusal(running) is None:
+            running.append(key)
+            cap.arrived(key)
+    assert running == ["a", "b", "c"]  # 3 x 0.5 = 1.5 of 1.7 cores; a fourth would be 2.0
+    # A vehicle that stopped sending a second ago frees its share.
+    clock.t += 1.5
+    assert cap.figures(running).load == 0.0 and cap.refusal(running) is None
+    # A session measured at 2 Hz costs 2 Hz.
+    _drive(cap, clock, "slow", hz=2.0, cpu_s=0.05)
+    assert cap.figures(["slow"]).used_cores == pytest.approx(0.1, rel=0.05)
+
+
+def test_a_matcher_process_measures_the_cpu_of_each_sweep() -> None:
+    """:attr:`Registered.cpu_s` from a real worker process: positive, at most the wall time of the
+    call, and including the keyframe model's rebuild after the previous sweep."""
+    pool = MatcherPool(1)
+    try:
+        assert pool.wait_ready(300)
+        matcher = pool.open(("v", "s"))
+        rng = np.random.default_rng(1)
+        cpus, walls = [], []
+        for seq in range(6):
+            xyz = (ROOM + rng.normal(scale=0.005, size=ROOM.shape) + [0.3 * seq, 0, 0]).astype(np.float32)
+            payload = encode(scan_from_arrays("v", "s", seq, seq * 100_000_000, xyz))
+            decode_scan(payload)  # (valid)
+            t0 = time.perf_counter()
+            registered = matcher.register_payload(payload)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(registered.cpu_s)
+            time.sleep(0.2)  # the process rebuilds the keyframe model meanwhile (billed to the next)
+        assert all(c > 0 for c in cpus), cpus
+        assert all(c <= w + 0.5 for c, w in zip(cpus[:1], walls[:1], strict=True))
+        assert sum(cpus) < sum(walls) + 6 * 0.2 + 0.1, (cpus, walls)
+        matcher.close()
+    finally:
+        pool.close()
+
+
+def _wait(out: list[object], n: int, timeout: float = 120.0) -> list[PoseMessage | ErrorMessage]:
+    deadline = time.monotonic() + timeout
+    while True:
+        answers = [m for m in list(out) if isinstance(m, PoseMessage | ErrorMessage)]
+        if len(answers) >= n:
+            return answers
+        assert time.monotonic() < deadline, f"{len(answers)} of {n} answered"
+        time.sleep(0.02)
+
+
+def _scan(vehicle: str, seq: int) -> bytes:
+    return encode(scan_from_arrays(vehicle, "s1", seq, seq * 100_000_000, ROOM))
+
+
+def test_a_vehicle_the_node_cannot_carry_is_refused_with_retry_after_then_admitted(tmp_path) -> None:
+    """One vehicle runs (in-process matcher: one core); a second whose expected cost cannot fit is
+    refused ``sessions_full`` with ``retry_after_s`` and opens no session; once the first has
+    been silent for a second it costs nothing and the second is admitted. The status figures are
+    the measured ones. (``session_rate_hz`` high: a new session's expected cost is then clearly
+    more than one core, whatever this machine's speed.)"""
+    out: list[object] = []
+    settings = ServiceSettings(
+        data_dir=tmp_path,
+        matcher_processes=0,
+        flush_interval_s=0.2,
+        session_rate_hz=200.0,
+        admission_retry_s=7.0,
+    )
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        assert mgr.capacity is not None and mgr.capacity.cores == 1.0
+        for seq in range(5):
+            mgr.handle("first", _scan("first", seq), time.time_ns())
+        _wait(out, 5)
+        mgr.handle("second", _scan("second", 0), time.time_ns())
+        refused = _wait(out, 6)[-1]
+        assert isinstance(refused, ErrorMessage) and refused.code == ErrorCode.SESSIONS_FULL, refused
+        assert refused.retry_after_s == 7.0 and "measured capacity" in refused.reason
+        assert ("second", "s1") not in {(s.vehicle, s.session) for s in mgr.sessions()}
+        f = mgr.capacity_figures()
+        assert f is not None and f.measured_sessions == 1 and 0.001 < f.sweep_cpu_s < 2.0, f
+        time.sleep(1.2)  # the first vehicle went quiet
+        assert mgr.capacity.refusal([("first", "s1")]) is None
+        mgr.handle("second", _scan("second", 1), time.time_ns())
+        admitted = _wait(out, 7)[-1]
+        assert isinstance(admitted, PoseMessage) and admitted.vehicle == "second", admitted
+    finally:
+        mgr.stop()
