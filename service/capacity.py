@@ -9,21 +9,24 @@ measured here, never assumed from a count of sessions:
   :attr:`service.matchers.Registered.cpu_s`, the thread's CPU time for decoding, matching and
   the keyframe model's rebuild after its previous sweep), a moving average;
 - **the service process's own CPU per sweep** (``service_sample``: this process's CPU time over
-  the sweeps matched since the last sample, less what in-process matchers spent in it).
+  the sweeps matched since the last sample, less what in-process matchers spent in it, plus the
+  pose graph's process's: it runs at the lowest priority, but a node that leaves it no time
+  drops keyframes and its map drifts from the true surfaces: 5.9 -> 14.1 cm p90 in
+  bench/service.py).
 
 The node's load is ``sum(rate * (matcher CPU + service CPU))`` against ``cores * target``, where
 matchers share the node's cores with the service process (local worker processes, or in-process
 matchers on one core); with Ray the matchers' share is measured against the cluster's CPUs and
-the service process's against its one core (its threads share one GIL), and the larger of the two
-fractions is the load. A session that has sent nothing for ``idle_s`` costs nothing. A session
-not measured yet (young, or opening) is counted at the expected cost of a new one: ``rate_hz``
-(the sensor rate the vehicle library publishes at) times the mean CPU per sweep of the measured
-sessions (of the last measured ones when none runs; ``sweep_cpu_s`` before any).
+the service process's against its one core (its threads share one GIL; the graph's process is
+then counted with it), and the larger of the two fractions is the load. A session that has sent
+nothing for ``idle_s`` costs nothing. A session not measured yet (young, or opening) is counted
+at the expected cost of a new one: ``rate_hz`` (the sensor rate the vehicle library publishes at)
+times the mean CPU per sweep of the measured sessions (of the last measured ones when none runs;
+``sweep_cpu_s`` before any).
 
 :meth:`Capacity.refusal` says why a new session cannot be admitted (its expected cost does not fit
 in what is left) or ``None``; the session manager answers such a scan ``sessions_full`` with
-``retry_after_s``, before the session costs anything. The pose graph's process runs at the lowest
-priority on what is left over (service/graph.py), so it is not counted.
+``retry_after_s``, before the session costs anything.
 """
 
 from __future__ import annotations
@@ -38,9 +41,11 @@ __all__ = ["Capacity", "CapacityFigures"]
 
 #: Weight of the newest sample in the moving averages.
 ALPHA = 0.2
-#: A session's rate is its own once this many of its scans arrived; its CPU once this many matched.
+#: A session's rate is its own once this many of its scans arrived; its CPU once this many matched
+#: (a session's first sweeps are cheap: its keyframe model is small; counted at them, a burst of
+#: young sessions measured 5 ms a sweep and admitted five vehicles on two cores).
 MIN_ARRIVALS = 5
-MIN_SWEEPS = 3
+MIN_SWEEPS = 20
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
 MIN_SERVICE_SWEEPS = 10
 
@@ -103,9 +108,9 @@ class Capacity:
         *,
         cores: float | Callable[[], float],
         shares_cores: bool,
-        target: float = 0.85,
+        target: float = 0.7,
         rate_hz: float = 10.0,
-        sweep_cpu_s: float = 0.06,
+        sweep_cpu_s: float = 0.045,
         retry_after_s: float = 10.0,
         idle_s: float = 1.0,
         clock: Callable[[], float] = time.monotonic,
@@ -148,10 +153,11 @@ class Capacity:
             if in_process:
                 self._local_cpu_s += cpu_s
 
-    def service_sample(self, process_cpu_s: float | None = None) -> None:
-        """Sample the service process's own CPU per sweep (the flusher, every flush):
-        ``process_cpu_s`` is this process's CPU time so far (``time.process_time()``)."""
-        cpu = time.process_time() if process_cpu_s is None else process_cpu_s
+    def service_sample(self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0) -> None:
+        """Sample the service's own CPU per sweep (the flusher, every flush): ``process_cpu_s`` is
+        this process's CPU time so far (``time.process_time()``), ``graph_cpu_s`` the pose graph
+        process's (:meth:`service.graph.ServiceGraph.cpu_s`)."""
+        cpu = (time.process_time() if process_cpu_s is None else process_cpu_s) + graph_cpu_s
         with self._lock:
             mark = (cpu, self._sweeps, self._local_cpu_s)
             if self._service_mark is None:

@@ -188,6 +188,13 @@ class YieldGate:
             self._exit()
 
 
+def process_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process (all its threads), from ``/proc`` (Linux)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+
 def _die_with_parent() -> None:
     """Linux: this process gets SIGKILL when the service's process dies, even while it is
     stopped by :class:`YieldGate` (a stopped process would otherwise outlive a killed service)."""
@@ -629,6 +636,10 @@ class ServiceGraph:
         self.last_exit: str | None = None
         self._supervisor: threading.Thread | None = None
         self._sender: threading.Thread | None = None
+        #: :meth:`cpu_s`: the process last read, its CPU then, and that of the generations before
+        self._cpu_pid: int | None = None
+        self._cpu_last = 0.0
+        self._cpu_dead = 0.0
 
     @property
     def started(self) -> bool:
@@ -645,6 +656,21 @@ class ServiceGraph:
     def pid(self) -> int | None:
         proc = self._proc
         return None if proc is None else proc.pid
+
+    def cpu_s(self) -> float:
+        """CPU seconds the graph's processes have used so far, every generation counted (Linux,
+        from /proc; 0 elsewhere): the node's admission counts them (service/capacity.py)."""
+        pid = self.pid
+        now = 0.0
+        if pid is not None:
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                now = process_cpu_s(pid)
+        with self._lock:
+            if pid != self._cpu_pid:  # a new generation: the last one's CPU stays counted
+                self._cpu_dead += self._cpu_last
+                self._cpu_pid, self._cpu_last = pid, 0.0
+            self._cpu_last = max(self._cpu_last, now)
+            return self._cpu_dead + self._cpu_last
 
     def _start(self) -> None:
         """Start the supervisor and the sender with the first keyframe (under ``_cond``): a

@@ -1579,7 +1579,7 @@ class SessionManager:
         capacity's figures to ``/metrics`` (the flusher, every flush)."""
         if self.capacity is None:
             return
-        self.capacity.service_sample()
+        self.capacity.service_sample(graph_cpu_s=0.0 if self.graph is None else self.graph.cpu_s())
         with self._lock:
             running = [*self._workers, *self._opening]
         self.capacity.forget(running)

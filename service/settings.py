@@ -83,7 +83,7 @@ class ServiceSettings(BaseSettings):
         "vehicle library's reduced sweeps, docs/benchmarks.md), 0 = no limit",
     )
     capacity_target: float = Field(
-        default=0.85,
+        default=0.7,
         ge=0,
         le=1,
         description="admission by measured capacity (service/capacity.py): a scan that would open a "
@@ -95,11 +95,12 @@ class ServiceSettings(BaseSettings):
         default=10.0, gt=0, description="scan rate a new or not yet measured session is expected to send"
     )
     sweep_cpu_estimate_s: float = Field(
-        default=0.06,
+        default=0.045,
         gt=0,
         description="matcher CPU per sweep a new session is expected to cost until a session has been "
-        "measured (then the measured sessions' mean); 0.06: a reduced simulated sweep's matcher "
-        "process work on a 2-core Xeon (docs/benchmarks.md, 46-60 ms)",
+        "measured (then the measured sessions' mean); 0.045: a reduced simulated sweep's matcher work "
+        "(30 ms on a 2-core Xeon, bench/service.py) with room for the service's and the pose graph's "
+        "(6 and 4.5 ms) until those are measured",
     )
     admission_retry_s: float = Field(
         default=10.0, gt=0, description="retry_after_s told to a vehicle refused for lack of capacity"

@@ -37,7 +37,7 @@ class Clock:
 
 
 def _drive(
-    cap: Capacity, clock: Clock, keys: str | list[str], *, hz: float, cpu_s: float, n: int = 10
+    cap: Capacity, clock: Clock, keys: str | list[str], *, hz: float, cpu_s: float, n: int = 25
 ) -> None:
     """``n`` scans of each session of ``keys`` at ``hz`` (interleaved), each matched at ``cpu_s``."""
     keys = [keys] if isinstance(keys, str) else keys
@@ -70,8 +70,8 @@ def test_the_service_processes_own_cpu_counts_and_a_cluster_is_measured_apart() 
     clock = Clock()
     shared = Capacity(cores=2, shares_cores=True, target=1.0, clock=clock)
     shared.service_sample(10.0)
-    _drive(shared, clock, "a", hz=10.0, cpu_s=0.02, n=20)
-    shared.service_sample(10.0 + 20 * 0.03)  # 30 ms of this process's CPU per sweep
+    _drive(shared, clock, "a", hz=10.0, cpu_s=0.02, n=25)
+    shared.service_sample(10.0 + 25 * 0.03)  # 30 ms of this process's CPU per sweep
     f = shared.figures(["a"])
     assert f.service_cpu_s == pytest.approx(0.03) and f.used_cores == pytest.approx(0.5, rel=0.05)
     # A Ray cluster of 8 CPUs: the matchers' share against them, the service process's against
@@ -79,8 +79,8 @@ def test_the_service_processes_own_cpu_counts_and_a_cluster_is_measured_apart() 
     clock2 = Clock()
     cluster = Capacity(cores=lambda: 8.0, shares_cores=False, target=1.0, clock=clock2)
     cluster.service_sample(0.0)
-    _drive(cluster, clock2, ["a", "b", "c"], hz=10.0, cpu_s=0.02, n=20)
-    cluster.service_sample(60 * 0.03)
+    _drive(cluster, clock2, ["a", "b", "c"], hz=10.0, cpu_s=0.02, n=25)
+    cluster.service_sample(75 * 0.03)
     f = cluster.figures(["a", "b", "c"])
     assert f.load == pytest.approx(0.9, rel=0.05) and f.sessions_more == 0
     assert cluster.refusal(["a", "b", "c"]) is not None
@@ -161,11 +161,11 @@ def test_a_vehicle_the_node_cannot_carry_is_refused_with_retry_after_then_admitt
     mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
     try:
         assert mgr.capacity is not None and mgr.capacity.cores == 1.0
-        for seq in range(5):
+        for seq in range(22):  # one at a time (none shed): a session's cost is its own after 20 sweeps
             mgr.handle("first", _scan("first", seq), time.time_ns())
-        _wait(out, 5)
+            _wait(out, seq + 1)
         mgr.handle("second", _scan("second", 0), time.time_ns())
-        refused = _wait(out, 6)[-1]
+        refused = _wait(out, 23)[-1]
         assert isinstance(refused, ErrorMessage) and refused.code == ErrorCode.SESSIONS_FULL, refused
         assert refused.retry_after_s == 7.0 and "measured capacity" in refused.reason
         assert ("second", "s1") not in {(s.vehicle, s.session) for s in mgr.sessions()}
@@ -174,7 +174,7 @@ def test_a_vehicle_the_node_cannot_carry_is_refused_with_retry_after_then_admitt
         time.sleep(1.2)  # the first vehicle went quiet
         assert mgr.capacity.refusal([("first", "s1")]) is None
         mgr.handle("second", _scan("second", 1), time.time_ns())
-        admitted = _wait(out, 7)[-1]
+        admitted = _wait(out, 24)[-1]
         assert isinstance(admitted, PoseMessage) and admitted.vehicle == "second", admitted
     finally:
         mgr.stop()

@@ -90,7 +90,10 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
     drives = _drives()
     caplog.set_level(logging.INFO)
     # one slot: the evicted session gives it to the later one; the first expires on its own
-    with live_server(tmp_path / "data", max_sessions=1, idle_expiry_s=1.5, slot_idle_s=0.5) as server:
+    # (capacity_target=0: one slot and its eviction are this test's admission, not the measured load)
+    with live_server(
+        tmp_path / "data", max_sessions=1, idle_expiry_s=1.5, slot_idle_s=0.5, capacity_target=0
+    ) as server:
         mgr = server.service.sessions
         assert mgr is not None and mgr.graph is not None
         graph: ServiceGraph = mgr.graph
@@ -116,6 +119,9 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
 
         before = [m for m in list(server.service._sent) if isinstance(m, CorrectionMessage)]
         revision_before = max((m.revision for m in before), default=0)
+        # its CPU so far (admission counts it: service/capacity.py), read from /proc
+        cpu_before = graph.cpu_s()
+        assert 0.0 < cpu_before < time.process_time() + 600, cpu_before
         os.kill(pid, signal.SIGKILL)
         _wait("the graph process restarted", lambda: graph.running and graph.pid != pid, timeout=15)
         status = httpx.get(f"{url}/status", timeout=30).json()["graph"]
@@ -142,6 +148,7 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
         after = [m for m in list(server.service._sent) if isinstance(m, CorrectionMessage)][len(before) :]
         assert all(m.revision > revision_before for m in after)
         assert graph.restarts == 1 and graph.pid is not None
+        assert graph.cpu_s() >= cpu_before  # the dead generation's CPU stays counted
 
 
 class Dead:
