@@ -108,7 +108,7 @@ class Capacity:
         *,
         cores: float | Callable[[], float],
         shares_cores: bool,
-        target: float = 0.7,
+        target: float = 0.6,
         rate_hz: float = 10.0,
         sweep_cpu_s: float = 0.045,
         retry_after_s: float = 10.0,

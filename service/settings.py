@@ -83,7 +83,7 @@ class ServiceSettings(BaseSettings):
         "vehicle library's reduced sweeps, docs/benchmarks.md), 0 = no limit",
     )
     capacity_target: float = Field(
-        default=0.7,
+        default=0.6,
         ge=0,
         le=1,
         description="admission by measured capacity (service/capacity.py): a scan that would open a "

@@ -196,6 +196,10 @@ def _adapted_compose(
     )
     services["randt"]["ports"] = [f"{http_port}:8080"]
     services["randt"]["environment"]["RANDT_GRAPH_REFOLD_S"] = str(REFOLD_S)
+    services["randt"]["environment"]["RANDT_CAPACITY_TARGET"] = "0"
+    notes.append(
+        "RANDT_CAPACITY_TARGET=0: the smoke test's vehicles pace themselves (--window 1), as the demo's"
+    )
     notes.append(
         f"RANDT_GRAPH_REFOLD_S={REFOLD_S} (default 20): the map settles sooner after the vehicles stop"
     )
