@@ -250,5 +250,5 @@ class Capacity:
             f"{100 * f.load:.0f} % of what it may fill ({f.used_cores:.2f} of {f.cores:g} cores x "
             f"{f.target:g}; {1000 * f.sweep_cpu_s:.0f} ms of matcher and {1000 * f.service_cpu_s:.0f} ms "
             f"of service CPU per sweep) and a new session at {self.rate_hz:g} Hz needs "
-            f"{100 * f.new_session_load:.0f} % more"
+            f"{100 * f.new_session_load:.0f} % more: send again in {self.retry_after_s:g} s, or add capacity"
         )

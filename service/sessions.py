@@ -776,13 +776,13 @@ class SessionManager:
         #: Admission by measured capacity (service/capacity.py); None: by max_sessions only.
         self.capacity: Capacity | None = None
         if settings.capacity_target > 0:
-            cpus = getattr(self.pool, "cpus", None)  # a Ray cluster's CPUs (they change)
+            # a Ray cluster's CPUs (they change); else this node's, or one core for in-process matchers
+            cpus = getattr(self.pool, "cpus", None)
+            matcher_cores: float | Callable[[], float] = (
+                cpus if callable(cpus) else float(os.cpu_count() or 1) if self.pool is not None else 1.0
+            )
             self.capacity = Capacity(
-                cores=cpus
-                if callable(cpus)
-                else float(os.cpu_count() or 1)
-                if self.pool is not None
-                else 1.0,
+                cores=matcher_cores,
                 shares_cores=cpus is None,
                 target=settings.capacity_target,
                 rate_hz=settings.session_rate_hz,
@@ -960,14 +960,8 @@ class SessionManager:
         why = self.capacity.refusal([*self._workers, *self._opening])
         if why is None:
             return False
-        retry = self.capacity.retry_after_s
         self.reject(
-            scan.vehicle,
-            scan.session,
-            scan.seq,
-            ErrorCode.SESSIONS_FULL,
-            f"{why}: send again in {retry:g} s, or add capacity",
-            retry,
+            scan.vehicle, scan.session, scan.seq, ErrorCode.SESSIONS_FULL, why, self.capacity.retry_after_s
         )
         return True
 
@@ -1045,8 +1039,7 @@ class SessionManager:
                 [*self._workers, *self._opening], exclude=() if evict is None else (evict.key,)
             )
             if why is not None:
-                retry = self.capacity.retry_after_s
-                return (ErrorCode.SESSIONS_FULL, f"{why}: send again in {retry:g} s, or add capacity", retry)
+                return (ErrorCode.SESSIONS_FULL, why, self.capacity.retry_after_s)
         if evict is not None:
             log.info(
                 "session %s/%s gives its slot to %s/%s (idle %.1f s): saved as expired",
