@@ -66,6 +66,7 @@ __all__ = [
     "voxel_table_admit",
     "voxel_table_forget",
     "voxel_table_grow",
+    "voxel_table_near",
     "within_xy_radius",
 ]
 
@@ -1738,6 +1739,68 @@ def voxel_table_forget(
                 gap = j
         table_t[gap] = -1
     return removed
+
+
+@nb.njit(cache=True, nogil=True)
+def voxel_table_near(
+    table_t: np.ndarray,
+    table_v: np.ndarray,
+    xyz: np.ndarray,
+    tile_size: float,
+    voxel_size: float,
+    tile_offset: int,
+    reach_xy: int,
+    reach_z: int,
+) -> np.ndarray:
+    """Whether a :func:`voxel_table_admit` table holds a voxel within ``reach_xy`` voxels (x and
+    y) and ``reach_z`` (z) of each point (``xyz`` (N, 3) float64, map frame): the keys of the
+    point moved by whole voxel steps, computed as :func:`tile_voxel_keys` computes a point's, so
+    a step may cross into the next tile. Probes stop at the first hit. A point whose keys leave
+    the 21-bit range is False.
+
+    Reference: core.tiles:TileGrid.near_numpy
+    Test: tests/core/test_tiles.py::test_near_map_kernel_equals_the_numpy_reference
+    """
+    n = xyz.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    mask = table_t.shape[0] - 1
+    big = 2.0**40
+    for i in range(n):
+        found = False
+        for dx in range(-reach_xy, reach_xy + 1):
+            x = xyz[i, 0] + dx * voxel_size
+            if not abs(x / tile_size) < big:
+                break
+            tx = int(math.floor(x / tile_size))
+            cx = int(math.floor((x - tx * tile_size) / voxel_size))
+            for dy in range(-reach_xy, reach_xy + 1):
+                y = xyz[i, 1] + dy * voxel_size
+                if not abs(y / tile_size) < big:
+                    break
+                ty = int(math.floor(y / tile_size))
+                cy = int(math.floor((y - ty * tile_size) / voxel_size))
+                tk = ((tx + tile_offset) << 31) | (ty + tile_offset)
+                for dz in range(-reach_z, reach_z + 1):
+                    z = xyz[i, 2] + dz * voxel_size
+                    if not abs(z / voxel_size) < big:
+                        break
+                    vk = _pack(cx, cy, int(math.floor(z / voxel_size)))
+                    if vk < 0:
+                        continue
+                    h = _pair_slot(tk, vk, mask)
+                    while table_t[h] != -1:
+                        if table_t[h] == tk and table_v[h] == vk:
+                            found = True
+                            break
+                        h = (h + 1) & mask
+                    if found:
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[i] = found
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
