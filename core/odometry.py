@@ -99,6 +99,10 @@ RECENT_CORRECTIONS = 5
 MIN_CORRECTIONS = 3
 CORRECTION_REACH_M = 30.0
 
+#: ``ScanResult.message`` of a match found by relocalization (one global registration: the
+#: service answers it only once a second match agrees with it, service/sessions.py).
+RELOCALIZED = "relocalized"
+
 #: After this many fallbacks in a row a session counts as lost: only its prediction is matched.
 LOST_AFTER_FALLBACKS = 3
 
@@ -710,7 +714,7 @@ class IncrementalMatcher:
                 res.inlier_ratio, best_xyz, best_feats,
             )  # fmt: skip
             if attempt < 0:
-                outcome = replace(outcome, message="relocalized")
+                outcome = replace(outcome, message=RELOCALIZED)
                 log.warning(
                     "scan %d: relocalized %.1f m from the prediction after %d fallbacks",
                     index,

@@ -64,6 +64,8 @@ class ServiceMetrics:
     latency_seconds:
         Histogram of the time from receiving a scan to publishing its pose (the service's share
         of a vehicle's publish-to-pose time; the wire carries no publish time to measure the rest).
+    map_disagreements:
+        Counter of the times a session's map agreement check found it disagreeing with its map.
     queue_depth:
         Gauge of scans waiting per session, labelled ``session="<vehicle>/<session>"``; updated on
         every enqueue and dequeue, removed when the session closes.
@@ -94,6 +96,11 @@ class ServiceMetrics:
         )
         self.scans_dropped = Counter(
             "randt_scans_dropped", "Scans dropped by the overload policy (shed evenly)", registry=r
+        )
+        self.map_disagreements = Counter(
+            "randt_map_disagreements",
+            "Sessions found disagreeing with the map they fold into (then lost; service/agreement.py)",
+            registry=r,
         )
         self.registration_seconds = Histogram(
             "randt_registration_seconds",

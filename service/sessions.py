@@ -107,8 +107,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
-from core.odometry import PosePrior, ScanResult, extend_state_dict
+from core.odometry import RELOCALIZED, PosePrior, ScanResult, extend_state_dict
 from core.tiles import Tile, TileGrid
+from service.agreement import AgreementGate, Held
 from service.capacity import Capacity, CapacityFigures
 from service.graph import MapGeometry, ServiceGraph
 from service.intake import Intake
@@ -232,6 +233,10 @@ class SessionState:
     lost: bool = False
     verified_matches: int = 0
     n_lost: int = 0
+    #: The last map agreement check's share of points near the map, and whether the session is
+    #: lost because its sweeps disagree with it (service/agreement.py).
+    map_agreement: float = float("nan")
+    map_disagrees: bool = False
 
 
 class SessionWorker:
@@ -267,8 +272,12 @@ class SessionWorker:
         self._first_saved: bool | None = True
         self._first_save: threading.Thread | None = None
         # Map points of scans processed while behind, waiting to be folded in together (_fold).
-        self._unfolded: list[tuple[str, np.ndarray, np.ndarray | None]] = []  # map, xyz, intensity
+        self._unfolded: list[Held] = []  # map, xyz, intensity
+        # ... after the map agreement check let them through (service/agreement.py)
+        s = manager.settings
+        self.gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self._fold_lock = threading.Lock()
+        self._keyframe_wanted = False  # the graph asked for the sweep being matched as a keyframe
         self._thread = threading.Thread(
             target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
         )
@@ -355,7 +364,7 @@ class SessionWorker:
         for job in pending:
             m.reject(job.scan.vehicle, job.scan.session, job.scan.seq, *self.broken_answer)
         self.wait_first_save()  # (it answers the poses it holds) before the matcher goes
-        self.fold()  # the poses of these points went out: their points belong to the map
+        self.fold(release=True)  # the poses of these points went out: their points belong to the map
         self.matcher.close()
 
     def _fix_frame(self, has_prior: bool) -> None:
@@ -399,8 +408,8 @@ class SessionWorker:
                 return
             lost = self._track(scan, registered.result)
             if lost is None:
-                self._queue_map_points(registered)
-            self._account(scan, registered.result, prior)
+                lost = self._queue_map_points(registered)
+            self._account(scan, registered.result, prior, lost is not None)
         if len(self._unfolded) >= self._manager.settings.fold_scans:  # (module docstring, Map folding)
             self.fold()
         if lost is None:
@@ -422,8 +431,16 @@ class SessionWorker:
         # The pose graph's next keyframe: the matcher returns its points (service/graph.py), at
         # the map's voxel (they also re-fold the map's tiles; the graph thins them).
         keyframe_voxel_m = None
-        if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
+        self._keyframe_wanted = graph is not None and graph.wants_keyframe(
+            scan.vehicle, scan.session, self.matcher.poses
+        )
+        if self._keyframe_wanted:
+            assert graph is not None
             keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
+        elif self.gate.due() or (self.gate.enabled and self.info.lost):
+            # the map agreement check wants the sweep's points too (and a lost session's track
+            # is found again only where its sweep agrees with the map)
+            keyframe_voxel_m = m.settings.map_voxel_m
         try:
             # the keyframe model is rebuilt after the pose is out
             return self.matcher.register_payload(
@@ -458,8 +475,16 @@ class SessionWorker:
         while the last match is at most ``fallback_horizon_s`` old (scan stamps). Past that the
         session is lost: no pose, nothing folded or offered to the graph, until
         :data:`VERIFY_MATCHES` consecutive scans match (the second matched from the first's
-        prediction, within the matcher's correction gate: two agreeing registrations)."""
+        prediction, within the matcher's correction gate: two agreeing registrations). A match
+        the matcher found by relocalization (one global registration, :data:`RELOCALIZED`) is
+        the first of those, never answered by itself: in a place that merely looks alike it can be
+        tens of metres off (18 m, with 30 % inliers, where the map's town was swapped for
+        another). The sweep that finds the track again is also checked against the map
+        (service/agreement.py)."""
         info, horizon = self.info, self._manager.settings.fallback_horizon_s
+        if result.status == "ok" and result.message == RELOCALIZED and not info.lost:
+            log.warning("session %s/%s relocalized at scan %d: to be verified", *self.key, scan.seq)
+            info.lost, info.verified_matches = True, 0
         if result.status == "fallback":
             info.verified_matches = 0
             since_ns = None if info.matched_stamp_ns is None else scan.stamp_ns - info.matched_stamp_ns
@@ -520,22 +545,54 @@ class SessionWorker:
         grid = self.grid if fold_map == self.info.map_name else self._manager.map_grid(fold_map)
         return MapFrame((fold_map, *grid.content_token), C)
 
-    def _queue_map_points(self, registered: Registered) -> None:
+    def _queue_map_points(self, registered: Registered) -> str | None:
         """The scan's map points (none for a fallback) wait to be folded, into the map they go to
         and moved by the session's newest correction: the map follows the pose graph. The matcher
         moved them by the correction of when the sweep was sent; if the graph has corrected the
-        session since, they are moved on by the difference."""
-        if not registered.map_xyz.shape[0]:
-            return
-        C, fold_map = self._fold_target()
-        self._unfolded.append((fold_map, registered.map_points_under(C), registered.map_intensity))
+        session since, they are moved on by the difference.
 
-    def _account(self, scan: ScanHeader, result: ScanResult, prior: PosePrior | None) -> None:
+        They wait first for the map agreement check (service/agreement.py): a sweep the matcher
+        returned thinned points for is checked, and its verdict folds or drops the points held
+        since the last check, its own included. Returns why the session is lost when its sweeps
+        do not agree with its map (nothing is then held), else ``None``."""
+        gate = self.gate
+        C, fold_map = self._fold_target()
+        checked = gate.enabled and registered.keyframe_xyz is not None
+        if gate.disagreeing and not checked:
+            gate.matched()
+            return gate.lost_reason(self.info.map_name)
+        if registered.map_xyz.shape[0]:
+            points = (fold_map, registered.map_points_under(C), registered.map_intensity)
+            self._unfolded.extend(gate.hold(points))
+        if not gate.enabled:
+            return None
+        if not checked:
+            gate.matched()
+            return None
+        assert registered.keyframe_xyz is not None
+        grid = self.grid if fold_map == self.info.map_name else self._manager.map_grid(fold_map)
+        T = registered.result.T_world_sensor if C is None else C @ registered.result.T_world_sensor
+        was_lost = gate.disagreeing
+        self._unfolded.extend(gate.check(grid, T, registered.keyframe_xyz))
+        last = gate.last
+        assert last is not None
+        self.info.map_agreement, self.info.map_disagrees = last.share, gate.disagreeing
+        if gate.disagreeing and not was_lost:
+            self._manager.metrics.map_disagreements.inc()
+            log.warning(
+                "session %s/%s: scan %d disagrees with map %s (%.0f%% of %d points near it): lost",
+                *self.key, registered.result.index, fold_map, 100 * last.share, last.checked,
+            )  # fmt: skip
+        elif was_lost and not gate.disagreeing:
+            log.info("session %s/%s agrees with map %s again", *self.key, fold_map)
+        return gate.lost_reason(self.info.map_name) if gate.disagreeing else None
+
+    def _account(self, scan: ScanHeader, result: ScanResult, prior: PosePrior | None, lost: bool) -> None:
         """The session's counters, last figures and drift variance after a processed scan."""
         info = self.info
         info.n_scans += 1
         info.n_fallbacks += result.status == "fallback"
-        info.n_lost += info.lost
+        info.n_lost += lost
         info.stamps_s.append(scan.stamp_ns * 1e-9)
         info.last_fitness = result.fitness
         info.last_status = result.status
@@ -582,7 +639,7 @@ class SessionWorker:
         """A keyframe's points (when the matcher returned some) to the pose graph of the session's
         map, with its prior's position as GNSS; a session without priors may join the shared map."""
         graph, kf = self._manager.graph, registered.keyframe_xyz
-        if graph is None or kf is None or len(kf) < 10:
+        if graph is None or not self._keyframe_wanted or kf is None or len(kf) < 10:
             return
         info, result = self.info, registered.result
         graph.offer(
@@ -599,16 +656,18 @@ class SessionWorker:
             join=self._manager.settings.default_map if info.frame == "session" else None,
         )
 
-    def fold(self) -> None:
+    def fold(self, *, release: bool = False) -> None:
         """Insert the map points waiting to be folded into the session's map, and mark the tiles
         that changed for the next save (the session thread, and the flusher before it saves).
+        ``release`` (the session ends or merges its map): the points the map agreement check
+        holds too, unless its last check disagreed (service/agreement.py).
 
         Folds are serialized (``_fold_lock``), so points enter the map in arrival order; the
         session's :attr:`lock` is held only to take the waiting points, not during the insert,
         so a fold by the flusher does not hold up the session's matching."""
         with self._fold_lock:
             with self.lock:
-                batch, self._unfolded = self._unfolded, []
+                batch, self._unfolded = self._unfolded + (self.gate.release() if release else []), []
                 own_grid, own_map = self.grid, self.info.map_name
             # (a session without priors folds into the shared map once it joined it)
             for map_name in dict.fromkeys(name for name, _, _ in batch):
@@ -1320,7 +1379,7 @@ class SessionManager:
         again); ``GET /maps/<own>`` says where it went (:meth:`merged_into`). A map another
         running session also uses is left alone."""
         own = w.info.map_name
-        w.fold()  # its points still waiting for the own map go in first
+        w.fold(release=True)  # its points still waiting for the own map go in first
         with self._flush_lock:  # no flush saves the own map while it goes
             with self._lock:
                 grid = self.maps.get(own)
@@ -1549,7 +1608,7 @@ class SessionManager:
         vehicle, session = w.key
         try:
             w.stop(drain=True)
-            w.fold()
+            w.fold(release=True)
             self._save_session(w, state=state)
         finally:
             with self._lock:

@@ -204,6 +204,27 @@ class ServiceSettings(BaseSettings):
         "save; None: every third flush, 3 s by default): a vehicle's sweeps touch the same tiles for "
         "seconds, and each save writes and publishes a tile whole",
     )
+    map_agreement_min: float = Field(
+        default=0.5,
+        ge=0,
+        le=1,
+        description="a session's map points are folded only while its sweeps agree with the map "
+        "where the map has content: at least this share of a checked sweep's points above the "
+        "ground within 0.5 m of the map's points (service/agreement.py); below it the session is "
+        "lost until two checks agree, and the points since the last check are dropped; 0 = off",
+    )
+    map_agreement_every: int = Field(
+        default=10,
+        ge=1,
+        description="a session's sweeps are checked against its map every this many sweeps (and "
+        "every keyframe the pose graph takes); its map points wait for the next check",
+    )
+    map_agreement_min_points: int = Field(
+        default=500,
+        ge=1,
+        description="a check has an opinion only when this many of the sweep's points fall where "
+        "the map has content; with fewer the held points are folded",
+    )
     fold_scans: int = Field(
         default=10,
         ge=1,

@@ -131,8 +131,15 @@ class SessionSummary(BaseModel):
     fallbacks: int
     lost: bool | None = Field(
         default=None,
-        description="the session has lost its track: its scans are answered `lost` without a pose "
-        "until two consecutive matches (running sessions only)",
+        description="the session has lost its track (its scans are answered `lost` without a pose "
+        "until two consecutive matches) or its sweeps do not agree with its map (until two checks "
+        "agree; nothing is folded meanwhile) (running sessions only)",
+    )
+    map_agreement: float | None = Field(
+        default=None,
+        description="the last map agreement check: the share of the sweep's points above the ground "
+        "within 0.5 m of the map's points where the map has content (below map_agreement_min: "
+        "lost); null before a check or where the map had no content (running sessions only)",
     )
     lost_scans: int | None = Field(default=None, description="scans answered `lost` (running sessions only)")
     errors: int | None = Field(description="scans answered with an error (running sessions only)")
