@@ -88,9 +88,10 @@ SERVICE_CODES: Final[dict[ErrorCode, str]] = {
     ErrorCode.VEHICLE_SESSIONS_FULL: "the scan would open a session beyond max_sessions_per_vehicle for its "
     "vehicle, and none of the vehicle's running sessions has been idle for slot_idle_s",
     ErrorCode.REGISTRATION_FAILED: "the matcher raised on this scan; the session goes on",
-    ErrorCode.LOST: "the session has lost its track: no match for longer than a prediction can be "
-    "trusted (fallback_horizon_s), so no pose; it answers poses again once two consecutive matches "
-    "agree (keep sending; a prior helps)",
+    ErrorCode.LOST: "the session has lost its track (no match for longer than a prediction can be "
+    "trusted, fallback_horizon_s; or a relocalization not yet verified) or its sweeps do not agree "
+    "with the map they fold into (map_agreement_min), so no pose and nothing folded; it answers "
+    "poses again once two consecutive matches (two map checks) agree (keep sending; a prior helps)",
     ErrorCode.STORAGE_ERROR: "the scan's pose could not be made durable (disk full, read-only): no pose "
     "was published for it; the session resumes from its stored state",
     ErrorCode.INTERNAL_ERROR: "the service failed on this scan (a bug, logged) or its matcher process died",
