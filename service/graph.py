@@ -529,7 +529,11 @@ class GraphState:
 
 
 def correct_trajectory(
-    poses: np.ndarray, indices: np.ndarray, live: np.ndarray, optimized: np.ndarray
+    poses: np.ndarray,
+    indices: np.ndarray,
+    live: np.ndarray,
+    optimized: np.ndarray,
+    outside: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per-sweep poses moved with their keyframes' corrections.
 
@@ -537,11 +541,18 @@ def correct_trajectory(
     (increasing) with live poses ``live`` and optimized poses ``optimized`` (K, 4, 4). Each
     keyframe's correction ``C_k = optimized_k @ inv(live_k)`` is interpolated between the two
     keyframes around a sweep (translation linearly, rotation by slerp, over the sweep index) and
-    applied on the left; sweeps before the first or after the last keyframe take its correction.
+    applied on the left; sweeps before the first or after the last keyframe take its correction,
+    or, with ``outside`` (4x4: the frame change alone, e.g. a join's ``T_map_session``), are
+    only moved by it: live, uncorrected (:func:`corrected_mask` says which).
     """
     poses = np.asarray(poses, dtype=np.float64)
     if len(indices) == 0 or len(poses) == 0:
         return poses.copy()
+    if outside is not None:
+        out = correct_trajectory(poses, indices, live, optimized)
+        beyond = ~corrected_mask(len(poses), indices)
+        out[beyond] = outside @ poses[beyond]
+        return out
     C = optimized @ np.linalg.inv(live)
     n = len(poses)
     at = np.clip(np.arange(n, dtype=np.float64), indices[0], indices[-1])
@@ -558,6 +569,15 @@ def correct_trajectory(
     Ci[:, :3, :3] = rot
     Ci[:, :3, 3] = trans
     return Ci @ poses
+
+
+def corrected_mask(n: int, indices: np.ndarray) -> np.ndarray:
+    """Which of ``n`` sweeps lie between two keyframes the graph holds (or are one): those a
+    correction is interpolated for; the others are beyond what the graph knows of the session."""
+    at = np.arange(n)
+    if len(indices) == 0:
+        return np.zeros(n, dtype=bool)
+    return (at >= indices[0]) & (at <= indices[-1])
 
 
 def wants_keyframe(poses: list[np.ndarray], last_keyframe: np.ndarray | None, keyframe_m: float) -> bool:
@@ -1058,19 +1078,33 @@ class ServiceGraph:
         """``(poses, map)``: a session's live per-sweep poses moved with its keyframes
         (:func:`correct_trajectory`) and the map whose frame they are in; the live poses
         unchanged and ``None`` while the session is not placed in a graph."""
+        out, map_name, _ = self.corrected_marked(vehicle, session, poses)
+        return out, map_name
+
+    def corrected_marked(
+        self, vehicle: str, session: str, poses: np.ndarray
+    ) -> tuple[np.ndarray, str | None, np.ndarray]:
+        """``(poses, map, corrected)``: as :meth:`corrected`, except that the sweeps beyond the
+        keyframes the graph holds of the session (before the first, after the newest: the graph
+        dropped or has not yet taken them) are served live, only moved into the map's frame
+        (a joined session's ``T_map_session``), and ``corrected`` (N,) bool says which were
+        corrected from the graph's keyframes (issue 32: what cannot be corrected is marked so)."""
         key = (vehicle, session)
         with self._lock:
             map_name = self._session_map.get(key)
             st = None if map_name is None else self._states.get(map_name)
             placed = st is not None and key in st.placed
             kfs = [] if st is None else [k for k in st.session_keyframes(key) if k.optimized is not None]
+            joined = self._joined.get(key)
         kfs = [k for k in kfs if k.index < len(poses)]
         if not placed or not kfs:
-            return np.asarray(poses, dtype=np.float64).copy(), None
+            return np.asarray(poses, dtype=np.float64).copy(), None, np.zeros(len(poses), dtype=bool)
         indices = np.array([k.index for k in kfs])
         live = np.stack([k.live for k in kfs])
         opt = np.stack([k.optimized for k in kfs if k.optimized is not None])
-        return correct_trajectory(poses, indices, live, opt), map_name
+        frame = joined[1] if joined is not None and joined[0] == map_name else np.eye(4)
+        out = correct_trajectory(poses, indices, live, opt, outside=frame)
+        return out, map_name, corrected_mask(len(poses), indices)
 
     def maps(self) -> list[str]:
         """Maps with a graph (a keyframe was offered to it)."""

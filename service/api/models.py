@@ -174,6 +174,14 @@ class ClosedSession(BaseModel):
 class TrajectoryPose(BaseModel):
     stamp_s: float
     pose: list[list[float]] = Field(description="4x4 T_frame_sensor, row-major")
+    corrected: bool | None = Field(
+        default=None,
+        exclude_if=lambda v: v is None,
+        description="with corrected=true: whether this pose was corrected from keyframes the pose "
+        "graph holds (between two of them, or one); false: beyond them (before the first, after the "
+        "newest, e.g. keyframes the graph dropped under load or has not yet taken), served live "
+        "(moved into the map's frame only, for a joined session)",
+    )
 
 
 class TrajectoryJson(BaseModel):

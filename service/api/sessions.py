@@ -96,15 +96,19 @@ def get_trajectory(
     KITTI and TUM are written by the same writers as ``randt map`` (``core.io``); KITTI has no
     stamps, TUM has ``stamp tx ty tz qx qy qz qw`` per line. With ``corrected=true``, each pose is
     moved with the correction of the graph keyframes around it (interpolated); the JSON says
-    whether it was (``corrected``: false while the session is not placed in a graph).
+    whether it was (``corrected``: false while the session is not placed in a graph), and for each
+    pose whether it lies between keyframes the graph holds (a pose beyond them is served live,
+    in the map's frame, ``corrected: false``).
     """
     found = find_session(mgr, vehicle, session)
     stamps, poses = load_trajectory(mgr, found)
     frame = found.info.frame if found.info is not None else found.record.frame  # type: ignore[union-attr]
     map_name = found.info.map_name if found.info is not None else found.record.map  # type: ignore[union-attr]
     was_corrected = False
+    marks: list[bool | None] = [None] * len(poses)
     if corrected and mgr.graph is not None:
-        poses, graph_map = mgr.graph.corrected(vehicle, session, poses)
+        poses, graph_map, mask = mgr.graph.corrected_marked(vehicle, session, poses)
+        marks = [bool(m) for m in mask]
         if graph_map is not None:
             was_corrected, map_name = True, graph_map
             frame = "map" if graph_map == mgr.settings.default_map else frame
@@ -115,7 +119,8 @@ def get_trajectory(
             map=map_name,
             corrected=was_corrected,
             poses=[
-                TrajectoryPose(stamp_s=float(t), pose=p.tolist()) for t, p in zip(stamps, poses, strict=True)
+                TrajectoryPose(stamp_s=float(t), pose=p.tolist(), corrected=c)
+                for t, p, c in zip(stamps, poses, marks, strict=True)
             ],
         )
     filename = f"{vehicle}.{session}.{'txt' if format == 'kitti' else 'tum'}"

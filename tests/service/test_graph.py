@@ -115,6 +115,25 @@ def test_the_graph_process_says_which_keyframes_it_holds() -> None:
     assert reported == [0, 10, 20]
 
 
+def test_poses_beyond_the_keyframes_the_graph_holds_are_served_live_and_marked() -> None:
+    """Issue 32: a trajectory is corrected only from keyframes the graph holds. Sweeps before the
+    first or after the newest one (the graph dropped them under load, or has not taken them yet)
+    are served live, moved only by the frame change given (a join's T_map_session), and marked."""
+    from service.graph import corrected_mask
+
+    poses = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
+    indices = np.array([5, 15])
+    C = _pose(3.0, (0.4, -0.2, 0.0))
+    optimized = np.stack([C @ poses[i] for i in indices])
+    frame = _pose(90.0, (-34.0, -5.5, 1.7))
+    out = correct_trajectory(poses, indices, poses[indices], optimized, outside=frame)
+    mask = corrected_mask(len(poses), indices)
+    assert mask.tolist() == [False] * 5 + [True] * 11 + [False] * 14
+    np.testing.assert_allclose(out[mask], C @ poses[mask], atol=1e-12)
+    np.testing.assert_allclose(out[~mask], frame @ poses[~mask], atol=1e-12)
+    assert not corrected_mask(4, np.array([], int)).any()
+
+
 def test_correct_trajectory_with_one_or_no_keyframe() -> None:
     poses = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(5)])
     C = _pose(10.0, (3.0, 1.0, 0.0))
@@ -157,6 +176,10 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     assert graph_map == "default"
     err = np.linalg.norm(corrected[:, :3, 3] - (T_map_session @ live)[:, :3, 3], axis=1)
     assert err.max() < 1e-9, f"corrected up to {err.max():.1f} m off"
+    # sweeps 0-9 come before the first keyframe the shared map's graph holds: live, in its frame
+    marked, _, mask = graph.corrected_marked(*key, live)
+    assert mask.tolist() == [False] * 10 + [True] * 20
+    np.testing.assert_allclose(marked, corrected, atol=1e-9)
     kf0 = graph.snapshot("default").keyframes[key][0]  # type: ignore[union-attr]
     assert kf0.optimized is None  # never in the graph: not corrected from
     assert [m.seqs().tolist() for m in sent if m.vehicle == "nognss"] == [[10, 20]]  # held: not said
@@ -582,6 +605,14 @@ def test_a_session_without_priors_joins_the_shared_map(join_drive) -> None:
     )  # 2 / 4 cm
     fixed = httpx.get(f"{server.url}/sessions/nognss/d1/trajectory?corrected=true", timeout=30).json()
     assert fixed["map"] == "default" and fixed["corrected"] is True
+    # each pose says whether it lies between keyframes the graph holds; those beyond are live
+    flags = np.array([p["corrected"] for p in fixed["poses"]])
+    held = sorted(k.index for k in mgr.graph.snapshot("default").session_keyframes(("nognss", "d1")))  # type: ignore[union-attr]
+    assert flags.sum() == held[-1] - held[0] + 1 and flags[held[0] : held[-1] + 1].all()
+    served = np.array([p["pose"] for p in fixed["poses"]])
+    np.testing.assert_allclose(served[flags], corrected[flags], atol=1e-6)
+    plain = httpx.get(f"{server.url}/sessions/nognss/d1/trajectory", timeout=30).json()
+    assert "corrected" not in plain["poses"][0]
     graph = httpx.get(f"{server.url}/maps/default/graph", timeout=30).json()
     assert set(graph["joined"]) == {"nognss/d1"}
     detail = httpx.get(f"{server.url}/sessions/nognss/d1", timeout=30).json()
