@@ -1,0 +1,162 @@
+"""The pose graph's durable input (issue 33): every keyframe the graph took, in the order it took
+them, appended and fsync'd before what the graph made of it is shown outside.
+
+The graph's state (FleetMapper: keyframes, odometry and GNSS factors, loops with their
+verification, placements, joins) is a deterministic function of the keyframes it took and their
+order (no randomness in place recognition, global registration or iSAM2). So instead of writing
+that state, the service writes its input: a restarted graph process (or service) takes the logged
+keyframes again, in order, and arrives at the same graph, revisions and all; only then does it
+take new ones. What a kill -9 may lose: the keyframes the graph had not finished when it died
+(not logged, so nothing shown came from them); their sessions' later keyframes go on.
+
+File: ``DATA/graph/keyframes.log``, records appended one by one::
+
+    u32 length of the body | u32 CRC-32 of the body | body (msgpack)
+
+The body is the keyframe as :meth:`service.graph.ServiceGraph.offer` queues it, with its arrays
+as ``[dtype, shape, bytes]``. A torn or corrupt tail (a crash mid-append) ends the log: it is cut
+off when the log is opened, and the next append goes after the last good record.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import struct
+import threading
+import zlib
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from core.errors import FormatError
+from core.io.atomic import fsync_directory
+
+__all__ = ["GRAPH_LOG_FILENAME", "GraphLog"]
+
+GRAPH_LOG_FILENAME = "keyframes.log"
+_HEAD = struct.Struct("<II")
+#: A record larger than this is damage, not a keyframe (a keyframe is ~0.2-1 MB).
+_MAX_RECORD = 256 << 20
+
+
+def _pack(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        return {"__nd__": [a.dtype.str, list(a.shape), a.tobytes()]}
+    if isinstance(value, tuple | list):
+        return [_pack(v) for v in value]
+    return value
+
+
+def _unpack(value: Any) -> Any:
+    if isinstance(value, dict) and "__nd__" in value:
+        dtype, shape, data = value["__nd__"]
+        return np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape).copy()
+    if isinstance(value, list):
+        return tuple(_unpack(v) for v in value)
+    return value
+
+
+def encode_item(item: tuple[Any, ...]) -> bytes:
+    """One record (head and body) of a keyframe item."""
+    body = msgpack.packb(_pack(item), use_bin_type=True)
+    return _HEAD.pack(len(body), zlib.crc32(body)) + body
+
+
+def decode_items(data: bytes) -> tuple[list[tuple[Any, ...]], int]:
+    """The items of a log's bytes up to the first torn or corrupt record, and where it ends."""
+    items: list[tuple[Any, ...]] = []
+    at = 0
+    view = memoryview(data)
+    while at + _HEAD.size <= len(data):
+        length, crc = _HEAD.unpack_from(view, at)
+        end = at + _HEAD.size + length
+        if length > _MAX_RECORD or end > len(data):
+            break
+        body = bytes(view[at + _HEAD.size : end])
+        if zlib.crc32(body) != crc:
+            break
+        try:
+            item = _unpack(msgpack.unpackb(body, raw=False))
+        except (ValueError, TypeError, msgpack.UnpackException):
+            break
+        items.append(item)
+        at = end
+    return items, at
+
+
+class GraphLog:
+    """The keyframes the graph took (module docstring), in a directory of the store."""
+
+    def __init__(self, directory: str | os.PathLike[str]) -> None:
+        self.directory = Path(directory)
+        self.path = self.directory / GRAPH_LOG_FILENAME
+        self._lock = threading.Lock()
+        self._count: int | None = None
+
+    def read(self) -> list[tuple[Any, ...]]:
+        """Every logged keyframe item, in order; a torn or corrupt tail is cut off the file."""
+        with self._lock:
+            try:
+                data = self.path.read_bytes()
+            except FileNotFoundError:
+                self._count = 0
+                return []
+            except OSError as exc:
+                raise FormatError(f"cannot read {self.path}: {exc}") from exc
+            items, good = decode_items(data)
+            if good < len(data):
+                with open(self.path, "r+b") as fh:
+                    fh.truncate(good)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            self._count = len(items)
+            return items
+
+    def __len__(self) -> int:
+        if self._count is None:
+            self.read()
+        assert self._count is not None
+        return self._count
+
+    def append(self, item: tuple[Any, ...]) -> None:
+        """Append one keyframe item and fsync it: when this returns it survives a crash.
+
+        Raises
+        ------
+        FormatError
+            It could not be written and synced (disk full, read-only...): the file is cut back.
+        """
+        if self._count is None:
+            self.read()  # (cuts a torn tail first)
+        data = encode_item(item)
+        with self._lock:
+            created = not self.path.exists()
+            try:
+                self.directory.mkdir(parents=True, exist_ok=True)
+                fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise FormatError(f"cannot open {self.path}: {exc}") from exc
+            try:
+                size = os.fstat(fd).st_size
+                try:
+                    if os.write(fd, data) != len(data):
+                        raise OSError(f"short write to {self.path}")
+                    os.fsync(fd)
+                except OSError as exc:
+                    with contextlib.suppress(OSError):
+                        os.ftruncate(fd, size)
+                    raise FormatError(f"cannot append to {self.path}: {exc}") from exc
+            finally:
+                os.close(fd)
+            if created:
+                try:
+                    fsync_directory(self.directory)
+                    fsync_directory(self.directory.parent)
+                except OSError as exc:
+                    raise FormatError(f"cannot sync {self.directory}: {exc}") from exc
+            assert self._count is not None
+            self._count += 1
