@@ -34,10 +34,12 @@ rewritten: a client corrects the poses it holds with the newest keyframe poses
 (:class:`wire.messages.CorrectionMessage`).
 
 The process is supervised (:meth:`ServiceGraph._supervise`): one thread owns it for the service's
-life and starts it again when it dies. The graph lives in memory: a restarted process (or
-service) starts an empty graph, the sessions it had placed into another map than their own are
-placed there again, and every session joins it with its next keyframe (earlier keyframes are not
-replayed, and the tiles they made are no longer re-folded).
+life and starts it again when it dies. The graph is durable (service/graph_log.py): each keyframe
+the process took is logged (fsync'd) before what it made of it is applied or published, and a
+restarted process (or service) takes the logged keyframes again, in order, before new ones: the
+same graph, revisions and joins, nothing published again. Without a log directory (tests) a
+restarted process starts an empty graph, the sessions it had placed into another map than their
+own are placed there again, and revisions go on from the service's.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ from core.errors import RandtError
 from core.fleet_map import FleetMapper, FleetMapSettings
 from core.tiles import TileGrid, tile_id
 from core.transforms import rotation_angle_deg
+from service.graph_log import GraphLog
 from service.matchers import _sigint_ignored_by_children, single_threaded_blas
 from service.metrics import ServiceMetrics
 from wire.messages import CorrectionMessage, correction_from_arrays
@@ -607,8 +610,16 @@ class ServiceGraph:
         refold_s: float = 20.0,
         yield_to_matchers: bool = True,
         on_restart: Callable[[], None] | None = None,
+        log_dir: str | os.PathLike[str] | None = None,
     ) -> None:
         self.settings = settings
+        #: The keyframes the graph took, durable (service/graph_log.py): every (re)started process
+        #: takes them again first. ``None``: the graph lives in memory only.
+        self._log: GraphLog | None = None if log_dir is None else GraphLog(log_dir)
+        #: Items of the log being taken again by the current process (ids), and whether the last
+        #: keyframe answered was one: what they make is not published again.
+        self._replay_ids: set[int] = set()
+        self._answered_replay = False
         #: holds the graph process while sweeps are matched (``graph_yield``); None: never held
         self.gate: YieldGate | None = YieldGate() if yield_to_matchers else None
         self.refold_s = refold_s
@@ -660,6 +671,56 @@ class ServiceGraph:
         self._cpu_pid: int | None = None
         self._cpu_last = 0.0
         self._cpu_dead = 0.0
+        self._restore()
+
+    # -- the durable graph (service/graph_log.py) ----------------------------------------------
+    def _restore(self) -> None:
+        """A (re)started service: the keyframes the graph took before, as it took them, so that
+        the graph process rebuilds the graph from them before it takes new ones; the service's
+        side (each keyframe's live pose, the sessions' maps) is set up here."""
+        if self._log is None:
+            return
+        records = self._log.read()
+        if not records:
+            return
+        with self._lock:
+            for stamp_s, item in records:
+                _, map_name, vehicle, session, seq, index, T_live = item[:7]
+                key = (vehicle, session)
+                self._session_map.setdefault(key, map_name)  # (a join moves it, as it did)
+                st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
+                st.keyframes.setdefault(key, {})[index] = _Keyframe(seq, index, stamp_s, T_live.copy())
+                self._last[key] = T_live
+        log.info("pose graph: %d keyframes to take again from %s", len(records), self._log.path)
+        with self._cond:
+            self._queue_replay([item for _, item in records])
+            self._start()
+
+    def _queue_replay(self, items: list[tuple[Any, ...]]) -> None:
+        """Queue the logged ``items`` first (under ``_cond``), marked as replayed."""
+        self._replay_ids = {id(item) for item in items}
+        self._queued[:0] = items
+        self._offered += len(items)
+        self._cond.notify_all()
+
+    def _log_taken(self, item: tuple[Any, ...]) -> None:
+        """A keyframe the graph took, to the log before anything made of it is shown outside."""
+        if self._log is None or item[0] != "keyframe" or id(item) in self._replay_ids:
+            return
+        _, map_name, vehicle, session, _seq, index = item[:6]
+        stamp_s = 0.0
+        with self._lock:
+            for name in (map_name, self._session_map.get((vehicle, session))):
+                st = None if name is None else self._states.get(name)
+                kf = None if st is None else st.keyframes.get((vehicle, session), {}).get(index)
+                if kf is not None:
+                    stamp_s = kf.stamp_s
+                    break
+        try:
+            self._log.append((stamp_s, item))
+        except RandtError:  # the graph goes on in memory; a restart will not have this keyframe
+            self._metrics.store_errors.inc()
+            log.exception("pose graph: keyframe %s/%s seq %d not made durable", vehicle, session, item[4])
 
     @property
     def started(self) -> bool:
@@ -796,14 +857,20 @@ class ServiceGraph:
                 self._retried.add(id(item))
                 retry.append(item)
             self._inflight = []
+            places: list[tuple[Any, ...]] = []
             with self._lock:
-                self._bases = {name: (st.revision, len(st.loops)) for name, st in self._states.items()}
                 self._counted_loops = {name: len(st.loops) for name, st in self._states.items()}
-                self._placed_before = {name: set(st.placed) for name, st in self._states.items()}
-                places = [
-                    ("place", map_name, key[0], key[1], T) for key, (map_name, T) in self._joined.items()
-                ]
+                if self._log is None:  # an empty graph: revisions and loops go on from here
+                    self._bases = {name: (st.revision, len(st.loops)) for name, st in self._states.items()}
+                    self._placed_before = {name: set(st.placed) for name, st in self._states.items()}
+                    places = [
+                        ("place", map_name, key[0], key[1], T) for key, (map_name, T) in self._joined.items()
+                    ]
             self._queued[:0] = places + retry
+            if self._log is not None:  # the graph as it was, from its log, then what was in flight
+                self._offered -= sum(1 for item in self._queued if id(item) in self._replay_ids)
+                self._queued = [item for item in self._queued if id(item) not in self._replay_ids]
+                self._queue_replay([item for _, item in self._log.read()])
             self._cond.notify_all()
         log.error(
             "the pose graph process died (%s): restarting it; its keyframes before now stay as they "
@@ -937,8 +1004,14 @@ class ServiceGraph:
                         self._synced = max(self._synced, message[1])
                     self._cond.notify_all()
                 continue
+            if message[0] in ("update", "refused"):  # the answer to the oldest item in flight
+                with self._cond:
+                    item = self._inflight[0] if self._inflight else None
+                    self._answered_replay = item is not None and id(item) in self._replay_ids
+                if message[0] == "update" and item is not None:
+                    self._log_taken(item)
             try:
-                self._apply(message)
+                self._apply(message, publish=not self._answered_replay)
             except Exception:  # a bug must not stop the graph's output
                 log.exception("pose graph: an update could not be applied")
             if message[0] in ("update", "refused"):  # one per keyframe offered
@@ -947,7 +1020,10 @@ class ServiceGraph:
                     self._done += 1
                     self._cond.notify_all()
 
-    def _apply(self, message: tuple[Any, ...]) -> None:
+    def _apply(self, message: tuple[Any, ...], *, publish: bool = True) -> None:
+        """One message of the graph process into the service's view of the graphs; with
+        ``publish`` false (a keyframe taken again from the log) no correction goes out and no
+        counter moves: they did the first time."""
         m = self._metrics
         if message[0] == "refold":
             _, map_name, tile_ids, xyz, intensity, elapsed = message
@@ -968,7 +1044,7 @@ class ServiceGraph:
         base_revision, base_loops = self._bases.get(map_name, (0, 0))
         revision += base_revision
         start += base_loops
-        if kind == "update":
+        if kind == "update" and publish:
             m.graph_keyframes.labels("added").inc()
         m.graph_update_seconds.observe(elapsed)
         by_session: dict[SessionKey, list[_Keyframe]] = {}
@@ -1036,7 +1112,7 @@ class ServiceGraph:
         for (vehicle, session), T_map_session in joins:
             if self._on_join is not None:
                 self._on_join(vehicle, session, map_name, T_map_session)
-        for (vehicle, session), kfs in by_session.items():
+        for (vehicle, session), kfs in by_session.items() if publish else ():
             kfs.sort(key=lambda k: k.index)
             self._outbox(
                 correction_from_arrays(

@@ -34,8 +34,10 @@ import numpy as np
 from core.errors import FormatError
 from core.io.atomic import fsync_directory
 
-__all__ = ["GRAPH_LOG_FILENAME", "GraphLog"]
+__all__ = ["GRAPH_DIRNAME", "GRAPH_LOG_FILENAME", "GraphLog"]
 
+#: The graph's directory in the service's data directory, and its log's name.
+GRAPH_DIRNAME = "graph"
 GRAPH_LOG_FILENAME = "keyframes.log"
 _HEAD = struct.Struct("<II")
 #: A record larger than this is damage, not a keyframe (a keyframe is ~0.2-1 MB).
@@ -98,7 +100,8 @@ class GraphLog:
         self._count: int | None = None
 
     def read(self) -> list[tuple[Any, ...]]:
-        """Every logged keyframe item, in order; a torn or corrupt tail is cut off the file."""
+        """Every logged record (``(stamp_s, keyframe item)`` as the service appends them), in
+        order; a torn or corrupt tail is cut off the file."""
         with self._lock:
             try:
                 data = self.path.read_bytes()

@@ -103,6 +103,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -112,6 +113,7 @@ from core.tiles import Tile, TileGrid
 from service.agreement import AgreementGate, Held
 from service.capacity import Capacity, CapacityFigures
 from service.graph import MapGeometry, ServiceGraph
+from service.graph_log import GRAPH_DIRNAME
 from service.intake import Intake
 from service.matchers import (
     LocalMatcher,
@@ -864,6 +866,7 @@ class SessionManager:
                 if settings.graph_yield is None
                 else settings.graph_yield,
                 on_restart=self._graph_restarted,
+                log_dir=Path(settings.data_dir) / GRAPH_DIRNAME,
             )
             if settings.graph
             else None
