@@ -1355,6 +1355,9 @@ class SessionManager:
         from now on its points fold there, and its own map is merged in and removed."""
         with self._lock:
             w = self._workers.get((vehicle, session))
+            own = session_map_name(vehicle, session)
+            if w is None and own not in self.maps:  # the graph's log taken again after a restart:
+                self._merged.setdefault(own, (map_name, f"{vehicle}/{session}"))  # merged before it
         if w is not None:
             w.info.joined_map = map_name
         log.info(
