@@ -345,7 +345,7 @@ def demo(
 
     fleet_json = data / "demo-fleet.json"
     proc: subprocess.Popen[bytes] | None = None
-    summarized = False
+    summarized = interrupted = False
     try:
         thread.start()
         deadline = time.monotonic() + 60
@@ -419,6 +419,10 @@ def demo(
             while thread.is_alive():
                 thread.join(0.5)
     except KeyboardInterrupt:
+        interrupted = True
+        # a second Ctrl-C (or SIGTERM) must not cut the shutdown short with a traceback
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if proc is not None and proc.poll() is None:
             proc.send_signal(signal.SIGINT)
             try:
@@ -435,4 +439,4 @@ def demo(
     # aborted there ("FATAL: exception not rethrown", exit 134) after a complete, correct summary.
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(0 if summarized else ExitCode.INTERRUPTED)
+    os._exit(ExitCode.INTERRUPTED if interrupted or not summarized else 0)

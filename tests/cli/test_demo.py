@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
+from cli.errors import ExitCode
 from clients.rest import MapClient
 from core.io import read_cloud
 from tests.service.conftest import free_port
@@ -186,7 +187,7 @@ def test_demo_stops_cleanly_on_ctrl_c(demo) -> None:
     whole process group (the matcher processes too): one line, no traceback, the data kept."""
     proc, _, data, _ = demo
     os.killpg(proc.pid, signal.SIGINT)
-    assert proc.wait(60) == 0
+    assert proc.wait(60) == ExitCode.INTERRUPTED == 130  # as the README's table says
     err = proc.stderr.read() if proc.stderr else ""
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert "randt demo: stopping" in err
