@@ -27,7 +27,7 @@ from sim.drive import plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from wire.codes import ErrorCode
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 MAPPED, NEVER_MAPPED = 0, 5
 OFF_M = 0.3  # a map point farther than this from town 0's true surfaces is off them
@@ -137,6 +137,7 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
     joins the shared map through the pose graph, and 20 sweeps after joining drives town 5
     along the same route: from its first check there it is answered ``lost``, the shared map
     gains no point off town 0's surfaces, and nothing it sent after the switch reaches the graph.
+    Then a service restarted on the same data shows the same graph and join (issue 33).
 
     Found by this test: its matcher fell back twice in the new town and then relocalized 18 m
     off (one global registration, 30 % inliers), answered ``ok``. A relocalization is now the
@@ -184,6 +185,26 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
     assert state is not None
     taken = [kf.index for kf in state.session_keyframes(("nognss", "d1"))]
     assert taken and max(taken) < switch + 10, (max(taken), switch)
+    # Issue 33, on the same data: a restarted service takes the graph's log again (service/
+    # graph_log.py): the session is joined where it was, the graph is the one it showed, nothing
+    # is published again, and its old map's name still says where it went.
+    out = []
+    mgr = _manager(tmp_path, out, graph=True)
+    try:
+        graph = mgr.graph
+        assert graph is not None and graph.wait_idle(300)
+        again = graph.joined("nognss", "d1")
+        restored = graph.snapshot("default")
+        merged = mgr.merged_into("nognss.d1")
+        own_loaded = "nognss.d1" in mgr.maps
+    finally:
+        mgr.stop()
+    assert again is not None and again[0] == "default" and np.abs(again[1] - joined[1]).max() < 1e-3
+    assert restored is not None and restored.placed == state.placed and restored.revision == state.revision
+    kf = lambda st: {(k, i) for k, kfs in st.keyframes.items() for i in kfs}  # noqa: E731
+    assert kf(restored) == kf(state)
+    assert merged == ("default", "nognss/d1") and not own_loaded
+    assert not [m for m in out if isinstance(m, CorrectionMessage)]
 
 
 def _wall_map() -> tuple[TileGrid, np.ndarray]:
