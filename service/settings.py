@@ -205,7 +205,7 @@ class ServiceSettings(BaseSettings):
         "seconds, and each save writes and publishes a tile whole",
     )
     map_agreement_min: float = Field(
-        default=0.5,
+        default=0.4,
         ge=0,
         le=1,
         description="a session's map points are folded only while its sweeps agree with the map "
@@ -220,7 +220,7 @@ class ServiceSettings(BaseSettings):
         "every keyframe the pose graph takes); its map points wait for the next check",
     )
     map_agreement_min_points: int = Field(
-        default=500,
+        default=2000,
         ge=1,
         description="a check has an opinion only when this many of the sweep's points fall where "
         "the map has content; with fewer the held points are folded",
