@@ -72,6 +72,7 @@ __all__ = [
     "PosePrior",
     "ScanResult",
     "extend_state_dict",
+    "with_keyframe",
 ]
 
 log = logging.getLogger(__name__)
@@ -1175,4 +1176,27 @@ def extend_state_dict(
         periods = min(dt, max_gap_s) / period_s if np.isfinite(dt) and dt > 0.0 else 1.0
         motion = invert(poses[-2]) @ poses[-1]
         out["delta"] = orthonormalize(motion if periods == 1.0 else scale_motion(motion, 1.0 / periods))
+    return out
+
+
+def with_keyframe(
+    state: dict[str, np.ndarray], T_world_sensor: np.ndarray, points_sensor: np.ndarray
+) -> dict[str, np.ndarray]:
+    """A saved :meth:`IncrementalMatcher.state_dict` with one more keyframe, the newest: the
+    sweep ``points_sensor`` (sensor frame) at ``T_world_sensor``, density-equalized at the
+    model's voxel as the matcher's own keyframes are.
+
+    A resumed session's snapshot may end tens of metres before its last published pose
+    (:func:`extend_state_dict`); a sweep it sent since, at its logged pose, brings the model up to
+    where the vehicle is (a sweep 34 m past the snapshot's only keyframe matched with 12 %
+    inliers, below the gate; with a sweep from 9 m back added it matched as usual).
+    """
+    T = np.asarray(T_world_sensor, dtype=np.float64).reshape(4, 4)
+    points = np.asarray(points_sensor, dtype=np.float64)
+    world = voxel_downsample(transform_points(T, points), float(state["scales"][1]))
+    out = dict(state)
+    out["keyframe_poses"] = np.concatenate([np.asarray(state["keyframe_poses"]).reshape(-1, 4, 4), T[None]])
+    out["keyframe_points"] = np.vstack([np.asarray(state["keyframe_points"]).reshape(-1, 3), world])
+    out["keyframe_sizes"] = np.append(np.asarray(state["keyframe_sizes"], dtype=np.int64), world.shape[0])
+    out["last_keyframe_pose"] = T.copy()
     return out

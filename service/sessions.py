@@ -30,10 +30,11 @@ matcher state without the trajectory, :meth:`SessionMatcher.snapshot_state
 opens, closes, expires, gives up its slot or the service stops, and in between only when one is
 due: ``snapshot_interval_s`` after the last (30 s), or once the vehicle is ``snapshot_distance_m``
 (20 m) from where the last was taken, so that a session resumed after a crash still matches
-against the snapshot's keyframes. A snapshot costs the same at any length of the session: the
-store writes no pose it already holds (:meth:`Store.save_session`). Everything the API shows of a
-running session comes from memory; the stored record (``session.json``, ``updated``) lags by up
-to a snapshot interval.
+against the snapshot's keyframes; with them, its newest sweep that came with points, saved by the
+flusher (``resume.npz``, :meth:`Store.save_resume_sweep`), reaches where the vehicle is. A
+snapshot costs the same at any length of the session: the store writes no pose it already holds
+(:meth:`Store.save_session`). Everything the API shows of a running session comes from memory;
+the stored record (``session.json``, ``updated``) lags by up to a snapshot interval.
 
 **Saved before seen**: tiles are served (HTTP, the queryable, tile updates, listings) as last saved
 (:class:`DurableMap`), so a version seen outside is on disk and never goes back or repeats with
@@ -108,7 +109,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
-from core.odometry import RELOCALIZED, PosePrior, ScanResult, extend_state_dict
+from core.odometry import RELOCALIZED, PosePrior, ScanResult, extend_state_dict, with_keyframe
 from core.tiles import Tile, TileGrid
 from service.agreement import AgreementGate, Held
 from service.capacity import Capacity, CapacityFigures
@@ -129,7 +130,15 @@ from service.matchers import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import ServiceSettings
-from service.store import PoseLogRecord, SessionFrame, SessionRecord, Store, load_counters, save_counters
+from service.store import (
+    PoseLogRecord,
+    ResumeSweep,
+    SessionFrame,
+    SessionRecord,
+    Store,
+    load_counters,
+    save_counters,
+)
 from service.store import SessionState as RecordState
 from wire.codes import ErrorCode
 from wire.ids import UNKNOWN_ID, session_map_name
@@ -166,6 +175,12 @@ log = logging.getLogger(__name__)
 SESSIONS_PER_CORE = 4
 #: A lost session answers poses again after this many consecutive matches (SessionWorker._track).
 VERIFY_MATCHES = 2
+
+#: A session's resume sweep (Store.save_resume_sweep) is saved again once its vehicle is this far
+#: (m) from where the saved one was taken: a vehicle that stands still does not rewrite it.
+RESUME_SWEEP_M = 2.0
+#: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
+MIN_RESUME_POINTS = 100
 
 #: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
 Outbox = Callable[[WireMessage], None]
@@ -280,6 +295,10 @@ class SessionWorker:
         self.gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self._fold_lock = threading.Lock()
         self._keyframe_wanted = False  # the graph asked for the sweep being matched as a keyframe
+        # The newest matched sweep that came with its points, and where the saved one is: the
+        # flusher saves it for a resume after a crash (SessionManager._save_resume_sweeps).
+        self.resume_sweep: ResumeSweep | None = None
+        self.resume_saved_xyz: np.ndarray | None = None
         self._thread = threading.Thread(
             target=self._run, name=f"session-{info.vehicle}-{info.session}", daemon=True
         )
@@ -411,6 +430,8 @@ class SessionWorker:
             lost = self._track(scan, registered.result)
             if lost is None:
                 lost = self._queue_map_points(registered)
+            if lost is None:
+                self._keep_resume_sweep(registered)
             self._account(scan, registered.result, prior, lost is not None)
         if len(self._unfolded) >= self._manager.settings.fold_scans:  # (module docstring, Map folding)
             self.fold()
@@ -509,6 +530,15 @@ class SessionWorker:
         log.info("session %s/%s found its track again at scan %d", *self.key, scan.seq)
         info.lost, info.verified_matches = False, 0
         return None
+
+    def _keep_resume_sweep(self, registered: Registered) -> None:
+        """A matched sweep the matcher returned points of (for the graph or the map agreement
+        check, every few sweeps) becomes the session's resume sweep, which the flusher saves
+        (a reference: nothing is copied on this path)."""
+        result, points = registered.result, registered.keyframe_xyz
+        if points is None or result.status == "fallback" or len(points) < MIN_RESUME_POINTS:
+            return
+        self.resume_sweep = ResumeSweep(result.index, result.T_world_sensor, points)
 
     def _log_pose(self, scan: ScanHeader, result: ScanResult) -> bool:
         """Durable before acknowledged: the pose into the session's fsync'd log before it is
@@ -1224,8 +1254,15 @@ class SessionManager:
             # The matcher resumes from its snapshot (its trajectory from the store's), brought to
             # the last published pose (extend_state_dict: poses, velocity and stamp; the keyframes
             # stay the snapshot's).
+            # A sweep saved since the snapshot, at its logged pose, joins its keyframes: the model
+            # then reaches where the vehicle is (the snapshot's may end 30 m behind, too far to match).
             state = with_trajectory(state, poses)
+            n_snapshot = len(state.get("poses", ()))
+            sweep = self._resume_sweep(key, n_snapshot, poses)
             state = extend_state_dict(state, poses, stamps, settings=self.settings.session_matcher())
+            if sweep is not None:
+                state = with_keyframe(state, sweep.pose, sweep.points)
+                log.info("session %s/%s: sweep %d joins its snapshot's keyframes", *key, sweep.pose_index)
             info = SessionState(
                 scan.vehicle,
                 scan.session,
@@ -1431,6 +1468,7 @@ class SessionManager:
     def _flush(self, *, tiles: bool = True) -> None:
         with self._lock:
             workers = list(self._workers.values())
+        self._save_resume_sweeps(workers)  # first: small, and what a resume after a crash needs
         if tiles:
             self._save_tiles(workers)
         now = time.monotonic()
@@ -1439,6 +1477,34 @@ class SessionManager:
                 self._save_session(w)
             if w.depth() == 0 and now - w.info.last_activity > self.settings.idle_expiry_s:
                 self.close(*w.key, state="expired")
+
+    def _save_resume_sweeps(self, running: list[SessionWorker]) -> None:
+        """Each running session's newest resume sweep (SessionWorker.resume_sweep), when its
+        vehicle moved :data:`RESUME_SWEEP_M` since the saved one (Store.save_resume_sweep)."""
+        for w in running:
+            sweep, saved = w.resume_sweep, w.resume_saved_xyz
+            if sweep is None or w.broken:
+                continue
+            if saved is not None and np.linalg.norm(sweep.pose[:3, 3] - saved) < RESUME_SWEEP_M:
+                continue
+            try:
+                self.store.save_resume_sweep(*w.key, sweep)
+            except (OSError, RandtError):
+                self.metrics.store_errors.inc()
+                log.exception("saving the resume sweep of session %s/%s failed", *w.key)
+                continue
+            w.resume_saved_xyz = sweep.pose[:3, 3].copy()
+
+    def _resume_sweep(self, key: tuple[str, str], n_snapshot: int, poses: np.ndarray) -> ResumeSweep | None:
+        """The session's saved resume sweep when it is newer than its snapshot and its pose is
+        the one its log holds (else None: a sweep of an older life of the session id)."""
+        sweep = self.store.load_resume_sweep(*key)
+        if sweep is None or not n_snapshot <= sweep.pose_index < len(poses):
+            return None
+        if not np.allclose(sweep.pose, poses[sweep.pose_index], atol=1e-6):
+            log.warning("session %s/%s: its resume sweep is not at its logged pose: not used", *key)
+            return None
+        return sweep
 
     def _save_tiles(self, running: list[SessionWorker]) -> None:
         """Save every dirty tile (after the sessions fold what they hold) and publish it."""

@@ -194,8 +194,9 @@ class ServiceSettings(BaseSettings):
         default=20.0,
         ge=0,
         description="a running session's snapshot is also due once its vehicle is this far from where "
-        "the last one was taken: after a crash the session resumes against the snapshot's keyframes, "
-        "which a sweep 40 m ahead still matched and one 50 m ahead no longer did (0: by time only)",
+        "the last one was taken: after a crash the session resumes against the snapshot's keyframes "
+        "(a full window matched a sweep 40 m ahead, not 50 m; a first sweep alone 28 m, not 34 m) "
+        "and a recent sweep the flusher saved (resume.npz) (0: by time only)",
     )
     tile_save_interval_s: float | None = Field(
         default=None,

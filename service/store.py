@@ -13,6 +13,7 @@ Layout
     DATA/sessions/<vehicle>/<session>/poses.<i>.log    a closed-off poses.log: poses from the i-th on
     DATA/sessions/<vehicle>/<session>/trajectory.tum   the snapshot's poses: stamp_s tx ty tz qx qy qz qw
     DATA/sessions/<vehicle>/<session>/session.json     the snapshot's record (:class:`SessionRecord`)
+    DATA/sessions/<vehicle>/<session>/resume.npz       a recent sweep at its logged pose (resuming)
     DATA/map-versions/<map>                            version floor of a deleted map's name
 
 Map, vehicle and session names are ids (:mod:`wire.ids`: letters, digits, ``_ . -``, at most 64
@@ -131,6 +132,7 @@ __all__ = [
     "MAPS_DIRNAME",
     "MATCHER_FILENAME",
     "POSE_LOG_FILENAME",
+    "RESUME_FILENAME",
     "SEGMENT_RECORDS",
     "SESSIONS_DIRNAME",
     "SESSION_FILENAME",
@@ -138,6 +140,7 @@ __all__ = [
     "DataDirInUseError",
     "LoadedSession",
     "PoseLogRecord",
+    "ResumeSweep",
     "SessionFrame",
     "SessionRecord",
     "SessionState",
@@ -155,6 +158,7 @@ SESSIONS_DIRNAME = "sessions"
 SESSION_FILENAME = "session.json"
 TRAJECTORY_FILENAME = "trajectory.tum"
 MATCHER_FILENAME = "matcher.npz"
+RESUME_FILENAME = "resume.npz"
 LOCK_FILENAME = ".randt-store.lock"
 POSE_LOG_FILENAME = "poses.log"
 #: A closed-off pose log: ``poses.<index of its first pose, 10 digits>.log`` (:func:`segment_name`).
@@ -246,6 +250,15 @@ class SessionRecord(BaseModel):
         if self.n_fallbacks > self.n_scans:
             raise ValueError(f"n_fallbacks ({self.n_fallbacks}) exceeds n_scans ({self.n_scans})")
         return self
+
+
+class ResumeSweep(NamedTuple):
+    """A recent sweep of a session (:meth:`Store.save_resume_sweep`): its pose's index in the
+    trajectory, that pose (4, 4) and its points (N, 3) float32 in the sensor frame."""
+
+    pose_index: int
+    pose: np.ndarray
+    points: np.ndarray
 
 
 class LoadedSession(NamedTuple):
@@ -1242,6 +1255,50 @@ class Store:
                     raise FormatError(f"cannot sync {directory}: {exc}") from exc
             files.appended(_Poses.of_record(record))
 
+    def save_resume_sweep(self, vehicle: str, session: str, sweep: ResumeSweep) -> None:
+        """Replace the session's ``resume.npz`` (atomically) by ``sweep``, a recent sweep whose
+        pose is in the pose log. A snapshot holds the matcher's keyframes as they were when it was
+        written, up to ``snapshot_distance_m`` (and a flush) behind the last logged pose; a session
+        resumed after a crash adds this sweep to them as its newest keyframe, so its model reaches
+        where the vehicle is (service/sessions.py). It is an aid, not the truth: a missing or
+        damaged file leaves the snapshot's keyframes alone.
+
+        Raises
+        ------
+        FormatError
+            It could not be written.
+        """
+        self._check_open()
+        directory = self.session_dir(vehicle, session)
+        try:
+            with self._session_lock(vehicle, session), atomic_open(directory / RESUME_FILENAME, "wb") as fh:
+                np.savez(
+                    fh,
+                    pose_index=np.array(sweep.pose_index, dtype=np.int64),
+                    pose=np.asarray(sweep.pose, dtype=np.float64).reshape(4, 4),
+                    points=np.asarray(sweep.points, dtype=np.float32).reshape(-1, 3),
+                )
+        except OSError as exc:
+            raise FormatError(f"cannot write {directory / RESUME_FILENAME}: {exc}") from exc
+
+    def load_resume_sweep(self, vehicle: str, session: str) -> ResumeSweep | None:
+        """The session's ``resume.npz`` (:meth:`save_resume_sweep`); None when there is none or
+        it cannot be read (with a warning)."""
+        self._check_open()
+        path = self.session_dir(vehicle, session) / RESUME_FILENAME
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                pose, points = np.array(z["pose"], dtype=np.float64), np.array(z["points"])
+                sweep = ResumeSweep(int(z["pose_index"]), pose, points)
+            if sweep.pose.shape != (4, 4) or sweep.points.ndim != 2 or sweep.points.shape[1] != 3:
+                raise ValueError(f"pose {sweep.pose.shape}, points {sweep.points.shape}")
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            logger.warning("session %s/%s: %s unreadable, not used: %s", vehicle, session, path, exc)
+            return None
+        return sweep
+
     def reset_pose_log(self, vehicle: str, session: str) -> None:
         """Remove a session's ``poses.log`` and its segments (a session that starts afresh:
         nothing in them was acknowledged, since a session's first pose is published only after
@@ -1249,7 +1306,11 @@ class Store:
         self._check_open()
         directory = self.session_dir(vehicle, session)
         with self._session_lock(vehicle, session):
-            old = [directory / POSE_LOG_FILENAME, *(path for _, path in _segment_files(directory))]
+            old = [
+                directory / POSE_LOG_FILENAME,
+                directory / RESUME_FILENAME,
+                *(path for _, path in _segment_files(directory)),
+            ]
             old = [path for path in old if path.exists()]
             if old:
                 logger.warning(
