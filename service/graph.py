@@ -455,6 +455,10 @@ def _graph_main(
             last_refold = time.monotonic()
             conn.send(("synced", message[1]))
             continue
+        if message[0] == "forget":  # a deleted map (ServiceGraph.forget_map)
+            maps.pop(message[1], None)
+            conn.send(("forgotten", message[1]))
+            continue
         if message[0] == "place":  # a restarted process: a session the graph had placed
             _, map_name, vehicle, session, T_map_session = message
             graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(map_name, settings, geometry))
@@ -662,6 +666,9 @@ class ServiceGraph:
         #: Per map, the sessions placed before the current process started (it places only those
         #: that offer keyframes to it).
         self._placed_before: dict[str, set[SessionKey]] = {}
+        #: Per map, its deletions the process has not answered yet (:meth:`forget_map`): what it
+        #: says of the map until then is of the deleted map, not of a new one of the same name.
+        self._forgetting: dict[str, int] = {}
         #: how many times the process died and was started again; how the last one ended
         self.restarts = 0
         self.last_exit: str | None = None
@@ -680,6 +687,12 @@ class ServiceGraph:
         side (each keyframe's live pose, the sessions' maps) is set up here."""
         if self._log is None:
             return
+        try:
+            floors = self._log.floors()
+        except RandtError as exc:
+            log.error("pose graph: %s: the revisions of maps deleted before may start lower", exc)
+            floors = {}
+        self._bases = {name: (revision, 0) for name, revision in floors.items()}
         records = self._log.read()
         if not records:
             return
@@ -704,9 +717,15 @@ class ServiceGraph:
         self._cond.notify_all()
 
     def _log_taken(self, item: tuple[Any, ...]) -> None:
-        """A keyframe the graph took, to the log before anything made of it is shown outside."""
+        """A keyframe the graph took, to the log before anything made of it is shown outside
+        (not one of a map being deleted, nor its offer to such a map: :meth:`forget_map`)."""
         if self._log is None or item[0] != "keyframe" or id(item) in self._replay_ids:
             return
+        with self._cond:
+            if item[1] in self._forgetting:
+                return
+            if item[-1] in self._forgetting:
+                item = (*item[:-1], None)
         _, map_name, vehicle, session, _seq, index = item[:6]
         stamp_s = 0.0
         with self._lock:
@@ -847,12 +866,15 @@ class ServiceGraph:
             for item in self._inflight:
                 if id(item) in self._retried:  # in flight at two deaths: it may be what kills it
                     self._retried.discard(id(item))
+                    self._replay_ids.discard(id(item))
                     log.error("pose graph: %s dropped, in flight at two deaths of the process", item[0])
                     if item[0] == "keyframe":
                         self._offered -= 1
                         self._forget_keyframe(item[1], (item[2], item[3]), item[4])
                     elif item[0] == "sync":
                         self._synced = max(self._synced, item[1])
+                    elif item[0] == "forget":
+                        self._forgotten(item[1])
                     continue
                 self._retried.add(id(item))
                 retry.append(item)
@@ -905,6 +927,60 @@ class ServiceGraph:
         (``keyframe_voxel_m``)."""
         return wants_keyframe(poses, self._last.get((vehicle, session)), self.keyframe_m)
 
+    def forget_map(self, map_name: str) -> None:
+        """A deleted map's graph goes (SessionManager.delete_map, whose sessions have ended):
+        from the log first (:meth:`GraphLog.without_map`: a restart never brings it back), then
+        from the queue, the process and what the service shows. Its revision stays the floor of
+        a later map of the same name (``floors.json``). Until the process says it dropped the
+        map, what it says of the map is of the deleted one and is not applied.
+
+        Raises
+        ------
+        FormatError
+            The log could not be rewritten (the graph is then as it was).
+        """
+        with self._lock:
+            st = self._states.get(map_name)
+            revision = max(0 if st is None else st.revision, self._bases.get(map_name, (0, 0))[0])
+        with self._cond:
+            if self._supervisor is not None and not self._closed:
+                self._forgetting[map_name] = self._forgetting.get(map_name, 0) + 1
+                kept = [it for it in self._queued if not (it[0] == "keyframe" and it[1] == map_name)]
+                self._offered -= len(self._queued) - len(kept)
+                self._replay_ids -= {id(it) for it in self._queued} - {id(it) for it in kept}
+                self._queued = [*kept, ("forget", map_name)]
+                self._cond.notify_all()
+        if self._log is not None:
+            try:
+                self._log.set_floor(map_name, revision)
+                gone = self._log.without_map(map_name)
+            except RandtError:
+                with self._cond:
+                    self._queued = [it for it in self._queued if it != ("forget", map_name)]
+                    if self._forgetting.get(map_name):
+                        self._forgotten(map_name)
+                raise
+            log.info("pose graph of map %s deleted (%d keyframes out of its log)", map_name, gone)
+        with self._lock:
+            self._states.pop(map_name, None)
+            self._bases[map_name] = (revision, 0)
+            self._counted_loops.pop(map_name, None)
+            self._placed_before.pop(map_name, None)
+            for key in [k for k, name in self._session_map.items() if name == map_name]:
+                del self._session_map[key]
+                self._correction.pop(key, None)
+                self._last.pop(key, None)
+            for key in [k for k, (name, _) in self._joined.items() if name == map_name]:
+                del self._joined[key]
+
+    def _forgotten(self, map_name: str) -> None:
+        """The process dropped a deleted map (under ``_cond``)."""
+        left = self._forgetting.get(map_name, 0) - 1
+        if left > 0:
+            self._forgetting[map_name] = left
+        else:
+            self._forgetting.pop(map_name, None)
+
     def offer(
         self,
         vehicle: str,
@@ -940,7 +1016,11 @@ class ServiceGraph:
             if self._closed:
                 return
             self._start()
-            keyframes = [i for i, queued in enumerate(self._queued) if queued[0] == "keyframe"]
+            keyframes = [  # (what the graph took before, from its log, is never dropped)
+                i
+                for i, queued in enumerate(self._queued)
+                if queued[0] == "keyframe" and id(queued) not in self._replay_ids
+            ]
             if len(keyframes) >= self._queue_size:
                 dropped = self._queued.pop(keyframes[0])
                 self._offered -= 1
@@ -981,9 +1061,14 @@ class ServiceGraph:
                     self._cond.wait_for(lambda: self._closed or self._conn is not dead)  # noqa: B023
 
     def _answered(self) -> None:
-        """The process answered the oldest item in flight (under ``_cond``)."""
+        """The process answered the oldest item in flight (under ``_cond``). Its id leaves the
+        sets that mark items by id: once the item is gone, a new one may get the same id (a
+        keyframe offered after a restart was taken for a replayed one, neither logged nor
+        published, until this was so)."""
         if self._inflight:
-            self._retried.discard(id(self._inflight.pop(0)))
+            done = id(self._inflight.pop(0))
+            self._retried.discard(done)
+            self._replay_ids.discard(done)
 
     # -- output (receiver thread) ------------------------------------------------------------
     def _receive_loop(self, conn: Connection, pid: int | None) -> None:
@@ -997,11 +1082,13 @@ class ServiceGraph:
                 if self.gate is not None and pid is not None and not self._closed:
                     self.gate.attach(pid)
                 continue
-            if message[0] in ("synced", "placed"):
+            if message[0] in ("synced", "placed", "forgotten"):
                 with self._cond:
                     self._answered()
                     if message[0] == "synced":
                         self._synced = max(self._synced, message[1])
+                    if message[0] == "forgotten":
+                        self._forgotten(message[1])
                     self._cond.notify_all()
                 continue
             if message[0] in ("update", "refused"):  # the answer to the oldest item in flight
@@ -1010,8 +1097,11 @@ class ServiceGraph:
                     self._answered_replay = item is not None and id(item) in self._replay_ids
                 if message[0] == "update" and item is not None:
                     self._log_taken(item)
+            with self._cond:
+                stale = message[1] in self._forgetting  # of a deleted map (forget_map)
             try:
-                self._apply(message, publish=not self._answered_replay)
+                if not stale:
+                    self._apply(message, publish=not self._answered_replay)
             except Exception:  # a bug must not stop the graph's output
                 log.exception("pose graph: an update could not be applied")
             if message[0] in ("update", "refused"):  # one per keyframe offered

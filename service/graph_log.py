@@ -16,11 +16,18 @@ File: ``DATA/graph/keyframes.log``, records appended one by one::
 The body is the keyframe as :meth:`service.graph.ServiceGraph.offer` queues it, with its arrays
 as ``[dtype, shape, bytes]``. A torn or corrupt tail (a crash mid-append) ends the log: it is cut
 off when the log is opened, and the next append goes after the last good record.
+
+A deleted map leaves the log (:meth:`GraphLog.without_map`: the log rewritten without its
+keyframes, atomically, and without the offers of other maps' keyframes to it), so a restart
+never brings its graph back; its revision stays in ``DATA/graph/floors.json`` (map -> revision),
+the floor of a later map of the same name, whose corrections then go on numbering above what its
+vehicles saw.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import struct
 import threading
@@ -32,13 +39,14 @@ import msgpack
 import numpy as np
 
 from core.errors import FormatError
-from core.io.atomic import fsync_directory
+from core.io.atomic import atomic_open, atomic_write_bytes, fsync_directory
 
-__all__ = ["GRAPH_DIRNAME", "GRAPH_LOG_FILENAME", "GraphLog"]
+__all__ = ["GRAPH_DIRNAME", "GRAPH_FLOORS_FILENAME", "GRAPH_LOG_FILENAME", "GraphLog"]
 
 #: The graph's directory in the service's data directory, and its log's name.
 GRAPH_DIRNAME = "graph"
 GRAPH_LOG_FILENAME = "keyframes.log"
+GRAPH_FLOORS_FILENAME = "floors.json"
 _HEAD = struct.Struct("<II")
 #: A record larger than this is damage, not a keyframe (a keyframe is ~0.2-1 MB).
 _MAX_RECORD = 256 << 20
@@ -103,21 +111,24 @@ class GraphLog:
         """Every logged record (``(stamp_s, keyframe item)`` as the service appends them), in
         order; a torn or corrupt tail is cut off the file."""
         with self._lock:
-            try:
-                data = self.path.read_bytes()
-            except FileNotFoundError:
-                self._count = 0
-                return []
-            except OSError as exc:
-                raise FormatError(f"cannot read {self.path}: {exc}") from exc
-            items, good = decode_items(data)
-            if good < len(data):
-                with open(self.path, "r+b") as fh:
-                    fh.truncate(good)
-                    fh.flush()
-                    os.fsync(fh.fileno())
-            self._count = len(items)
-            return items
+            return self._read()
+
+    def _read(self) -> list[tuple[Any, ...]]:
+        try:
+            data = self.path.read_bytes()
+        except FileNotFoundError:
+            self._count = 0
+            return []
+        except OSError as exc:
+            raise FormatError(f"cannot read {self.path}: {exc}") from exc
+        items, good = decode_items(data)
+        if good < len(data):
+            with open(self.path, "r+b") as fh:
+                fh.truncate(good)
+                fh.flush()
+                os.fsync(fh.fileno())
+        self._count = len(items)
+        return items
 
     def __len__(self) -> int:
         if self._count is None:
@@ -163,3 +174,63 @@ class GraphLog:
                     raise FormatError(f"cannot sync {self.directory}: {exc}") from exc
             assert self._count is not None
             self._count += 1
+
+    def without_map(self, map_name: str) -> int:
+        """Rewrite the log (atomically) without ``map_name``'s keyframes, and with the other
+        keyframes' offers to it (a session without priors joining it) taken out; returns how many
+        keyframes went. The rewrite reads and writes the whole log: a map's deletion is rare.
+
+        Raises
+        ------
+        FormatError
+            It could not be read or written (the log is then as it was).
+        """
+        with self._lock:
+            records = self._read()
+            kept = [
+                (stamp, item if item[-1] != map_name else (*item[:-1], None))
+                for stamp, item in records
+                if item[1] != map_name
+            ]
+            gone = len(records) - len(kept)
+            if not gone and all(item[-1] != map_name for _, item in records):
+                return 0
+            try:
+                with atomic_open(self.path, "wb") as fh:
+                    for record in kept:
+                        fh.write(encode_item(record))
+            except OSError as exc:
+                raise FormatError(f"cannot rewrite {self.path}: {exc}") from exc
+            self._count = len(kept)
+        return gone
+
+    def floors(self) -> dict[str, int]:
+        """Per deleted map, the revision its graph had (the floor of a later map of its name)."""
+        path = self.directory / GRAPH_FLOORS_FILENAME
+        try:
+            floors = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            return {}
+        except (OSError, ValueError) as exc:
+            raise FormatError(f"cannot read {path}: {exc}") from exc
+        if not isinstance(floors, dict) or not all(isinstance(v, int) for v in floors.values()):
+            raise FormatError(f"{path}: not a map of revisions")
+        return floors
+
+    def set_floor(self, map_name: str, revision: int) -> None:
+        """Keep ``revision`` as ``map_name``'s floor (the highest one written stays), atomically.
+
+        Raises
+        ------
+        FormatError
+            It could not be written.
+        """
+        floors = self.floors()
+        floors[map_name] = max(revision, floors.get(map_name, 0))
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(
+                self.directory / GRAPH_FLOORS_FILENAME, json.dumps(floors, sort_keys=True).encode()
+            )
+        except OSError as exc:
+            raise FormatError(f"cannot write {self.directory / GRAPH_FLOORS_FILENAME}: {exc}") from exc

@@ -108,7 +108,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError
+from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError, UnavailableError
 from core.odometry import RELOCALIZED, PosePrior, ScanResult, extend_state_dict, with_keyframe
 from core.tiles import Tile, TileGrid
 from service.agreement import AgreementGate, Held
@@ -1627,6 +1627,8 @@ class SessionManager:
             No map of that name is loaded.
         MapInUseError
             A running session folds its scans into the map (close those sessions first).
+        UnavailableError
+            Its pose graph's log could not be rewritten (nothing was deleted).
         """
         with self._flush_lock, self._lock:
             users = sorted(
@@ -1643,6 +1645,11 @@ class SessionManager:
             if grid is None:
                 raise NotFoundError(f"map {map_name!r} not found", resource="map", ident=map_name)
             n_tiles = len(grid)
+            if self.graph is not None:  # its pose graph first: a restart must not bring it back
+                try:
+                    self.graph.forget_map(map_name)
+                except RandtError as exc:
+                    raise UnavailableError(f"map {map_name!r} not deleted: its pose graph: {exc}") from exc
             # Its highest version becomes the floor of a later map of the same name (first).
             floor = max([grid.version_floor, *(t.version for t in grid.tiles())])
             self.store.delete_map(map_name, version_floor=floor)

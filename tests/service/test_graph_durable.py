@@ -62,4 +62,27 @@ def test_a_restarted_service_shows_the_graph_it_had_and_corrects_on_from_there(t
         assert later is not None and len(_keyframes(later)) > len(kb)
         new = [m for m in server.service._sent if isinstance(m, CorrectionMessage)]
         assert all(m.revision > before.revision for m in new)
+        # The map is deleted (its sessions closed first): its graph goes, from the log too
+        mgr = server.service.sessions
+        assert mgr is not None
+        for vehicle in ("first", "evicted"):
+            mgr.close(vehicle, "d1")
+        mgr.delete_map("default")
+        assert graph.snapshot("default") is None
+        assert len(GraphLog(data / GRAPH_DIRNAME)) == 0
+        # ... and a new map of its name numbers its revisions above the deleted one's
+        _send(server, "later", drives["later"][:N_SCANS])
+        assert graph.wait_idle(120)
+        fresh = graph.snapshot("default")
+        assert fresh is not None and set(fresh.keyframes) == {("later", "d1")}
+        assert fresh.revision >= later.revision
+        logged = len(GraphLog(data / GRAPH_DIRNAME))
+        assert logged == len(_keyframes(fresh)) >= 2
     assert max((m.revision for m in sent), default=0) <= before.revision
+
+    with live_server(data, capacity_target=0) as server:  # the deleted graph does not come back
+        graph = _graph(server)
+        assert graph.wait_idle(120)
+        again = graph.snapshot("default")
+        assert again is not None and set(again.keyframes) == {("later", "d1")}
+        assert again.revision == fresh.revision and len(_keyframes(again)) == logged

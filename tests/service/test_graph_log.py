@@ -71,3 +71,21 @@ def test_a_corrupt_record_ends_the_log(tmp_path) -> None:
     data[first + 100] ^= 0xFF  # a flipped byte inside the second record's body
     path.write_bytes(bytes(data))
     assert [g[4] for g in GraphLog(tmp_path).read()] == [0]
+
+
+def test_a_deleted_map_leaves_the_log_and_its_revision_stays_as_a_floor(tmp_path) -> None:
+    log = GraphLog(tmp_path)
+    own = ("keyframe", "car.d1", *_item(3)[2:10], "default")  # a session without priors, joining
+    items = [_item(0), own, _item(1), ("keyframe", "other", *_item(2)[2:])]
+    for item in items:
+        log.append((1.0, item))
+    assert log.without_map("default") == 2
+    again = GraphLog(tmp_path).read()
+    assert [item[1] for _, item in again] == ["car.d1", "other"]
+    assert again[0][1][-1] is None  # its offer to the deleted map is gone with it
+    assert _same(again[0][1][:-1], own[:-1]) and _same(again[1][1], items[3])
+    assert log.without_map("default") == 0
+    assert log.floors() == {}
+    log.set_floor("default", 7)
+    log.set_floor("default", 3)  # the highest stays
+    assert GraphLog(tmp_path).floors() == {"default": 7}
