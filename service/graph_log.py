@@ -26,7 +26,6 @@ vehicles saw.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import struct
@@ -39,7 +38,7 @@ import msgpack
 import numpy as np
 
 from core.errors import FormatError
-from core.io.atomic import atomic_open, atomic_write_bytes, fsync_directory
+from core.io.atomic import append_durably, atomic_open, atomic_write_bytes
 
 __all__ = ["GRAPH_DIRNAME", "GRAPH_FLOORS_FILENAME", "GRAPH_LOG_FILENAME", "GraphLog"]
 
@@ -148,30 +147,7 @@ class GraphLog:
             self.read()  # (cuts a torn tail first)
         data = encode_item(item)
         with self._lock:
-            created = not self.path.exists()
-            try:
-                self.directory.mkdir(parents=True, exist_ok=True)
-                fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-            except OSError as exc:
-                raise FormatError(f"cannot open {self.path}: {exc}") from exc
-            try:
-                size = os.fstat(fd).st_size
-                try:
-                    if os.write(fd, data) != len(data):
-                        raise OSError(f"short write to {self.path}")
-                    os.fsync(fd)
-                except OSError as exc:
-                    with contextlib.suppress(OSError):
-                        os.ftruncate(fd, size)
-                    raise FormatError(f"cannot append to {self.path}: {exc}") from exc
-            finally:
-                os.close(fd)
-            if created:
-                try:
-                    fsync_directory(self.directory)
-                    fsync_directory(self.directory.parent)
-                except OSError as exc:
-                    raise FormatError(f"cannot sync {self.directory}: {exc}") from exc
+            append_durably(self.path, data, new_dirs=2)
             assert self._count is not None
             self._count += 1
 

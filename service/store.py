@@ -117,7 +117,7 @@ from scipy.spatial.transform import Rotation
 
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
-from core.io.atomic import atomic_open, fsync_directory
+from core.io.atomic import append_durably, atomic_open, fsync_directory
 from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME, read_sidecar
 from core.tiles import Tile, TileGrid, load_autoware
 from wire.ids import legacy_session_map_name, session_map_name, validate_id
@@ -1226,33 +1226,11 @@ class Store:
                     f"session {vehicle}/{session}: pose {record.index} does not continue the stored "
                     f"trajectory of {files.end} poses"
                 )
-            try:
-                created = not path.exists()
-                if created:
-                    directory.mkdir(parents=True, exist_ok=True)
-                fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-            except OSError as exc:
-                raise FormatError(f"cannot open {path}: {exc}") from exc
-            try:
-                size = os.fstat(fd).st_size
-                try:
-                    if os.write(fd, data) != len(data):
-                        raise OSError(f"short write to {path}")
-                    os.fsync(fd)
-                except OSError as exc:
-                    with contextlib.suppress(OSError):
-                        os.ftruncate(fd, size)
-                    self._files.pop(key, None)  # read again (and repaired) before the next use
-                    raise FormatError(f"cannot append to {path}: {exc}") from exc
-            finally:
-                os.close(fd)
-            if created:  # the new file's directory entries must be durable too
-                try:
-                    for d in (directory, directory.parent, directory.parent.parent):
-                        fsync_directory(d)
-                except OSError as exc:
-                    self._files.pop(key, None)
-                    raise FormatError(f"cannot sync {directory}: {exc}") from exc
+            try:  # (a new log's directory entries are synced up to DATA/sessions)
+                append_durably(path, data, new_dirs=3)
+            except FormatError:
+                self._files.pop(key, None)  # read again (and repaired) before the next use
+                raise
             files.appended(_Poses.of_record(record))
 
     def save_resume_sweep(self, vehicle: str, session: str, sweep: ResumeSweep) -> None:

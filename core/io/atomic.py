@@ -23,7 +23,7 @@ from typing import IO, Any
 
 from core.errors import FormatError
 
-__all__ = ["atomic_open", "atomic_write_bytes", "fsync_directory"]
+__all__ = ["append_durably", "atomic_open", "atomic_write_bytes", "fsync_directory"]
 
 logger = logging.getLogger(__name__)
 
@@ -153,3 +153,45 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """
     with atomic_open(path, "wb") as fh:
         fh.write(data)
+
+
+def append_durably(path: str | os.PathLike[str], data: bytes, *, new_dirs: int = 1) -> None:
+    """Append ``data`` to ``path`` and fsync it: when this returns, the bytes survive a crash
+    (the fsync'd logs: a session's poses, the pose graph's keyframes).
+
+    The file (and its directory) is created when missing; a new file's directory entry is made
+    durable too, in its directory and the ``new_dirs - 1`` above it (those that may have been
+    created with it). A write or sync that fails cuts the file back to its previous length where
+    possible (a torn tail left by a crash is the reader's to cut: records carry their own check).
+
+    Raises
+    ------
+    FormatError
+        It could not be opened, written or synced (disk full, read-only...).
+    """
+    path = Path(path)
+    try:
+        created = not path.exists()
+        if created:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise FormatError(f"cannot open {path}: {exc}") from exc
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            if os.write(fd, data) != len(data):
+                raise OSError(f"short write to {path}")
+            os.fsync(fd)
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise FormatError(f"cannot append to {path}: {exc}") from exc
+    finally:
+        os.close(fd)
+    if created:
+        try:
+            for directory in [path.parent, *path.parent.parents][:new_dirs]:
+                fsync_directory(directory)
+        except OSError as exc:
+            raise FormatError(f"cannot sync {path.parent}: {exc}") from exc
