@@ -14,19 +14,47 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import api
 from service.api.errors import HTTP_STATUS, error_response
 from service.runtime import Service
 from service.settings import ServiceSettings
 
-__all__ = ["create_app"]
+__all__ = ["HeadAsGet", "create_app"]
 
 _DESCRIPTION = """Status, sessions, Prometheus metrics, trajectories and map tiles of a randt-fleet
 service. Mutating endpoints need `Authorization: Bearer <RANDT_API_TOKEN>`; reads are open unless
 `RANDT_PROTECT_READS=true`. The map viewer is at `/`."""
+
+
+class HeadAsGet:
+    """``HEAD`` answered wherever ``GET`` is (RFC 9110 9.3.2: the same status and headers, no
+    body): FastAPI routes ``GET`` only, and ``HEAD`` on a tile answered 405. The request runs as
+    its ``GET`` (a ``HEAD`` costs what the ``GET`` does) and the body is dropped."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            await self.app(scope, receive, send)
+            return
+        done = False
+
+        async def headers_only(message: Message) -> None:
+            nonlocal done
+            if message["type"] != "http.response.body":
+                await send(message)
+            elif not done and not message.get("more_body", False):
+                done = True
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+
+        get: dict[str, Any] = {**scope, "method": "GET"}
+        await self.app(get, receive, headers_only)
 
 
 def create_app(settings: ServiceSettings | None = None, *, with_zenoh: bool = True) -> FastAPI:
@@ -62,4 +90,5 @@ def create_app(settings: ServiceSettings | None = None, *, with_zenoh: bool = Tr
     for error_class in HTTP_STATUS:  # one handler, one table: the project's errors -> status codes
         app.add_exception_handler(error_class, error_response)
     api.install(app)
+    app.add_middleware(HeadAsGet)
     return app

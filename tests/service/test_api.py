@@ -311,6 +311,14 @@ def test_tile_pcd_matches_the_store_and_opens_in_open3d(served, tmp_path) -> Non
     ours = read_cloud(downloaded)
     np.testing.assert_array_equal(ours.intensity, read_cloud(stored_file).intensity)
 
+    # HEAD wherever GET: the same status and headers, no body
+    head = client.head(f"/maps/default/tiles/{tile.ix}/{tile.iy}")
+    assert head.status_code == 200 and head.content == b""
+    for name in ("etag", "content-type", "content-length", "x-randt-tile-version"):
+        assert head.headers[name] == r.headers[name], name
+    assert client.head("/maps/default/tiles/999/999").status_code == 404
+    assert client.head("/status").status_code == 200 and client.head("/").status_code == 200
+
     # conditional GET: the current ETag -> 304 without a body; another one -> 200
     again = client.get(
         f"/maps/default/tiles/{tile.ix}/{tile.iy}", headers={"If-None-Match": r.headers["etag"]}
