@@ -424,7 +424,9 @@ def _graph_main(
     Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
     old), and at once on a ``sync`` request."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops it (``quit`` or the pipe closing)
+    # The service stops it (``quit`` or the pipe closing): not Ctrl-C or a SIGTERM to the group.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
     if os.getppid() != parent:  # the service died before the request: nobody would kill us
         return

@@ -486,10 +486,14 @@ def _serve(conn: Connection) -> None:
     """A worker process: warm up, say so (:data:`_READY`), then :func:`serve_requests` until the
     service quits or is gone.
 
-    SIGINT is ignored: Ctrl-C in a terminal reaches the whole process group, and the service
-    (the parent) stops its workers itself after draining the sessions (``quit``, or the pipe closing).
+    SIGINT and SIGTERM are ignored: Ctrl-C in a terminal reaches the whole process group, and so
+    does systemd's stop (``KillMode=control-group``, or ``kill -- -PGID``); the service (the parent)
+    stops its workers itself after draining and saving the sessions (``quit``, or the pipe closing,
+    which a service killed with SIGKILL closes too). Before, SIGTERM to the group ended the
+    matchers first: "matcher process died: Broken pipe; not saved" for every session.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored when started from the main thread)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     single_threaded_blas()
     try:
         warm_up()
@@ -686,8 +690,8 @@ class _WorkerProcess(_Channel):
             with contextlib.suppress(MatcherProcessDiedError):
                 self.call("quit", None)
         self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.terminate()
+        if self._proc.is_alive():  # (it ignores SIGTERM: _serve)
+            self._proc.kill()
             self._proc.join(timeout)
         self._conn.close()
         self.dead = True
