@@ -17,9 +17,10 @@ Then: a simulated vehicle on the host (through the published router port) and th
 (through the router, inside the compose network) both get every scan answered; ``/readyz``,
 ``/maps``, ``/sessions`` and a tile download answer through the published HTTP port; the service
 container restarted (SIGTERM: drained and flushed) keeps every tile byte for byte and every
-session; ``down`` then ``up`` likewise; the cluster profile (a Ray head, one worker, the service
-recreated with ``RANDT_EXECUTOR=ray``) matches a vehicle on the worker; finally ``down -v`` and
-the images it built removed.
+session; ``down`` then ``up`` likewise, and both keep the pose graph of ``default`` (its
+keyframes, placements and revision, the optimized poses within 1 mm; issue 33); the cluster
+profile (a Ray head, one worker, the service recreated with ``RANDT_EXECUTOR=ray``) matches a
+vehicle on the worker; finally ``down -v`` and the images it built removed.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 
@@ -151,6 +153,37 @@ class Stack:
 
 
 Snapshot = tuple[dict[str, tuple[int, int]], dict[str, bytes], dict[str, tuple[int, int]]] | None
+
+
+def _graph(stack: Stack) -> dict[str, Any] | None:
+    """``/maps/default/graph`` (None while it answers 404)."""
+    status, body, _ = stack.get("/maps/default/graph")
+    if status == 404:
+        return None
+    assert status == 200, (status, body[:300])
+    graph: dict[str, Any] = json.loads(body)
+    return graph
+
+
+def _same_graph(stack: Stack, before: dict[str, Any], timeout_s: float = 180.0) -> None:
+    """The restarted service's graph is the one it had: restored from its log (service/graph_log.py),
+    whose keyframes its graph process takes again before it shows them optimized."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        after = _graph(stack)
+        if after is not None and after["revision"] >= before["revision"]:  # noqa: SIM102
+            if all(k["pose"] is not None for k in after["keyframes"]):
+                break
+        assert time.monotonic() < deadline, f"the graph was not restored in {timeout_s:.0f} s: {after}"
+        time.sleep(1.0)
+    assert after is not None
+    assert after["revision"] == before["revision"] and after["placed"] == before["placed"]
+    assert after["joined"].keys() == before["joined"].keys()
+    kb = {(k["vehicle"], k["session"], k["seq"]): k["pose"] for k in before["keyframes"]}
+    ka = {(k["vehicle"], k["session"], k["seq"]): k["pose"] for k in after["keyframes"]}
+    assert ka.keys() == kb.keys(), "the graph's keyframes changed"
+    worst = max(float(np.abs(np.subtract(ka[key], kb[key])).max()) for key in kb)
+    assert worst < 1e-3, f"an optimized keyframe pose moved by {worst:.4f}"
 
 
 def _adapted_compose(
@@ -423,6 +456,8 @@ def test_vehicles_on_the_host_and_in_the_compose_network_reach_the_service(
 def test_restart_and_down_up_keep_every_tile_and_session(stack: Stack) -> None:
     before = stack.settled()
     assert before is not None and before[0] and before[2], "nothing mapped: the previous test did not run"
+    graph = _graph(stack)
+    assert graph is not None and len(graph["keyframes"]) >= 3, graph
     t = time.monotonic()
     stack.compose("restart", "randt", timeout=300)
     stack.wait_healthy()
@@ -432,6 +467,7 @@ def test_restart_and_down_up_keep_every_tile_and_session(stack: Stack) -> None:
     assert after[0] == before[0], "tiles (id -> version, points) changed across a restart"
     assert after[1] == before[1], "tile bytes changed across a restart"
     assert after[2] == before[2], "sessions changed across a restart"
+    _same_graph(stack, graph)
     t = time.monotonic()
     stack.compose("down", timeout=300)
     stack.compose("up", "-d", "zenoh", "randt")
@@ -439,6 +475,7 @@ def test_restart_and_down_up_keep_every_tile_and_session(stack: Stack) -> None:
     stack.timings["down and up"] = time.monotonic() - t
     again = stack.snapshot()
     assert again == before, "down + up lost or changed a tile or a session"
+    _same_graph(stack, graph)
 
 
 def test_the_cluster_profile_matches_on_a_ray_worker(stack: Stack, tmp_path: Path) -> None:
