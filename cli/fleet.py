@@ -264,6 +264,36 @@ def _map_folder_stats(folder: Path, pdu_voxel_m: float) -> tuple[int, int, float
     return len(files), int(xyz.shape[0]), float(pdu(xyz, pdu_voxel_m))
 
 
+#: How long the demo waits for the service's matcher processes to be warm (numba kernels compiled
+#: or loaded) before it fails.
+WARM_UP_TIMEOUT_S = 300.0
+
+
+def _wait_warm(base: str) -> None:
+    """Say that the matchers warm up, and wait for it (``/readyz``): the fleet's progress bar
+    would otherwise sit at 0 for the 20 s a first run takes, with no word of why."""
+    import time
+
+    import httpx
+
+    typer.echo(
+        "warming up the matcher processes (numba kernels: about 20 s the first time on this machine, "
+        "1-2 s once cached)...",
+        nl=False,
+    )
+    tic = time.monotonic()
+    while time.monotonic() - tic < WARM_UP_TIMEOUT_S:
+        try:
+            if httpx.get(f"{base}/readyz", timeout=5).json().get("ready"):
+                typer.echo(f" ready in {time.monotonic() - tic:.0f} s")
+                return
+        except (httpx.HTTPError, ValueError):
+            pass
+        time.sleep(0.2)
+    typer.echo("")
+    raise fail(TimeoutError(f"the service was not ready within {WARM_UP_TIMEOUT_S:.0f} s ({base}/readyz)"))
+
+
 def demo(
     vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles.")] = 3,
     duration: Annotated[
@@ -357,6 +387,7 @@ def demo(
         kept = "" if data_dir is not None else " (temporary, removed at exit: keep one with --data-dir)"
         typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}{kept}")
         typer.echo(f"viewer: {base}/  (open it now: the map grows as the fleet drives)")
+        _wait_warm(base)
         typer.echo(
             f"simulating {vehicles} vehicles for {duration:g} s each: {n_scans} sweeps of a 64-beam LiDAR "
             f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s; each vehicle waits for its answers "
@@ -409,10 +440,18 @@ def demo(
         typer.echo(
             f"map default: {n_tiles} tiles, {n_points} points, PDU {pdu_text} (0.5 m voxels; 1 = uniform)"
         )
-        typer.echo(f"tiles (Autoware layout): {tiles_dir}")
-        typer.echo(f"viewer: {base}/" if viewer else "viewer: not available in this version")
-        typer.echo(f"REST: {' '.join(base + p for p in available)}")
-        typer.echo(f"download the map: randt tiles download default ./map --url {base}")
+        if data_dir is not None:
+            typer.echo(f"tiles (Autoware layout): {tiles_dir}")
+        elif exit_:
+            typer.echo("tiles: removed with the temporary folder at exit (keep them with --data-dir)")
+        else:
+            typer.echo(f"tiles (Autoware layout, removed at exit): {tiles_dir}")
+        if exit_:  # the service stops now: no link to it
+            typer.echo("the service stops now (--exit); without --exit it serves the map on")
+        else:
+            typer.echo(f"viewer: {base}/" if viewer else "viewer: not available in this version")
+            typer.echo(f"REST: {' '.join(base + p for p in available)}")
+            typer.echo(f"download the map: randt tiles download default ./map --url {base}")
         summarized = True
         if not exit_:
             typer.echo("serving until Ctrl-C")

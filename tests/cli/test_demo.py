@@ -212,6 +212,12 @@ def test_demo_shows_the_viewer_first_and_removes_its_temporary_data(tmp_path: Pa
     viewer = next(i for i, line in enumerate(lines) if line.startswith(f"viewer: {base}/"))
     fleet = next(i for i, line in enumerate(lines) if line.startswith("simulating 1 vehicles"))
     assert viewer < fleet, "the viewer's URL is printed before the fleet starts"
+    warm = next(i for i, line in enumerate(lines) if line.startswith("warming up the matcher processes"))
+    assert viewer < warm < fleet and re.search(r"\.\.\. ready in \d+ s$", lines[warm]), lines[warm]
+    # --exit: the service stops after the summary, so no link to it and no removed folder is shown
+    summary = lines[next(i for i, line in enumerate(lines) if line.startswith("map default:")) :]
+    assert not [line for line in summary if base in line or "REST" in line], summary
+    assert "tiles: removed with the temporary folder at exit (keep them with --data-dir)" in summary
     data = re.search(r"data in (\S+) \(temporary, removed at exit", proc.stdout)
     assert data and Path(data[1]).parent == tmp, proc.stdout
     rows = [m.groups() for line in lines if (m := ROW.match(line))]
