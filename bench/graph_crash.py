@@ -161,9 +161,9 @@ def _worker(data_dir: str, spool: str, out_path: str | None) -> None:
         mgr.graph.wait_idle(600)
         result: dict[str, Any] = {}
         for v in VEHICLES:
-            live = mgr.trajectory(v, "d1")
-            assert live is not None
-            corrected, map_name = mgr.graph.corrected(v, "d1", live[1])
+            live = mgr.trajectory(v, "d1")  # (None when the kills left nothing to drive: stored)
+            poses = live[1] if live is not None else mgr.store.load_session(v, "d1").poses
+            corrected, map_name = mgr.graph.corrected(v, "d1", poses)
             result[v] = {"map": map_name, "xyz": corrected[:, :3, 3].tolist()}
         state = mgr.graph.snapshot("default")
         result["keyframes"] = 0 if state is None else sum(len(k) for k in state.keyframes.values())
@@ -232,7 +232,8 @@ def run_graph_kill_cycles(
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(30)
         reader.join(30)
-        logged = {(item[2], item[3], item[4]) for _, item in GraphLog(data / GRAPH_DIRNAME).read()}
+        records = GraphLog(data / GRAPH_DIRNAME).read()
+        logged = {(item[2], item[3], item[4]) for _, item in records if item[0] == "keyframe"}
         before = dict(highest)
         for text in lines:
             if not text.endswith("\n"):

@@ -53,7 +53,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, cast
@@ -379,6 +379,12 @@ class _ProcessMap:
         return (kind, self.name, self.revision, moved, held, start, loops, placed)
 
 
+def _retry_key(item: tuple[Any, ...]) -> Hashable:
+    """What names an item across the process's deaths: a keyframe by its map, session and seq
+    (taken again from the log, it is another object), anything else by identity."""
+    return ("keyframe", *item[1:5]) if item[0] == "keyframe" else id(item)
+
+
 def _lowest_priority() -> None:
     """Run this process only on a core nothing else wants: ``SCHED_IDLE`` (Linux), else niced by
     ``GRAPH_NICE``. Two vehicles on two cores, per-sweep latency with the graph against without
@@ -661,7 +667,12 @@ class ServiceGraph:
         #: Items sent to the current process and not answered yet, in order (it answers in order).
         self._inflight: list[tuple[Any, ...]] = []
         #: Items that were in flight when a process died: in flight at a second death, dropped.
-        self._retried: set[int] = set()
+        self._retried: set[Hashable] = set()
+        #: Keyframes offered and not yet in the log (:meth:`_log_loop` appends them, in order,
+        #: before they are queued for the process); the writer holds ``_writing`` while it does.
+        self._unlogged: list[tuple[Any, ...]] = []
+        self._writing = threading.Lock()
+        self._writer: threading.Thread | None = None
         #: Per map, the revision and loop count when the current process started: a restarted
         #: process counts both from zero, and what the service shows never goes back.
         self._bases: dict[str, tuple[int, int]] = {}
@@ -695,7 +706,7 @@ class ServiceGraph:
             log.error("pose graph: %s: the revisions of maps deleted before may start lower", exc)
             floors = {}
         self._bases = {name: (revision, 0) for name, revision in floors.items()}
-        records = self._log.read()
+        records = self._replayable(self._log.read())
         if not records:
             return
         with self._lock:
@@ -711,6 +722,18 @@ class ServiceGraph:
             self._queue_replay([item for _, item in records])
             self._start()
 
+    @staticmethod
+    def _replayable(records: list[tuple[Any, ...]]) -> list[tuple[float, tuple[Any, ...]]]:
+        """The logged keyframes the graph is to take again, in order: every one offered, but
+        those a ``drop`` record names (dropped by a full queue, or in flight at two deaths of the
+        process: the graph never took them)."""
+        dropped = {tuple(item[1:5]) for _, item in records if item[0] == "drop"}
+        return [
+            (stamp, item)
+            for stamp, item in records
+            if item[0] == "keyframe" and tuple(item[1:5]) not in dropped
+        ]
+
     def _queue_replay(self, items: list[tuple[Any, ...]]) -> None:
         """Queue the logged ``items`` first (under ``_cond``), marked as replayed."""
         self._replay_ids = {id(item) for item in items}
@@ -718,30 +741,77 @@ class ServiceGraph:
         self._offered += len(items)
         self._cond.notify_all()
 
-    def _log_taken(self, item: tuple[Any, ...]) -> None:
-        """A keyframe the graph took, to the log before anything made of it is shown outside
-        (not one of a map being deleted, nor its offer to such a map: :meth:`forget_map`)."""
-        if self._log is None or item[0] != "keyframe" or id(item) in self._replay_ids:
-            return
-        with self._cond:
-            if item[1] in self._forgetting:
-                return
-            if item[-1] in self._forgetting:
-                item = (*item[:-1], None)
+    def _log_loop(self) -> None:
+        """The writer: each offered keyframe appended to the log and fsync'd, in the order offered,
+        then queued for the process (so the graph takes them in the log's order, and shows
+        nothing made of a keyframe before it is durable). One that cannot be written is not
+        given to the graph (counted; logged)."""
+        assert self._log is not None
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._closed or bool(self._unlogged))
+                if self._closed:
+                    return
+            with self._writing:
+                with self._cond:
+                    if not self._unlogged:  # (taken out by forget_map meanwhile)
+                        continue
+                    item = self._unlogged[0]
+                ok = self._append(self._stamp_of(item), item)
+                with self._cond:
+                    if self._unlogged and self._unlogged[0] is item:
+                        self._unlogged.pop(0)
+                    if not ok:
+                        self._offered -= 1
+                        self._cond.notify_all()
+                        dropped = None
+                    else:
+                        dropped = self._enqueue(item)
+                if not ok:
+                    self._forget_keyframe(item[1], (item[2], item[3]), item[4])
+                elif dropped is not None:  # logged before: the graph never took it
+                    self._append(0.0, ("drop", *dropped[1:5]))
+
+    def _append(self, stamp_s: float, item: tuple[Any, ...]) -> bool:
+        assert self._log is not None
+        try:
+            self._log.append((stamp_s, item))
+        except RandtError:
+            self._metrics.store_errors.inc()
+            log.exception("pose graph: %s %s/%s seq %d not made durable", item[0], item[2], item[3], item[4])
+            return False
+        return True
+
+    def _stamp_of(self, item: tuple[Any, ...]) -> float:
+        """The stamp of a keyframe item (the service keeps it beside, in its ``_Keyframe``)."""
         _, map_name, vehicle, session, _seq, index = item[:6]
-        stamp_s = 0.0
         with self._lock:
             for name in (map_name, self._session_map.get((vehicle, session))):
                 st = None if name is None else self._states.get(name)
                 kf = None if st is None else st.keyframes.get((vehicle, session), {}).get(index)
                 if kf is not None:
-                    stamp_s = kf.stamp_s
-                    break
-        try:
-            self._log.append((stamp_s, item))
-        except RandtError:  # the graph goes on in memory; a restart will not have this keyframe
-            self._metrics.store_errors.inc()
-            log.exception("pose graph: keyframe %s/%s seq %d not made durable", vehicle, session, item[4])
+                    return kf.stamp_s
+        return 0.0
+
+    def _enqueue(self, item: tuple[Any, ...]) -> tuple[Any, ...] | None:
+        """Queue a keyframe for the process (under ``_cond``); when ``graph_queue`` keyframes
+        wait, the oldest is dropped (counted, logged; never one taken again from the log), and
+        returned."""
+        keyframes = [  # (what the graph took before, from its log, is never dropped)
+            i
+            for i, queued in enumerate(self._queued)
+            if queued[0] == "keyframe" and id(queued) not in self._replay_ids
+        ]
+        dropped = None
+        if len(keyframes) >= self._queue_size:
+            dropped = self._queued.pop(keyframes[0])
+            self._offered -= 1
+            self._metrics.graph_queue_dropped.inc()
+            log.warning("pose graph behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
+            self._forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
+        self._queued.append(item)
+        self._cond.notify_all()
+        return dropped
 
     @property
     def started(self) -> bool:
@@ -787,6 +857,9 @@ class ServiceGraph:
         self._sender = threading.Thread(target=self._send_loop, name="graph-sender", daemon=True)
         self._supervisor.start()
         self._sender.start()
+        if self._log is not None:
+            self._writer = threading.Thread(target=self._log_loop, name="graph-log-writer", daemon=True)
+            self._writer.start()
 
     def _closing_at_exit(self) -> None:
         with self._cond:
@@ -860,25 +933,27 @@ class ServiceGraph:
         how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
         self._metrics.graph_up.set(0)
         self._metrics.graph_restarts.inc()
-        with self._cond:
+        with self._writing, self._cond:  # (the writer is between two keyframes)
             self._proc = self._conn = None
             self.restarts += 1
             self.last_exit = how
-            retry = []
+            retry, poison = [], []
             for item in self._inflight:
-                if id(item) in self._retried:  # in flight at two deaths: it may be what kills it
-                    self._retried.discard(id(item))
+                key = _retry_key(item)
+                if key in self._retried:  # in flight at two deaths: it may be what kills it
+                    self._retried.discard(key)
                     self._replay_ids.discard(id(item))
                     log.error("pose graph: %s dropped, in flight at two deaths of the process", item[0])
                     if item[0] == "keyframe":
                         self._offered -= 1
                         self._forget_keyframe(item[1], (item[2], item[3]), item[4])
+                        poison.append(item)
                     elif item[0] == "sync":
                         self._synced = max(self._synced, item[1])
                     elif item[0] == "forget":
                         self._forgotten(item[1])
                     continue
-                self._retried.add(id(item))
+                self._retried.add(key)
                 retry.append(item)
             self._inflight = []
             places: list[tuple[Any, ...]] = []
@@ -891,10 +966,15 @@ class ServiceGraph:
                         ("place", map_name, key[0], key[1], T) for key, (map_name, T) in self._joined.items()
                     ]
             self._queued[:0] = places + retry
-            if self._log is not None:  # the graph as it was, from its log, then what was in flight
-                self._offered -= sum(1 for item in self._queued if id(item) in self._replay_ids)
-                self._queued = [item for item in self._queued if id(item) not in self._replay_ids]
-                self._queue_replay([item for _, item in self._log.read()])
+            if self._log is not None:
+                # Every keyframe queued or in flight is in the log: the log, taken again in order,
+                # brings them back (but those dropped at two deaths), then what waits to be logged.
+                kept = [item for item in self._queued if item[0] != "keyframe"]
+                self._offered -= len(self._queued) - len(kept)
+                self._queued = kept
+                for item in poison:
+                    self._append(0.0, ("drop", *item[1:5]))
+                self._queue_replay([item for _, item in self._replayable(self._log.read())])
             self._cond.notify_all()
         log.error(
             "the pose graph process died (%s): restarting it; its keyframes before now stay as they "
@@ -944,25 +1024,26 @@ class ServiceGraph:
         with self._lock:
             st = self._states.get(map_name)
             revision = max(0 if st is None else st.revision, self._bases.get(map_name, (0, 0))[0])
-        with self._cond:
-            if self._supervisor is not None and not self._closed:
-                self._forgetting[map_name] = self._forgetting.get(map_name, 0) + 1
-                kept = [it for it in self._queued if not (it[0] == "keyframe" and it[1] == map_name)]
-                self._offered -= len(self._queued) - len(kept)
-                self._replay_ids -= {id(it) for it in self._queued} - {id(it) for it in kept}
-                self._queued = [*kept, ("forget", map_name)]
-                self._cond.notify_all()
-        if self._log is not None:
-            try:
+        with self._writing:  # (the log's writer waits: nothing of the map is logged after this)
+            if self._log is not None:
                 self._log.set_floor(map_name, revision)
                 gone = self._log.without_map(map_name)
-            except RandtError:
-                with self._cond:
-                    self._queued = [it for it in self._queued if it != ("forget", map_name)]
-                    if self._forgetting.get(map_name):
-                        self._forgotten(map_name)
-                raise
-            log.info("pose graph of map %s deleted (%d keyframes out of its log)", map_name, gone)
+                log.info("pose graph of map %s deleted (%d records out of its log)", map_name, gone)
+            with self._cond:
+                ours = [it for it in self._unlogged if it[1] == map_name]
+                self._unlogged = [
+                    it if it[-1] != map_name else (*it[:-1], None)
+                    for it in self._unlogged
+                    if it[1] != map_name
+                ]
+                self._offered -= len(ours)
+                if self._supervisor is not None and not self._closed:
+                    self._forgetting[map_name] = self._forgetting.get(map_name, 0) + 1
+                    kept = [it for it in self._queued if not (it[0] == "keyframe" and it[1] == map_name)]
+                    self._offered -= len(self._queued) - len(kept)
+                    self._replay_ids -= {id(it) for it in self._queued} - {id(it) for it in kept}
+                    self._queued = [*kept, ("forget", map_name)]
+                self._cond.notify_all()
         with self._lock:
             self._states.pop(map_name, None)
             self._bases[map_name] = (revision, 0)
@@ -1018,20 +1099,18 @@ class ServiceGraph:
             if self._closed:
                 return
             self._start()
-            keyframes = [  # (what the graph took before, from its log, is never dropped)
-                i
-                for i, queued in enumerate(self._queued)
-                if queued[0] == "keyframe" and id(queued) not in self._replay_ids
-            ]
-            if len(keyframes) >= self._queue_size:
-                dropped = self._queued.pop(keyframes[0])
+            self._offered += 1
+            if self._log is None:
+                self._enqueue(item)
+                return
+            self._unlogged.append(item)  # (to the log first: _log_loop)
+            if len(self._unlogged) > self._queue_size:  # the disk is behind: never logged, no record
+                dropped = self._unlogged.pop(0)
                 self._offered -= 1
                 self._metrics.graph_queue_dropped.inc()
-                log.warning("pose graph behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
+                log.warning("pose graph log behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
                 self._forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
-            self._queued.append(item)
-            self._offered += 1
-            self._cond.notify()
+            self._cond.notify_all()
 
     def _forget_keyframe(self, map_name: str, key: SessionKey, seq: int) -> None:
         with self._lock:
@@ -1068,9 +1147,9 @@ class ServiceGraph:
         keyframe offered after a restart was taken for a replayed one, neither logged nor
         published, until this was so)."""
         if self._inflight:
-            done = id(self._inflight.pop(0))
-            self._retried.discard(done)
-            self._replay_ids.discard(done)
+            item = self._inflight.pop(0)
+            self._retried.discard(_retry_key(item))
+            self._replay_ids.discard(id(item))
 
     # -- output (receiver thread) ------------------------------------------------------------
     def _receive_loop(self, conn: Connection, pid: int | None) -> None:
@@ -1097,8 +1176,6 @@ class ServiceGraph:
                 with self._cond:
                     item = self._inflight[0] if self._inflight else None
                     self._answered_replay = item is not None and id(item) in self._replay_ids
-                if message[0] == "update" and item is not None:
-                    self._log_taken(item)
             with self._cond:
                 stale = message[1] in self._forgetting  # of a deleted map (forget_map)
             try:

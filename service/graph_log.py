@@ -1,24 +1,31 @@
-"""The pose graph's durable input (issue 33): every keyframe the graph took, in the order it took
-them, appended and fsync'd before what the graph made of it is shown outside.
+"""The pose graph's durable input (issue 33): every keyframe offered to the graph, in the order
+offered, appended and fsync'd before the graph process gets it (so before anything made of it is
+shown outside).
 
 The graph's state (FleetMapper: keyframes, odometry and GNSS factors, loops with their
 verification, placements, joins) is a deterministic function of the keyframes it took and their
 order (no randomness in place recognition, global registration or iSAM2). So instead of writing
 that state, the service writes its input: a restarted graph process (or service) takes the logged
 keyframes again, in order, and arrives at the same graph, revisions and all; only then does it
-take new ones. What a kill -9 may lose: the keyframes the graph had not finished when it died
-(not logged, so nothing shown came from them); their sessions' later keyframes go on.
+take new ones. A keyframe is logged when it is offered (by a writer thread, not the session's),
+and the process takes keyframes in that order, so a graph that lags loses nothing to a kill -9:
+what a kill may lose is the keyframes offered and not yet written (the writer's backlog, a few
+milliseconds of fsync). A keyframe the graph will never take (dropped by a full queue, or in
+flight at two deaths of the process) is named by a ``drop`` record after it, and not taken
+again.
 
 File: ``DATA/graph/keyframes.log``, records appended one by one::
 
     u32 length of the body | u32 CRC-32 of the body | body (msgpack)
 
-The body is the keyframe as :meth:`service.graph.ServiceGraph.offer` queues it, with its arrays
-as ``[dtype, shape, bytes]``. A torn or corrupt tail (a crash mid-append) ends the log: it is cut
-off when the log is opened, and the next append goes after the last good record.
+The body is ``(stamp_s, item)``: the keyframe as :meth:`service.graph.ServiceGraph.offer` queues
+it (``("keyframe", map, vehicle, session, seq, ...)``), with its arrays as ``[dtype, shape,
+bytes]``, or ``("drop", map, vehicle, session, seq)``. A torn or corrupt tail (a crash
+mid-append) ends the log: it is cut off when the log is opened, and the next append goes after the
+last good record.
 
 A deleted map leaves the log (:meth:`GraphLog.without_map`: the log rewritten without its
-keyframes, atomically, and without the offers of other maps' keyframes to it), so a restart
+records, atomically, and without the offers of other maps' keyframes to it), so a restart
 never brings its graph back; its revision stays in ``DATA/graph/floors.json`` (map -> revision),
 the floor of a later map of the same name, whose corrections then go on numbering above what its
 vehicles saw.

@@ -5,6 +5,8 @@ session after a restart: tests/service/test_agreement.py (its joined drive is re
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from service.graph import GraphState, ServiceGraph
@@ -86,3 +88,64 @@ def test_a_restarted_service_shows_the_graph_it_had_and_corrects_on_from_there(t
         again = graph.snapshot("default")
         assert again is not None and set(again.keyframes) == {("later", "d1")}
         assert again.revision == fresh.revision and len(_keyframes(again)) == logged
+
+
+def test_an_offered_keyframe_is_durable_before_the_graph_takes_it(tmp_path) -> None:
+    """The log is written when a keyframe is offered, before the process takes it: a graph that
+    lags (stopped here) loses nothing to a kill -9, and a restart takes everything offered. (When
+    it was written as the process took them, a kill -9 lost every keyframe still queued: 18 were
+    logged after ten kills of bench/graph_crash.py's 2 x 400-sweep drive.)"""
+    import os
+    import signal
+
+    from core.fleet_map import FleetMapSettings
+    from service.metrics import ServiceMetrics
+    from tests.pairs import kitti00_velodyne
+
+    log_dir = tmp_path / GRAPH_DIRNAME
+    graph = ServiceGraph(
+        FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False, log_dir=log_dir
+    )
+
+    def offer(k: int) -> None:
+        T = np.eye(4)
+        T[:3, 3] = (2.5 * k, 0.0, 0.0)
+        xyz = kitti00_velodyne(3 * k)[::4].astype(np.float32)  # (frames 0-10 are in the shared data)
+        graph.offer(
+            "car", "d1", map_name="default", seq=10 * k, index=10 * k, stamp_s=float(k), T_live=T, points=xyz
+        )
+
+    try:
+        offer(0)
+        deadline = time.monotonic() + 120
+        while graph.pid is None or not graph.running:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert graph.wait_idle(120)
+        os.kill(graph.pid, signal.SIGSTOP)  # the graph takes nothing more
+        try:
+            for k in range(1, 4):
+                offer(k)
+            while len(GraphLog(log_dir).read()) < 4:
+                assert time.monotonic() < deadline, "offered keyframes not logged"
+                time.sleep(0.05)
+            assert graph._done == 1  # none of them taken
+        finally:
+            os.kill(graph.pid, signal.SIGCONT)
+    finally:
+        graph.close()
+    again = ServiceGraph(
+        FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False, log_dir=log_dir
+    )
+    try:
+        assert again.wait_idle(120)
+        state = again.snapshot("default")
+        assert state is not None and sorted(kf.seq for kf in state.keyframes[("car", "d1")].values()) == [
+            0,
+            10,
+            20,
+            30,
+        ]
+        assert all(kf.optimized is not None for kf in state.keyframes[("car", "d1")].values())
+    finally:
+        again.close()
