@@ -134,11 +134,19 @@ def _worker(data_dir: str, spool: str, out_path: str | None) -> None:
     settings = ServiceSettings(
         data_dir=Path(data_dir), flush_interval_s=0.5, capacity_target=0, idle_expiry_s=3600
     )
+
+    class Outbox(list[WireMessage]):
+        """The service's outbox without Zenoh (``Service._sent``): every message it sends, the
+        graph's corrections included, goes through ``emit`` as it goes out."""
+
+        def append(self, msg: WireMessage) -> None:
+            emit(msg)
+
     service = Service(settings, with_zenoh=False)
+    service._sent = Outbox()  # (bound by start(): the sessions' and the graph's outbox)
     service.start()
     mgr = service.sessions
     assert mgr is not None and mgr.graph is not None
-    mgr.outbox = emit
     mgr.wait_matchers(600)
     records = mgr.records()
     offsets = {v: np.r_[0, np.cumsum(drive[f"{v}_n"])] for v in VEHICLES}
