@@ -340,32 +340,37 @@ def demo(
     if data_dir is not None:
         check_data_dir_free(data_dir)
     data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
-    logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
-    zport, z_ok = _usable_port(zenoh_port)
-    hport, h_ok = _usable_port(http_port)
-    for name, wanted, got, ok in (("Zenoh", zenoh_port, zport, z_ok), ("HTTP", http_port, hport, h_ok)):
-        if not ok:
-            typer.echo(f"randt demo: {name} port {wanted} is taken, using {got}", err=True)
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    settings = ServiceSettings(
-        data_dir=data,
-        zenoh_mode="peer",
-        listen=(endpoint,),
-        connect=(),
-        http_host="127.0.0.1",
-        http_port=hport,
-        # Every requested vehicle is admitted: the demo's vehicles wait for their answers
-        # (clients/fleet.py's window), so they pace themselves instead of overloading (neither
-        # the count cap nor the measured capacity, which real-time vehicles need, applies).
-        max_sessions=0,
-        capacity_target=0,
-    )
-    base = f"http://127.0.0.1:{hport}"
-    server = uvicorn.Server(
-        uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_level="warning")
-    )
-    thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
-    previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:  # (a Ctrl-C before the service runs leaves no temporary folder either)
+        logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
+        zport, z_ok = _usable_port(zenoh_port)
+        hport, h_ok = _usable_port(http_port)
+        for name, wanted, got, ok in (("Zenoh", zenoh_port, zport, z_ok), ("HTTP", http_port, hport, h_ok)):
+            if not ok:
+                typer.echo(f"randt demo: {name} port {wanted} is taken, using {got}", err=True)
+        endpoint = f"tcp/127.0.0.1:{zport}"
+        settings = ServiceSettings(
+            data_dir=data,
+            zenoh_mode="peer",
+            listen=(endpoint,),
+            connect=(),
+            http_host="127.0.0.1",
+            http_port=hport,
+            # Every requested vehicle is admitted: the demo's vehicles wait for their answers
+            # (clients/fleet.py's window), so they pace themselves instead of overloading (neither
+            # the count cap nor the measured capacity, which real-time vehicles need, applies).
+            max_sessions=0,
+            capacity_target=0,
+        )
+        base = f"http://127.0.0.1:{hport}"
+        server = uvicorn.Server(
+            uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_level="warning")
+        )
+        thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
+        previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+    except BaseException:
+        if data_dir is None:
+            shutil.rmtree(data, ignore_errors=True)
+        raise
 
     def shutdown() -> None:
         server.should_exit = True

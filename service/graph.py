@@ -66,7 +66,7 @@ from core.fleet_map import FleetMapper, FleetMapSettings
 from core.tiles import TileGrid, tile_id
 from core.transforms import rotation_angle_deg
 from service.graph_log import GraphLog
-from service.matchers import _sigint_ignored_by_children, single_threaded_blas
+from service.matchers import _sigint_ignored_by_children, ignore_group_signals, single_threaded_blas
 from service.metrics import ServiceMetrics
 from wire.messages import CorrectionMessage, correction_from_arrays
 
@@ -430,9 +430,7 @@ def _graph_main(
     Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
     old), and at once on a ``sync`` request."""
-    # The service stops it (``quit`` or the pipe closing): not Ctrl-C or a SIGTERM to the group.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ignore_group_signals()  # the service stops it (``quit`` or the pipe closing), not Ctrl-C
     _die_with_parent()
     if os.getppid() != parent:  # the service died before the request: nobody would kill us
         return

@@ -32,13 +32,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import multiprocessing.util
 import os
 import pickle
 import signal
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
 from typing import Any, Protocol
@@ -492,8 +493,7 @@ def _serve(conn: Connection) -> None:
     which a service killed with SIGKILL closes too). Before, SIGTERM to the group ended the
     matchers first: "matcher process died: Broken pipe; not saved" for every session.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (already ignored when started from the main thread)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ignore_group_signals()
     single_threaded_blas()
     try:
         warm_up()
@@ -571,25 +571,77 @@ class CpuLedger:
         return replace(value, cpu_s=spent_s + self._carried.pop(key, 0.0))
 
 
+#: The signals a terminal (Ctrl-C) or systemd (its stop) sends the whole process group: the
+#: service's child processes leave them to the service, which stops them after saving.
+GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_DISPOSITION_LOCK = threading.Lock()
+_spawning = threading.local()
+_SPAWNV = multiprocessing.util.spawnv_passfds
+
+
+def _setsig() -> Any:
+    """CPython's ``PyOS_setsig`` (public C API: sets a signal's disposition from any thread and
+    returns the previous handler), or None where ctypes cannot reach it."""
+    try:
+        import ctypes
+
+        fn = ctypes.pythonapi.PyOS_setsig
+    except (ImportError, AttributeError):
+        return None
+    fn.restype = ctypes.c_void_p
+    fn.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    return fn
+
+
+def _spawnv_passfds(path: bytes, args: Sequence[Any], passfds: Sequence[int]) -> int:
+    """multiprocessing's fork and exec of a spawned child (``multiprocessing.util``'s, wrapped):
+    inside :func:`_sigint_ignored_by_children`, with SIGINT and SIGTERM ignored for the fork and
+    exec alone, so that the child starts with them ignored; elsewhere as it was."""
+    setsig = _setsig() if getattr(_spawning, "active", False) else None
+    if setsig is None:
+        return int(_SPAWNV(path, args, passfds))
+    with _DISPOSITION_LOCK:
+        previous = [(sig, setsig(sig, int(signal.SIG_IGN))) for sig in GROUP_SIGNALS]
+        try:
+            return int(_SPAWNV(path, args, passfds))
+        finally:
+            for sig, handler in previous:
+                setsig(sig, handler)
+
+
+multiprocessing.util.spawnv_passfds = _spawnv_passfds
+
+
 @contextlib.contextmanager
 def _sigint_ignored_by_children() -> Iterator[None]:
-    """Ignore SIGINT while a child process is started, so that it starts with SIGINT ignored.
+    """Start child processes (spawn) from this thread with SIGINT and SIGTERM ignored from their
+    first instruction: a Ctrl-C (or a stop of the process group) during a child's first second
+    (interpreter start, imports, before :func:`ignore_group_signals` runs in it) cannot kill it
+    with a KeyboardInterrupt traceback on the terminal; the service stops it after saving.
 
     An ignored disposition survives exec, and Python installs its KeyboardInterrupt handler only
-    where SIGINT was not ignored: a Ctrl-C during the child's first second (interpreter start,
-    imports, before :func:`_serve` runs) can then not kill it with a traceback on the terminal.
-    Only the main thread may change handlers; a process started from another thread (a
-    replacement for a dead one) relies on :func:`_serve` alone. The parent ignores a Ctrl-C for
-    the few milliseconds of the start.
+    where SIGINT was not ignored. ``signal.signal`` works in the main thread only, while the
+    service starts its processes from uvicorn's lifespan (not the main thread under ``randt
+    demo``) and from the graph's supervisor thread: children started there printed tracebacks
+    when ``randt demo`` was interrupted 1.7 s after it started. So the disposition is set with
+    ``PyOS_setsig``, which any thread may call, around the fork and exec alone (the wrapped
+    ``spawnv_passfds``, one start at a time), and Python's handler is put back at once: a signal
+    to the service in that millisecond is lost to it. (Around the whole start, as before, it was
+    lost for as long as the child took to read its start data. A blocked signal mask would not
+    do: a spawned child's is reset. A shell that ignores them before exec'ing the interpreter
+    left the shell's own start open.)
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _spawning.active = True
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        _spawning.active = False
+
+
+def ignore_group_signals() -> None:
+    """In a child process of the service: ignore SIGINT and SIGTERM (the service stops it)."""
+    for sig in GROUP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
 
 
 class _Channel:
