@@ -40,6 +40,11 @@ __all__ = [
 ]
 
 
+#: Set to "1" in the environment of a ``randt`` command another one runs (``randt demo``'s fleet):
+#: a Ctrl-C, which reaches both, is then reported by the parent alone, in one line.
+QUIET_INTERRUPT_ENV = "RANDT_QUIET_INTERRUPT"
+
+
 class ExitCode(IntEnum):
     """Exit codes of every ``randt`` command; :data:`DESCRIPTIONS` says what each means."""
 
@@ -181,7 +186,8 @@ def exits_on_error(command: Callable[P, R], name: str) -> Callable[P, R]:
         except HANDLED as exc:
             raise fail(exc) from exc
         except KeyboardInterrupt:
-            typer.echo(f"randt {name}: interrupted", err=True)
+            if os.environ.get(QUIET_INTERRUPT_ENV) != "1":  # (a child of randt demo: it says it)
+                typer.echo(f"randt {name}: interrupted", err=True)
             raise typer.Exit(ExitCode.INTERRUPTED) from None
 
     return wrapper

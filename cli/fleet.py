@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from cli.errors import ExitCode, fail
+from cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
 
 if TYPE_CHECKING:
     from clients.fleet import FleetSettings
@@ -407,7 +407,8 @@ def demo(
             *([] if progress else ["--no-progress"]), *(["--raw"] if raw else []),
         ]  # fmt: skip
         tic = time.monotonic()
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        # (a Ctrl-C reaches it too; the demo alone says so: one line)
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env={**os.environ, QUIET_INTERRUPT_ENV: "1"})
         rc = proc.wait()
         if rc not in (0, ExitCode.INCOMPLETE) or not fleet_json.is_file():
             raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
