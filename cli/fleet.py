@@ -407,8 +407,11 @@ def demo(
             *([] if progress else ["--no-progress"]), *(["--raw"] if raw else []),
         ]  # fmt: skip
         tic = time.monotonic()
-        # (a Ctrl-C reaches it too; the demo alone says so: one line)
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env={**os.environ, QUIET_INTERRUPT_ENV: "1"})
+        # In a process group of its own: a Ctrl-C in the terminal reaches the demo alone, which
+        # stops it (in the group, one arriving while its interpreter started printed a traceback).
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, env={**os.environ, QUIET_INTERRUPT_ENV: "1"}, process_group=0
+        )
         rc = proc.wait()
         if rc not in (0, ExitCode.INCOMPLETE) or not fleet_json.is_file():
             raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
@@ -469,11 +472,12 @@ def demo(
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if proc is not None and proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            proc.terminate()  # (SIGTERM: it stops at once, without a word)
             try:
                 proc.wait(30)
             except subprocess.TimeoutExpired:
                 proc.kill()
+                proc.wait(30)
         typer.echo("\nrandt demo: stopping", err=True)
     finally:
         shutdown()
