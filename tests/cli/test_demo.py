@@ -223,4 +223,3 @@ def test_demo_shows_the_viewer_first_and_removes_its_temporary_data(tmp_path: Pa
     rows = [m.groups() for line in lines if (m := ROW.match(line))]
     assert [(r[0], int(r[1]), int(r[2])) for r in rows] == [("sim000", 5, 5)], proc.stdout
     assert list(tmp.iterdir()) == [], "the temporary data directory is removed at exit"
-
