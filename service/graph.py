@@ -66,7 +66,7 @@ from core.fleet_map import FleetMapper, FleetMapSettings
 from core.tiles import TileGrid, tile_id
 from core.transforms import rotation_angle_deg
 from service.graph_log import GraphLog
-from service.matchers import _sigint_ignored_by_children, ignore_group_signals, single_threaded_blas
+from service.matchers import ignore_group_signals, single_threaded_blas, start_ignoring_group_signals
 from service.metrics import ServiceMetrics
 from wire.messages import CorrectionMessage, correction_from_arrays
 
@@ -907,8 +907,7 @@ class ServiceGraph:
             name="randt-graph",
             daemon=True,
         )
-        with _sigint_ignored_by_children():
-            proc.start()
+        start_ignoring_group_signals(proc)
         child.close()
         # The gate holds the process only once it says it is alive (_receive_loop): by then it
         # dies with the service even while stopped.

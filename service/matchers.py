@@ -29,9 +29,11 @@ back when the session resumes.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import multiprocessing
+import multiprocessing.process
 import multiprocessing.util
 import os
 import pickle
@@ -39,6 +41,7 @@ import signal
 import threading
 import time
 import traceback
+import weakref
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection
@@ -638,6 +641,32 @@ def _sigint_ignored_by_children() -> Iterator[None]:
         _spawning.active = False
 
 
+#: The processes started with the two signals ignored (:func:`start_ignoring_group_signals`).
+_IGNORING: weakref.WeakSet[multiprocessing.process.BaseProcess] = weakref.WeakSet()
+
+
+def start_ignoring_group_signals(proc: multiprocessing.process.BaseProcess) -> None:
+    """Start ``proc`` (spawn) so that it ignores SIGINT and SIGTERM from its first instruction
+    (:func:`_sigint_ignored_by_children`), and kill it at interpreter exit if it still runs:
+    multiprocessing's own exit hook stops daemonic children with SIGTERM, which they ignore, and
+    then waits for them (a service whose matcher pool was never closed hung there at exit)."""
+    with _sigint_ignored_by_children():
+        proc.start()
+    _IGNORING.add(proc)
+
+
+def _kill_ignoring_children() -> None:
+    for proc in list(_IGNORING):
+        with contextlib.suppress(Exception):
+            if proc.is_alive():
+                proc.kill()
+
+
+# (atexit runs its hooks last in, first out: this one before multiprocessing's, registered when
+# multiprocessing.util was imported, above)
+atexit.register(_kill_ignoring_children)
+
+
 def ignore_group_signals() -> None:
     """In a child process of the service: ignore SIGINT and SIGTERM (the service stops it)."""
     for sig in GROUP_SIGNALS:
@@ -727,8 +756,7 @@ class _WorkerProcess(_Channel):
     def __init__(self, ctx: multiprocessing.context.SpawnContext, index: int) -> None:
         conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child,), name=f"randt-matcher-{index}", daemon=True)
-        with _sigint_ignored_by_children():
-            self._proc.start()
+        start_ignoring_group_signals(self._proc)
         child.close()
         super().__init__(conn, f"matcher process {index} (pid {self._proc.pid})")
         self.index = index
