@@ -48,6 +48,7 @@ from core.registration import (
     PreparedReference,
     RegistrationResult,
     auto_voxel_sizes,
+    prepare_reference,
     register,
     sanitize_points,
 )
@@ -118,6 +119,12 @@ RELOCALIZE_RANGE_M = 60.0
 
 #: Keyframes that may wait for the model (``defer_model``) while a sweep is matched: one.
 MAX_PENDING_KEYFRAMES = 1
+
+#: A session's first sweep with a prior is matched to its map's points around the prior
+#: (``register_scan``'s ``map_seed``) when there are at least this many.
+MAP_SEED_MIN_POINTS = 2000
+#: The message of a first sweep placed by its match to the map, not at its prior.
+MATCHED_TO_MAP = "matched to the map from the prior"
 
 #: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
 #: of the best are matched (``IncrementalMatcher._hypotheses``).
@@ -200,6 +207,12 @@ class MatcherSettings(BaseModel):
     prior_gate_chi2: float = Field(
         default=16.27, gt=0, description="Mahalanobis^2 gate (chi2 3 dof 99.9 %) against a prior pose"
     )
+    prior_drift_fraction: float = Field(
+        default=0.02,
+        ge=0,
+        description="the prior gate's allowance for the session's drift from its priors: this "
+        "fraction of the path driven since the last sweep that agreed with its prior (1 sigma)",
+    )
     relocalize: bool = Field(
         default=True,
         description="a lost session (without a prior) tries global registration of its sweep against "
@@ -275,6 +288,10 @@ class MatcherState:
     last_stamp_s : the previous sweep's stamp (None without stamps).
     pending : keyframes ``register_scan(defer_model=True)`` left for :meth:`~IncrementalMatcher.update_model`.
     fallback_run : consecutive fallbacks (from :data:`LOST_AFTER_FALLBACKS` on, no retries).
+    travel_m : the path length of the poses so far (metres).
+    prior_offset : the last accepted pose's position minus its prior's (the session's drift from
+        its priors, ``None`` before a sweep with a prior), and ``prior_offset_travel_m``: the
+        path length then (the prior gate, :meth:`IncrementalMatcher._agrees`).
 
     Arrays in it are replaced, never changed in place, so a snapshot copies only the containers.
     Two states are equal when every field is (arrays element by element, the model and the store
@@ -293,6 +310,9 @@ class MatcherState:
     last_stamp_s: float | None = None
     pending: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     fallback_run: int = 0
+    travel_m: float = 0.0
+    prior_offset: np.ndarray | None = None
+    prior_offset_travel_m: float = 0.0
 
     @classmethod
     def empty(cls, max_keyframes: int) -> MatcherState:
@@ -537,8 +557,15 @@ class IncrementalMatcher:
         prior: PosePrior | None = None,
         stamp_s: float | None = None,
         defer_model: bool = False,
+        map_seed: np.ndarray | None = None,
     ) -> ScanResult:
         """Register one sweep (sensor frame) and return its :class:`ScanResult`.
+
+        ``map_seed``: for a session's first sweep with a ``prior``, the points (world frame) its
+        map already has around the prior. The sweep is matched to them from the prior and placed
+        where it matched, when the match keeps ``min_inlier_ratio`` inliers and agrees with the
+        prior within its covariance (its message says so); else at the prior. A GNSS prior is
+        metres off, and a session placed at it would fold its points that far from the map's.
 
         ``defer_model``: when this sweep becomes a keyframe, leave the model's rebuild (the
         costliest step, every second or third sweep) to :meth:`update_model`, so the caller can
@@ -558,7 +585,12 @@ class IncrementalMatcher:
         saved = self._state.snapshot()
         try:
             return self._register_scan(
-                points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
+                points_xyz,
+                time_offset_s=time_offset_s,
+                prior=prior,
+                stamp_s=stamp_s,
+                defer_model=defer_model,
+                map_seed=map_seed,
             )
         except BaseException:
             self._state = saved
@@ -572,6 +604,7 @@ class IncrementalMatcher:
         prior: PosePrior | None,
         stamp_s: float | None = None,
         defer_model: bool = False,
+        map_seed: np.ndarray | None = None,
     ) -> ScanResult:
         """One sweep, the stages of the module docstring; :meth:`register_scan` restores the state
         if it raises."""
@@ -591,7 +624,8 @@ class IncrementalMatcher:
         if index == 0:
             if sweep.time_offset_s is not None:
                 self._state.first_raw = (xyz, sweep.time_offset_s)
-            outcome = _Outcome(T_pred, "first", "", True, 0.0, np.full((6, 6), np.nan), 1.0, xyz, feats)
+            T_first, message = self._first_in_map(feats, prior_T, prior, map_seed)
+            outcome = _Outcome(T_first, "first", message, True, 0.0, np.full((6, 6), np.nan), 1.0, xyz, feats)
         else:
             t0 = time.perf_counter()
             has_times = sweep.time_offset_s is not None
@@ -599,6 +633,7 @@ class IncrementalMatcher:
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
         self._advance(T, index, periods, stamp_s, fell_back if outcome.status == "ok" else 0)
+        self._keep_prior_offset(T, prior_T, outcome.status)
         if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
             self._deskew_first_keyframe(T)
         keep_map = ~outcome.feats.noise_mask
@@ -655,6 +690,36 @@ class IncrementalMatcher:
         if xyz.shape[0] < self.registration.min_points:
             raise InvalidCloudError(f"scan: {xyz.shape[0]} points within {s.min_range_m}-{s.max_range_m} m")
         return _Sweep(xyz, time_offset_s, source_index, n_bad)
+
+    def _first_in_map(
+        self,
+        feats: Features,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+        map_seed: np.ndarray | None,
+    ) -> tuple[np.ndarray, str]:
+        """The first sweep's pose and message: matched to its map's points around its prior
+        (``register_scan``'s ``map_seed``) when that match passes, else the prior (or the identity)."""
+        if prior_T is None or prior is None:
+            return np.eye(4), ""
+        if map_seed is None or len(map_seed) < MAP_SEED_MIN_POINTS:
+            return prior_T, ""
+        levels = self.registration.voxel_sizes_m or ()
+        try:
+            reference = prepare_reference(np.asarray(map_seed, dtype=np.float64), self.registration, levels)
+            res = register(feats.matching_xyz, None, prior_T, settings=self.registration, reference=reference)
+        except RandtError as exc:
+            log.info("first sweep: its match to the map failed (%s): placed at its prior", exc)
+            return prior_T, ""
+        if res.inlier_ratio < self.settings.min_inlier_ratio or not self._agrees(res.T_target_source, prior):
+            log.info(
+                "first sweep: its match to the map (%.2f inliers, %.2f m from the prior) is not "
+                "taken: placed at its prior",
+                res.inlier_ratio,
+                float(np.linalg.norm(res.T_target_source[:3, 3] - prior_T[:3, 3])),
+            )
+            return prior_T, ""
+        return res.T_target_source, MATCHED_TO_MAP
 
     def _predict(self, index: int, prior_T: np.ndarray | None, periods: float) -> np.ndarray:
         """Constant velocity: ``T_last @ delta`` over ``periods``; the first sweep at its prior
@@ -727,7 +792,7 @@ class IncrementalMatcher:
         else:
             self._state.recent_corrections.clear()
             if prior_T is not None:
-                outcome = replace(outcome, T=prior_T)
+                outcome = replace(outcome, T=self._in_live_frame(prior_T))
             log.warning(
                 "scan %d: falling back to the %s: %s",
                 index,
@@ -864,6 +929,8 @@ class IncrementalMatcher:
         if index > 0:
             back = min(fell_back, len(st.poses) - 1)
             st.delta = orthonormalize(self._per_period(invert(st.poses[-1 - back]) @ T, periods + back))
+        if st.poses:
+            st.travel_m += float(np.linalg.norm(T[:3, 3] - st.poses[-1][:3, 3]))
         st.poses.append(T)
         if stamp_s is not None:
             st.last_stamp_s = float(stamp_s)
@@ -910,7 +977,8 @@ class IncrementalMatcher:
         Keys: ``poses`` (N,4,4), ``delta`` (4,4), ``keyframe_poses`` (K,4,4), ``keyframe_points``
         (M,3) with ``keyframe_sizes`` (K,), ``scales`` (feature voxel, model voxel), ``levels``,
         ``last_keyframe_pose``, ``last_stamp_s`` (NaN when sweeps came without stamps) and
-        ``recent_corrections`` (the adaptive levels' memory).
+        ``recent_corrections`` (the adaptive levels' memory), ``travel_m``, ``prior_offset`` (NaN
+        before a sweep with a prior) and ``prior_offset_travel_m`` (the prior gate's memory).
         Suitable for ``np.savez``; the settings are the caller's to keep. A pending keyframe
         (``defer_model``) is folded in first.
         """
@@ -930,6 +998,9 @@ class IncrementalMatcher:
             ),
             "last_stamp_s": np.array(np.nan if st.last_stamp_s is None else st.last_stamp_s),
             "recent_corrections": np.array(st.recent_corrections, dtype=np.float64),
+            "travel_m": np.array(st.travel_m),
+            "prior_offset": np.full(3, np.nan) if st.prior_offset is None else st.prior_offset.copy(),
+            "prior_offset_travel_m": np.array(st.prior_offset_travel_m),
         }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
@@ -952,6 +1023,15 @@ class IncrementalMatcher:
         # Older states have none: the next sweeps then run every level until enough are known.
         st.recent_corrections.clear()
         st.recent_corrections.extend(float(c) for c in state.get("recent_corrections", ()))
+        # Older states have no prior gate memory: the path from the poses, no offset known.
+        if "travel_m" in state:
+            st.travel_m = float(np.asarray(state["travel_m"]))
+        else:
+            xyz = np.array([p[:3, 3] for p in st.poses]).reshape(-1, 3)
+            st.travel_m = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
+        offset = np.asarray(state.get("prior_offset", np.full(3, np.nan)), dtype=np.float64)
+        st.prior_offset = None if np.isnan(offset).any() else offset
+        st.prior_offset_travel_m = float(np.asarray(state.get("prior_offset_travel_m", st.travel_m)))
         st.first_raw = None
         st.model = st.store = None
         if st.keyframes:
@@ -1111,9 +1191,37 @@ class IncrementalMatcher:
         )
 
     def _agrees(self, T: np.ndarray, prior: PosePrior) -> bool:
+        """Whether a match at ``T`` agrees with the sweep's prior.
+
+        The session's poses live in the frame its first prior anchored, and drift from the later
+        priors as it drives (a fraction of a percent of the path): the gate compares the match's
+        offset from its prior with the last agreeing sweep's offset, not with zero, allowing
+        ``prior_drift_fraction`` of the path driven since. A wrong match jumps; drift creeps.
+        """
+        st = self._state
         d = T[:3, 3] - prior.T_world_sensor[:3, 3]
         cov = np.asarray(prior.covariance, dtype=np.float64)[:3, :3]
+        if st.prior_offset is not None:
+            d = d - st.prior_offset
+            cov = 2.0 * cov
+        drift_m = self.settings.prior_drift_fraction * (st.travel_m - st.prior_offset_travel_m)
+        cov = cov + np.eye(3) * drift_m**2
         return float(d @ np.linalg.solve(cov, d)) <= self.settings.prior_gate_chi2
+
+    def _in_live_frame(self, prior_T: np.ndarray) -> np.ndarray:
+        """A prior pose moved by the session's last known drift from its priors (a fallback's pose)."""
+        offset = self._state.prior_offset
+        if offset is None:
+            return prior_T
+        T = prior_T.copy()
+        T[:3, 3] += offset
+        return T
+
+    def _keep_prior_offset(self, T: np.ndarray, prior_T: np.ndarray | None, status: str) -> None:
+        """After a sweep with a prior that matched (or came first): its drift from the prior."""
+        if prior_T is not None and status != "fallback":
+            self._state.prior_offset = T[:3, 3] - prior_T[:3, 3]
+            self._state.prior_offset_travel_m = self._state.travel_m
 
 
 def _correction_m(T_pred_match: np.ndarray) -> float:

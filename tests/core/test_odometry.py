@@ -10,7 +10,14 @@ import pytest
 from core.errors import InvalidCloudError
 from core.features import extract_features
 from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
-from core.odometry import RELOCALIZE_EVERY, IncrementalMatcher, MatcherSettings, PosePrior, deskew
+from core.odometry import (
+    MATCHED_TO_MAP,
+    RELOCALIZE_EVERY,
+    IncrementalMatcher,
+    MatcherSettings,
+    PosePrior,
+    deskew,
+)
 from core.protocol import synthetic_room
 from core.transforms import invert, make_transform, transform_error, transform_points
 from sim.drive import SimScan
@@ -571,3 +578,54 @@ def test_after_a_gap_every_level_runs_again(kitti00, monkeypatch) -> None:
     resumed.load_state_dict(matcher.state_dict())
     assert list(resumed._state.recent_corrections) == list(matcher._state.recent_corrections)
     assert len(matcher._state.recent_corrections) == 2  # sweeps 9 and 10
+
+
+def _gnss_like(T: np.ndarray, offset_m, yaw_deg: float = 0.0) -> np.ndarray:
+    """``T`` moved by ``offset_m`` (world frame) and turned by ``yaw_deg``: a GNSS/INS prior's error."""
+    out = make_transform(euler_deg=(0, 0, yaw_deg)) @ T
+    out[:3, 3] = T[:3, 3] + np.asarray(offset_m, dtype=np.float64)
+    return out
+
+
+def test_a_first_sweep_with_a_prior_is_placed_against_the_map_where_it_has_points() -> None:
+    """A GNSS prior is metres off: the first sweep of a session starting where its map has points
+    is matched to them from the prior and placed within centimetres of the truth, when the match
+    agrees with the prior's covariance; without the map, or with a prior claiming more precision
+    than it has, the sweep goes at the prior."""
+    sweeps = _loop_sweeps()
+    seed = np.vstack([transform_points(sweeps[k].T_world_sensor, sweeps[k].points_xyz) for k in (0, 10)])
+    truth = sweeps[5].T_world_sensor
+    prior_T = _gnss_like(truth, (1.5, -1.0, 0.3), yaw_deg=0.5)
+    loose = PosePrior(prior_T, np.diag([1.0, 1.0, 4.0, 1e-3, 1e-3, 1e-3]))
+
+    placed = IncrementalMatcher().register_scan(sweeps[5].points_xyz, prior=loose, map_seed=seed)
+    dt, dr = transform_error(placed.T_world_sensor, truth)
+    assert placed.status == "first" and placed.message == MATCHED_TO_MAP
+    assert dt < 0.05 and dr < 0.1
+
+    alone = IncrementalMatcher().register_scan(sweeps[5].points_xyz, prior=loose)
+    np.testing.assert_allclose(alone.T_world_sensor, prior_T)
+    tight = PosePrior(prior_T, np.diag([0.05**2] * 3 + [1e-4] * 3))
+    refused = IncrementalMatcher().register_scan(sweeps[5].points_xyz, prior=tight, map_seed=seed)
+    np.testing.assert_allclose(refused.T_world_sensor, prior_T)
+    assert refused.message == ""
+
+
+def test_priors_on_every_sweep_gate_jumps_not_the_sessions_drift() -> None:
+    """The session's poses drift from its priors as it drives: the prior gate compares each match
+    with the last agreeing sweep's offset from its prior, so priors creeping 2 cm a sweep away
+    from the odometry (0.6 m over 30 sweeps, 15 sigma of their 4 cm) are all matched, while a
+    prior that jumps 1 m makes that sweep fall back, to the prior moved by the session's drift."""
+    sweeps = _loop_sweeps()
+    cov = np.diag([0.04**2] * 3 + [1e-4] * 3)
+    matcher = IncrementalMatcher()
+    statuses = []
+    for k in range(31):
+        T = _gnss_like(sweeps[k].T_world_sensor, (0.02 * k, 0.0, 0.0))
+        statuses.append(matcher.register_scan(sweeps[k].points_xyz, prior=PosePrior(T, cov)).status)
+    assert statuses == ["first"] + ["ok"] * 30
+    drift = matcher.poses[-1][:3, 3] - _gnss_like(sweeps[30].T_world_sensor, (0.6, 0, 0))[:3, 3]
+    jumped = _gnss_like(sweeps[31].T_world_sensor, (0.62 + 1.0, 0.0, 0.0))
+    r = matcher.register_scan(sweeps[31].points_xyz, prior=PosePrior(jumped, cov))
+    assert r.status == "fallback" and "prior" in r.message
+    np.testing.assert_allclose(r.T_world_sensor[:3, 3], jumped[:3, 3] + drift, atol=0.05)
