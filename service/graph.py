@@ -823,6 +823,11 @@ class ServiceGraph:
         return proc is not None and proc.is_alive()
 
     @property
+    def pending(self) -> int:
+        """Keyframes offered that the process has not answered yet (the graph's lag)."""
+        return max(0, self._offered - self._done)
+
+    @property
     def pid(self) -> int | None:
         proc = self._proc
         return None if proc is None else proc.pid

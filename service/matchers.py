@@ -215,10 +215,15 @@ class MapFrame:
         The pose graph's newest correction of the session (4x4), which moves the map points
         before they are folded (``None``: none yet). The matcher applies it with the pose, so
         the points arrive in the frame they are folded in.
+    seed_xyz:
+        With a session's first sweep that carries a prior: the map's points around the prior
+        (world frame, float32), which the matcher places the sweep against
+        (:meth:`core.odometry.IncrementalMatcher.register_scan`'s ``map_seed``); ``None`` else.
     """
 
     token: tuple[str, int, int]
     correction: np.ndarray | None = None
+    seed_xyz: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -430,7 +435,12 @@ class _Sessions:
         tenth of a sweep once the map around the vehicle is built), else the candidates (about a
         quarter); the service process's insert handles those and transforms nothing."""
         result = self.matchers[key].register_scan(
-            xyz, time_offset_s=offsets, prior=prior, stamp_s=stamp_s, defer_model=True
+            xyz,
+            time_offset_s=offsets,
+            prior=prior,
+            stamp_s=stamp_s,
+            defer_model=True,
+            map_seed=None if frame is None else frame.seed_xyz,
         )
         return _registered(result, self.grids.get(key), keyframe_voxel_m, frame, self.sent.get(key))
 
@@ -1021,12 +1031,18 @@ class LocalMatcher(IncrementalMatcher):
         stamp_s: float | None = None,
         defer_model: bool = False,
         behind: bool = False,
+        map_seed: np.ndarray | None = None,
     ) -> ScanResult:
         """:meth:`IncrementalMatcher.register_scan`; ``behind`` is the caller's to act on (it
         skips :meth:`update_model` then), accepted for :class:`RemoteMatcher`'s signature."""
         del behind
         return super().register_scan(
-            points_xyz, time_offset_s=time_offset_s, prior=prior, stamp_s=stamp_s, defer_model=defer_model
+            points_xyz,
+            time_offset_s=time_offset_s,
+            prior=prior,
+            stamp_s=stamp_s,
+            defer_model=defer_model,
+            map_seed=map_seed,
         )
 
     def register(
@@ -1051,6 +1067,7 @@ class LocalMatcher(IncrementalMatcher):
             stamp_s=stamp_s,
             defer_model=True,
             behind=behind,
+            map_seed=None if frame is None else frame.seed_xyz,
         )
         registered = _registered(result, None, keyframe_voxel_m, frame)
         cpu_s, self._carried_cpu_s = time.thread_time() - t0 + self._carried_cpu_s, 0.0

@@ -109,7 +109,14 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError, UnavailableError
-from core.odometry import RELOCALIZED, PosePrior, ScanResult, extend_state_dict, with_keyframe
+from core.odometry import (
+    MAP_SEED_MIN_POINTS,
+    RELOCALIZED,
+    PosePrior,
+    ScanResult,
+    extend_state_dict,
+    with_keyframe,
+)
 from core.tiles import Tile, TileGrid
 from service.agreement import AgreementGate, Held
 from service.capacity import Capacity, CapacityFigures
@@ -179,6 +186,9 @@ VERIFY_MATCHES = 2
 #: A session's resume sweep (Store.save_resume_sweep) is saved again once its vehicle is this far
 #: (m) from where the saved one was taken: a vehicle that stands still does not rewrite it.
 RESUME_SWEEP_M = 2.0
+#: A session's first sweep with a prior is placed against its map's points within this many
+#: metres (x and y) of the prior (:meth:`SessionWorker._map_seed`), beyond the matcher's reach.
+MAP_SEED_REACH_M = 60.0
 #: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
 MIN_RESUME_POINTS = 100
 
@@ -471,7 +481,7 @@ class SessionWorker:
                 limits=m.limits,
                 behind=behind,
                 keyframe_voxel_m=keyframe_voxel_m,
-                frame=self._map_frame(),
+                frame=self._map_frame(self._map_seed(prior) if self.info.n_scans == 0 else None),
             )
         except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
             log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
@@ -570,12 +580,23 @@ class SessionWorker:
             return None, info.map_name
         return graph.fold_target(info.vehicle, info.session, info.map_name)
 
-    def _map_frame(self) -> MapFrame:
+    def _map_frame(self, seed_xyz: np.ndarray | None = None) -> MapFrame:
         """Where this sweep's map points go (:class:`~service.matchers.MapFrame`): the matcher
-        moves them by the correction and sends only voxels it has not sent to this map's content."""
+        moves them by the correction and sends only voxels it has not sent to this map's content
+        (``seed_xyz``: :meth:`_map_seed`)."""
         C, fold_map = self._fold_target()
         grid = self.grid if fold_map == self.info.map_name else self._manager.map_grid(fold_map)
-        return MapFrame((fold_map, *grid.content_token), C)
+        return MapFrame((fold_map, *grid.content_token), C, seed_xyz)
+
+    def _map_seed(self, prior: PosePrior | None) -> np.ndarray | None:
+        """For a session's first sweep with a prior: its map's points within
+        :data:`MAP_SEED_REACH_M` of the prior, which the matcher places the sweep against
+        (``None`` without a prior or when the map has too few there: the sweep goes at its prior)."""
+        if prior is None:
+            return None
+        xy = np.asarray(prior.T_world_sensor, dtype=np.float64)[:2, 3]
+        cloud = self.grid.points_in_bbox(xy - MAP_SEED_REACH_M, xy + MAP_SEED_REACH_M)
+        return cloud.xyz.astype(np.float32) if len(cloud.xyz) >= MAP_SEED_MIN_POINTS else None
 
     def _queue_map_points(self, registered: Registered) -> str | None:
         """The scan's map points (none for a fallback) wait to be folded, into the map they go to

@@ -84,6 +84,7 @@ def status(svc: ServiceDep) -> Status:
             running=g is not None and g.running,
             restarts=0 if g is None else g.restarts,
             last_exit=None if g is None else g.last_exit,
+            pending=0 if g is None else g.pending,
         ),
         capacity=_capacity(mgr),
     )

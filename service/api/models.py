@@ -71,6 +71,9 @@ class GraphStatus(BaseModel):
     running: bool = Field(description="its process is alive (it starts with the first keyframe)")
     restarts: int = Field(description="times the process died and was started again")
     last_exit: str | None = Field(description="how the process last died ('signal 9', 'exit code 1')")
+    pending: int = Field(
+        default=0, description="keyframes offered to the graph that it has not processed yet (it lags)"
+    )
 
 
 class CapacityStatus(BaseModel):
