@@ -8,14 +8,14 @@ import signal
 import sys
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
 
 from cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
 
 if TYPE_CHECKING:
-    from clients.fleet import FleetSettings
+    from clients.fleet import FleetSettings, GnssMode
     from clients.publisher import PublisherSettings
     from clients.replay import ReplayResult
 
@@ -52,6 +52,22 @@ ModeOption = Annotated[VehicleMode | None, typer.Option(help="Zenoh mode of the 
 ZenohConfigOption = Annotated[
     Path | None,
     typer.Option(help="Native Zenoh JSON5 config file of the vehicle: TLS, password (docs/security.md)."),
+]
+GnssOption = Annotated[
+    str,
+    typer.Option(
+        help="GNSS of the vehicles, cycled over the fleet: exact (an RTK fix with every scan), noisy "
+        "(metres of noise and bias, one 15 s outage), none (the pose graph joins it to the shared "
+        "map), comma separated: exact,noisy,none gives one of each.",
+    ),
+]
+SharedRoutesOption = Annotated[
+    bool,
+    typer.Option(
+        "--shared-routes/--own-routes",
+        help="Every vehicle on one loop of the town, evenly spaced (streets revisited and shared: "
+        "loops and joins), or each on a loop of its own.",
+    ),
 ]
 RawOption = Annotated[
     bool,
@@ -182,6 +198,8 @@ def simulate(
         int, typer.Option(min=0, help="Unanswered scans per vehicle at most; 0 = real time, no flow control.")
     ] = 2,
     seed: Annotated[int, typer.Option(help="Seed of the routes.")] = 0,
+    gnss: GnssOption = "exact",
+    shared_routes: SharedRoutesOption = False,
     session: Annotated[
         str | None, typer.Option(help="Session id of every vehicle (default: UTC time).")
     ] = None,
@@ -191,9 +209,11 @@ def simulate(
 ) -> None:
     """Drive simulated vehicles through a procedural town, publish their scans, score their poses.
 
-    Each vehicle's first scan carries its true pose as a prior, so the fleet shares the map
-    ``default``; the table gives each vehicle's errors against the simulator's exact poses
-    (docs/clients.md). Exit code 11 when some scan got no pose, 10 when no service answered.
+    A vehicle with GNSS (exact or noisy) sends it as its scans' prior poses and maps the shared
+    map ``default``; one without starts a map of its own, which the service's pose graph joins to
+    the shared map where their streets meet. The table gives each vehicle's errors against the
+    simulator's exact poses (docs/clients.md). Exit code 11 when some scan got no pose, 10 when
+    no service answered.
     """
     from clients.fleet import FleetSettings, run_fleet, summary_table
 
@@ -206,6 +226,8 @@ def simulate(
         n_azimuth=azimuth,
         window=window,
         fleet_seed=seed,
+        gnss=_gnss_modes(gnss),
+        shared_routes=shared_routes,
     )
     runs = run_fleet(fleet, settings, session=session, progress=progress, connect_timeout_s=connect_timeout)
     summaries = [r.summary() for r in runs]
@@ -218,6 +240,19 @@ def simulate(
         typer.echo(line)
     if any(s["stats"]["acknowledged"] < s["scans"] for s in summaries):
         raise typer.Exit(ExitCode.INCOMPLETE)
+
+
+def _gnss_modes(text: str) -> tuple[GnssMode, ...]:
+    """``--gnss``: comma-separated GNSS modes, cycled over the fleet."""
+    from clients.fleet import GNSS_MODES
+
+    modes = tuple(m.strip() for m in text.split(","))
+    bad = [m for m in modes if m not in GNSS_MODES]
+    if bad:
+        raise typer.BadParameter(
+            f"{', '.join(map(repr, bad))}: each mode is one of {', '.join(GNSS_MODES)}", param_hint="--gnss"
+        )
+    return cast("tuple[GnssMode, ...]", modes)
 
 
 def _fleet_dict(fleet: FleetSettings) -> dict[str, object]:
@@ -294,11 +329,94 @@ def _wait_warm(base: str) -> None:
     raise fail(TimeoutError(f"the service was not ready within {WARM_UP_TIMEOUT_S:.0f} s ({base}/readyz)"))
 
 
+def _fleet_gnss(modes: tuple[str, ...], vehicles: int) -> str:
+    """``sim000 exact, sim001 noisy, ...``: each simulated vehicle's GNSS."""
+    return ", ".join(f"sim{v:03d} {modes[v % len(modes)]}" for v in range(vehicles))
+
+
+def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
+    """Wait until the matchers' queues are empty and the pose graph has processed every keyframe
+    (it runs at the lowest priority, behind the matchers), then for the tiles' next save."""
+    import time
+
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(base_url=base, timeout=30) as http:
+        while time.monotonic() < deadline:
+            status = http.get("/status").json()
+            if not any(status.get("queue_depths", {}).values()) and not status["graph"].get("pending"):
+                break
+            time.sleep(0.5)
+    time.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
+
+
+def _print_summary(
+    base: str, data: Path, data_dir: Path | None, fleet: dict[str, Any], wall: float, exit_: bool
+) -> None:
+    """The demo's summary: each vehicle's errors live and corrected, the pose graph's loops and
+    joins, the map, and where to go next (no links to a service that stops with ``--exit``)."""
+    import httpx
+
+    from clients.fleet import fleet_graph, graph_table, summary_table
+    from clients.rest import ApiError, MapClient
+
+    total = sum(v["scans"] for v in fleet["vehicles"])
+    typer.echo(
+        f"\nfleet done in {wall:.0f} s ({total / max(wall, 1e-9):.1f} scans/s); errors against ground truth:"
+    )
+    for line in summary_table(fleet["vehicles"]):
+        typer.echo(line)
+    typer.echo(
+        "(ATE: RMS position error in the shared map's frame, * after a rigid fit: a session without GNSS "
+        "answers in its own frame; RPE: frame-to-frame error; drift: end-to-end error per distance)"
+    )
+    with MapClient(base) as client:
+        try:
+            graph = fleet_graph(client, fleet["vehicles"])
+        except ApiError as exc:
+            typer.echo(f"pose graph: none ({exc})")
+        else:
+            typer.echo("\nthe pose graph (loop closure, GNSS fusion, joins), per vehicle:")
+            for line in graph_table(graph):
+                typer.echo(line)
+            typer.echo(
+                "(corrected: trajectory?corrected=true, the poses moved with the graph's keyframes, in the "
+                "shared map's frame)"
+            )
+    tiles_dir = data / "maps" / "default"
+    n_tiles, n_points, map_pdu = _map_folder_stats(tiles_dir, 0.5)
+    pdu_text = "n/a" if map_pdu is None else f"{map_pdu:.3f}"
+    typer.echo(
+        f"\nmap default: {n_tiles} tiles, {n_points} points, PDU {pdu_text} (0.5 m voxels; 1 = uniform)"
+    )
+    if data_dir is not None:
+        typer.echo(f"tiles (Autoware layout): {tiles_dir}")
+    elif exit_:
+        typer.echo("tiles: removed with the temporary folder at exit (keep them with --data-dir)")
+    else:
+        typer.echo(f"tiles (Autoware layout, removed at exit): {tiles_dir}")
+    if exit_:  # the service stops now: no link to it
+        typer.echo("the service stops now (--exit); without --exit it serves the map on")
+        return
+    with httpx.Client(base_url=base, timeout=30) as http:
+        paths = ["/status", "/sessions", "/maps", "/maps/default/graph", "/maps/default/tiles"]
+        paths += ["/metrics", "/docs"]
+        available = [p for p in paths if http.get(p).status_code == 200]
+        viewer = http.get("/").status_code == 200
+    typer.echo(f"viewer: {base}/" if viewer else "viewer: not available in this version")
+    typer.echo(f"REST: {' '.join(base + p for p in available)}")
+    typer.echo(f"download the map: randt tiles download default ./map --url {base}")
+
+
 def demo(
     vehicles: Annotated[int, typer.Option(min=1, help="Simulated vehicles.")] = 3,
     duration: Annotated[
-        float, typer.Option(min=0.5, help="Simulated seconds of driving per vehicle.")
-    ] = 10.0,
+        float,
+        typer.Option(
+            min=0.5, help="Simulated seconds of driving per vehicle (45: a lap of the loop and more)."
+        ),
+    ] = 45.0,
     exit_: Annotated[
         bool, typer.Option("--exit", help="Stop after the summary instead of serving on.")
     ] = False,
@@ -308,8 +426,10 @@ def demo(
     ] = None,
     http_port: Annotated[int, typer.Option(help="HTTP port (a free one if taken; 0 = any).")] = 8080,
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port (a free one if taken; 0 = any).")] = 7447,
-    speed: Annotated[float, typer.Option(min=0.0, help="Mean speed of the vehicles, m/s.")] = 6.0,
+    speed: Annotated[float, typer.Option(min=0.0, help="Mean speed of the vehicles, m/s.")] = 8.0,
     azimuth: Annotated[int, typer.Option(min=100, help="LiDAR firings per revolution.")] = 2000,
+    gnss: GnssOption = "exact,noisy,none",
+    shared_routes: SharedRoutesOption = True,
     raw: RawOption = False,
     progress: Annotated[bool, typer.Option(help="Show the fleet's progress bar.")] = True,
 ) -> None:
@@ -317,10 +437,13 @@ def demo(
 
     Starts the service on embedded defaults (Zenoh peer and HTTP on 127.0.0.1) and prints the
     viewer's URL (open it to watch the map grow), drives VEHICLES simulated vehicles for DURATION
-    simulated seconds each (a child randt simulate, flow controlled so no scan is dropped), prints
-    per vehicle the trajectory error against the simulator's ground truth, the map's PDU and where
-    the tiles are, and keeps serving until Ctrl-C (or stops at once with --exit). Without
-    --data-dir the data live in a temporary folder removed at exit.
+    simulated seconds each (a child randt simulate, flow controlled so no scan is dropped): by
+    default one with an exact GNSS, one with a noisy GNSS that drops out for 15 s, one with none,
+    leaving one after another from the same depot on one loop of the town. Then it prints per
+    vehicle the trajectory error against the simulator's ground truth, live and as the pose graph
+    corrected it, the loops the graph closed and when the vehicle without GNSS joined the shared
+    map, the map's PDU and where the tiles are, and keeps serving until Ctrl-C (or stops at once
+    with --exit). Without --data-dir the data live in a temporary folder removed at exit.
     """
     import os
     import shutil
@@ -329,14 +452,13 @@ def demo(
     import threading
     import time
 
-    import httpx
     import uvicorn
 
-    from clients.fleet import summary_table
     from service.app import create_app
     from service.settings import ServiceSettings
     from service.store import check_data_dir_free
 
+    modes = _gnss_modes(gnss)
     if data_dir is not None:
         check_data_dir_free(data_dir)
     data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
@@ -395,14 +517,16 @@ def demo(
         _wait_warm(base)
         typer.echo(
             f"simulating {vehicles} vehicles for {duration:g} s each: {n_scans} sweeps of a 64-beam LiDAR "
-            f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s; each vehicle waits for its answers "
-            "(at most 2 scans in flight), so no scan is dropped and simulated time runs slower than real "
-            "time..."
+            f"({azimuth} firings a turn) at 10 Hz and {speed:g} m/s, GNSS {_fleet_gnss(modes, vehicles)}"
+            f"{', leaving one after another from one depot' if shared_routes else ''}; each vehicle waits "
+            "for its answers (at most 2 scans in flight), so no scan is dropped and simulated time runs "
+            "slower than real time..."
         )
         cmd = [
             sys.executable, "-m", "cli", "simulate",
             "--vehicles", str(vehicles), "--duration", str(duration), "--speed", str(speed),
             "--azimuth", str(azimuth), "--window", "2", "--connect", endpoint, "--mode", "client",
+            "--gnss", ",".join(modes), "--shared-routes" if shared_routes else "--own-routes",
             "--session", f"demo-{time.strftime('%Y%m%d-%H%M%S')}", "--json-out", str(fleet_json),
             *([] if progress else ["--no-progress"]), *(["--raw"] if raw else []),
         ]  # fmt: skip
@@ -417,50 +541,8 @@ def demo(
             raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
         wall = time.monotonic() - tic
         fleet = json.loads(fleet_json.read_text())
-        with httpx.Client(base_url=base, timeout=30) as http:
-            # wait until the matcher queues are empty and the flusher has written the tiles
-            for _ in range(120):
-                depths = http.get("/status").json().get("queue_depths", {})
-                if not any(depths.values()):
-                    break
-                time.sleep(0.5)
-            # (tiles are saved every tile_save_s, at a flush: one whole period and a flush more)
-            time.sleep(settings.tile_save_s + 1.5 * settings.flush_interval_s)
-            available = [
-                p
-                for p in ("/status", "/sessions", "/maps", "/maps/default/tiles", "/metrics", "/docs")
-                if http.get(p).status_code == 200
-            ]
-            viewer = http.get("/").status_code == 200
-        tiles_dir = data / "maps" / "default"
-        n_tiles, n_points, map_pdu = _map_folder_stats(tiles_dir, 0.5)
-        total = sum(v["scans"] for v in fleet["vehicles"])
-        typer.echo(
-            f"\nfleet done in {wall:.0f} s ({total / max(wall, 1e-9):.1f} scans/s); "
-            "errors against ground truth:"
-        )
-        for line in summary_table(fleet["vehicles"]):
-            typer.echo(line)
-        typer.echo(
-            "(ATE: RMS position error in the shared map frame; RPE: frame-to-frame error; drift: end-to-end "
-            "translation error per distance driven)"
-        )
-        pdu_text = "n/a" if map_pdu is None else f"{map_pdu:.3f}"
-        typer.echo(
-            f"map default: {n_tiles} tiles, {n_points} points, PDU {pdu_text} (0.5 m voxels; 1 = uniform)"
-        )
-        if data_dir is not None:
-            typer.echo(f"tiles (Autoware layout): {tiles_dir}")
-        elif exit_:
-            typer.echo("tiles: removed with the temporary folder at exit (keep them with --data-dir)")
-        else:
-            typer.echo(f"tiles (Autoware layout, removed at exit): {tiles_dir}")
-        if exit_:  # the service stops now: no link to it
-            typer.echo("the service stops now (--exit); without --exit it serves the map on")
-        else:
-            typer.echo(f"viewer: {base}/" if viewer else "viewer: not available in this version")
-            typer.echo(f"REST: {' '.join(base + p for p in available)}")
-            typer.echo(f"download the map: randt tiles download default ./map --url {base}")
+        _settle(base, settings.tile_save_s + 1.5 * settings.flush_interval_s)
+        _print_summary(base, data, data_dir, fleet, wall, exit_)
         summarized = True
         if not exit_:
             typer.echo("serving until Ctrl-C")

@@ -145,13 +145,25 @@ class MapClient:
         """``GET /sessions/{vehicle}/{session}``: one session in detail."""
         return self._get(f"/sessions/{vehicle}/{session}").json()
 
-    def trajectory(self, vehicle: str, session: str) -> tuple[np.ndarray, np.ndarray]:
-        """A session's trajectory: (M,) stamps in seconds and (M, 4, 4) ``T_frame_sensor``."""
-        doc = self._get(f"/sessions/{vehicle}/{session}/trajectory", params={"format": "json"}).json()
-        poses = doc.get("poses", [])
+    def trajectory(
+        self, vehicle: str, session: str, *, corrected: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """A session's trajectory: (M,) stamps in seconds and (M, 4, 4) ``T_frame_sensor``; with
+        ``corrected`` as the pose graph corrected it (:meth:`trajectory_json` says in which map)."""
+        poses = self.trajectory_json(vehicle, session, corrected=corrected).get("poses", [])
         stamps = np.array([p["stamp_s"] for p in poses], dtype=np.float64)
         mats = np.array([p["pose"] for p in poses], dtype=np.float64).reshape(-1, 4, 4)
         return stamps, mats
+
+    def trajectory_json(self, vehicle: str, session: str, *, corrected: bool = False) -> dict[str, Any]:
+        """``GET /sessions/{vehicle}/{session}/trajectory`` as JSON: frame, map, whether corrected,
+        the poses."""
+        params = {"format": "json", **({"corrected": "true"} if corrected else {})}
+        return self._get(f"/sessions/{vehicle}/{session}/trajectory", params=params).json()
+
+    def graph(self, map_name: str = "default") -> dict[str, Any]:
+        """``GET /maps/{map}/graph``: the map's pose graph (keyframes, loop verifications, joins)."""
+        return self._get(f"/maps/{map_name}/graph").json()
 
     def trajectory_text(self, vehicle: str, session: str, fmt: Literal["kitti", "tum"] = "kitti") -> str:
         """A session's trajectory as the KITTI or TUM text file ``randt map`` also writes."""

@@ -884,6 +884,7 @@ def plan_fleet(
     route_length_m: float = 600.0,
     closed: bool = True,
     rate_hz: float = 10.0,
+    shared: bool = False,
 ) -> list[FleetVehicle]:
     """Routes, seeds and start positions for ``n_vehicles`` vehicles.
 
@@ -891,9 +892,16 @@ def plan_fleet(
     (drawn among those closest to ``route_length_m``, then any); open routes are random walks from
     independent seeds. Each vehicle starts at a random arc length and its sweeps are staggered by
     ``vehicle / n_vehicles`` of a sweep period, as unsynchronised sensors would be.
+
+    ``shared`` (closed routes): every vehicle drives the first vehicle's rectangle, the same way
+    round, from the same start (a depot): each drives the streets the ones before it mapped
+    (places shared between sessions; loops within a session after a lap). When each leaves is
+    the caller's (``clients.fleet``: one after another).
     """
     if n_vehicles < 1:
         raise ValueError("n_vehicles must be >= 1")
+    if shared and not closed:
+        raise ValueError("shared routes are closed")
     rng = np.random.default_rng([seed, 7919])
     period_ns = round(1e9 / rate_hz)
     vehicle_seeds = rng.integers(0, 2**31 - 1, n_vehicles)
@@ -903,10 +911,16 @@ def plan_fleet(
             np.abs(rects[:, 4] - route_length_m) + rng.uniform(0, 0.5 * town.pitch_m, len(rects))
         )
         picks = order[np.arange(n_vehicles) % order.size]
-    fleet = []
+    fleet: list[FleetVehicle] = []
     for v in range(n_vehicles):
         vs = int(vehicle_seeds[v])
         vr = np.random.default_rng(vs)
+        if shared and fleet:
+            first = fleet[0]
+            fleet.append(
+                FleetVehicle(f"sim{v:03d}", first.route, vs, first.start_s_m, (v * period_ns) // n_vehicles)
+            )
+            continue
         if closed:
             i0, i1, j0, j1, _ = rects[picks[v]].astype(int)
             route = Route.rectangle(

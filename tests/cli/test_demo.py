@@ -1,8 +1,9 @@
 """``randt demo`` as a new user runs it: a subprocess, the printed summary, the tiles, the REST API.
 
-The demo is shortened to 2 simulated seconds per vehicle (20 sweeps each); it then keeps serving,
-so the test queries the endpoints it advertised, uses ``randt tiles`` against them, and stops it
-with Ctrl-C (SIGINT) as a user would.
+The demo is shortened to 8 simulated seconds per vehicle (80 sweeps each) with its default fleet:
+an exact GNSS, a noisy one, none, leaving one after another from one depot. It then keeps
+serving, so the test queries the endpoints it advertised, uses ``randt tiles`` against them, and
+stops it with Ctrl-C (SIGINT) as a user would.
 """
 
 from __future__ import annotations
@@ -25,10 +26,14 @@ from core.io import read_cloud
 from tests.service.conftest import free_port
 
 VEHICLES = 3
-DURATION_S = 2.0
+DURATION_S = 8.0
+SPEED = 8.0  # the demo's default
+GNSS = ("exact", "noisy", "none")  # the demo's default fleet
 ROW = re.compile(
-    r"^(sim\d{3})\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)$"
+    r"^(sim\d{3})\s+(exact|noisy|none)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+([\d.]+)\s+"
+    r"([\d.]+\*?)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)$"
 )
+GRAPH_ROW = re.compile(r"^(sim\d{3})\s+(exact|noisy|none)\s+([\d.]+)\s+([\d.]+)\s+(\d+)\s+(.*)$")
 
 
 def _read_until(proc: subprocess.Popen[str], marker: str, timeout_s: float) -> list[str]:
@@ -76,18 +81,36 @@ def demo(tmp_path_factory):
 def test_demo_summary_meets_thresholds(demo) -> None:
     _, lines, data, base = demo
     rows = [m.groups() for line in lines if (m := ROW.match(line))]
-    assert [r[0] for r in rows] == ["sim000", "sim001", "sim002"], "\n".join(lines)
+    text = "\n".join(lines)
+    assert [r[:2] for r in rows] == [("sim000", "exact"), ("sim001", "noisy"), ("sim002", "none")], text
     n_scans = round(DURATION_S * 10)
-    for vehicle, scans, poses, fallback, rejected, dropped, lost, path, ate, rpe_cm, rpe_deg, drift in rows:
+    nominal = SPEED * DURATION_S * (n_scans - 1) / n_scans
+    for (
+        vehicle,
+        gnss,
+        scans,
+        poses,
+        fallback,
+        rejected,
+        dropped,
+        lost,
+        path,
+        ate,
+        rpe_cm,
+        rpe_deg,
+        drift,
+    ) in rows:
         assert int(scans) == n_scans and int(poses) == n_scans, f"{vehicle}: every scan got a pose"
         assert int(rejected) == int(dropped) == int(lost) == 0, f"{vehicle}: flow control, nothing dropped"
         assert int(fallback) <= 1, f"{vehicle}: {fallback} fallbacks"
-        assert abs(float(path) - 6.0 * DURATION_S * (n_scans - 1) / n_scans) < 0.5, f"{vehicle}: 6 m/s"
-        # against exact ground truth: a few cm over ~11 m (the first pose is the 2 cm prior itself)
-        assert float(ate) < 0.10, f"{vehicle}: ATE {ate} m"
+        assert 0.8 * nominal < float(path) < 1.02 * nominal, f"{vehicle}: 8 m/s, slower in corners"
+        # Against exact ground truth: a few cm over ~60 m. The noisy GNSS's first fix is metres off:
+        # its first sweep was placed against the map the exact one had made at the depot. The one
+        # without GNSS answers in its own frame (ATE after a rigid fit, marked *).
+        assert ate.endswith("*") == (gnss == "none"), f"{vehicle}: {ate}"
+        assert float(ate.rstrip("*")) < 0.10, f"{vehicle}: ATE {ate} m"
         assert float(rpe_cm) < 3.0 and float(rpe_deg) < 0.1, f"{vehicle}: RPE {rpe_cm} cm {rpe_deg} deg"
         assert float(drift) < 1.5, f"{vehicle}: drift {drift} %"
-    text = "\n".join(lines)
     m = re.search(r"map default: (\d+) tiles, (\d+) points, PDU (-?[\d.]+)", text)
     assert m, text
     n_tiles, n_points, map_pdu = int(m[1]), int(m[2]), float(m[3])
@@ -105,6 +128,35 @@ def test_demo_summary_meets_thresholds(demo) -> None:
     assert {k for k in meta if k.endswith(".pcd")} == {p.name for p in pcds}
 
 
+def test_demo_shows_the_pose_graph_join_loops_and_corrections(demo) -> None:
+    """The fleet half: the vehicle without GNSS joined the shared map, loops closed between the
+    sessions, the corrected trajectories stay within centimetres of the truth, and the figures
+    are what the service serves."""
+    _, lines, _, base = demo
+    text = "\n".join(lines)
+    rows = {m[1]: m.groups() for line in lines if (m := GRAPH_ROW.match(line))}
+    assert list(rows) == ["sim000", "sim001", "sim002"], text
+    joined = re.fullmatch(r"default, at its scan (\d+) \((\d+) m driven\)", rows["sim002"][5])
+    assert joined, rows["sim002"]
+    assert all(rows[v][5].startswith("- (GNSS") for v in ("sim000", "sim001"))
+    totals = re.search(
+        r"pose graph of map default: (\d+) keyframes, (\d+) loops closed \((\d+) between", text
+    )
+    assert totals and int(totals[2]) >= 1 and int(totals[3]) >= 1, text
+    # (over 60 m the live poses drift by millimetres: the full demo's 45 s show the correction's
+    # gain, docs/benchmarks.md; here the graph must keep every vehicle within centimetres)
+    fleet = re.search(r"fleet ATE in the shared map: live ([\d.]+) m, corrected ([\d.]+) m", text)
+    assert fleet and float(fleet[2]) < 0.03 and float(fleet[1]) < 0.05, text
+    assert all(float(rows[v][3]) < 0.05 for v in rows), text
+    with MapClient(base) as api:
+        graph = api.graph("default")
+        sessions = {s["vehicle"]: s for s in api.sessions()}
+    assert list(graph["joined"]) == [f"sim002/{sessions['sim002']['session']}"]
+    assert sessions["sim002"]["joined"] == "default"
+    assert sum(lp["accepted"] and lp["source"] != "placement" for lp in graph["loops"]) == int(totals[2])
+    assert len(graph["keyframes"]) == int(totals[1])
+
+
 def test_demo_rest_endpoints_it_advertised(demo) -> None:
     _, lines, _, base = demo
     advertised = next(line for line in lines if line.startswith("REST: ")).split()[1:]
@@ -115,7 +167,13 @@ def test_demo_rest_endpoints_it_advertised(demo) -> None:
         assert all(s["scans"] == round(DURATION_S * 10) for s in status["sessions"])
         sessions = api.sessions()
         assert sorted(s["vehicle"] for s in sessions) == ["sim000", "sim001", "sim002"]
-        assert all(s["map"] == "default" and s["frame"] == "map" for s in sessions)
+        # the vehicle without GNSS answers in its own frame; the graph joined it to the shared map
+        assert [(s["frame"], s["joined"]) for s in sessions] == [
+            ("map", None),
+            ("map", None),
+            ("session", "default"),
+        ]
+        assert all(s["map"] == "default" for s in sessions[:2])
         s0 = sessions[0]
         stamps, poses = api.trajectory(s0["vehicle"], s0["session"])
         assert poses.shape == (round(DURATION_S * 10), 4, 4)
@@ -169,7 +227,9 @@ def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
     assert sessions.exit_code == 0, sessions.output
     rows = [line.split() for line in sessions.output.splitlines()[1:]]
     assert [r[0].split("/")[0] for r in rows] == ["sim000", "sim001", "sim002"]
-    assert all(r[2] == "default" and int(r[3]) == round(DURATION_S * 10) for r in rows)
+    assert all(int(r[3]) == round(DURATION_S * 10) for r in rows)
+    # the vehicle without GNSS has a map of its own (merged into default when the graph joined it)
+    assert [r[2] for r in rows] == ["default", "default", f"sim002.{rows[2][0].split('/')[1]}"], rows
     vehicle, session = rows[0][0].split("/")
     out = tmp_path / "sim000.txt"
     traj = run(app, ["tiles", "trajectory", vehicle, session, "--out", str(out), "--url", base])
@@ -221,5 +281,5 @@ def test_demo_shows_the_viewer_first_and_removes_its_temporary_data(tmp_path: Pa
     data = re.search(r"data in (\S+) \(temporary, removed at exit", proc.stdout)
     assert data and Path(data[1]).parent == tmp, proc.stdout
     rows = [m.groups() for line in lines if (m := ROW.match(line))]
-    assert [(r[0], int(r[1]), int(r[2])) for r in rows] == [("sim000", 5, 5)], proc.stdout
+    assert [(r[0], r[1], int(r[2]), int(r[3])) for r in rows] == [("sim000", "exact", 5, 5)], proc.stdout
     assert list(tmp.iterdir()) == [], "the temporary data directory is removed at exit"

@@ -50,6 +50,7 @@ def test_only_common_scans_count_and_too_few_give_none() -> None:
 def test_table_adds_service_drops_to_dropped() -> None:
     summary = {
         "vehicle": "sim000",
+        "gnss": "none",
         "scans": 20,
         "stats": {
             "acknowledged": 17,
@@ -62,6 +63,7 @@ def test_table_adds_service_drops_to_dropped() -> None:
             "n_fallback": 1,
             "path_length_m": 11.4,
             "ate_m": 0.0123,
+            "aligned": True,
             "rpe_cm": 0.5,
             "rpe_deg": 0.01,
             "drift_pct": 0.2,
@@ -69,5 +71,7 @@ def test_table_adds_service_drops_to_dropped() -> None:
     }
     header, row = summary_table([summary])
     assert header == TABLE_HEADER
-    assert row.split() == ["sim000", "20", "17", "1", "1", "3", "0", "11.4", "0.012", "0.50", "0.010", "0.20"]
+    assert row.split() == [
+        *("sim000", "none", "20", "17", "1", "1", "3", "0", "11.4", "0.012*", "0.50", "0.010", "0.20")
+    ]
     assert FleetSettings(duration_s=2.0).n_scans == 20
