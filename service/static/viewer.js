@@ -3,9 +3,11 @@
 // REST API (docs/api.md), polled:
 //   GET maps                                  the map list (the selector)
 //   GET maps/<map>/tiles                      tile index: ids, versions, bounds, PDU  (every 3 s)
-//   GET maps/<map>/tiles/<ix>/<iy>?format=pcd only tiles whose version changed
-//   GET sessions?state=active + .../trajectory?corrected=true  vehicles in this map (every 2 s):
-//                                             trajectories as the pose graph corrected them
+//   GET maps/<map>/tiles/<ix>/<iy>?format=pcd only tiles whose version changed, TILE_FETCHES at a
+//                                             time, each listed in the table as it arrives
+//   GET sessions + .../trajectory?corrected=true  the sessions of this map, running or finished
+//                                             (every 2 s): trajectories as the pose graph corrected
+//                                             them (a finished one's again when the graph moved)
 //   GET maps/<map>/graph                      the pose graph's accepted loops, drawn as edges
 //                                             between their keyframes (every 2 s; 404: none)
 // Frames: the map frame is z up; three.js's camera is told so (camera.up = +z).
@@ -15,6 +17,7 @@ import * as THREE from "three";
 import { OrbitControls } from "./vendor/three/OrbitControls.js";
 
 const TILE_POLL_MS = 3000;
+const TILE_FETCHES = 6; // tile downloads at a time
 const SESSION_POLL_MS = 2000;
 const DENSITY_CELL_M = 1.0;
 
@@ -22,6 +25,7 @@ const state = {
   map: null, // selected map name
   tiles: new Map(), // id -> {version, points: THREE.Points, outline: THREE.LineLoop, info}
   vehicles: new Map(), // id -> {line, marker, color}
+  trajectories: new Map(), // session id -> its last fetched trajectory (with the graph revision then)
   zRange: [0, 5],
   framed: false,
   token: sessionStorage.getItem("randt-token") || "",
@@ -29,7 +33,7 @@ const state = {
 };
 window.randtViewer = {
   ready: false, tiles: 0, points: 0, vehicles: 0, trajectoryPoses: 0, correctedTrajectories: 0, loopEdges: 0,
-  errors: [],
+  finishedVehicles: 0, loading: 0, inFlight: 0, maxInFlight: 0, rowsWhileLoading: 0, errors: [],
 };
 
 // ------------------------------------------------------------------ scene
@@ -204,10 +208,11 @@ function outline(info) {
   return new THREE.LineLoop(geometry, new THREE.LineBasicMaterial({ color: pduColor(info.pdu) }));
 }
 
+// The table lists the tiles loaded so far, as they arrive (worst PDU first), out of the index's.
 function renderTileTable(index) {
   const body = document.querySelector("#tiles tbody");
-  const rows = [...index.tiles].sort((a, b) => a.pdu - b.pdu);
-  body.replaceChildren(...rows.map((t) => {
+  const loaded = [...state.tiles.values()].map((t) => t.info).sort((a, b) => a.pdu - b.pdu);
+  body.replaceChildren(...loaded.map((t) => {
     const tr = document.createElement("tr");
     for (const v of [t.id, t.points, t.version, t.pdu.toFixed(2)]) {
       const td = document.createElement("td");
@@ -217,10 +222,14 @@ function renderTileTable(index) {
     tr.querySelector("td:last-child").style.color = `#${pduColor(t.pdu).getHexString()}`;
     return tr;
   }));
-  const total = index.tiles.reduce((s, t) => s + t.points, 0);
-  const mean = index.tiles.length ? index.tiles.reduce((s, t) => s + t.pdu, 0) / index.tiles.length : 0;
+  const total = loaded.reduce((s, t) => s + t.points, 0);
+  const mean = loaded.length ? loaded.reduce((s, t) => s + t.pdu, 0) / loaded.length : 0;
+  const of = loaded.length < index.tiles.length ? ` (loading ${index.tiles.length - loaded.length} more)` : "";
   document.getElementById("tile-summary").textContent =
-    `${index.tiles.length} tiles, ${total.toLocaleString()} points, mean PDU ${mean.toFixed(2)}`;
+    `${loaded.length} tiles${of}, ${total.toLocaleString()} points, mean PDU ${mean.toFixed(2)}`;
+  if (window.randtViewer.loading > 0) {
+    window.randtViewer.rowsWhileLoading = Math.max(window.randtViewer.rowsWhileLoading, loaded.length);
+  }
 }
 
 function frameCamera(index) {
@@ -251,21 +260,7 @@ async function pollTiles() {
     state.zRange = [Math.min(...lows), highs[Math.floor(0.98 * (highs.length - 1))]];
   }
   frameCamera(index);
-  const seen = new Set();
-  for (const info of index.tiles) {
-    seen.add(info.id);
-    const have = state.tiles.get(info.id);
-    if (!have || have.version !== info.version) {
-      const points = await loadTile(info);
-      if (have && have.outline) outlineGroup.remove(have.outline);
-      const line = outline(info);
-      outlineGroup.add(line);
-      state.tiles.set(info.id, { version: info.version, points, outline: line, info });
-    } else if (have.info.pdu !== info.pdu) {
-      have.outline.material.color = pduColor(info.pdu);
-      have.info = info;
-    }
-  }
+  const seen = new Set(index.tiles.map((t) => t.id));
   for (const [id, t] of state.tiles) {
     if (!seen.has(id)) {
       tileGroup.remove(t.points);
@@ -273,7 +268,48 @@ async function pollTiles() {
       state.tiles.delete(id);
     }
   }
+  const changed = [];
+  for (const info of index.tiles) {
+    const have = state.tiles.get(info.id);
+    if (!have || have.version !== info.version) {
+      changed.push(info);
+    } else if (have.info.pdu !== info.pdu) {
+      have.outline.material.color = pduColor(info.pdu);
+      have.info = info;
+    }
+  }
+  // TILE_FETCHES downloads at a time; each tile is drawn and listed as soon as it arrives.
+  window.randtViewer.loading = changed.length;
+  let next = 0;
+  async function worker() {
+    while (next < changed.length && map === state.map) {
+      const info = changed[next++];
+      window.randtViewer.inFlight += 1;
+      window.randtViewer.maxInFlight = Math.max(window.randtViewer.maxInFlight, window.randtViewer.inFlight);
+      let points;
+      try {
+        points = await loadTile(info);
+      } finally {
+        window.randtViewer.inFlight -= 1;
+      }
+      if (map !== state.map) return;
+      const have = state.tiles.get(info.id);
+      if (have && have.outline) outlineGroup.remove(have.outline);
+      const line = outline(info);
+      outlineGroup.add(line);
+      state.tiles.set(info.id, { version: info.version, points, outline: line, info });
+      window.randtViewer.loading -= 1;
+      renderTileTable(index);
+      countTiles();
+    }
+  }
+  await Promise.all(Array.from({ length: Math.min(TILE_FETCHES, changed.length) }, worker));
+  window.randtViewer.loading = 0;
   renderTileTable(index);
+  countTiles();
+}
+
+function countTiles() {
   window.randtViewer.tiles = state.tiles.size;
   window.randtViewer.points = [...state.tiles.values()].reduce((s, t) => s + t.points.geometry.attributes.position.count, 0);
 }
@@ -289,15 +325,26 @@ function recolor() {
 // ------------------------------------------------------------------ vehicles
 async function pollVehicles() {
   if (!state.map) return;
-  const sessions = (await api("sessions?state=active")).filter((s) => s.map === state.map);
+  // Every session of this map (those joined to it too), running or finished: a finished one's
+  // trajectory is fetched again only when the pose graph's revision moved.
+  const revision = await pollGraph();
+  const sessions = (await api("sessions")).filter((s) => s.map === state.map || s.joined === state.map);
   const seen = new Set();
   let poses = 0;
   let corrected = 0;
+  let finished = 0;
   for (const s of sessions) {
     seen.add(s.id);
-    const traj = await api(
-      `sessions/${encodeURIComponent(s.vehicle)}/${encodeURIComponent(s.session)}/trajectory?format=json&corrected=true`,
-    );
+    const running = s.state === "active";
+    finished += running ? 0 : 1;
+    let traj = state.trajectories.get(s.id);
+    if (running || !traj || traj.revision !== revision) {
+      traj = await api(
+        `sessions/${encodeURIComponent(s.vehicle)}/${encodeURIComponent(s.session)}/trajectory?format=json&corrected=true`,
+      );
+      traj.revision = revision;
+      state.trajectories.set(s.id, traj);
+    }
     corrected += traj.corrected ? 1 : 0;
     const pts = traj.poses.map((p) => new THREE.Vector3(p.pose[0][3], p.pose[1][3], p.pose[2][3]));
     poses += pts.length;
@@ -343,14 +390,16 @@ async function pollVehicles() {
       sw.style.background = `#${new THREE.Color(v.color).getHexString()}`;
       const p = v.position;
       const how = v.corrected ? ", corrected by the pose graph" : "";
-      li.append(sw, `${id}: ${v.summary.scans} scans, (${p.x.toFixed(1)}, ${p.y.toFixed(1)}) m, queue ${v.summary.queue_depth}${how}`);
+      const joined = v.summary.joined ? `, joined from its own map` : "";
+      const where = v.summary.state === "active" ? `queue ${v.summary.queue_depth}` : v.summary.state;
+      li.append(sw, `${id}: ${v.summary.scans} scans, (${p.x.toFixed(1)}, ${p.y.toFixed(1)}) m, ${where}${how}${joined}`);
       return li;
     }));
   }
   window.randtViewer.vehicles = state.vehicles.size;
   window.randtViewer.trajectoryPoses = poses;
   window.randtViewer.correctedTrajectories = corrected;
-  await pollGraph();
+  window.randtViewer.finishedVehicles = finished;
 }
 
 // ------------------------------------------------------------------ pose graph
@@ -389,10 +438,13 @@ async function pollGraph() {
   window.randtViewer.loopEdges = ends.length / 2;
   const info = document.getElementById("graph-info");
   if (info) {
+    const joined = graph ? Object.keys(graph.joined || {}) : [];
     info.textContent = graph
-      ? `pose graph: ${graph.keyframes.length} keyframes, ${ends.length / 2} loops (magenta), revision ${graph.revision}`
+      ? `pose graph: ${graph.keyframes.length} keyframes, ${ends.length / 2} loops (magenta), revision ${graph.revision}` +
+        (joined.length ? `; joined without GNSS: ${joined.join(", ")}` : "")
       : "pose graph: none for this map yet";
   }
+  return graph ? graph.revision : null;
 }
 
 // ------------------------------------------------------------------ wiring
@@ -423,6 +475,7 @@ function clearMap() {
   state.tiles.clear();
   for (const v of state.vehicles.values()) fleetGroup.remove(v.line, v.marker);
   state.vehicles.clear();
+  state.trajectories.clear();
   if (loopLines) fleetGroup.remove(loopLines);
   loopLines = null;
   state.framed = false;

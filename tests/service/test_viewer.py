@@ -1,8 +1,10 @@
 """The map viewer in headless Chromium (the system's, driven by Playwright: tests/service/browser.py).
 
-After a small simulated fleet has run, the page must have loaded every tile of the ``default`` map
-and both vehicles' trajectories, draw a non-blank point cloud (checked on a screenshot's pixels),
-fetch nothing from outside the service (it works offline), and log no console errors.
+After a small simulated fleet has run, one of its sessions closed, the page must have loaded every
+tile of the ``default`` map (several at a time, the table listing them as they arrive) and both
+vehicles' trajectories (the finished one's too), draw a non-blank point cloud (checked on a
+screenshot's pixels), fetch nothing from outside the service (it works offline), and log no
+console errors.
 
 Without Chromium the test skips with the reason; with ``CI=true`` it fails instead (``.ci/run``
 installs it), as ``tests/data.py`` does for the real data.
@@ -39,6 +41,7 @@ def test_viewer_draws_the_fleet_map_without_console_errors(tmp_path) -> None:
     binary = require_chromium()
     with live_server(tmp_path / "data") as server:
         fleet = drive_fleet(server.service)
+        assert server.service.sessions.close("sim001", fleet.session)  # a finished session stays drawn
         grid = server.service.sessions.maps["default"]
         with chromium_page(binary) as seen:
             page = seen.page
@@ -51,11 +54,16 @@ def test_viewer_draws_the_fleet_map_without_console_errors(tmp_path) -> None:
             viewer = page.evaluate("() => window.randtViewer")
             assert viewer["tiles"] == len(grid) and viewer["points"] == grid.n_points
             assert viewer["trajectoryPoses"] == sum(len(fleet.scans[v]) for v in ("sim000", "sim001"))
+            assert viewer["finishedVehicles"] == 1
+            # tiles come several at a time, and the table lists them while the rest still arrive
+            assert len(grid) > 6 and viewer["maxInFlight"] == 6, viewer
+            assert 0 < viewer["rowsWhileLoading"] < len(grid), viewer
             assert viewer["errors"] == []
             assert page.locator("#map-select").input_value() == "default"
             assert page.locator("#tiles tbody tr").count() == len(grid)
             vehicles = page.locator("#vehicles").inner_text()
             assert "sim000/drive1" in vehicles and "sim001/drive1" in vehicles
+            assert "closed" in next(line for line in vehicles.splitlines() if "sim001/drive1" in line)
 
             time.sleep(0.5)  # a few animation frames after the last geometry update
             png = page.screenshot()
