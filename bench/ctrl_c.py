@@ -8,8 +8,9 @@ Each run starts ``randt demo`` (one vehicle, one simulated second, in its own pr
 SIGINT at its default, as a terminal starts it, and a temporary folder of its own as TMPDIR),
 sends SIGINT to the whole group at a random moment in ``[0.2, --latest]`` seconds (the
 interpreter's start, the service's start, the matchers' warm-up, the drive, the summary,
-serving), with two CPU burners beside it, and checks: exit code 130, exactly one line on stderr
-and no traceback, no process of its group left running (zombies aside) ten seconds after it
+serving), with two CPU burners beside it, and checks: exit code 130 (or killed by SIGINT itself,
+which a shell reports as 130: a Ctrl-C before the interpreter installed its handler), at most one
+line on stderr and no traceback, no process of its group left running (zombies aside) ten seconds after it
 exited, nothing left in its temporary folder. Prints one line per run and a summary; exits 1 if
 any run failed.
 """
@@ -70,9 +71,11 @@ def one_run(at_s: float, tmp: Path) -> list[str]:
         subprocess.run(["pkill", "-9", "-g", str(proc.pid)], check=False)
     lines = [line for line in err.splitlines() if line.strip()]
     problems = []
-    if proc.returncode != 130:
+    # A SIGINT in the interpreter's first milliseconds, before Python installs its handler, ends
+    # the process by the signal itself: a shell reports that as 130 too (128 + SIGINT).
+    if proc.returncode not in (130, -signal.SIGINT):
         problems.append(f"exit {proc.returncode}")
-    if len(lines) != 1 or "Traceback" in err:
+    if len(lines) > 1 or (not lines and proc.returncode == 130) or "Traceback" in err:
         problems.append(f"stderr {lines[-6:]}")
     if running:
         problems.append(f"left running {running}")
