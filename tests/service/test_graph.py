@@ -577,6 +577,39 @@ def test_over_tls_each_vehicle_receives_its_own_corrections_and_only_its_own(joi
     assert join_drive.received["evil"] == []
 
 
+def test_viewer_shows_the_join_in_the_shared_map(join_drive, tmp_path) -> None:
+    """The map ``default`` in the viewer: both sessions drawn, the one without priors (whose own
+    map was merged away) with its trajectory corrected into this map, the loop edges, and the
+    graph line naming the join; the screenshot is not blank."""
+    from tests.service.test_viewer import _drawn_fraction
+
+    binary = require_chromium()
+    state = join_drive.server.service.sessions.graph.snapshot("default")  # type: ignore[union-attr]
+    assert state is not None
+    accepted = sum(loop.accepted for loop in state.loops)
+    with chromium_page(binary) as seen:
+        page = seen.page
+        page.goto(join_drive.server.url + "/")
+        page.wait_for_function("() => window.randtViewer && window.randtViewer.ready", timeout=60_000)
+        assert page.locator("#map-select").input_value() == "default"
+        page.wait_for_function(
+            "() => window.randtViewer.correctedTrajectories === 2 && window.randtViewer.loopEdges > 0",
+            timeout=60_000,
+        )
+        viewer = page.evaluate("() => window.randtViewer")
+        assert viewer["vehicles"] == 2 and viewer["errors"] == []
+        assert viewer["trajectoryPoses"] == sum(len(t) for t in join_drive.truth.values())
+        assert viewer["loopEdges"] == accepted  # the loops and the two placement votes
+        assert "joined without GNSS: nognss/d1" in page.locator("#graph-info").inner_text()
+        line = next(x for x in page.locator("#vehicles").inner_text().splitlines() if "nognss/d1" in x)
+        assert "corrected by the pose graph, joined from its own map" in line
+        time.sleep(0.5)
+        png = page.screenshot()
+        (tmp_path / "viewer-join.png").write_bytes(png)
+        assert _drawn_fraction(png)[0] > 0.02
+        assert seen.failures == []
+
+
 def test_a_session_without_priors_joins_the_shared_map(join_drive) -> None:
     truth, server = join_drive.truth, join_drive.server
     mgr = server.service.sessions
