@@ -34,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from core.errors import InvalidRequestError
 from core.global_registration import GlobalSettings, register_global
+from core.keyframe_cache import KeyframeCache
 from core.place import PlaceIndex, PlaceSettings, query_descriptors
 from core.pose_graph import PoseGraph, PoseGraphSettings
 from core.registration import sanitize_points
@@ -117,11 +118,13 @@ class LoopRecord:
 
 @dataclass
 class _Keyframe:
+    """A keyframe's pose, travel and fix. Its points are in :attr:`FleetMapper.points` (a
+    :class:`~core.keyframe_cache.KeyframeCache`: on disk, the recent ones in RAM)."""
+
     T_odom: np.ndarray
-    points: np.ndarray
-    #: Scan Context of the sweep, then of it seen from ahead and behind (core.place): [0] is
-    #: stored, the stack is queried
-    descriptors: np.ndarray
+    #: Scan Context of the sweep, then of it seen from ahead and behind (core.place): [0] goes
+    #: into the place index, the stack is queried once, when the keyframe comes (then None)
+    descriptors: np.ndarray | None
     travel_m: float
     gnss: tuple[np.ndarray, np.ndarray] | None
 
@@ -144,12 +147,18 @@ class _Session:
 class FleetMapper:
     """Sessions' keyframes into one optimized graph (module docstring)."""
 
-    def __init__(self, settings: FleetMapSettings | None = None) -> None:
+    def __init__(self, settings: FleetMapSettings | None = None, points: KeyframeCache | None = None) -> None:
+        """``points``: where the keyframes' points are kept (default: in memory)."""
         self.settings = settings or FleetMapSettings()
         self.graph = PoseGraph(self.settings.pose_graph)
         self.index = PlaceIndex(self.settings.place)
         self.sessions: dict[str, _Session] = {}
         self.loops: list[LoopRecord] = []
+        self.points = points if points is not None else KeyframeCache()
+
+    def keyframe_points(self, key: Key) -> np.ndarray:
+        """A keyframe's points (sensor frame, at ``keyframe_voxel_m``)."""
+        return self.points.get(key)[0]
 
     # ------------------------------------------------------------------ input
     def add_keyframe(
@@ -186,15 +195,18 @@ class FleetMapper:
             prev = s.keyframes[-1]
             travel = prev.travel_m + float(np.linalg.norm(T[:3, 3] - prev.T_odom[:3, 3]))
         pts = voxel_downsample(xyz, self.settings.keyframe_voxel_m)
-        kf = _Keyframe(T, pts, query_descriptors(pts, self.settings.place), travel, gnss)
+        kf = _Keyframe(T, query_descriptors(pts, self.settings.place), travel, gnss)
+        key = (session, len(s.keyframes))
+        self.points.put(key, pts)
         s.keyframes.append(kf)
-        key = (session, len(s.keyframes) - 1)
         if s.placed:
             self._insert(s, key[1])
             self._search_loops(s, key[1])
             self.graph.optimize()
         else:
             self._try_to_place(s)
+        if kf.descriptors is not None:  # (the query stack was for this call only)
+            kf.descriptors = None if s.placed else kf.descriptors[:1]
         return key
 
     # -------------------------------------------------------------- placement
@@ -243,6 +255,8 @@ class FleetMapper:
         log.info("session %s placed by %s", s.name, how)
         for k in range(len(s.keyframes)):
             self._insert(s, k)
+        for kf in s.keyframes:  # (in the place index now)
+            kf.descriptors = None
         if how == "registration":
             return
         self.graph.optimize()
@@ -263,6 +277,7 @@ class FleetMapper:
             self.graph.add_odometry((s.name, k - 1), key, rel, np.diag([st**2] * 3 + [sr**2] * 3))
         if kf.gnss is not None:
             self.graph.add_gnss(key, kf.gnss[0], kf.gnss[1])
+        assert kf.descriptors is not None  # (dropped once it is in the index)
         self.index.add(key, kf.descriptors[0])
 
     # ------------------------------------------------------------------ loops
@@ -283,7 +298,9 @@ class FleetMapper:
         excluded = self._excluded(s, k)
         key = (s.name, k)
         candidate: tuple[Key, str] | None = None
-        found = self.index.query(s.keyframes[k].descriptors, exclude=excluded)
+        descriptors = s.keyframes[k].descriptors
+        assert descriptors is not None  # (the newest keyframe's, still whole)
+        found = self.index.query(descriptors, exclude=excluded)
         if found:
             candidate = (cast(Key, found[0].key), "place")
         else:
@@ -307,17 +324,19 @@ class FleetMapper:
     def _verify_against_placed(self, s: _Session, k: int) -> LoopRecord | None:
         placed = set(self.graph.poses())
         excluded = {key for key in self.index.keys() if key not in placed}  # noqa: SIM118
+        descriptors = s.keyframes[k].descriptors
+        assert descriptors is not None  # (the newest keyframe's, still whole)
         found = self.index.query(
-            s.keyframes[k].descriptors, exclude=excluded, max_distance=self.settings.placement_max_distance
+            descriptors, exclude=excluded, max_distance=self.settings.placement_max_distance
         )
         if not found:
             return None
         return self._verify((s.name, k), cast(Key, found[0].key), "placement", gate=False)
 
     def _verify(self, a: Key, b: Key, source: str, *, gate: bool) -> LoopRecord:
-        ka = self.sessions[a[0]].keyframes[a[1]]
-        kb = self.sessions[b[0]].keyframes[b[1]]
-        result = register_global(ka.points, kb.points, self.settings.global_registration)
+        result = register_global(
+            self.keyframe_points(a), self.keyframe_points(b), self.settings.global_registration
+        )
         reason = result.reason
         confident = result.confident
         if confident and gate:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import hashlib
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -56,6 +57,7 @@ import time
 from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -63,6 +65,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from core.errors import RandtError
 from core.fleet_map import FleetMapper, FleetMapSettings
+from core.keyframe_cache import KeyframeCache
 from core.tiles import TileGrid, tile_id
 from core.transforms import rotation_angle_deg
 from service.graph_log import GraphLog
@@ -96,6 +99,10 @@ GRAPH_NICE = 10
 #: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
 #: last one is this many re-fold periods old (``graph_refold_s``).
 REFOLD_STARVE_PERIODS = 3.0
+#: Keyframes whose points the graph process keeps in memory per map (and per use: the matching's
+#: points, the re-fold's cloud), the ones used last; every keyframe's are on disk under the graph
+#: log's directory (``spill/``, rebuilt from the log at each start). About 1 MB a keyframe.
+HOT_KEYFRAMES = 64
 
 
 class YieldGate:
@@ -236,9 +243,16 @@ class _ProcessMap:
     """One map's graph inside the graph process: the mapper, what was last reported of it, and
     each keyframe's points (sensor frame, with intensity) for re-folding the map's tiles."""
 
-    def __init__(self, name: str, settings: FleetMapSettings, geometry: MapGeometry) -> None:
+    def __init__(
+        self, name: str, settings: FleetMapSettings, geometry: MapGeometry, spill: Path | None = None
+    ) -> None:
+        """``spill``: where the keyframes' points are kept on disk, the :data:`HOT_KEYFRAMES` used
+        last in memory (:class:`~core.keyframe_cache.KeyframeCache`); ``None``: all in memory."""
         self.name = name
-        self.mapper = FleetMapper(settings)
+        where = None if spill is None else spill / hashlib.sha1(name.encode()).hexdigest()[:16]
+        self.mapper = FleetMapper(
+            settings, KeyframeCache(None if where is None else where / "points", HOT_KEYFRAMES)
+        )
         self.geometry = geometry
         self.meta: dict[tuple[str, int], tuple[str, str, int, int]] = {}  # vehicle, session, seq, index
         self.reported: dict[tuple[str, int], np.ndarray] = {}
@@ -247,12 +261,18 @@ class _ProcessMap:
         self.announced: set[tuple[str, int]] = set()
         self.sent: list[bool] = []  # each loop record's ``accepted`` as last sent
         self.revision = 0
-        self.cloud: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
+        #: Each keyframe's points (sensor frame, float32) and intensity, for the re-folds.
+        self.cloud = KeyframeCache(None if where is None else where / "cloud", HOT_KEYFRAMES)
         self.folded: dict[tuple[str, int], np.ndarray] = {}  # the pose its points are in the tiles at
         self.tiles_of: dict[tuple[str, int], set[tuple[int, int]]] = {}
         self.poses: dict[tuple[str, int], np.ndarray] = {}  # the optimized poses after the last keyframe
         #: Keyframes moved since the last re-fold (it checks which moved far enough).
         self.refold_pending = False
+
+    def close(self) -> None:
+        """Remove the map's keyframe files (a deleted map)."""
+        self.mapper.points.clear()
+        self.cloud.clear()
 
     def _tiles(self, T: np.ndarray, xyz: np.ndarray) -> set[tuple[int, int]]:
         """The tiles a keyframe's points fall in at pose ``T``. A count over the few tiles of the
@@ -282,23 +302,22 @@ class _ProcessMap:
         }
         if not due:
             return None
-        now = {k: self._tiles(poses[k], self.cloud[k][0]) for k in due}
+        now = {k: self._tiles(poses[k], self.cloud.get(k)[0]) for k in due}
         tiles: set[tuple[int, int]] = set()
         for k in due:
             tiles |= self.tiles_of.get(k, set()) | now[k]
         contributors = [
             k for k in self.cloud if k in poses and (now[k] if k in due else self.tiles_of[k]) & tiles
         ]
-        xyz = np.concatenate(
-            [
-                (self.cloud[k][0] @ poses[k][:3, :3].T + poses[k][:3, 3]).astype(np.float32)
-                for k in contributors
-            ]
-        )
-        intensity = np.concatenate([self.cloud[k][1] for k in contributors])
-        for k in contributors:
+        parts, intensities = [], []
+        for k in contributors:  # (each keyframe's points read once: they may come from disk)
+            xyz_k, intensity_k = self.cloud.get(k)
+            parts.append((xyz_k @ poses[k][:3, :3].T + poses[k][:3, 3]).astype(np.float32))
+            intensities.append(intensity_k)
             self.folded[k] = poses[k]
-            self.tiles_of[k] = now[k] if k in due else self._tiles(poses[k], self.cloud[k][0])
+            self.tiles_of[k] = now[k] if k in due else self._tiles(poses[k], xyz_k)
+        xyz = np.concatenate(parts)
+        intensity = np.concatenate(intensities)
         # Equalized here, off the service's GIL: the service swaps the tiles in.
         g = self.geometry
         grid = TileGrid(g.tile_size_m, g.voxel_size_m, g.max_points_per_voxel)
@@ -338,7 +357,7 @@ class _ProcessMap:
         self.meta[key] = (vehicle, session, seq, index)
         self.reported.setdefault(key, T_live)
         xyz = np.asarray(points, dtype=np.float32)
-        self.cloud[key] = (xyz, np.zeros(len(xyz), np.float32) if intensity is None else intensity)
+        self.cloud.put(key, xyz, np.zeros(len(xyz), np.float32) if intensity is None else intensity)
         if not joining:  # folded by the service, moved by the session's newest correction
             self.folded[key] = T_live
             self.tiles_of[key] = self._tiles(T_live, xyz)
@@ -418,7 +437,12 @@ def _send_refolds(conn: Connection, maps: dict[str, _ProcessMap]) -> None:
 
 
 def _graph_main(
-    conn: Connection, settings: FleetMapSettings, geometry: MapGeometry, refold_s: float, parent: int
+    conn: Connection,
+    settings: FleetMapSettings,
+    geometry: MapGeometry,
+    refold_s: float,
+    parent: int,
+    spill: Path | None = None,
 ) -> None:
     """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring).
 
@@ -429,7 +453,8 @@ def _graph_main(
 
     Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
-    old), and at once on a ``sync`` request."""
+    old), and at once on a ``sync`` request. ``spill``: where the keyframes' points are kept on
+    disk (:class:`_ProcessMap`); ``None``: in memory."""
     ignore_group_signals()  # the service stops it (``quit`` or the pipe closing), not Ctrl-C
     _die_with_parent()
     if os.getppid() != parent:  # the service died before the request: nobody would kill us
@@ -441,6 +466,10 @@ def _graph_main(
     single_threaded_blas()
     _lowest_priority()
     maps: dict[str, _ProcessMap] = {}
+
+    def new_map(name: str) -> _ProcessMap:
+        return _ProcessMap(name, settings, geometry, spill)
+
     last_refold = time.monotonic()
     while True:
         try:
@@ -462,12 +491,16 @@ def _graph_main(
             conn.send(("synced", message[1]))
             continue
         if message[0] == "forget":  # a deleted map (ServiceGraph.forget_map)
-            maps.pop(message[1], None)
+            gone = maps.pop(message[1], None)
+            if gone is not None:
+                gone.close()
             conn.send(("forgotten", message[1]))
             continue
         if message[0] == "place":  # a restarted process: a session the graph had placed
             _, map_name, vehicle, session, T_map_session = message
-            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(map_name, settings, geometry))
+            graph = maps.get(map_name) or maps.setdefault(
+                map_name, _ProcessMap(map_name, settings, geometry, spill)
+            )
             with contextlib.suppress(RandtError):  # (placed already: nothing to do)
                 graph.mapper.place(f"{vehicle}/{session}", T_map_session)
             conn.send(("placed", map_name, vehicle, session))
@@ -475,7 +508,9 @@ def _graph_main(
         map_name, vehicle, session, seq, join = message[1], message[2], message[3], message[4], message[-1]
         t0 = time.perf_counter()
         try:
-            graph = maps.get(map_name) or maps.setdefault(map_name, _ProcessMap(map_name, settings, geometry))
+            graph = maps.get(map_name) or maps.setdefault(
+                map_name, _ProcessMap(map_name, settings, geometry, spill)
+            )
             update = graph.add(message)
         except Exception as exc:  # bad input (or a bug): this keyframe is refused, the graph goes on
             if not isinstance(exc, RandtError):
@@ -626,6 +661,8 @@ class ServiceGraph:
         #: The keyframes the graph took, durable (service/graph_log.py): every (re)started process
         #: takes them again first. ``None``: the graph lives in memory only.
         self._log: GraphLog | None = None if log_dir is None else GraphLog(log_dir)
+        #: Where the graph process keeps the keyframes' points (rebuilt from the log at each start).
+        self._spill: Path | None = None if log_dir is None else Path(log_dir) / "spill"
         #: Items of the log being taken again by the current process (ids), and whether the last
         #: keyframe answered was one: what they make is not published again.
         self._replay_ids: set[int] = set()
@@ -908,7 +945,7 @@ class ServiceGraph:
         conn, child = ctx.Pipe()
         proc = ctx.Process(
             target=_graph_main,
-            args=(child, self.settings, self.geometry, self.refold_s, os.getpid()),
+            args=(child, self.settings, self.geometry, self.refold_s, os.getpid(), self._spill),
             name="randt-graph",
             daemon=True,
         )
