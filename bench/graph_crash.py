@@ -11,7 +11,9 @@ through the graph), so the run has keyframes, loops and a join. Each cycle start
 (``--worker``: a real :class:`service.runtime.Service` with its pose graph, without Zenoh; its
 outbox is lines on stdout, written before a message would go out) that sends the vehicles' next
 sweeps from where the store says they are, each once the one before is answered. The parent
-kills it with SIGKILL at a random moment (2-10 s after it is ready) and checks:
+kills it with SIGKILL at a random moment (2-10 s after it is ready; every other cycle 0-1.5 s
+after the graph published its next correction, waiting up to ``CORRECTION_WAIT_S`` for one, so
+that there is something shown to check) and checks:
 
 * every keyframe a correction named (a keyframe the graph showed moved) is in the graph's
   durable log (``DATA/graph/keyframes.log``): saved before seen;
@@ -48,6 +50,9 @@ if str(REPO) not in sys.path:  # run as a script from bench/
     sys.path.insert(0, str(REPO))
 
 __all__ = ["GraphCrashReport", "run_graph_kill_cycles"]
+
+#: Every other cycle is killed just after a correction: how long it waits for one, at most (s).
+CORRECTION_WAIT_S = 120.0
 
 VEHICLES = ("gnss", "nognss")
 PRIOR_COV = np.diag([1e-4] * 3 + [1e-5] * 3)
@@ -236,7 +241,14 @@ def run_graph_kill_cycles(
         deadline = time.monotonic() + 300
         while not any('"ready"' in s for s in lines) and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(rnd.uniform(2.0, 10.0))
+        wait = rnd.uniform(2.0, 10.0)
+        if cycle % 2 == 1:  # (every other cycle: just after the graph has shown something)
+            n_seen = sum('"correction"' in s for s in lines)
+            deadline = time.monotonic() + CORRECTION_WAIT_S
+            while sum('"correction"' in s for s in lines) == n_seen and time.monotonic() < deadline:
+                time.sleep(0.01)
+            wait = rnd.uniform(0.0, 1.5)
+        time.sleep(wait)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(30)
         reader.join(30)
