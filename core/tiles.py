@@ -359,6 +359,12 @@ def _appended(state: _TileState | None, rows: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
+def _tile_keys(tile_ids: Iterable[str]) -> np.ndarray:
+    """The grid's packed tile keys of tile ids (as :meth:`TileGrid._keys` computes them)."""
+    wanted = np.array(sorted(parse_tile_id(tid) for tid in tile_ids), dtype=np.int64).reshape(-1, 2)
+    return ((wanted[:, 0] + _TILE_OFFSET) << 31) | (wanted[:, 1] + _TILE_OFFSET)
+
+
 class TileGrid:
     """A tiled, density-equalized global map (see the module docstring for the policy).
 
@@ -452,7 +458,13 @@ class TileGrid:
 
     # ---------------------------------------------------------------------------- insert
 
-    def insert(self, points_xyz: np.ndarray, intensity: np.ndarray | None = None) -> list[str]:
+    def insert(
+        self,
+        points_xyz: np.ndarray,
+        intensity: np.ndarray | None = None,
+        *,
+        only_tiles: Iterable[str] | None = None,
+    ) -> list[str]:
         """Fold registered points into the map, keeping at most the cap per voxel.
 
         Parameters
@@ -462,6 +474,10 @@ class TileGrid:
             Points with a non-finite coordinate are dropped.
         intensity:
             (N,) return intensity, or ``None`` (stored as zeros).
+        only_tiles:
+            Ids of the only tiles points may go to (the others' points are ignored): inserting
+            batches one after another into an empty grid with the same ``only_tiles`` gives what
+            one :meth:`refold` of their concatenation gives, without holding all of them at once.
 
         Returns
         -------
@@ -478,6 +494,11 @@ class TileGrid:
         if xyz.shape[0] == 0:
             return []
         tkeys, vkeys = self._keys(xyz)
+        if only_tiles is not None:
+            keep = np.flatnonzero(np.isin(tkeys, _tile_keys(only_tiles)))
+            xyz, inten, tkeys, vkeys = xyz[keep], inten[keep], tkeys[keep], vkeys[keep]
+            if xyz.shape[0] == 0:
+                return []
         with self._lock:
             accept = self._admit(tkeys, vkeys, xyz)
             changed = self._append(np.flatnonzero(accept), tkeys, xyz, inten)
@@ -560,9 +581,7 @@ class TileGrid:
         if not wanted or xyz.shape[0] == 0:
             return []
         tkeys, vkeys = self._keys(xyz)
-        wanted_arr = np.array(sorted(wanted), dtype=np.int64)
-        wkeys = ((wanted_arr[:, 0] + _TILE_OFFSET) << 31) | (wanted_arr[:, 1] + _TILE_OFFSET)
-        keep = np.flatnonzero(np.isin(tkeys, wkeys))
+        keep = np.flatnonzero(np.isin(tkeys, _tile_keys(tile_id(ix, iy) for ix, iy in wanted)))
         if keep.size == 0:
             return []
         xyz, inten, tkeys, vkeys = xyz[keep], inten[keep], tkeys[keep], vkeys[keep]

@@ -849,3 +849,25 @@ def test_agreement_checks_only_columns_the_map_has_seen_and_follows_a_refold() -
     grid.refold(["0_0"], moved)
     assert grid.agreement(wall).checked == 0
     assert grid.agreement(moved).near == 200
+
+
+def test_inserting_batches_into_an_empty_grid_for_some_tiles_is_one_refold_of_them_all() -> None:
+    """``insert(..., only_tiles=ids)`` batch after batch into an empty grid keeps exactly the
+    points one ``refold(ids, all of them)`` keeps (the graph's re-fold, keyframe by keyframe),
+    and nothing outside those tiles."""
+    rng = np.random.default_rng(3)
+    batches = [
+        (rng.uniform(-30.0, 50.0, (4000, 3)).astype(np.float32), rng.random(4000).astype(np.float32))
+        for _ in range(5)
+    ]
+    ids = ["0_0", "1_0", "-1_1", "2_2"]
+    whole = TileGrid(20, 0.5, 2)
+    whole.refold(ids, np.concatenate([b[0] for b in batches]), np.concatenate([b[1] for b in batches]))
+    batched = TileGrid(20, 0.5, 2)
+    for xyz, intensity in batches:
+        batched.insert(xyz, intensity, only_tiles=ids)
+    assert sorted(batched.tile_ids()) == sorted(whole.tile_ids()) and set(whole.tile_ids()) <= set(ids)
+    for tid in whole.tile_ids():
+        np.testing.assert_array_equal(batched.get(tid).points, whole.get(tid).points)
+        np.testing.assert_array_equal(batched.get(tid).intensity, whole.get(tid).intensity)
+    assert batched.n_points == whole.n_points > 0
