@@ -2,7 +2,7 @@
 
 Run from the repository root (no test dependencies)::
 
-    python bench/graph_memory.py [--km 20] [--mode disk|memory|both] [--memory-km 5] [--markdown]
+    python bench/graph_memory.py [--km 20] [--mode disk|memory|both|breakdown] [--memory-km 5] [--markdown]
 
 One simulated vehicle drives a random walk through the town's street grid (it comes back to the
 same streets again and again: loops), with a GNSS fix at each keyframe (0.5 m). Its keyframes (a
@@ -12,7 +12,9 @@ process, queue and log, as a session's would; after every kilometre the bench wa
 graph has taken them all and reads the graph process's resident memory (``VmRSS``) and its spill
 directory's size. ``disk``: the keyframes' points on disk under the graph log's directory, the
 most recent in memory (the service's default); ``memory``: no log, every keyframe's points in
-RAM (how the graph worked before), over the first ``--memory-km``.
+RAM (how the graph worked before), over the first ``--memory-km``. ``breakdown``: the graph
+process's map code run in this process on the same keyframes, and at the end what its memory is
+(RSS as the pose graph, the place index, then the loop records leave).
 """
 
 from __future__ import annotations
@@ -112,16 +114,59 @@ def run(mode: str, keyframes: list[tuple[np.ndarray, np.ndarray]], seed: int) ->
     return rows
 
 
+def breakdown(keyframes: list[tuple[np.ndarray, np.ndarray]], seed: int, spill: Path) -> list[list[str]]:
+    """The graph process's map, run in this process on the same keyframes (its code: re-folds every
+    20 keyframes, the freed heap given back); at the end, what leaves memory with the pose graph
+    (gtsam's iSAM2), then with the place index, then with the loop records and sessions."""
+    import gc
+
+    from service.graph import MapGeometry, _ProcessMap, _release_memory
+
+    rng = np.random.default_rng(seed)
+    graph = _ProcessMap("default", FleetMapSettings(), MapGeometry(20, 0.2, 5), spill)
+
+    def rss() -> float:
+        gc.collect()
+        _release_memory()
+        return rss_mb(os.getpid())
+
+    rows = []
+    for k, (T, points) in enumerate(keyframes):
+        live = T.copy()
+        live[:3, 3] += rng.normal(0.0, 0.01, 3)
+        fix = T[:3, 3] + rng.normal(0.0, 0.5, 3)
+        graph.add(
+            ("keyframe", "default", "car", "d1", k * 10, k * 10, live, points.astype(np.float32), None,
+             (fix, np.eye(3) * 0.25), None)
+        )  # fmt: skip
+        if k % 20 == 19:
+            graph.refold()
+            _release_memory()
+    keyframes.clear()  # (this process held the drive)
+    whole = rss()
+    graph.mapper.graph = None  # type: ignore[assignment]
+    without_graph = rss()
+    graph.mapper.index = None  # type: ignore[assignment]
+    without_index = rss()
+    graph.mapper.loops, graph.mapper.sessions = [], {}
+    without_loops = rss()
+    rows.append(["the map's state in this process", f"{whole:.0f}"])
+    rows.append(["... without the pose graph (gtsam iSAM2)", f"{without_graph:.0f}"])
+    rows.append(["... and without the place index", f"{without_index:.0f}"])
+    rows.append(["... and without the loop records and sessions", f"{without_loops:.0f}"])
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--km", type=float, default=20.0)
-    parser.add_argument("--mode", choices=("disk", "memory", "both"), default="both")
+    parser.add_argument("--mode", choices=("disk", "memory", "both", "breakdown"), default="both")
     parser.add_argument("--seed", type=int, default=4)
     parser.add_argument(
         "--memory-km",
         type=float,
         default=5.0,
-        help="how far the in-memory mode drives (it grows ~165 MB a km)",
+        help="how far the in-memory mode drives (its points stay: ~80 MB a km)",
     )
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
@@ -130,6 +175,12 @@ def main() -> None:
     print(f"{git_line()}; run on {datetime.date.today().isoformat()}")
     print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
     keyframes = drive(args.km, args.seed)
+    if args.mode == "breakdown":
+        with tempfile.TemporaryDirectory(prefix="randt-graph-memory-") as tmp:
+            rows = breakdown(keyframes, args.seed, Path(tmp) / "spill")
+        print(heading(f"What the graph's memory is after {args.km:g} km", args.markdown))
+        print(table(["", "RSS MB"], rows, args.markdown))
+        return
     modes = ("disk", "memory") if args.mode == "both" else (args.mode,)
     for mode in modes:
         n = len(keyframes) if mode == "disk" else int(min(args.km, args.memory_km) * 1000 / KEYFRAME_M)
