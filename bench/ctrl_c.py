@@ -48,6 +48,23 @@ def _left_running(pgid: int, wait_s: float = 10.0) -> list[str]:
         time.sleep(0.2)
 
 
+def _dump_stacks(pid: int) -> None:
+    """A demo that did not end: every thread's stack on stderr (``py-spy dump``, when installed),
+    to say where it hung before it is killed."""
+    import shutil
+
+    spy = shutil.which("py-spy")
+    if spy is None:
+        print(f"  (demo {pid} hung; install py-spy to see where)", file=sys.stderr, flush=True)
+        return
+    dump = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True, text=True, check=False)
+    print(
+        f"  demo {pid} hung after Ctrl-C; its threads:\n{dump.stdout}{dump.stderr}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
 def one_run(at_s: float, tmp: Path) -> list[str]:
     """One interrupted demo; what was wrong with it (empty: nothing)."""
     proc = subprocess.Popen(
@@ -64,6 +81,7 @@ def one_run(at_s: float, tmp: Path) -> list[str]:
     try:
         _, err = proc.communicate(timeout=90)
     except subprocess.TimeoutExpired:
+        _dump_stacks(proc.pid)
         os.killpg(proc.pid, signal.SIGKILL)
         _, err = proc.communicate()
     running = _left_running(proc.pid)
