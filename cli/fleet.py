@@ -65,8 +65,8 @@ SharedRoutesOption = Annotated[
     bool,
     typer.Option(
         "--shared-routes/--own-routes",
-        help="Every vehicle on one loop of the town, evenly spaced (streets revisited and shared: "
-        "loops and joins), or each on a loop of its own.",
+        help="Every vehicle on one loop of the town, leaving one depot one after another (streets "
+        "revisited and shared: loops and joins), or each on a loop of its own.",
     ),
 ]
 RawOption = Annotated[
@@ -336,7 +336,8 @@ def _fleet_gnss(modes: tuple[str, ...], vehicles: int) -> str:
 
 def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
     """Wait until the matchers' queues are empty and the pose graph has processed every keyframe
-    (it runs at the lowest priority, behind the matchers), then for the tiles' next save."""
+    (it runs at the lowest priority, behind the matchers), then for the tiles' next save, and
+    until map ``default`` on disk has as many tiles as in memory (a busy flusher saves later)."""
     import time
 
     import httpx
@@ -348,7 +349,14 @@ def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
             if not any(status.get("queue_depths", {}).values()) and not status["graph"].get("pending"):
                 break
             time.sleep(0.5)
-    time.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
+        time.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            live = http.get("/status").json().get("maps", {}).get("default", {}).get("tiles")
+            saved = http.get("/maps/default")
+            if live is None or (saved.status_code == 200 and saved.json()["tiles"] == live):
+                break
+            time.sleep(0.5)
 
 
 def _print_summary(

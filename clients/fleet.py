@@ -318,15 +318,20 @@ def evaluate(
 
 def ate_m(estimate_xyz: np.ndarray, truth_xyz: np.ndarray, *, align: bool = False) -> float:
     """RMS distance between ``(N, 3)`` estimated and true positions; with ``align`` after the
-    rigid fit of the estimate to the truth (:func:`core.transforms.umeyama`)."""
-    est = np.asarray(estimate_xyz, dtype=np.float64)
-    ref = np.asarray(truth_xyz, dtype=np.float64)
-    if align and len(est) >= 3:
-        from core.transforms import umeyama
+    rigid fit of the estimate to the truth (:func:`core.metrics.trajectory.ate` of the positions,
+    ``"se3"`` or ``"none"``; N >= 3 to align)."""
+    from core.metrics.trajectory import ate
 
-        T, _ = umeyama(est, ref)
-        est = est @ T[:3, :3].T + T[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((est - ref) ** 2, axis=1))))
+    def poses(xyz: np.ndarray) -> np.ndarray:
+        P = np.tile(np.eye(4), (len(xyz), 1, 1))
+        P[:, :3, 3] = xyz
+        return P
+
+    est, ref = (
+        poses(np.asarray(estimate_xyz, dtype=np.float64)),
+        poses(np.asarray(truth_xyz, dtype=np.float64)),
+    )
+    return ate(ref, est, align="se3" if align else "none").translation_m.rmse
 
 
 def _drive(

@@ -102,7 +102,8 @@ GRAPH_NICE = 10
 REFOLD_STARVE_PERIODS = 3.0
 #: Keyframes whose points the graph process keeps in memory per map (and per use: the matching's
 #: points, the re-fold's cloud), the ones used last; every keyframe's are on disk under the graph
-#: log's directory (``spill/``, rebuilt from the log at each start). About 1 MB a keyframe.
+#: log's directory (``spill/``, rebuilt from the log at each start). About 0.75 MB a keyframe
+#: (bench/graph_memory.py: 75 MB of spill a km at a keyframe every 10 m).
 HOT_KEYFRAMES = 64
 
 
