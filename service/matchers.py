@@ -587,39 +587,21 @@ class CpuLedger:
 #: The signals a terminal (Ctrl-C) or systemd (its stop) sends the whole process group: the
 #: service's child processes leave them to the service, which stops them after saving.
 GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-_DISPOSITION_LOCK = threading.Lock()
 _spawning = threading.local()
 _SPAWNV = multiprocessing.util.spawnv_passfds
 
 
-def _setsig() -> Any:
-    """CPython's ``PyOS_setsig`` (public C API: sets a signal's disposition from any thread and
-    returns the previous handler), or None where ctypes cannot reach it."""
-    try:
-        import ctypes
-
-        fn = ctypes.pythonapi.PyOS_setsig
-    except (ImportError, AttributeError):
-        return None
-    fn.restype = ctypes.c_void_p
-    fn.argtypes = [ctypes.c_int, ctypes.c_void_p]
-    return fn
-
-
 def _spawnv_passfds(path: bytes, args: Sequence[Any], passfds: Sequence[int]) -> int:
     """multiprocessing's fork and exec of a spawned child (``multiprocessing.util``'s, wrapped):
-    inside :func:`_sigint_ignored_by_children`, with SIGINT and SIGTERM ignored for the fork and
-    exec alone, so that the child starts with them ignored; elsewhere as it was."""
-    setsig = _setsig() if getattr(_spawning, "active", False) else None
-    if setsig is None:
+    inside :func:`_sigint_ignored_by_children`, with SIGINT and SIGTERM blocked in this thread
+    for the fork and exec, so that the child starts with them blocked; elsewhere as it was."""
+    if not getattr(_spawning, "active", False):
         return int(_SPAWNV(path, args, passfds))
-    with _DISPOSITION_LOCK:
-        previous = [(sig, setsig(sig, int(signal.SIG_IGN))) for sig in GROUP_SIGNALS]
-        try:
-            return int(_SPAWNV(path, args, passfds))
-        finally:
-            for sig, handler in previous:
-                setsig(sig, handler)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, GROUP_SIGNALS)
+    try:
+        return int(_SPAWNV(path, args, passfds))
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 multiprocessing.util.spawnv_passfds = _spawnv_passfds
@@ -632,17 +614,16 @@ def _sigint_ignored_by_children() -> Iterator[None]:
     (interpreter start, imports, before :func:`ignore_group_signals` runs in it) cannot kill it
     with a KeyboardInterrupt traceback on the terminal; the service stops it after saving.
 
-    An ignored disposition survives exec, and Python installs its KeyboardInterrupt handler only
-    where SIGINT was not ignored. ``signal.signal`` works in the main thread only, while the
-    service starts its processes from uvicorn's lifespan (not the main thread under ``randt
-    demo``) and from the graph's supervisor thread: children started there printed tracebacks
-    when ``randt demo`` was interrupted 1.7 s after it started. So the disposition is set with
-    ``PyOS_setsig``, which any thread may call, around the fork and exec alone (the wrapped
-    ``spawnv_passfds``, one start at a time), and Python's handler is put back at once: a signal
-    to the service in that millisecond is lost to it. (Around the whole start, as before, it was
-    lost for as long as the child took to read its start data. A blocked signal mask would not
-    do: a spawned child's is reset. A shell that ignores them before exec'ing the interpreter
-    left the shell's own start open.)
+    The signals are *blocked* in the starting thread around the fork and exec (the wrapped
+    ``spawnv_passfds``): a child inherits its parent thread's signal mask through fork and exec
+    (measured: a child spawned from a thread that blocked them starts with 2 and 15 blocked), so
+    neither can reach it until it ignores them itself (:func:`ignore_group_signals`), and a
+    blocked signal that arrives meanwhile stays pending and is dropped then. The service's other
+    threads do not block them, so a Ctrl-C in that moment still reaches the service (its main
+    thread). Before, the disposition was set to ignored process-wide for the fork and exec
+    (``PyOS_setsig``, from any thread): a Ctrl-C in that moment was lost to the service (the
+    likely cause of a clean-clone CI run's ``randt demo`` that, interrupted at 2.9 s, still ran
+    90 s later).
     """
     _spawning.active = True
     try:
@@ -678,9 +659,13 @@ atexit.register(_kill_ignoring_children)
 
 
 def ignore_group_signals() -> None:
-    """In a child process of the service: ignore SIGINT and SIGTERM (the service stops it)."""
+    """In a child process of the service: ignore SIGINT and SIGTERM (the service stops it), then
+    unblock them (a child starts with them blocked, :func:`_sigint_ignored_by_children`; ignoring
+    a signal discards it if pending, so nothing is delivered late), so that the child's own
+    threads and processes start with a clean signal mask."""
     for sig in GROUP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, GROUP_SIGNALS)
 
 
 class _Channel:

@@ -7,6 +7,7 @@ import os
 import pickle
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,6 +249,12 @@ def test_a_ctrl_c_while_a_matcher_process_starts_does_not_kill_it(thread: str) -
             time.sleep(0.05)
         assert pool.wait_ready(timeout=120), "the matcher process died of a Ctrl-C while starting"
         assert pool.pids() == [pid]
+        status = dict(line.split(":\t", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
+        group = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+        assert int(status["SigIgn"], 16) & group == group  # ignored once running
+        assert int(status["SigBlk"], 16) & group == 0  # and no longer blocked
+        # the starting thread's own mask is back as it was: Ctrl-C still reaches the service
+        assert not set(signal.pthread_sigmask(signal.SIG_BLOCK, [])) & {signal.SIGINT, signal.SIGTERM}
     finally:
         pool.close()
 
