@@ -28,6 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -65,8 +67,9 @@ def _dump_stacks(pid: int) -> None:
     )
 
 
-def one_run(at_s: float, tmp: Path) -> list[str]:
-    """One interrupted demo; what was wrong with it (empty: nothing)."""
+def one_run(at_s: float, tmp: Path) -> tuple[list[str], float]:
+    """One interrupted demo: what was wrong with it (empty: nothing), and the seconds from the
+    Ctrl-C to the demo's exit."""
     proc = subprocess.Popen(
         [
             sys.executable, "-m", "cli", "demo", "--vehicles", "1", "--duration", "1", "--azimuth", "500",
@@ -78,12 +81,14 @@ def one_run(at_s: float, tmp: Path) -> list[str]:
     )  # fmt: skip
     time.sleep(at_s)
     os.killpg(proc.pid, signal.SIGINT)
+    sent = time.monotonic()
     try:
         _, err = proc.communicate(timeout=90)
     except subprocess.TimeoutExpired:
         _dump_stacks(proc.pid)
         os.killpg(proc.pid, signal.SIGKILL)
         _, err = proc.communicate()
+    stop_s = time.monotonic() - sent
     running = _left_running(proc.pid)
     if running:
         subprocess.run(["pkill", "-9", "-g", str(proc.pid)], check=False)
@@ -100,7 +105,7 @@ def one_run(at_s: float, tmp: Path) -> list[str]:
     left = sorted(p.name for p in tmp.iterdir())
     if left:
         problems.append(f"left {left}")
-    return problems
+    return problems, stop_s
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,18 +117,24 @@ def main(argv: list[str] | None = None) -> int:
     rnd = random.Random(args.seed)
     burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     failed = 0
+    stops: list[float] = []
     try:
         for run in range(args.runs):
             at = rnd.uniform(0.2, args.latest)
             with tempfile.TemporaryDirectory(prefix="randt-ctrl-c-") as tmp:
-                problems = one_run(at, Path(tmp))
+                problems, stop_s = one_run(at, Path(tmp))
             failed += bool(problems)
-            print(f"run {run:2d}: Ctrl-C at {at:4.1f} s: {'; '.join(problems) or 'ok'}", flush=True)
+            stops.append(stop_s)
+            verdict = "; ".join(problems) or "ok"
+            print(f"run {run:2d}: Ctrl-C at {at:4.1f} s, exited {stop_s:4.1f} s later: {verdict}", flush=True)
     finally:
         for burner in burners:
             burner.kill()
             burner.wait()
     print(f"{args.runs - failed} of {args.runs} runs clean")
+    if stops:
+        mean, median, most = np.mean(stops), np.median(stops), max(stops)
+        print(f"exit after Ctrl-C: mean {mean:.1f} s, median {median:.1f} s, max {most:.1f} s")
     return 1 if failed else 0
 
 

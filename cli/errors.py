@@ -18,6 +18,7 @@ from typing import ParamSpec, TypeVar
 
 import typer
 
+from cli import interrupt
 from core.errors import (
     DegenerateProblemError,
     FormatError,
@@ -177,6 +178,7 @@ def exits_on_error(command: Callable[P, R], name: str) -> Callable[P, R]:
     @functools.wraps(command)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
+            interrupt.check()  # (a Ctrl-C while the command loaded, swallowed where it was raised)
             return command(*args, **kwargs)
         except BrokenPipeError:
             # The reader left (``randt config | head``): stop quietly, as cat and grep do. Point

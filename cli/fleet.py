@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
 
+from cli import interrupt
 from cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
 
 if TYPE_CHECKING:
@@ -281,10 +282,6 @@ def _usable_port(port: int) -> tuple[int, bool]:
         return s.getsockname()[1], port == 0
 
 
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _map_folder_stats(folder: Path, pdu_voxel_m: float) -> tuple[int, int, float | None]:
     """Tiles, points and PDU of an Autoware tile folder (the store's ``maps/<map>/``)."""
     import numpy as np
@@ -324,7 +321,7 @@ def _wait_warm(base: str) -> None:
                 return
         except (httpx.HTTPError, ValueError):
             pass
-        time.sleep(0.2)
+        interrupt.sleep(0.2)
     typer.echo("")
     raise fail(TimeoutError(f"the service was not ready within {WARM_UP_TIMEOUT_S:.0f} s ({base}/readyz)"))
 
@@ -348,15 +345,15 @@ def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
             status = http.get("/status").json()
             if not any(status.get("queue_depths", {}).values()) and not status["graph"].get("pending"):
                 break
-            time.sleep(0.5)
-        time.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
+            interrupt.sleep(0.5)
+        interrupt.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline:
             live = http.get("/status").json().get("maps", {}).get("default", {}).get("tiles")
             saved = http.get("/maps/default")
             if live is None or (saved.status_code == 200 and saved.json()["tiles"] == live):
                 break
-            time.sleep(0.5)
+            interrupt.sleep(0.5)
 
 
 def _print_summary(
@@ -496,7 +493,8 @@ def demo(
             uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_level="warning")
         )
         thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
-        previous_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
+        previous_sigterm = signal.getsignal(signal.SIGTERM)
+        interrupt.install(signal.SIGTERM)
     except BaseException:
         if data_dir is None:
             shutil.rmtree(data, ignore_errors=True)
@@ -517,7 +515,7 @@ def demo(
         while not server.started:
             if not thread.is_alive() or time.monotonic() > deadline:
                 raise fail(ConnectionError(f"the service did not start on {base} (see the log above)"))
-            time.sleep(0.1)
+            interrupt.sleep(0.1)
         n_scans = max(1, round(duration * 10.0))
         kept = "" if data_dir is not None else " (temporary, removed at exit: keep one with --data-dir)"
         typer.echo(f"randt demo: service on Zenoh {endpoint} (peer) and {base}, data in {data}{kept}")
@@ -544,7 +542,8 @@ def demo(
         proc = subprocess.Popen(
             cmd, stdout=subprocess.DEVNULL, env={**os.environ, QUIET_INTERRUPT_ENV: "1"}, process_group=0
         )
-        rc = proc.wait()
+        while (rc := proc.poll()) is None:
+            interrupt.sleep(0.2)
         if rc not in (0, ExitCode.INCOMPLETE) or not fleet_json.is_file():
             raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
         wall = time.monotonic() - tic
@@ -555,6 +554,7 @@ def demo(
         if not exit_:
             typer.echo("serving until Ctrl-C")
             while thread.is_alive():
+                interrupt.check()
                 thread.join(0.5)
     except KeyboardInterrupt:
         interrupted = True

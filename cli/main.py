@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from typer.core import TyperCommand
 
-from cli import config, fleet, mapping, register, security, serve, tiles
+from cli import config, fleet, interrupt, mapping, register, security, serve, tiles
 from cli.errors import exit_code_table, exits_on_error
 
 # Plain help (rich_markup_mode=None): click's layout, no "<bool>" type column, text as written.
@@ -77,6 +77,7 @@ def _main(
 
 def main() -> None:
     """Console-script entry point."""
+    interrupt.install()
     app()
 
 

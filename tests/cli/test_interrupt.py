@@ -1,0 +1,58 @@
+"""A Ctrl-C that lands in a weakref callback (where the import system's module locks are dropped)
+is swallowed by the interpreter ("Exception ignored in ..."): ``cli.interrupt`` notes it first, so
+the command's next wait still raises it (a ``randt demo`` interrupted during its imports served on
+until killed, bench/ctrl_c.py)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys, time, weakref
+    from cli import interrupt
+
+    if sys.argv[1] == "installed":
+        interrupt.install()
+
+    class Thing:
+        pass
+
+    def callback(_ref):
+        os.kill(os.getpid(), signal.SIGINT)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:  # the handler runs here, inside the callback
+            pass
+
+    thing = Thing()
+    ref = weakref.ref(thing, callback)
+    del thing  # the callback runs; its KeyboardInterrupt is printed and ignored
+    print("went on", flush=True)
+    try:
+        interrupt.sleep(0.01)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        sys.exit(130)
+    print("lost", flush=True)
+    """
+)
+
+
+@pytest.mark.parametrize("mode", ["installed", "python's own"])
+def test_a_ctrl_c_swallowed_in_a_callback_still_stops_the_next_wait(mode: str) -> None:
+    run = subprocess.run(
+        [sys.executable, "-c", SCRIPT, "installed" if mode == "installed" else "default"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert "Exception ignored in" in run.stderr and "KeyboardInterrupt" in run.stderr, run.stderr
+    lines = run.stdout.split()
+    if mode == "installed":
+        assert lines == ["went", "on", "interrupted"] and run.returncode == 130
+    else:  # the failure mode itself: without the note, the Ctrl-C is gone
+        assert lines == ["went", "on", "lost"] and run.returncode == 0
