@@ -41,9 +41,7 @@ __all__ = [
 ]
 
 
-#: Set to "1" in the environment of a ``randt`` command another one runs (``randt demo``'s fleet):
-#: a Ctrl-C, which reaches both, is then reported by the parent alone, in one line.
-QUIET_INTERRUPT_ENV = "RANDT_QUIET_INTERRUPT"
+QUIET_INTERRUPT_ENV = interrupt.QUIET_ENV
 
 
 class ExitCode(IntEnum):
@@ -188,8 +186,7 @@ def exits_on_error(command: Callable[P, R], name: str) -> Callable[P, R]:
         except HANDLED as exc:
             raise fail(exc) from exc
         except KeyboardInterrupt:
-            if os.environ.get(QUIET_INTERRUPT_ENV) != "1":  # (a child of randt demo: it says it)
-                typer.echo(f"randt {name}: interrupted", err=True)
+            interrupt.say(f"randt {name}: interrupted")
             raise typer.Exit(ExitCode.INTERRUPTED) from None
 
     return wrapper

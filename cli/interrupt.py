@@ -10,16 +10,28 @@ was killed 90 s later (bench/ctrl_c.py; docs/reliability.md).
 Python's does; the commands' long waits (:func:`sleep`, :func:`check`) raise it again from the
 note, so a swallowed one still stops the command at its next wait. Only this module's handler
 writes the note; nothing clears it (an interrupted command ends).
+
+:func:`say` prints the one line an interrupted command ends with, once: the command's own
+(``cli.errors.exits_on_error``), or ``randt: interrupted`` where the interrupt came outside it
+(the imports; Typer's argument handling, which turns a ``KeyboardInterrupt`` into exit code 130
+without a word).
 """
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import threading
 import time
 from types import FrameType
 
+#: Set to "1" in the environment of a ``randt`` command another one runs (``randt demo``'s fleet):
+#: a Ctrl-C, which reaches both, is then reported by the parent alone, in one line.
+QUIET_ENV = "RANDT_QUIET_INTERRUPT"
+
 _noted = threading.Event()
+_said = threading.Event()
 
 
 def _handler(signum: int, frame: FrameType | None) -> None:
@@ -45,3 +57,17 @@ def sleep(seconds: float) -> None:
     check()
     time.sleep(seconds)
     check()
+
+
+def say(line: str) -> None:
+    """Print ``line`` on stderr as the interrupted command's last word, unless one was printed
+    already or a parent command reports it (:data:`QUIET_ENV`)."""
+    if not _said.is_set() and os.environ.get(QUIET_ENV) != "1":
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+    _said.set()
+
+
+def said() -> bool:
+    """Whether :func:`say` ran."""
+    return _said.is_set()

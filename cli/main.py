@@ -10,7 +10,7 @@ import typer
 from typer.core import TyperCommand
 
 from cli import config, fleet, interrupt, mapping, register, security, serve, tiles
-from cli.errors import exit_code_table, exits_on_error
+from cli.errors import ExitCode, exit_code_table, exits_on_error
 
 # Plain help (rich_markup_mode=None): click's layout, no "<bool>" type column, text as written.
 app = typer.Typer(
@@ -78,7 +78,12 @@ def _main(
 def main() -> None:
     """Console-script entry point."""
     interrupt.install()
-    app()
+    try:
+        app()
+    except SystemExit as exc:
+        if exc.code == ExitCode.INTERRUPTED:  # (Typer's own for a Ctrl-C outside a command: no word)
+            interrupt.say("randt: interrupted")
+        raise
 
 
 if __name__ == "__main__":
