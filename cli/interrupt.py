@@ -2,13 +2,14 @@
 
 Python's own SIGINT handler raises ``KeyboardInterrupt`` wherever the main thread happens to be,
 and where that is a weakref callback or a ``__del__`` (the import system runs one at every module
-lock it drops), the interpreter prints ``Exception ignored in ...`` and carries on: the Ctrl-C is
-gone. ``randt demo`` interrupted in its first second (its imports) once went on to serve until it
-was killed 90 s later (bench/ctrl_c.py; docs/reliability.md).
+lock it drops), the interpreter prints ``Exception ignored in ...`` with a traceback and carries
+on: the Ctrl-C is gone. ``randt demo`` interrupted in its first second (its imports) once went
+on to serve until it was killed 90 s later (bench/ctrl_c.py; docs/reliability.md).
 
 :func:`install` replaces that handler with one that first *notes* the signal, then raises as
 Python's does; the commands' long waits (:func:`sleep`, :func:`check`) raise it again from the
-note, so a swallowed one still stops the command at its next wait. Only this module's handler
+note, so a swallowed one still stops the command at its next wait (and its traceback is not printed:
+``sys.unraisablehook``). Only this module's handler
 writes the note; nothing clears it (an interrupted command ends).
 
 :func:`say` prints the one line an interrupted command ends with, once: the command's own
@@ -25,6 +26,7 @@ import sys
 import threading
 import time
 from types import FrameType
+from typing import Any
 
 #: Set to "1" in the environment of a ``randt`` command another one runs (``randt demo``'s fleet):
 #: a Ctrl-C, which reaches both, is then reported by the parent alone, in one line.
@@ -39,11 +41,23 @@ def _handler(signum: int, frame: FrameType | None) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook``: a noted interrupt that a callback swallowed is not printed (its
+    ``Exception ignored in ...`` traceback); everything else as before."""
+    if issubclass(unraisable.exc_type, KeyboardInterrupt) and _noted.is_set():
+        return
+    _previous_unraisable(unraisable)
+
+
+_previous_unraisable = sys.unraisablehook
+
+
 def install(*signals: signal.Signals) -> None:
-    """Handle SIGINT (and ``signals``, e.g. SIGTERM) by noting it and raising ``KeyboardInterrupt``.
-    From the main thread only, as ``signal.signal``."""
+    """Handle SIGINT (and ``signals``, e.g. SIGTERM) by noting it and raising ``KeyboardInterrupt``,
+    and keep a swallowed one off the terminal. From the main thread only, as ``signal.signal``."""
     for sig in (signal.SIGINT, *signals):
         signal.signal(sig, _handler)
+    sys.unraisablehook = _unraisable
 
 
 def check() -> None:
