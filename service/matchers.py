@@ -760,10 +760,24 @@ class _WorkerProcess(_Channel):
     def pid(self) -> int | None:
         return self._proc.pid
 
+    def _warm(self) -> bool:
+        """Whether the process has finished its warm-up (without waiting for it; a call in progress
+        counts as warm)."""
+        if not self._lock.acquire(blocking=False):
+            return True
+        try:
+            return self._take_ready(0)
+        except (EOFError, OSError, MatcherProcessError):
+            return False
+        finally:
+            self._lock.release()
+
     def close(self, timeout: float = 10.0) -> None:
-        if not self.dead:
+        if not self.dead and (self.sessions or self._warm()):
             with contextlib.suppress(MatcherProcessDiedError):
                 self.call("quit", None)
+        elif self._proc.is_alive():  # still warming up, nothing to keep: not worth the wait
+            self._proc.kill()
         self._proc.join(timeout)
         if self._proc.is_alive():  # (it ignores SIGTERM: _serve)
             self._proc.kill()

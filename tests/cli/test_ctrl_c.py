@@ -3,7 +3,7 @@
 ``bench/ctrl_c.py`` does the work (two CPU burners beside each run, SIGINT to the demo's whole
 process group at a random moment from the interpreter's start to serving): every run must end
 with exit code 130, at most one line on stderr and no traceback, no process of its group left
-and nothing left in its temporary folder. About 90 s.
+and nothing left in its temporary folder. About a minute.
 """
 
 from __future__ import annotations
