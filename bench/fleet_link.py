@@ -113,9 +113,12 @@ def fleet_link(endpoint: str, sessions: list[str], answers: Answers) -> Iterator
 
 
 def drive_fleet(
-    vehicles: Mapping[str, tuple[Any, Callable[[int], bytes]]], n_scans: int, answers: Answers
+    vehicles: Mapping[str, tuple[Any, Callable[[int], bytes]]],
+    n_scans: int,
+    answers: Answers,
+    rate_hz: float = RATE_HZ,
 ) -> float:
-    """Publishes ``n_scans`` sweeps of every vehicle at :data:`RATE_HZ`, staggered over one period:
+    """Publishes ``n_scans`` sweeps of every vehicle at ``rate_hz``, staggered over one period:
     ``vehicles`` maps a vehicle id to (its Zenoh session, the payload of its k-th sweep). As the
     vehicle library publishes (clients/publisher.py): block under congestion rather than drop, so
     every scan reaches the service. Returns when all are sent, with the first publication's time."""
@@ -131,7 +134,7 @@ def drive_fleet(
         )
         for k in range(n_scans):
             payload = payload_of(k)
-            delay = start + k / RATE_HZ - time.monotonic()
+            delay = start + k / rate_hz - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
             with answers.lock:
@@ -140,7 +143,7 @@ def drive_fleet(
 
     t0 = time.monotonic() + 0.5
     threads = [
-        threading.Thread(target=drive, args=(v, session, payload_of, t0 + i / (RATE_HZ * len(vehicles))))
+        threading.Thread(target=drive, args=(v, session, payload_of, t0 + i / (rate_hz * len(vehicles))))
         for i, (v, (session, payload_of)) in enumerate(vehicles.items())
     ]
     for t in threads:

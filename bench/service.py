@@ -372,10 +372,11 @@ def run_one(
     graph: bool = True,
     executor: str = "local",
     timeline: Path | None = None,
+    rate_hz: float = RATE_HZ,
 ) -> dict[str, Any]:
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
-    (``RANDT_EXECUTOR``)."""
+    (``RANDT_EXECUTOR``); each vehicle publishes its 10 Hz sweeps at ``rate_hz``."""
     from core.transforms import invert
     from wire.codes import ErrorCode
 
@@ -407,7 +408,7 @@ def run_one(
             ray_workers0, ray_own0 = _ray_processes() if executor == "ray" else ([], [])
             ray_cpu0 = {p: _cpu_or_zero(p) for p in ray_workers0 + ray_own0}
             fleet = {v: (sessions[v], functools.partial(spool.get, v)) for v in vehicles}
-            t0 = drive_fleet(fleet, n_scans, answers)
+            t0 = drive_fleet(fleet, n_scans, answers, rate_hz)
             answers.wait_all_answered(120.0)
             cpu_main = _proc_cpu_s(main_pid) - cpu0[0]
             cpu_matchers = sum(_proc_cpu_s(p) for p in matcher_pids) - cpu0[1]
@@ -848,6 +849,13 @@ def main() -> None:
         help="write each run's per-scan latency and pose error to this directory "
         "(timeline-<vehicles>-<graph>-<executor>.csv), to see when a run stalled",
     )
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=RATE_HZ,
+        help="publish each vehicle's 10 Hz sweeps at this rate (Hz; default 10): a slower rate carries "
+        "more vehicles within capacity, the same sweeps (a reference for the map of a larger fleet)",
+    )
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -857,8 +865,9 @@ def main() -> None:
             args.timeline.mkdir(parents=True, exist_ok=True)
             timeline = args.timeline / f"timeline-{args.one}-{args.graph}-{args.executor}.csv"
         result = run_one(
-            args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor, timeline
-        )
+            args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor, timeline,
+            args.rate,
+        )  # fmt: skip
         print(json.dumps(result))
         return
     print(f"Command: python bench/service.py {shlex.join(sys.argv[1:])}")
@@ -889,7 +898,7 @@ def main() -> None:
                 progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}")
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
-                command += ["--executor", executor]
+                command += ["--executor", executor, "--rate", str(args.rate)]
                 if args.timeline is not None:
                     command += ["--timeline", str(args.timeline.resolve())]
                 out = subprocess.run(command, capture_output=True, text=True)
@@ -898,6 +907,8 @@ def main() -> None:
                     raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
                 results.append(json.loads(out.stdout.strip().splitlines()[-1]))
     title = f"{args.seconds:g} s of 10 Hz sweeps per vehicle, {args.link} link"
+    if args.rate != RATE_HZ:
+        title += f", published at {args.rate:g} Hz"
     if ref is not None:
         for r in results:
             compare_offline(r, ref)
