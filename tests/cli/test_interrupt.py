@@ -50,13 +50,14 @@ def test_a_ctrl_c_swallowed_in_a_callback_still_stops_the_next_wait(mode: str) -
         text=True,
         timeout=60,
     )
-    lines = run.stdout.split()
+    lines, seen = run.stdout.split(), f"exit {run.returncode}, stdout {run.stdout!r}, stderr {run.stderr!r}"
     if mode == "installed":
-        assert lines == ["went", "on", "interrupted"] and run.returncode == 130
-        assert run.stderr == "", "a noted interrupt's 'Exception ignored' traceback is not printed"
+        assert lines == ["went", "on", "interrupted"] and run.returncode == 130, seen
+        # the noted interrupt's 'Exception ignored' traceback is not printed
+        assert "Exception ignored" not in run.stderr and "Traceback" not in run.stderr, seen
     else:  # the failure mode itself: without the note, the Ctrl-C is gone (with a traceback)
-        assert lines == ["went", "on", "lost"] and run.returncode == 0
-        assert "Exception ignored in" in run.stderr and "KeyboardInterrupt" in run.stderr, run.stderr
+        assert lines == ["went", "on", "lost"] and run.returncode == 0, seen
+        assert "Exception ignored in" in run.stderr and "KeyboardInterrupt" in run.stderr, seen
 
 
 def test_other_unraisable_exceptions_are_still_printed() -> None:
