@@ -24,7 +24,11 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     restartable_router: Router, tmp_path
 ) -> None:
     """11 poses over Zenoh, equal to ``randt map`` on the same frames (same matcher, same float32
-    points: ``--raw``; the default reduced sweeps are bench/link.py's subject)."""
+    points: ``--raw``; the default reduced sweeps are bench/link.py's subject) within millimetres:
+    a matcher process that sees the next request within 5 ms of its reply is behind and lets that
+    sweep match before the newest keyframe is folded in (service/matchers.py, NEXT_REQUEST_WAIT_S),
+    which depends on timing (frame 10 moved by 4 mm in one CI run, frame 4 by 2.3 mm with two CPU
+    burners; equal to 1 mm otherwise)."""
     root = require_data("kitti00/velodyne/000010.bin", "kitti00/times.txt")
     seq_dir = root / "kitti00"
     offline = CliRunner().invoke(
@@ -68,7 +72,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     assert streamed.shape == reference.shape == (11, 4, 4)
     for k, (T_stream, T_ref) in enumerate(zip(streamed, reference, strict=True)):
         err_m, err_deg = transform_error(T_stream, T_ref)
-        assert err_m < 1e-3 and err_deg < 0.01, f"frame {k}: {err_m * 1000:.3f} mm {err_deg:.4f} deg"
+        assert err_m < 0.01 and err_deg < 0.02, f"frame {k}: {err_m * 1000:.3f} mm {err_deg:.4f} deg"
     assert 7.4 < np.linalg.norm(streamed[-1][:3, 3]) < 7.8, "the 7.6 m the scans imply (data README)"
     # the stamps are the replay's start plus times.txt, so their spacing is the recording's
     stamps, _ = read_tum(tmp_path / "replay/poses_tum.txt")
