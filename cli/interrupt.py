@@ -8,9 +8,9 @@ on to serve until it was killed 90 s later (bench/ctrl_c.py; docs/reliability.md
 
 :func:`install` replaces that handler with one that first *notes* the signal, then raises as
 Python's does; the commands' long waits (:func:`sleep`, :func:`check`) raise it again from the
-note, so a swallowed one still stops the command at its next wait (and its traceback is not printed:
-``sys.unraisablehook``). Only this module's handler
-writes the note; nothing clears it (an interrupted command ends).
+note, so a swallowed one still stops the command at its next wait (and its traceback is not
+printed: ``sys.unraisablehook``). Only this module's handler writes the note; nothing clears it
+(an interrupted command ends).
 
 :func:`say` prints the one line an interrupted command ends with, once: the command's own
 (``cli.errors.exits_on_error``), or ``randt: interrupted`` where the interrupt came outside it
@@ -80,8 +80,3 @@ def say(line: str) -> None:
         sys.stderr.write(line + "\n")
         sys.stderr.flush()
     _said.set()
-
-
-def said() -> bool:
-    """Whether :func:`say` ran."""
-    return _said.is_set()

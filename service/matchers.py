@@ -621,9 +621,7 @@ def _sigint_ignored_by_children() -> Iterator[None]:
     blocked signal that arrives meanwhile stays pending and is dropped then. The service's other
     threads do not block them, so a Ctrl-C in that moment still reaches the service (its main
     thread). Before, the disposition was set to ignored process-wide for the fork and exec
-    (``PyOS_setsig``, from any thread): a Ctrl-C in that moment was lost to the service (the
-    likely cause of a clean-clone CI run's ``randt demo`` that, interrupted at 2.9 s, still ran
-    90 s later).
+    (``PyOS_setsig``, from any thread): a Ctrl-C in that moment was lost to the service.
     """
     _spawning.active = True
     try:
