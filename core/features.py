@@ -33,6 +33,14 @@ class Features:
     ground_mask: np.ndarray
     noise_mask: np.ndarray
     matching_xyz: np.ndarray
+    #: The first ``n_object_rows`` rows of ``matching_xyz`` are objects, the rest ground.
+    n_object_rows: int
+
+    @property
+    def object_matching_xyz(self) -> np.ndarray:
+        """The matching set's object rows (a view): what places a sweep along a flat street, where
+        the ground matches at any offset."""
+        return self.matching_xyz[: self.n_object_rows]
 
     @property
     def object_mask(self) -> np.ndarray:
@@ -83,7 +91,7 @@ def extract_features(
     ground_cell_m: float = 2.0,
     ground_tolerance_m: float = 0.25,
     min_ground_depth_m: float = 0.5,
-    ground_voxel_factor: float = 2.0,
+    ground_voxel_factor: float = 1.0,
 ) -> Features:
     """Split a sweep into noise, ground and objects and build the equalized matching set.
 
@@ -109,13 +117,14 @@ def extract_features(
         & (zmin[inverse] <= -min_ground_depth_m)
     )
     objects = ~(ground | noise)
-    matching = np.vstack(
-        [
-            # Objects reuse the isolation test's voxels: a downsampling without a second grouping.
-            masked_group_centroids(points_xyz, groups, n_groups, objects),
-            voxel_downsample(np.compress(ground, points_xyz, axis=0), voxel_size_m * ground_voxel_factor)
-            if ground.any()
-            else np.zeros((0, 3)),
-        ]
+    # Objects reuse the isolation test's voxels: a downsampling without a second grouping.
+    object_xyz = masked_group_centroids(points_xyz, groups, n_groups, objects)
+    ground_xyz = (
+        voxel_downsample(np.compress(ground, points_xyz, axis=0), voxel_size_m * ground_voxel_factor)
+        if ground.any()
+        else np.zeros((0, 3))
     )
-    return Features(ground_mask=ground, noise_mask=noise, matching_xyz=matching)
+    matching = np.vstack([object_xyz, ground_xyz])
+    return Features(
+        ground_mask=ground, noise_mask=noise, matching_xyz=matching, n_object_rows=len(object_xyz)
+    )

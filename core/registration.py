@@ -67,6 +67,7 @@ __all__ = [
     "RegistrationResult",
     "auto_voxel_sizes",
     "centroid_start",
+    "inlier_ratio",
     "is_sparse_cloud",
     "prepare_reference",
     "reference_inlier_mask",
@@ -958,6 +959,21 @@ def _judge(
         covariance=0.5 * (covariance + covariance.T),
         plane_information=_plane_information(moving, T, finest_map),
     )
+
+
+def inlier_ratio(
+    points_xyz: np.ndarray, T: np.ndarray, reference: PreparedReference, settings: RegistrationSettings
+) -> float:
+    """Share of ``points_xyz`` (source frame) that ``T`` puts within the chi-square gate
+    (:data:`CHI2_3DOF_99`) of their best voxel at the reference's finest level: the
+    :attr:`RegistrationResult.inlier_ratio` test applied to any points (``nan`` for none)."""
+    if len(points_xyz) == 0:
+        return float("nan")
+    finest_map = reference.maps[-1]
+    consts = ndt_constants(finest_map.voxel_size_m, settings.outlier_ratio)
+    pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
+    _, _, best_m = ndt_point_scores(pts, T, finest_map, consts, settings.n_neighbors)
+    return float(np.mean(best_m < CHI2_3DOF_99))
 
 
 def _raise_if_degenerate(result: RegistrationResult, information: np.ndarray, threshold: float) -> None:

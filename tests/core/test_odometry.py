@@ -168,6 +168,15 @@ def test_features_split_ground_objects_noise(kitti00) -> None:
     assert np.median(ground_z) == pytest.approx(-1.73, abs=0.15)  # HDL-64E 1.73 m above the road
     assert f.noise_mask.mean() < 0.01
     assert 3000 < f.matching_xyz.shape[0] < 20000
+    # The matching set's object rows come first; the ground rows (below them) are the rest.
+    objects, ground = f.object_matching_xyz, f.matching_xyz[f.n_object_rows :]
+    assert len(objects) > 1000 and len(ground) > 1000
+    assert np.median(ground[:, 2]) == pytest.approx(-1.73, abs=0.15)
+    assert np.median(objects[:, 2]) > -1.0
+    # Ground downsampled like objects (the default factor 1) keeps 2.4 times what factor 2 does.
+    coarse = extract_features(scans[0], voxel_size_m=0.5, ground_voxel_factor=2.0)
+    assert coarse.n_object_rows == f.n_object_rows
+    assert 2.0 < len(ground) / (len(coarse.matching_xyz) - coarse.n_object_rows) < 3.0
 
 
 def test_state_dict_resumes_the_same_trajectory(kitti00) -> None:
@@ -300,7 +309,9 @@ def test_a_session_blocked_while_standing_finds_its_track_again() -> None:
     assert err_m < 0.05 and err_deg < 0.1, (err_m, err_deg)
 
 
-def _blocked_through_a_u_turn(relocalize: bool) -> tuple[list[str], list[np.ndarray], IncrementalMatcher]:
+def _blocked_through_a_u_turn(
+    relocalize: bool, **settings: float
+) -> tuple[list[str], list[np.ndarray], IncrementalMatcher, list[str]]:
     """40 sweeps at 12 m/s, 20 blocked ones (a tarp) while the vehicle turns round, then the same
     street driven back (the sweeps from the 40th down, seen by the sensor turned by 180 degrees):
     the prediction drives on forwards, the vehicle drives back."""
@@ -314,9 +325,9 @@ def _blocked_through_a_u_turn(relocalize: bool) -> tuple[list[str], list[np.ndar
     fed += [(tarp, scans[-1].T_world_sensor @ turned)] * 20
     back = scans[:4:-1]
     fed += [(s.points_xyz.astype(np.float64) @ turned[:3, :3], s.T_world_sensor @ turned) for s in back]
-    matcher = IncrementalMatcher(MatcherSettings(relocalize=relocalize))
-    statuses = [matcher.register_scan(xyz, stamp_s=0.1 * i).status for i, (xyz, _) in enumerate(fed)]
-    return statuses, [T for _, T in fed], matcher
+    matcher = IncrementalMatcher(MatcherSettings(relocalize=relocalize, **settings))
+    results = [matcher.register_scan(xyz, stamp_s=0.1 * i) for i, (xyz, _) in enumerate(fed)]
+    return [r.status for r in results], [T for _, T in fed], matcher, [r.message for r in results]
 
 
 def test_a_session_that_turned_round_unseen_relocalizes_by_global_registration() -> None:
@@ -325,7 +336,7 @@ def test_a_session_that_turned_round_unseen_relocalizes_by_global_registration()
     sweep against its keyframes (the nearest by Scan Context) on the first try after the tarp
     (measured: sweep 62), and tracks on: every later sweep matches, within 5 cm of the truth.
     Without relocalization it never finds its track: 104 m off at the end."""
-    statuses, gt, matcher = _blocked_through_a_u_turn(True)
+    statuses, gt, matcher, _ = _blocked_through_a_u_turn(True)
     assert statuses[:40] == ["first"] + ["ok"] * 39
     assert all(s == "fallback" for s in statuses[40:60])
     back = statuses.index("ok", 60)
@@ -337,9 +348,22 @@ def test_a_session_that_turned_round_unseen_relocalizes_by_global_registration()
     ]
     assert max(e[0] for e in errors) < 0.05 and max(e[1] for e in errors) < 0.1, max(errors)
 
-    statuses, gt, matcher = _blocked_through_a_u_turn(False)
+    statuses, gt, matcher, _ = _blocked_through_a_u_turn(False)
     err_end = transform_error(invert(matcher.poses[0]) @ matcher.poses[-1], invert(gt[0]) @ gt[-1])
     assert err_end[0] > 10.0, (statuses[60:], err_end)
+
+
+def test_a_match_whose_objects_miss_the_map_is_refused_whatever_the_ground_says() -> None:
+    """The first sweep after the U-turn, matched from the prediction (25 m on and 180 degrees off),
+    keeps 30 % inliers: the street's ground matches anywhere along it (54 %), its objects do not
+    (2 %). Refused on its objects (``min_object_inlier_ratio``); accepted without that check, its
+    keyframe anchored every later sweep at the wrong place (96 m off at the end)."""
+    statuses, gt, matcher, messages = _blocked_through_a_u_turn(True)
+    assert statuses[60] == "fallback" and messages[60].startswith("objects' inlier ratio 0.0"), messages[60]
+    statuses, gt, matcher, messages = _blocked_through_a_u_turn(True, min_object_inlier_ratio=0.0)
+    assert statuses[60] == "ok"
+    err = transform_error(invert(matcher.poses[0]) @ matcher.poses[-1], invert(gt[0]) @ gt[-1])
+    assert err[0] > 50.0, err
 
 
 def _gapped_run(use_stamps: bool) -> tuple[int, float, float, int]:
