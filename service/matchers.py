@@ -470,6 +470,16 @@ class _Sessions:
         self.sent.pop(key, None)
         return self.matchers.pop(key, None) is not None
 
+    def _catch_up(self, key: Key, behind: bool) -> None:
+        """A session that is not behind matches against its whole model: a keyframe whose rebuild
+        was left because another request followed the reply at once (:func:`serve_requests`) is
+        folded in before its next sweep. Only a session that is behind lets the model lag (else one
+        vehicle's trajectory depended on when its requests met others': the same 600 sweeps gave
+        11.3, 11.7 and 15.6 cm max error in the service against 8.4 cm offline)."""
+        matcher = self.matchers.get(key)
+        if matcher is not None and not behind:
+            matcher.update_model()
+
     def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> tuple[Any, IncrementalMatcher | None]:
         """One request of the protocol (``open``, ``register``, ``state``, ``snapshot``, ``drop``): its value,
         and after a ``register`` whose session is not behind the matcher whose keyframe model
@@ -479,11 +489,13 @@ class _Sessions:
             return None, None
         if op == "register":
             xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m, frame = args
+            self._catch_up(key, behind)
             value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
             matcher = self.matchers[key]
             return value, (matcher if matcher.model_pending and not behind else None)
         if op == "register_payload":
             payload, limits, behind, keyframe_voxel_m, frame = args
+            self._catch_up(key, behind)
             value = self.register_payload(key, payload, limits, keyframe_voxel_m, frame)
             matcher = self.matchers[key]
             return value, (matcher if matcher.model_pending and not behind else None)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.odometry import MatcherSettings
 from core.tiles import TileGrid
 from service.agreement import AGREEING_CHECKS, AgreementGate
 from service.matchers import NEXT_REQUEST_WAIT_S
@@ -89,17 +90,26 @@ def towns() -> tuple[Town, Town]:
     return Town.generate(MAPPED), Town.generate(NEVER_MAPPED)
 
 
+def _town_switch(mapped: Town, other: Town, n_good: int, n_bad: int) -> list:
+    """``n_good`` sweeps of ``mapped``, then ``n_bad`` of ``other`` along the same route."""
+    return _drive(mapped, n_good + n_bad, seed=1)[:n_good] + _drive(other, n_good + n_bad, seed=1)[n_good:]
+
+
 def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(tmp_path, towns) -> None:
     """80 sweeps of town 0 with a prior on the first, then 40 of town 5 along the same route: the
     sweeps after the switch are answered ``ok`` only until the first check (every 10 sweeps),
     within 0.5 m of the truth, then ``lost`` with the check's figures; the map gains no point off
-    town 0's surfaces (the check dropped the held points instead: thousands of them)."""
+    town 0's surfaces (the check dropped the held points instead: thousands of them).
+
+    The map check is the second line: the matcher itself now refuses the other town's sweeps on
+    their objects (the next test), so here that check is off (``min_object_inlier_ratio`` 0), as
+    it was when the check was built: the ground alone matched them."""
     mapped, other = towns
     n_good, n_bad = 80, 40
-    scans = _drive(mapped, n_good + n_bad, seed=1)[:n_good] + _drive(other, n_good + n_bad, seed=1)[n_good:]
+    scans = _town_switch(mapped, other, n_good, n_bad)
     truth = {s.index: s.T_world_sensor for s in scans}
     out: list = []
-    mgr = _manager(tmp_path, out, graph=False)
+    mgr = _manager(tmp_path, out, graph=False, matcher=MatcherSettings(min_object_inlier_ratio=0.0))
     try:
         for s in scans:
             if s.index == n_good:
@@ -130,6 +140,39 @@ def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(tmp
     assert gate.n_dropped_points > 5000 and mgr.maps["default"].n_points >= points_before
     assert info.map_disagrees and info.map_agreement < 0.4 and disagreements == 1
     assert info.n_lost == len(lost)
+
+
+def test_the_matcher_refuses_a_town_the_map_never_saw_on_its_objects(tmp_path, towns) -> None:
+    """The same drive with the matcher's defaults: the first sweep of town 5 matched against the
+    model of town 0 keeps its ground and 1-6 % of its objects, below ``min_object_inlier_ratio``
+    (10 %): no sweep after the switch is answered with a pose but the 0.5 s of predictions a
+    fallback may answer (marked ``fallback``), then ``lost``; the map gains no point at all."""
+    mapped, other = towns
+    n_good, n_bad = 80, 40
+    scans = _town_switch(mapped, other, n_good, n_bad)
+    out: list = []
+    mgr = _manager(tmp_path, out, graph=False)
+    try:
+        for s in scans:
+            if s.index == n_good:
+                mgr.flush()
+                points_before = mgr.maps["default"].n_points
+            _send(mgr, out, "car", s, prior=s.index == 0)
+        mgr.flush()
+        points_after = mgr.maps["default"].n_points
+        off_after = _off_surface(mgr, mapped)
+    finally:
+        mgr.stop()
+    answers = _answers(out, "car")
+    assert sorted(answers) == list(range(n_good + n_bad))
+    after = [answers[i] for i in range(n_good, n_good + n_bad)]
+    posed = [m for m in after if isinstance(m, PoseMessage)]
+    assert all(m.status == "fallback" for m in posed), [m.status for m in posed]
+    assert len(posed) <= 5  # a prediction is answered for 0.5 s at most
+    lost = after[len(posed) :]
+    assert len(lost) >= n_bad - 5
+    assert all(isinstance(m, ErrorMessage) and m.code == ErrorCode.LOST for m in lost)
+    assert points_after == points_before and off_after == 0, (points_before, points_after, off_after)
 
 
 def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing(tmp_path, towns) -> None:
