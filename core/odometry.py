@@ -536,7 +536,7 @@ class IncrementalMatcher:
         :meth:`get_model` and :meth:`state_dict` call it first. :meth:`register_scan` calls it
         first only when more than :data:`MAX_PENDING_KEYFRAMES` are pending: a caller that is
         behind (more sweeps waiting) can skip it and match the next sweep against the model
-        without its newest keyframe (2-4 m behind the sensor, in a window of 20), rebuilding once
+        without its newest keyframe (2-4 m behind the sensor, in a window of 40), rebuilding once
         for two keyframes. Keyframes the model cannot be built from (too sparse) are skipped with
         a warning: the previous model stays, and the next sweep is a keyframe candidate again.
         """

@@ -553,12 +553,13 @@ def serve_requests(conn: Connection, sessions: _Sessions) -> None:
             conn.send((False, _portable(exc)))
         else:
             conn.send((True, value))
-        # Rebuild the keyframe model now unless the session said more of its scans wait (behind)
-        # or another request follows at once: a process that is behind lets the next sweep match
-        # without the newest keyframe and rebuilds once for two (IncrementalMatcher.update_model),
-        # which at saturation halves the rebuilds. Session threads take turns on the pipe, so a
-        # waiting one usually sends within a millisecond or two of the reply; an idle process
-        # waits NEXT_REQUEST_WAIT_S, with the pose already out.
+        # Rebuild the keyframe model now unless the session said several of its scans wait
+        # (behind) or another request follows at once: a session that is behind lets its next
+        # sweep match without the newest keyframe and rebuilds once for two
+        # (IncrementalMatcher.update_model), which at saturation halves the rebuilds; any other
+        # session's rebuild is done before its next sweep (_Sessions._catch_up). Session threads
+        # take turns on the pipe, so a waiting one usually sends within a millisecond or two of
+        # the reply; an idle process waits NEXT_REQUEST_WAIT_S, with the pose already out.
         if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
             try:
                 with ledger.carry(key):
@@ -971,10 +972,11 @@ class RemoteMatcher(ForwardingMatcher):
         (float32 straight from the wire: half the bytes of float64; the matcher widens them).
 
         The process always defers a keyframe's model rebuild until it has replied, and does it
-        then unless ``behind`` (more of the session's scans are waiting) or another request
-        arrives within :data:`NEXT_REQUEST_WAIT_S`: then the next sweep matches without the
-        newest keyframe, and the model is rebuilt once for two
-        (:meth:`IncrementalMatcher.update_model`)."""
+        then unless ``behind`` (several of the session's scans are waiting) or another request
+        arrives within :data:`NEXT_REQUEST_WAIT_S`. Only when ``behind`` does the next sweep match
+        without the newest keyframe (the model rebuilt once for two,
+        :meth:`IncrementalMatcher.update_model`); otherwise the rebuild comes first
+        (``_Sessions._catch_up``)."""
         registered: Registered = self._proc.call(
             "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
         )
