@@ -91,7 +91,7 @@ def extract_features(
     ground_cell_m: float = 2.0,
     ground_tolerance_m: float = 0.25,
     min_ground_depth_m: float = 0.5,
-    ground_voxel_factor: float = 1.0,
+    ground_voxel_factor: float = 2.0,
 ) -> Features:
     """Split a sweep into noise, ground and objects and build the equalized matching set.
 

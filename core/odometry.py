@@ -175,10 +175,11 @@ class MatcherSettings(BaseModel):
     )
     feature_voxel_m: float | None = Field(default=None, gt=0, description="object downsampling; None: r/2")
     ground_voxel_factor: float = Field(
-        default=1.0,
+        default=2.0,
         ge=1,
         description="ground is downsampled this many times coarser than objects (core.features); 1 "
-        "keeps pitch and height from drifting on long drives (docs/benchmarks.md, the drift's levers)",
+        "keeps pitch and height from drifting on long drives but let a sweep matched from a poor "
+        "prediction stop short along the street (docs/benchmarks.md, the drift's levers)",
     )
     keyframe_distance_m: float = Field(default=2.0, gt=0, description="new keyframe after this travel")
     keyframe_rotation_deg: float = Field(default=10.0, gt=0, description="or after this rotation")
