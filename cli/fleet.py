@@ -82,7 +82,11 @@ RawOption = Annotated[
 
 def replay(
     path: Annotated[
-        Path, typer.Argument(help="KITTI sequence folder or a folder of .bin/.pcd/.ply/.csv scans.")
+        Path,
+        typer.Argument(
+            help="KITTI sequence folder, a folder of .bin/.pcd/.ply/.csv scans, or a ROS bag (rosbag2 "
+            "folder with sqlite3 or MCAP, or ROS 1 .bag; needs randt-fleet[ros2])."
+        ),
     ],
     vehicle: Annotated[str, typer.Option("--vehicle", help="Vehicle id on the wire.")],
     session: Annotated[str | None, typer.Option(help="Session id (default: the UTC time).")] = None,
@@ -97,6 +101,9 @@ def replay(
     loop: Annotated[bool, typer.Option(help="Start again at the end (each pass a new session).")] = False,
     start: Annotated[int, typer.Option(help="First scan index.")] = 0,
     end: Annotated[int | None, typer.Option(help="Stop before this scan index.")] = None,
+    topic: Annotated[
+        str | None, typer.Option(help="A bag's PointCloud2 topic (default: its only one).")
+    ] = None,
     connect: ConnectOption = None,
     mode: ModeOption = None,
     zenoh_config: ZenohConfigOption = None,
@@ -125,6 +132,7 @@ def replay(
         loop=loop,
         start=start,
         end=end,
+        topic=topic,
         settings=settings,
         connect_timeout_s=connect_timeout,
         progress=progress,

@@ -15,8 +15,18 @@ from core.errors import FormatError
 
 
 def map_sequence(
-    dataset_dir: Annotated[Path, typer.Argument(help="KITTI sequence folder or a folder of scan files.")],
+    dataset_dir: Annotated[
+        Path,
+        typer.Argument(
+            help="KITTI sequence folder, a folder of scan files, or a ROS bag (rosbag2 folder with "
+            "sqlite3 or MCAP, or ROS 1 .bag; needs randt-fleet[ros2])."
+        ),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Output folder (created).")],
+    topic: Annotated[
+        str | None,
+        typer.Option(help="A bag's PointCloud2 topic (default: its only one)."),
+    ] = None,
     start: Annotated[int, typer.Option(help="First scan index.")] = 0,
     end: Annotated[int | None, typer.Option(help="Stop before this scan index.")] = None,
     tile_size: Annotated[int, typer.Option(help="Map tile edge in metres (Autoware: 20).")] = 20,
@@ -32,12 +42,12 @@ def map_sequence(
     import numpy as np
     from tqdm import tqdm
 
-    from core.datasets import open_sequence
+    from core.datasets import open_scans
     from core.io import atomic_write_bytes, write_kitti_poses, write_tum
     from core.mapping import MapBuilder
     from core.metrics.cloud import pdu
 
-    seq = open_sequence(dataset_dir, start=start, end=end)
+    seq = open_scans(dataset_dir, topic=topic, start=start, end=end)
     builder = MapBuilder(tile_size_m=tile_size, map_voxel_m=map_voxel)
     scans = []
     bar = tqdm(total=len(seq), unit="scan", disable=not progress, file=sys.stderr)

@@ -1,9 +1,10 @@
 """Replay a recorded drive into the service: ``randt replay`` is a thin shell over :func:`replay`.
 
-Sources (``core.datasets.open_sequence``): a KITTI odometry sequence folder (``velodyne/*.bin``,
-``times.txt`` for the stamps), or a folder of ``.bin`` / ``.pcd`` / ``.ply`` / ``.csv`` / ``.txt`` /
+Sources (``core.datasets.open_scans``): a KITTI odometry sequence folder (``velodyne/*.bin``,
+``times.txt`` for the stamps), a folder of ``.bin`` / ``.pcd`` / ``.ply`` / ``.csv`` / ``.txt`` /
 ``.npy`` scans in file-name order (the RANDT paper's CSV conversions, header ``X,Y,Z,Intensity``,
-are such a folder).
+are such a folder), or a ROS bag's PointCloud2 topic (rosbag2 with sqlite3 or MCAP, ROS 1
+``.bag``; per-point times kept; the record times are the stamps; ``core.io.bags``).
 
 Pacing
 ------
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
-from core.datasets import ScanSequence, open_sequence
+from core.datasets import Scans, open_scans
 from core.errors import BadMessageError
 from core.io import PointCloud
 from wire.messages import ErrorMessage, PoseMessage
@@ -86,7 +87,7 @@ class ReplayResult:
         return np.array([self.poses[s].stamp_ns * 1e-9 for s in sorted(self.poses)])
 
 
-def sequence_rate_hz(seq: ScanSequence) -> float | None:
+def sequence_rate_hz(seq: Scans) -> float | None:
     """The scan rate implied by the sequence's stamps (median interval), or None without stamps."""
     if seq.stamps_s is None or len(seq.stamps_s) < 2:
         return None
@@ -94,7 +95,7 @@ def sequence_rate_hz(seq: ScanSequence) -> float | None:
     return 1.0 / dt if dt > 0 else None
 
 
-def _relative_times(seq: ScanSequence, rate_hz: float) -> np.ndarray:
+def _relative_times(seq: Scans, rate_hz: float) -> np.ndarray:
     """(N,) seconds of each scan after the first: from the stamps if they increase, else index/rate."""
     if seq.stamps_s is not None and len(seq.stamps_s) == len(seq) and np.all(np.diff(seq.stamps_s) > 0):
         return np.asarray(seq.stamps_s, dtype=np.float64) - float(seq.stamps_s[0])
@@ -120,6 +121,7 @@ def replay(
     max_passes: int | None = None,
     start: int = 0,
     end: int | None = None,
+    topic: str | None = None,
     settings: PublisherSettings | None = None,
     connect_timeout_s: float = 15.0,
     answer_timeout_s: float = 120.0,
@@ -131,7 +133,7 @@ def replay(
     Parameters
     ----------
     path:
-        KITTI sequence folder or folder of scan files.
+        KITTI sequence folder, folder of scan files, or ROS bag.
     vehicle:
         Vehicle id on the wire.
     session:
@@ -170,7 +172,7 @@ def replay(
     """
     if window < 1:
         raise ValueError(f"window must be >= 1, got {window}")
-    seq = open_sequence(path, start=start, end=end)
+    seq = open_scans(path, topic=topic, start=start, end=end)
     recorded_hz = sequence_rate_hz(seq)
     rate = (recorded_hz or DEFAULT_RATE_HZ) if rate_hz is None else float(rate_hz)
     if rate < 0:
@@ -206,7 +208,7 @@ def replay(
 
 
 def _one_pass(
-    seq: ScanSequence,
+    seq: Scans,
     stamp_t: np.ndarray,
     send_t: np.ndarray,
     *,
@@ -281,7 +283,7 @@ def _one_pass(
                     time_offset_s=cloud.time_offset_s,
                 )
             except BadMessageError as exc:
-                log.warning("%s: scan %d not sent: %s", seq.files[i].name, i, exc)
+                log.warning("%s: scan %d not sent: %s", seq.label(i), i, exc)
                 result.skipped.append(i)  # its seq stays unused: seq == scan index throughout
             bar.update()
             if rate == 0:

@@ -5,6 +5,8 @@
   frame, converted with ``Tr`` to the velodyne frame).
 - **Plain folder**: every ``.bin``, ``.pcd``, ``.ply``, ``.csv``, ``.txt`` or ``.npy`` file in ``DIR``,
   in file-name order (sorted lexicographically: zero-pad your numbers).
+- **ROS bag**: a rosbag2 folder (sqlite3 or MCAP) or a ROS 1 ``.bag`` file, one PointCloud2 topic
+  (:mod:`core.io.bags`; :func:`open_scans` picks it).
 """
 
 from __future__ import annotations
@@ -17,9 +19,10 @@ import numpy as np
 
 from core.errors import FormatError, NotFoundError
 from core.io import PointCloud, kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
+from core.io.bags import BagSequence, is_bag, open_bag
 from core.transforms import invert
 
-__all__ = ["NoScansError", "ScanSequence", "open_sequence"]
+__all__ = ["NoScansError", "ScanSequence", "Scans", "open_scans", "open_sequence"]
 
 _SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".csv", ".txt", ".npy")
 
@@ -43,6 +46,10 @@ class ScanSequence:
     def read(self, index: int) -> PointCloud:
         """Read scan ``index`` (any supported format)."""
         return read_cloud(self.files[index])
+
+    def label(self, index: int) -> str:
+        """How to name scan ``index`` in a message."""
+        return self.files[index].name
 
     def __iter__(self) -> Iterator[PointCloud]:
         for i in range(len(self.files)):
@@ -90,3 +97,19 @@ def open_sequence(directory: str | Path, *, start: int = 0, end: int | None = No
     if not files:
         raise NoScansError(f"{root}: no scan files in the range start={start} end={end}")
     return ScanSequence(root=root, layout=layout, files=tuple(files), stamps_s=stamps)
+
+
+#: A sequence of sweeps on disk: files or a bag's topic.
+Scans = ScanSequence | BagSequence
+
+
+def open_scans(
+    path: str | Path, *, topic: str | None = None, start: int = 0, end: int | None = None
+) -> Scans:
+    """The sweeps at ``path``: a ROS bag's PointCloud2 ``topic`` (the only one by default), or a
+    sequence folder (:func:`open_sequence`; ``topic`` is then refused)."""
+    if is_bag(path):
+        return open_bag(path, topic=topic, start=start, end=end)
+    if topic is not None:
+        raise FormatError(f"{path}: --topic is for ROS bags, and this is no bag")
+    return open_sequence(path, start=start, end=end)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
@@ -20,17 +21,24 @@ from tests.clients.conftest import FakeService, Router
 from tests.data import require_data
 
 
+@pytest.mark.parametrize("source", ["folder", "bag"])
 def test_replay_kitti00_through_a_router_matches_the_offline_map(
-    restartable_router: Router, tmp_path
+    source: str, restartable_router: Router, tmp_path
 ) -> None:
     """11 poses over Zenoh, equal to ``randt map`` on the same frames (same matcher, same float32
     points: ``--raw``; the default reduced sweeps are bench/link.py's subject) within millimetres:
     a matcher process that sees the next request within 5 ms of its reply is behind and lets that
     sweep match before the newest keyframe is folded in (service/matchers.py, NEXT_REQUEST_WAIT_S),
     which depends on timing (frame 10 moved by 4 mm in one CI run, frame 4 by 2.3 mm with two CPU
-    burners; equal to 1 mm otherwise)."""
+    burners; equal to 1 mm otherwise). The same from a ROS bag (MCAP) that rosbags wrote from the
+    same sweeps (``source="bag"``; tests/ros_bags.py)."""
     root = require_data("kitti00/velodyne/000010.bin", "kitti00/times.txt")
     seq_dir = root / "kitti00"
+    replayed = seq_dir
+    if source == "bag":
+        from tests.ros_bags import kitti_frames, write_bag
+
+        replayed = write_bag(tmp_path / "drive", "mcap", *kitti_frames(seq_dir, 11))
     offline = CliRunner().invoke(
         app, ["map", str(seq_dir), "--out", str(tmp_path / "offline"), "--no-progress"]
     )
@@ -50,7 +58,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     try:
         proc = subprocess.run(
             [
-                sys.executable, "-m", "cli", "replay", str(seq_dir),
+                sys.executable, "-m", "cli", "replay", str(replayed),
                 "--vehicle", "kitti", "--session", "seq00", "--rate", "0",
                 "--connect", restartable_router.endpoint, "--mode", "client",
                 "--out", str(tmp_path / "replay"), "--no-progress", "--raw",
