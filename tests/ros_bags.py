@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -62,27 +63,25 @@ def write_bag(
         t_ns = base_ns + round(float(times_s[k]) * 1e9)  # integer ns: a float64 of 1.7e9 s holds 0.24 us
         messages.append((t_ns, _cloud_message(store, p, i, t_ns, time_field, ros1)))
     typename = "sensor_msgs/msg/PointCloud2"
+    writer: Any
     if ros1:
         from rosbags.rosbag1 import Writer as Writer1
 
-        path = dst.with_suffix(".bag")
-        with Writer1(path) as w1:
-            conn1 = w1.add_connection(topic, typename, typestore=store)
-            for other, other_type in extra_topics:
-                w1.add_connection(other, other_type, typestore=store)
-            for t_ns, msg in messages:
-                w1.write(conn1, t_ns, store.serialize_ros1(msg, typename))
-        return path
-    from rosbags.rosbag2 import StoragePlugin, Writer
+        path, serialize = dst.with_suffix(".bag"), store.serialize_ros1
+        writer = Writer1(path)
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
 
-    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
-    with Writer(dst, version=9, storage_plugin=plugin) as w2:
-        conn2 = w2.add_connection(topic, typename, typestore=store)
+        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        path, serialize = dst, store.serialize_cdr
+        writer = Writer(dst, version=9, storage_plugin=plugin)
+    with writer as w:
+        conn = w.add_connection(topic, typename, typestore=store)
         for other, other_type in extra_topics:
-            w2.add_connection(other, other_type, typestore=store)
+            w.add_connection(other, other_type, typestore=store)
         for t_ns, msg in messages:
-            w2.write(conn2, t_ns, store.serialize_cdr(msg, typename))
-    return dst
+            w.write(conn, t_ns, serialize(msg, typename))
+    return path
 
 
 def _cloud_message(
