@@ -97,6 +97,11 @@ REFOLD_TOL_M = 0.1
 REFOLD_TOL_DEG = 0.2
 #: The graph process's niceness (added to the service's).
 GRAPH_NICE = 10
+#: The graph process runs at ``SCHED_IDLE``, which yields to any other process, ours or not: with
+#: work in flight and no answer for this long it is starved (two CPU burners beside the service
+#: held it for good: every pose-graph test of the suite failed), and runs at the normal policy
+#: niced by GRAPH_NICE until its queue is empty (:meth:`ServiceGraph._guard_starvation`).
+STARVED_S = 5.0
 #: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
 #: last one is this many re-fold periods old (``graph_refold_s``).
 REFOLD_STARVE_PERIODS = 3.0
@@ -422,6 +427,29 @@ def _lowest_priority() -> None:
                 os.sched_setscheduler(int(tid), os.SCHED_IDLE, os.sched_param(0))
 
 
+def set_graph_priority(pid: int, *, idle: bool) -> bool:
+    """Every thread of process ``pid`` at ``SCHED_IDLE`` (``idle``), or at the normal policy niced
+    by :data:`GRAPH_NICE` beyond this process's own niceness; False if any was refused (not
+    Linux, not permitted, gone)."""
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + GRAPH_NICE)
+        policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
+    except (AttributeError, OSError, ValueError):
+        return False
+    done = True
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, policy, os.sched_param(0))
+            if not idle:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except ProcessLookupError:  # a thread that ended meanwhile
+            continue
+        except OSError:
+            done = False
+    return done
+
+
 def _release_memory() -> None:
     """Give the C heap's free memory back to the system (glibc's ``malloc_trim``; elsewhere
     nothing). A re-fold allocates and frees the points of every tile it touches; without this the
@@ -744,6 +772,11 @@ class ServiceGraph:
         self._supervisor: threading.Thread | None = None
         self._sender: threading.Thread | None = None
         #: :meth:`cpu_s`: the process last read, its CPU then, and that of the generations before
+        #: the last answer, or when work went in flight to an idle process (_guard_starvation)
+        self._progress_at = time.monotonic()
+        #: the process runs above SCHED_IDLE for now (starved), and how often it was raised
+        self.raised = False
+        self.starvations = 0
         self._cpu_pid: int | None = None
         self._cpu_last = 0.0
         self._cpu_dead = 0.0
@@ -950,8 +983,10 @@ class ServiceGraph:
             receiver.start()
             started = time.monotonic()
             self._metrics.graph_up.set(1)
+            self.raised = False  # a new process starts at SCHED_IDLE (_lowest_priority)
             while proc.is_alive() and not self._closed:
                 multiprocessing.connection.wait([proc.sentinel], timeout=0.5)
+                self._guard_starvation(proc.pid)
             if self._closed:
                 self._stop_process(proc, conn, receiver)
                 return
@@ -960,6 +995,27 @@ class ServiceGraph:
             pause = 0.0 if time.monotonic() - started > 30.0 else min(max(2 * pause, 0.5), 30.0)
             with self._cond:
                 self._cond.wait_for(lambda: self._closed, timeout=pause)
+
+    def _guard_starvation(self, pid: int | None) -> None:
+        """Raise a starved graph process above ``SCHED_IDLE`` (:data:`STARVED_S`), and lower it
+        again once it has caught up."""
+        if pid is None:
+            return
+        with self._cond:
+            busy = bool(self._inflight or self._queued)
+            starved = bool(self._inflight) and time.monotonic() - self._progress_at > STARVED_S
+        if starved and not self.raised and set_graph_priority(pid, idle=False):
+            self.raised = True
+            self.starvations += 1
+            log.warning(
+                "pose graph: no answer for %.0f s with work in flight (other processes take every "
+                "core): it runs niced by %d instead of SCHED_IDLE until it catches up",
+                STARVED_S,
+                GRAPH_NICE,
+            )
+        elif not busy and self.raised and set_graph_priority(pid, idle=True):
+            self.raised = False
+            log.info("pose graph: caught up, back to SCHED_IDLE")
 
     def _spawn(self) -> tuple[multiprocessing.process.BaseProcess, Connection]:
         ctx = multiprocessing.get_context("spawn")
@@ -1190,6 +1246,8 @@ class ServiceGraph:
                 item = self._queued.pop(0)
                 conn = self._conn
                 assert conn is not None
+                if not self._inflight:  # work for a process that had none: starvation counts from now
+                    self._progress_at = time.monotonic()
                 self._inflight.append(item)
             try:
                 conn.send(item)
@@ -1206,6 +1264,7 @@ class ServiceGraph:
         sets that mark items by id: once the item is gone, a new one may get the same id (a
         keyframe offered after a restart was taken for a replayed one, neither logged nor
         published, until this was so)."""
+        self._progress_at = time.monotonic()
         if self._inflight:
             item = self._inflight.pop(0)
             self._retried.discard(_retry_key(item))

@@ -1,0 +1,72 @@
+"""The pose graph's process is never starved: at ``SCHED_IDLE`` it yields to every other process,
+so two CPU burners beside the service held it for good (every pose-graph test of the suite failed
+with them); raised above ``SCHED_IDLE`` once starved, it catches up, then goes back."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import service.graph as graph_module
+from core.fleet_map import FleetMapSettings
+from service.graph import ServiceGraph
+from service.metrics import ServiceMetrics
+from tests.pairs import kitti00_velodyne
+
+
+def _policies(pid: int) -> set[int]:
+    policies = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            policies.add(os.sched_getscheduler(int(tid)))
+        except ProcessLookupError:
+            continue
+    return policies
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_a_graph_starved_by_other_processes_is_raised_until_it_catches_up(monkeypatch) -> None:
+    graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
+
+    def offer(k: int) -> None:
+        T = np.eye(4)
+        T[:3, 3] = (2.5 * k, 0.0, 0.0)
+        xyz = kitti00_velodyne(k % 11)[::2].astype(np.float32)
+        graph.offer(
+            "car", "d1", map_name="default", seq=10 * k, index=10 * k, stamp_s=float(k), T_live=T, points=xyz
+        )
+
+    burners: list[subprocess.Popen[bytes]] = []
+    try:
+        offer(0)
+        assert graph.wait_idle(120)
+        pid = graph.pid
+        assert pid is not None and _policies(pid) == {os.SCHED_IDLE}
+        # One burner per core at the normal policy: SCHED_IDLE gets (almost) nothing.
+        burners = [
+            subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 2)
+        ]
+        monkeypatch.setattr(graph_module, "STARVED_S", 1e9)  # no guard: the failure mode
+        for k in range(1, 9):
+            offer(k)
+        assert not graph.wait_idle(10), "the graph caught up at SCHED_IDLE beside the burners"
+        assert graph.starvations == 0 and _policies(pid) == {os.SCHED_IDLE}
+        monkeypatch.setattr(graph_module, "STARVED_S", 2.0)  # the guard (5 s in the service)
+        t0 = time.monotonic()
+        assert graph.wait_idle(90), "the graph did not catch up once raised"
+        assert graph.starvations == 1 and graph.pid == pid  # raised once, not restarted
+        caught_up_s = time.monotonic() - t0
+        deadline = time.monotonic() + 5
+        while graph.raised and time.monotonic() < deadline:  # lowered at the next check (0.5 s)
+            time.sleep(0.1)
+        assert not graph.raised and _policies(pid) == {os.SCHED_IDLE}, caught_up_s
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
+        graph.close()
