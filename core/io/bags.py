@@ -92,8 +92,7 @@ def open_bag(
     FormatError
         Not a bag, unreadable, no such topic or a topic of another type, several PointCloud2
         topics and none chosen, or no sweep in ``start``/``end``.
-    ImportError
-        ``rosbags`` is not installed (``pip install 'randt-fleet[ros2]'``).
+        Also when ``rosbags`` is not installed (``pip install 'randt-fleet[ros2]'``).
     """
     root = _bag_root(Path(path))
     with _reader(root) as reader:
@@ -127,9 +126,9 @@ def _reader(root: Path) -> Any:
     """An :class:`~rosbags.highlevel.AnyReader` of the bag (a context manager)."""
     try:
         from rosbags.highlevel import AnyReader
-    except ImportError as exc:
-        raise ImportError(
-            "reading ROS bags needs the rosbags package: pip install 'randt-fleet[ros2]'"
+    except ImportError as exc:  # a format this installation cannot read: one line, not a traceback
+        raise FormatError(
+            f"{root}: reading ROS bags needs the rosbags package: pip install 'randt-fleet[ros2]'"
         ) from exc
     return _Opened(AnyReader([root]), root)
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +94,14 @@ def test_the_topic_is_chosen_or_the_only_pointcloud2(kitti, tmp_path) -> None:
     not_a_bag.write_bytes(b"#ROSBAG V2.0\n" + b"\0" * 64)
     with pytest.raises(FormatError, match="unreadable bag"):
         open_scans(not_a_bag)
+
+
+def test_without_rosbags_a_bag_is_refused_with_what_to_install(kitti, tmp_path, monkeypatch) -> None:
+    _, xyz, intensity, times = kitti
+    bag = write_bag(tmp_path / "drive", "sqlite3", xyz[:1], intensity[:1], times[:1])
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # import fails, as when not installed
+    with pytest.raises(FormatError, match=r"needs the rosbags package: pip install 'randt-fleet\[ros2\]'"):
+        open_scans(bag)
 
 
 def _cloud(
