@@ -51,8 +51,7 @@ def map_sequence(
     builder = MapBuilder(tile_size_m=tile_size, map_voxel_m=map_voxel)
     scans = []
     bar = tqdm(total=len(seq), unit="scan", disable=not progress, file=sys.stderr)
-    for i in range(len(seq)):
-        cloud = seq.read(i)
+    for i, cloud in enumerate(seq):  # one pass: a bag is opened once, not per sweep
         update = builder.add_scan(cloud.xyz, intensity=cloud.intensity, time_offset_s=cloud.time_offset_s)
         r = update.scan
         scans.append(

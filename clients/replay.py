@@ -269,12 +269,12 @@ def _one_pass(
             )
         t0_wall = time.monotonic()
         stamp0_ns = time.time_ns()
-        for i in range(len(seq)):
+        for i, recorded in enumerate(seq):  # one pass: a bag is opened once, not per sweep
             if rate > 0:
                 delay = t0_wall + send_t[i] - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            cloud = _returns_only(seq.read(i))
+            cloud = _returns_only(recorded)
             try:
                 pub.publish(
                     cloud.xyz,

@@ -13,6 +13,7 @@ messages are deserialized only when read).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,8 @@ class BagSequence:
     topic: str
     record_ns: np.ndarray  # (N,) int64 record times of the topic's messages, in bag order
     stamps_s: np.ndarray  # the same in seconds from the first
+    #: messages recorded at ``record_ns[0]`` that come before the sequence (a slice's start)
+    skip: int = 0
 
     def __len__(self) -> int:
         return int(self.record_ns.shape[0])
@@ -65,6 +68,8 @@ class BagSequence:
             raise IndexError(f"{self.root}: {self.topic} has {len(self)} sweeps, not {index + 1}")
         t = int(self.record_ns[index])
         rank = index - int(np.searchsorted(self.record_ns, t))  # messages recorded at the same time
+        if t == int(self.record_ns[0]):
+            rank += self.skip
         with _reader(self.root) as reader:
             connections = [c for c in reader.connections if c.topic == self.topic]
             for k, (conn, _, raw) in enumerate(reader.messages(connections, start=t, stop=t + 1)):
@@ -73,10 +78,13 @@ class BagSequence:
         raise FormatError(f"{self.root}: {self.label(index)} is no longer in the bag")
 
     def __iter__(self) -> Iterator[PointCloud]:
-        """The sweeps in order, read in one pass."""
+        """The sweeps in order, read in one pass (the bag opened once: :meth:`read` opens it for
+        each sweep)."""
+        first, last = int(self.record_ns[0]), int(self.record_ns[-1])
         with _reader(self.root) as reader:
             connections = [c for c in reader.connections if c.topic == self.topic]
-            for k, (conn, _, raw) in enumerate(reader.messages(connections)):
+            messages = reader.messages(connections, start=first, stop=last + 1)
+            for k, (conn, _, raw) in enumerate(itertools.islice(messages, self.skip, self.skip + len(self))):
                 yield _decoded(reader, conn, raw, self.label(k))
 
 
@@ -98,8 +106,9 @@ def open_bag(
     with _reader(root) as reader:
         chosen = _topic(reader, root, topic)
         connections = [c for c in reader.connections if c.topic == chosen]
-        record_ns = np.fromiter((t for _, t, _ in reader.messages(connections)), dtype=np.int64)
-    record_ns = record_ns[slice(start, end)]
+        every_ns = np.fromiter((t for _, t, _ in reader.messages(connections)), dtype=np.int64)
+    first = range(len(every_ns))[slice(start, end)].start  # the slice's first index in the bag
+    record_ns = every_ns[slice(start, end)]
     if record_ns.size == 0:
         raise FormatError(f"{root}: no {chosen} message in the range start={start} end={end}")
     return BagSequence(
@@ -108,6 +117,7 @@ def open_bag(
         topic=chosen,
         record_ns=record_ns,
         stamps_s=(record_ns - record_ns[0]) * 1e-9,
+        skip=int(np.count_nonzero(every_ns[:first] == record_ns[0])),
     )
 
 

@@ -47,6 +47,7 @@ def test_a_bag_gives_back_the_sweeps_it_was_written_from(kind, kitti, tmp_path) 
     part = open_bag(bag, start=3, end=7)
     assert len(part) == 4
     np.testing.assert_array_equal(part.read(0).xyz, seq.read(3).xyz)
+    assert [len(c.xyz) for c in part] == [len(p) for p in xyz[3:7]]  # the slice, in one pass
 
 
 @pytest.mark.parametrize("driver", ["ouster", "velodyne", "hesai"])
