@@ -12,8 +12,10 @@ try:
     from cli.main import main
 
     main()
-except KeyboardInterrupt:
+except (KeyboardInterrupt, Exception) as exc:
     from cli import interrupt
 
+    if not interrupt.explains(exc):  # (a Ctrl-C wrapped in another error ends as one too)
+        raise
     interrupt.say("randt: interrupted")
     raise SystemExit(130) from None

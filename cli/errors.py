@@ -185,7 +185,9 @@ def exits_on_error(command: Callable[P, R], name: str) -> Callable[P, R]:
             raise typer.Exit(ExitCode.BROKEN_PIPE) from None
         except HANDLED as exc:
             raise fail(exc) from exc
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, Exception) as exc:
+            if not interrupt.explains(exc):  # (a Ctrl-C wrapped in another error is one too)
+                raise
             interrupt.say(f"randt {name}: interrupted")
             raise typer.Exit(ExitCode.INTERRUPTED) from None
 

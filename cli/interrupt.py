@@ -66,6 +66,14 @@ def check() -> None:
         raise KeyboardInterrupt
 
 
+def explains(exc: BaseException) -> bool:
+    """Whether ``exc`` is (or came of) a signalled interrupt: a ``KeyboardInterrupt``, or any error
+    raised after one was noted. Code the interrupt lands in may wrap it in its own error (pydantic
+    building a model's schema during an import raised ``SchemaError``): the command was stopped
+    by the user all the same, and ends as interrupted, not with that error's traceback."""
+    return isinstance(exc, KeyboardInterrupt) or _noted.is_set()
+
+
 def sleep(seconds: float) -> None:
     """``time.sleep`` that ends in ``KeyboardInterrupt`` once one was signalled."""
     check()

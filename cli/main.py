@@ -84,6 +84,11 @@ def main() -> None:
         if exc.code == ExitCode.INTERRUPTED:  # (Typer's own for a Ctrl-C outside a command: no word)
             interrupt.say("randt: interrupted")
         raise
+    except Exception as exc:
+        if not interrupt.explains(exc):  # (a Ctrl-C wrapped in another error ends as one too)
+            raise
+        interrupt.say("randt: interrupted")
+        raise SystemExit(ExitCode.INTERRUPTED) from None
 
 
 if __name__ == "__main__":

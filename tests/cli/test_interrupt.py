@@ -81,3 +81,36 @@ def test_other_unraisable_exceptions_are_still_printed() -> None:
     )
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert "Exception ignored in" in run.stderr and "ValueError: in a callback" in run.stderr, run.stderr
+
+
+WRAPPED = textwrap.dedent(
+    """
+    import os, signal, sys, time
+    from cli import interrupt
+
+    interrupt.install()
+    try:
+        try:  # a library that catches the KeyboardInterrupt and raises its own error instead
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise RuntimeError("schema building failed") from None
+    except Exception as exc:
+        print("interrupt" if interrupt.explains(exc) else "error", flush=True)
+    print("noted" if interrupt.explains(ValueError()) else "clean", flush=True)
+    """
+)
+
+
+def test_an_error_raised_in_place_of_a_ctrl_c_is_the_ctrl_c() -> None:
+    # pydantic wrapped a Ctrl-C that landed while it built a model's schema into a SchemaError:
+    # ``randt demo`` ended with exit code 1 and a traceback instead of 130 (tests/cli/test_ctrl_c.py)
+    run = subprocess.run([sys.executable, "-c", WRAPPED], capture_output=True, text=True, timeout=60)
+    assert run.stdout.split() == ["interrupt", "noted"], (run.stdout, run.stderr)
+    clean = subprocess.run(
+        [sys.executable, "-c", "from cli import interrupt; print(interrupt.explains(ValueError()))"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert clean.stdout.strip() == "False", clean.stderr
