@@ -730,6 +730,7 @@ def simulate(
     start_stamp_ns: int = 0,
     workers: int = 0,
     max_lateral_mps2: float = 3.0,
+    first_index: int = 0,
 ) -> Iterator[SimScan]:
     """Drive ``route`` through ``town``: an iterator over ``n_scans`` sweeps, computed lazily.
 
@@ -769,6 +770,10 @@ def simulate(
         The driver's limit in corners (:class:`Motion`); ``inf``: the whole route at
         ``speed_mps``, corners included (with ``Route.loop(transition_m=0)``, the yaw rate jumps
         at a corner's onset as no car drives: a stress test for deskewing).
+    first_index:
+        The first sweep computed: sweeps ``first_index`` to ``n_scans - 1`` are yielded, the same
+        as those of the whole drive (a test that needs only a drive's end does not simulate the
+        rest).
 
     Returns
     -------
@@ -780,6 +785,8 @@ def simulate(
         raise ValueError("n_scans must be >= 0 and rate_hz > 0")
     if workers < 0:
         raise ValueError(f"workers must be >= 0, got {workers}")
+    if not 0 <= first_index <= n_scans:
+        raise ValueError(f"first_index must be in 0..{n_scans}, got {first_index}")
     phase = float(np.random.default_rng([seed, 2**31]).uniform(0.0, 2.0 * np.pi))
     motion = Motion(
         route,
@@ -799,8 +806,8 @@ def simulate(
             )
     sweeper = _Sweeper(town, motion, lidar, period_ns, rate_hz, seed, deskewed, start_stamp_ns)
     if workers == 0:
-        return (sweeper(k) for k in range(n_scans))
-    return _ahead(sweeper, n_scans, workers)
+        return (sweeper(k) for k in range(first_index, n_scans))
+    return _ahead(sweeper, range(first_index, n_scans), workers)
 
 
 #: Sweeps a worker process of :func:`simulate` may have computed ahead of the consumer.
@@ -844,9 +851,9 @@ class _Sweeper:
         return scan
 
 
-def _ahead(sweeper: _Sweeper, n_scans: int, workers: int) -> Iterator[SimScan]:
-    """``sweeper(k)`` for every ``k`` in order, computed by ``workers`` spawned processes (spawn:
-    the caller may run threads, which fork would copy mid-flight) at most
+def _ahead(sweeper: _Sweeper, indices: range, workers: int) -> Iterator[SimScan]:
+    """``sweeper(k)`` for every ``k`` of ``indices`` in order, computed by ``workers`` spawned
+    processes (spawn: the caller may run threads, which fork would copy mid-flight) at most
     ``AHEAD_PER_WORKER * workers`` sweeps ahead; the processes stop when the iterator is closed."""
     import multiprocessing
     from collections import deque
@@ -855,7 +862,7 @@ def _ahead(sweeper: _Sweeper, n_scans: int, workers: int) -> Iterator[SimScan]:
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
     pending: deque[Future[SimScan]] = deque()
     try:
-        for k in range(n_scans):
+        for k in indices:
             pending.append(pool.submit(sweeper, k))
             if len(pending) >= AHEAD_PER_WORKER * workers:
                 yield pending.popleft().result()

@@ -11,6 +11,7 @@ the same for a session without priors that joined the shared map through the pos
 from __future__ import annotations
 
 import time
+from collections.abc import Generator
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store
-from sim.drive import plan_fleet, simulate
+from sim.drive import SimScan, plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from wire.codes import ErrorCode
@@ -35,15 +36,17 @@ OFF_M = 0.3  # a map point farther than this from town 0's true surfaces is off 
 PRIOR_COV = np.diag([1e-4] * 3 + [1e-5] * 3)
 
 
-def _drive(town: Town, n: int, seed: int, start_back_m: float = 0.0, start_stamp_ns: int = 0) -> list:
+def _drive(
+    town: Town, n: int, seed: int, start_back_m: float = 0.0, start_stamp_ns: int = 0, first: int = 0
+) -> Generator[SimScan, None, None]:
+    """Sweeps ``first`` to ``n - 1`` of the route through ``town``, simulated as they are taken
+    (two processes ahead of the taker, until the generator is closed)."""
     plan = plan_fleet(Town.generate(MAPPED), 1, seed=0, route_length_m=400.0)[0]
     lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
     start = (plan.start_s_m - start_back_m) % plan.route.length_m
-    return list(
-        simulate(
-            town, plan.route, n_scans=n, seed=seed, lidar=lidar, start_s_m=start,
-            start_stamp_ns=start_stamp_ns, workers=2,
-        )
+    yield from simulate(
+        town, plan.route, n_scans=n, seed=seed, lidar=lidar, start_s_m=start,
+        start_stamp_ns=start_stamp_ns, workers=2, first_index=first,
     )  # fmt: skip
 
 
@@ -90,12 +93,19 @@ def towns() -> tuple[Town, Town]:
     return Town.generate(MAPPED), Town.generate(NEVER_MAPPED)
 
 
-def _town_switch(mapped: Town, other: Town, n_good: int, n_bad: int) -> list:
-    """``n_good`` sweeps of ``mapped``, then ``n_bad`` of ``other`` along the same route."""
-    return _drive(mapped, n_good + n_bad, seed=1)[:n_good] + _drive(other, n_good + n_bad, seed=1)[n_good:]
+N_GOOD, N_BAD = 80, 40
 
 
-def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(tmp_path, towns) -> None:
+@pytest.fixture(scope="module")
+def town_switch(towns: tuple[Town, Town]) -> list[SimScan]:
+    """:data:`N_GOOD` sweeps of the mapped town, then :data:`N_BAD` of the other along the same route."""
+    mapped, other = towns
+    return [*_drive(mapped, N_GOOD, seed=1), *_drive(other, N_GOOD + N_BAD, seed=1, first=N_GOOD)]
+
+
+def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(
+    tmp_path, towns, town_switch
+) -> None:
     """80 sweeps of town 0 with a prior on the first, then 40 of town 5 along the same route: the
     sweeps after the switch are answered ``ok`` only until the first check (every 10 sweeps),
     within 0.5 m of the truth, then ``lost`` with the check's figures; the map gains no point off
@@ -104,9 +114,8 @@ def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(tmp
     The map check is the second line: the matcher itself now refuses the other town's sweeps on
     their objects (the next test), so here that check is off (``min_object_inlier_ratio`` 0), as
     it was when the check was built: the ground alone matched them."""
-    mapped, other = towns
-    n_good, n_bad = 80, 40
-    scans = _town_switch(mapped, other, n_good, n_bad)
+    mapped, _ = towns
+    n_good, n_bad, scans = N_GOOD, N_BAD, town_switch
     truth = {s.index: s.T_world_sensor for s in scans}
     out: list = []
     mgr = _manager(tmp_path, out, graph=False, matcher=MatcherSettings(min_object_inlier_ratio=0.0))
@@ -142,14 +151,13 @@ def test_a_session_driving_a_town_the_map_never_saw_is_lost_and_adds_nothing(tmp
     assert info.n_lost == len(lost)
 
 
-def test_the_matcher_refuses_a_town_the_map_never_saw_on_its_objects(tmp_path, towns) -> None:
+def test_the_matcher_refuses_a_town_the_map_never_saw_on_its_objects(tmp_path, towns, town_switch) -> None:
     """The same drive with the matcher's defaults: the first sweep of town 5 matched against the
     model of town 0 keeps its ground and 1-6 % of its objects, below ``min_object_inlier_ratio``
     (10 %): no sweep after the switch is answered with a pose but the 0.5 s of predictions a
     fallback may answer (marked ``fallback``), then ``lost``; the map gains no point at all."""
-    mapped, other = towns
-    n_good, n_bad = 80, 40
-    scans = _town_switch(mapped, other, n_good, n_bad)
+    mapped, _ = towns
+    n_good, n_bad, scans = N_GOOD, N_BAD, town_switch
     out: list = []
     mgr = _manager(tmp_path, out, graph=False)
     try:
@@ -187,10 +195,10 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
     first of two agreeing registrations, not an answer, and the sweep that verifies it is
     checked against the map (here: 14 % of its points near it, lost)."""
     mapped, other = towns
-    n = 260
-    gnss = _drive(mapped, n, seed=1)
-    nognss_here = _drive(mapped, n, seed=2, start_back_m=100.0, start_stamp_ns=50_000_000)
-    nognss_there = _drive(other, n, seed=2, start_back_m=100.0, start_stamp_ns=50_000_000)
+    n = 260  # at most: the drive ends 40 sweeps after the switch
+    late = {"start_back_m": 100.0, "start_stamp_ns": 50_000_000}
+    gnss, nognss_here = _drive(mapped, n, seed=1), _drive(mapped, n, seed=2, **late)
+    nognss_there: dict[int, SimScan] = {}
     out: list = []
     mgr = _manager(tmp_path, out, graph=True)
     switch: int | None = None
@@ -198,11 +206,19 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
         graph = mgr.graph
         assert graph is not None
         for k in range(n):
-            _send(mgr, out, "gnss", gnss[k], prior=k == 0)
+            if switch is not None and k == switch + 40:
+                n = k
+                break
+            _send(mgr, out, "gnss", next(gnss), prior=k == 0)
             if switch is None and graph.joined("nognss", "d1") is not None:
                 switch = k + 20
-            source = nognss_there if switch is not None and k >= switch else nognss_here
-            _send(mgr, out, "nognss", source[k], prior=False)
+                there = _drive(other, switch + 40, seed=2, first=switch, **late)  # type: ignore[arg-type]
+                nognss_there = {s.index: s for s in there}
+            _send(
+                mgr, out, "nognss", nognss_there[k] if k in nognss_there else next(nognss_here), prior=False
+            )
+        gnss.close()  # (their simulating processes)
+        nognss_here.close()
         assert graph.wait_idle(300)
         off_after = _off_surface(mgr, mapped)
         joined = graph.joined("nognss", "d1")
@@ -212,13 +228,13 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
         corrected, graph_map = graph.corrected("nognss", "d1", live[1])
     finally:
         mgr.stop()
-    assert switch is not None and switch < n - 30, f"nognss joined too late to test ({switch})"
+    assert switch is not None and switch + 40 == n, f"nognss joined too late to test ({switch})"
     assert joined is not None and joined[0] == "default"
     answers = _answers(out, "nognss")
     after = [answers[i] for i in range(switch, n)]
     ok_after = [m for m in after if isinstance(m, PoseMessage)]
     assert len(ok_after) <= 10
-    truth = {s.index: s.T_world_sensor for s in nognss_there}
+    truth = {k: s.T_world_sensor for k, s in nognss_there.items()}
     assert graph_map == "default"
     for m in ok_after:  # its answers are in its own frame: corrected into the shared map's
         assert np.allclose(live[1][m.seq], np.reshape(m.pose, (4, 4)))

@@ -395,6 +395,15 @@ def test_worker_processes_give_the_same_scans_in_order(town: Town, route: Route)
     stream.close()  # type: ignore[attr-defined]  # (a generator)
     with pytest.raises(ValueError, match="workers"):
         simulate(town, route, workers=-1, **kw)
+    # a drive's end alone (first_index): the same sweeps as the whole drive's, in both modes
+    for workers in (0, 2):
+        tail = list(simulate(town, route, workers=workers, first_index=8, **kw))
+        assert [s.index for s in tail] == [8, 9, 10]
+        for x, y in zip(here[8:], tail, strict=True):
+            np.testing.assert_array_equal(x.points_xyz, y.points_xyz)
+            assert (x.stamp_ns, x.route_s_m) == (y.stamp_ns, y.route_s_m)
+    with pytest.raises(ValueError, match="first_index"):
+        simulate(town, route, first_index=12, **kw)
 
 
 def test_fleet_vehicles_take_different_routes(town: Town) -> None:

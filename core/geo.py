@@ -1,0 +1,171 @@
+"""Georeferenced maps: a map's geodetic origin and the projection of its frame, as Autoware reads it.
+
+A map's frame is Autoware's ``LocalCartesianUTM``: x east and y north on the UTM grid of the
+origin's zone, in metres, less the origin's UTM coordinates; z is the height above the WGS84
+ellipsoid less the origin's (``vertical_datum: WGS84``, the height a ``sensor_msgs/NavSatFix``
+gives). Why this one (docs/mapping.md, "Georeferenced maps"): it is one of the two Autoware's map
+projection loader takes for point-cloud maps, the frame is metric and small numbers near the
+origin (float32 map points keep millimetres), and the same map can be written as ``MGRS`` (the
+other, and Autoware's default) by a translation alone: MGRS coordinates are the UTM ones less the
+100 km square's corner. An origin set from a fix (:meth:`GeoOrigin.on_grid`) is moved to the
+nearest grid point of the map's tiles, so that translation is whole tiles.
+
+UTM is conformal but not true to scale: a metre on the grid is 0.9996 to 1.0010 metres on the
+ground (the scale factor, by distance from the zone's central meridian), and grid north differs
+from true north by the meridian convergence (up to about 3 degrees at a zone's edge). A GNSS fix's
+position goes through the projection itself; its orientation, given in the local East-North-Up
+frame, is turned by the convergence at the fix (:meth:`LocalCartesianUTM.enu_to_map_rotation`).
+
+The projection is PROJ's (``pyproj``) and the MGRS square's name the ``mgrs`` package's (the NGA's
+GEOTRANS code), both in the ``geo`` extra: a zone's exceptions (Norway, Svalbard) and the square
+letters are theirs, not ours.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from core.errors import FormatError, InvalidRequestError
+
+__all__ = [
+    "PROJECTOR_INFO_NAME",
+    "GeoOrigin",
+    "LocalCartesianUTM",
+    "ProjectorType",
+]
+
+#: The file Autoware's map projection loader reads beside the point-cloud map.
+PROJECTOR_INFO_NAME = "map_projector_info.yaml"
+#: The projector types a map can be written in (Autoware's names).
+ProjectorType = Literal["LocalCartesianUTM", "MGRS"]
+#: Side of an MGRS square (m).
+MGRS_SQUARE_M = 100_000.0
+#: UTM's latitude limits (beyond them UPS, which Autoware's projectors do not take).
+UTM_SOUTH_DEG, UTM_NORTH_DEG = -80.0, 84.0
+
+
+def _libraries() -> tuple[Any, Any]:
+    """``pyproj`` and ``mgrs``, or a one-line error naming the extra."""
+    try:
+        import mgrs
+        import pyproj
+    except ImportError as exc:  # pragma: no cover - exercised with the extra absent
+        raise FormatError(f"georeferenced maps need {exc.name}: pip install 'randt-fleet[geo]'") from None
+    return pyproj, mgrs
+
+
+@dataclass(frozen=True)
+class GeoOrigin:
+    """A map's geodetic origin: WGS84 latitude and longitude (degrees), height above the
+    ellipsoid (m)."""
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+
+    def __post_init__(self) -> None:
+        values = (self.latitude_deg, self.longitude_deg, self.altitude_m)
+        if not all(math.isfinite(v) for v in values):
+            raise InvalidRequestError(f"geodetic origin: not finite: {values}")
+        if not UTM_SOUTH_DEG <= self.latitude_deg <= UTM_NORTH_DEG:
+            raise InvalidRequestError(
+                f"geodetic origin: latitude {self.latitude_deg} is outside UTM's "
+                f"{UTM_SOUTH_DEG:g}..{UTM_NORTH_DEG:g} degrees (the polar regions need UPS, which "
+                "Autoware's map projectors do not take)"
+            )
+        if not -180.0 <= self.longitude_deg <= 180.0:
+            raise InvalidRequestError(f"geodetic origin: longitude {self.longitude_deg} outside -180..180")
+
+    @classmethod
+    def on_grid(
+        cls, latitude_deg: float, longitude_deg: float, altitude_m: float, grid_m: float
+    ) -> GeoOrigin:
+        """The origin for a map first placed by a fix at these coordinates: the point of the fix's
+        UTM zone whose easting and northing are the nearest multiples of ``grid_m`` (the map's
+        tile size) at or below the fix's, at the fix's height rounded down to a whole metre. On
+        that grid, the map's MGRS coordinates (:meth:`LocalCartesianUTM.mgrs_offset`) are its own
+        shifted by whole tiles."""
+        fix = LocalCartesianUTM(cls(latitude_deg, longitude_deg, altitude_m))
+        east, north = fix.utm_origin
+        snapped = np.array(
+            [[math.floor(east / grid_m) * grid_m - east, math.floor(north / grid_m) * grid_m - north, 0.0]]
+        )
+        lat, lon, _ = fix.to_geodetic(snapped)
+        return cls(float(lat[0]), float(lon[0]), float(math.floor(altitude_m)))
+
+    def as_dict(self) -> dict[str, float]:
+        """Autoware's ``map_origin`` mapping."""
+        return {"latitude": self.latitude_deg, "longitude": self.longitude_deg, "altitude": self.altitude_m}
+
+
+class LocalCartesianUTM:
+    """The projection of a map with geodetic ``origin`` (the module docstring): geodetic
+    coordinates to map coordinates and back, vectorized (PROJ), and the files that say so."""
+
+    def __init__(self, origin: GeoOrigin) -> None:
+        pyproj, mgrs = _libraries()
+        self.origin = origin
+        #: The origin's MGRS 100 km square, e.g. ``54SUE``; its first digits are the UTM zone,
+        #: with the Norway and Svalbard exceptions applied (as GeographicLib's standard zone).
+        self.mgrs_grid: str = mgrs.MGRS().toMGRS(origin.latitude_deg, origin.longitude_deg, MGRSPrecision=0)
+        self.zone = int(self.mgrs_grid[:-3])
+        self.south = origin.latitude_deg < 0
+        epsg = (32700 if self.south else 32600) + self.zone
+        self._forward = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+        self._inverse = pyproj.Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
+        east, north = self._forward.transform(origin.longitude_deg, origin.latitude_deg, errcheck=True)
+        #: The origin's UTM easting and northing (m).
+        self.utm_origin = (float(east), float(north))
+
+    def to_map(self, latitude_deg: Any, longitude_deg: Any, altitude_m: Any) -> np.ndarray:
+        """(N, 3) map coordinates of WGS84 positions (arrays or scalars, degrees and metres)."""
+        lat, lon, alt = (
+            np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (latitude_deg, longitude_deg, altitude_m)
+        )
+        if not (np.isfinite(lat).all() and np.isfinite(lon).all() and np.isfinite(alt).all()):
+            raise InvalidRequestError("geodetic position: not finite")
+        east, north = self._forward.transform(lon, lat, errcheck=True)
+        e0, n0 = self.utm_origin
+        return np.column_stack([np.asarray(east) - e0, np.asarray(north) - n0, alt - self.origin.altitude_m])
+
+    def to_geodetic(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Latitudes, longitudes (degrees) and heights (m) of (N, 3) map coordinates."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        e0, n0 = self.utm_origin
+        lon, lat = self._inverse.transform(xyz[:, 0] + e0, xyz[:, 1] + n0, errcheck=True)
+        return np.asarray(lat), np.asarray(lon), xyz[:, 2] + self.origin.altitude_m
+
+    def enu_to_map_rotation(self, latitude_deg: float, longitude_deg: float) -> np.ndarray:
+        """(3, 3) rotation from the local East-North-Up frame at a position to the map frame: a
+        turn about up by the meridian convergence there (grid north is not true north).
+
+        Measured on the projection itself (the grid direction of a step north), not taken from a
+        sign convention."""
+        step = 1e-6  # degrees of latitude: about 0.11 m
+        a = self.to_map(latitude_deg, longitude_deg, 0.0)[0]
+        b = self.to_map(latitude_deg + step, longitude_deg, 0.0)[0]
+        theta = math.atan2(-(b[0] - a[0]), b[1] - a[1])
+        c, s = math.cos(theta), math.sin(theta)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    def mgrs_offset(self) -> np.ndarray:
+        """(3,) what is added to map coordinates to give MGRS ones (Autoware's ``MGRS`` projector:
+        the position in the origin's 100 km square, height above the ellipsoid)."""
+        e0, n0 = self.utm_origin
+        return np.array([e0 % MGRS_SQUARE_M, n0 % MGRS_SQUARE_M, self.origin.altitude_m])
+
+    def projector_info(self, projector: ProjectorType = "LocalCartesianUTM") -> dict[str, Any]:
+        """The content of Autoware's ``map_projector_info.yaml`` for the map written in ``projector``."""
+        if projector == "LocalCartesianUTM":
+            return {
+                "projector_type": projector,
+                "vertical_datum": "WGS84",
+                "map_origin": self.origin.as_dict(),
+            }
+        if projector == "MGRS":
+            return {"projector_type": projector, "vertical_datum": "WGS84", "mgrs_grid": self.mgrs_grid}
+        raise InvalidRequestError(f"projector {projector!r}: expected LocalCartesianUTM or MGRS")
