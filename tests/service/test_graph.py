@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import httpx
@@ -26,7 +26,7 @@ from service.graph import MAX_TILE_SPAN, GraphState, MapGeometry, _ProcessMap, c
 from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
 from service.transport import ZenohTransport
-from sim.drive import Motion, plan_fleet, simulate
+from sim.drive import Motion, SimScan, plan_fleet, simulate
 from sim.lidar import Lidar64
 from sim.town import Town
 from tests.service.api_server import LiveServer, live_server
@@ -198,24 +198,26 @@ class LoopDrive:
     town: Town
 
 
-def _feed(server: LiveServer, scans: list[tuple[str, ScanMessage]]) -> None:
+def _feed(server: LiveServer, scans: Iterable[tuple[str, ScanMessage]]) -> None:
     """Send ``(vehicle, scan)`` in order, one at a time: each once the previous one is answered
-    and its matcher has begun rebuilding the keyframe model (see :func:`loop_drive`)."""
+    and its matcher has begun rebuilding the keyframe model (see :func:`loop_drive`). ``scans``
+    may be simulated as they are taken (the ray casting runs while the service matches)."""
     mgr, out = server.service.sessions, server.service._sent
     assert mgr is not None
 
     def n_answered() -> int:
         return sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out))
 
-    start = n_answered()
+    start, sent = n_answered(), 0
     deadline = time.monotonic() + 300
-    for i, (vehicle, scan) in enumerate(scans):
-        while n_answered() < start + i:
+    for vehicle, scan in scans:
+        while n_answered() < start + sent:
             assert time.monotonic() < deadline, "the service stopped answering"
             time.sleep(0.002)
         time.sleep(2 * NEXT_REQUEST_WAIT_S)  # the matcher process has begun its model rebuild
         mgr.submit(vehicle, encode(scan))
-    while n_answered() < start + len(scans):
+        sent += 1
+    while n_answered() < start + sent:
         assert time.monotonic() < deadline, "not every scan was answered in 300 s"
         time.sleep(0.1)
 
@@ -232,20 +234,24 @@ def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
     vehicle = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
     n = int(np.ceil(1.15 * Motion(vehicle.route).lap_time_s * 10))  # 1.15 laps at 10 Hz
     lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
-    scans = list(
-        simulate(
-            town, vehicle.route, n_scans=n, seed=vehicle.seed, lidar=lidar, start_s_m=vehicle.start_s_m,
-            deskewed=False, workers=2,
-        )
+    drive = simulate(
+        town, vehicle.route, n_scans=n, seed=vehicle.seed, lidar=lidar, start_s_m=vehicle.start_s_m,
+        deskewed=False, workers=1,
     )  # fmt: skip
+    scans: list[SimScan] = []
+
+    def sent() -> Iterator[tuple[str, ScanMessage]]:
+        for s in drive:
+            scans.append(s)
+            yield "car", scan_from_arrays("car", "d1", s.index, s.stamp_ns, s.points_xyz)
+
     with live_server(tmp_path_factory.mktemp("graph") / "data") as server:
         mgr = server.service.sessions
         assert mgr is not None
         out = server.service._sent
 
-        _feed(
-            server, [("car", scan_from_arrays("car", "d1", s.index, s.stamp_ns, s.points_xyz)) for s in scans]
-        )
+        _feed(server, sent())
+        assert len(scans) == n
         assert mgr.graph is not None and mgr.graph.wait_idle(300)
         trajectory = mgr.trajectory("car", "d1")
         assert trajectory is not None
@@ -508,25 +514,26 @@ def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
     route = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
     n = int(0.8 * route.route.length_m)
     lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
-    drives = {
-        "gnss": list(
-            simulate(town, route.route, n_scans=n, seed=1, lidar=lidar, start_s_m=route.start_s_m, workers=2)
+    streams = {
+        "gnss": simulate(
+            town, route.route, n_scans=n, seed=1, lidar=lidar, start_s_m=route.start_s_m, workers=1
         ),
-        "nognss": list(
-            simulate(
-                town, route.route, n_scans=n, seed=2, lidar=lidar, start_stamp_ns=50_000_000,
-                start_s_m=(route.start_s_m - 100.0) % route.route.length_m, workers=2,
-            )
+        "nognss": simulate(
+            town, route.route, n_scans=n, seed=2, lidar=lidar, start_stamp_ns=50_000_000,
+            start_s_m=(route.start_s_m - 100.0) % route.route.length_m, workers=1,
         ),
     }  # fmt: skip
+    drives: dict[str, list[SimScan]] = {"gnss": [], "nognss": []}
     prior = {"prior_covariance": np.diag([1e-4] * 3 + [1e-5] * 3)}
-    scans = [
-        (v, scan_from_arrays(v, "d1", s.index, s.stamp_ns, s.points_xyz, **(
-            {"prior_pose": s.T_world_sensor, **prior} if v == "gnss" and s.index == 0 else {}
-        )))
-        for pair in zip(drives["gnss"], drives["nognss"], strict=True)
-        for v, s in zip(("gnss", "nognss"), pair, strict=True)
-    ]  # fmt: skip
+
+    def scans() -> Iterator[tuple[str, ScanMessage]]:
+        """The two drives' sweeps interleaved, simulated as they are sent (kept in ``drives``)."""
+        for pair in zip(streams["gnss"], streams["nognss"], strict=True):
+            for v, s in zip(("gnss", "nognss"), pair, strict=True):
+                drives[v].append(s)
+                first = {"prior_pose": s.T_world_sensor, **prior} if v == "gnss" and s.index == 0 else {}
+                yield v, scan_from_arrays(v, "d1", s.index, s.stamp_ns, s.points_xyz, **first)
+
     root = tmp_path_factory.mktemp("join")
     deployment = write_deployment(root / "security", ["gnss", "nognss", "evil"])
     endpoint = tls_endpoint()
@@ -543,7 +550,8 @@ def join_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JoinDrive]:
                 token = vehicles.sessions[1].liveliness().get("randt/service/**", timeout=10)
                 assert [r.ok for r in token if r.ok], "the vehicle does not see the service"
                 time.sleep(0.5)  # the vehicles' subscriptions reach the service
-                _feed(server, scans)
+                _feed(server, scans())
+                assert len(drives["nognss"]) == n
                 mgr = server.service.sessions
                 assert mgr is not None and mgr.graph is not None and mgr.graph.wait_idle(300)
                 mgr.flush()
