@@ -32,14 +32,11 @@ import numpy as np
 from core.errors import FormatError, InvalidRequestError
 
 __all__ = [
-    "PROJECTOR_INFO_NAME",
     "GeoOrigin",
     "LocalCartesianUTM",
     "ProjectorType",
 ]
 
-#: The file Autoware's map projection loader reads beside the point-cloud map.
-PROJECTOR_INFO_NAME = "map_projector_info.yaml"
 #: The projector types a map can be written in (Autoware's names).
 ProjectorType = Literal["LocalCartesianUTM", "MGRS"]
 #: Side of an MGRS square (m).
@@ -159,7 +156,8 @@ class LocalCartesianUTM:
         return np.array([e0 % MGRS_SQUARE_M, n0 % MGRS_SQUARE_M, self.origin.altitude_m])
 
     def projector_info(self, projector: ProjectorType = "LocalCartesianUTM") -> dict[str, Any]:
-        """The content of Autoware's ``map_projector_info.yaml`` for the map written in ``projector``."""
+        """The content of Autoware's ``map_projector_info.yaml`` for the map written in ``projector``
+        (:func:`core.io.autoware.write_projector_info`)."""
         if projector == "LocalCartesianUTM":
             return {
                 "projector_type": projector,

@@ -36,13 +36,16 @@ from core.io.clouds import PointCloud, write_pcd, write_pcd_xyzi
 __all__ = [
     "AUTOWARE_METADATA_NAME",
     "GRID_SIDECAR_NAME",
+    "PROJECTOR_INFO_NAME",
     "SIDECAR_FORMAT",
     "make_directory",
     "read_metadata",
+    "read_projector_info",
     "read_sidecar",
     "remove_stale_tile_files",
     "tile_file_name",
     "write_metadata",
+    "write_projector_info",
     "write_sidecar",
     "write_tile_file",
     "write_tile_table",
@@ -52,6 +55,18 @@ logger = logging.getLogger(__name__)
 
 #: File name Autoware's map loader expects next to the divided PCD files.
 AUTOWARE_METADATA_NAME = "pointcloud_map_metadata.yaml"
+#: Autoware's map projection loader reads the map's projection from this file beside the tiles
+#: (``autoware_map_projection_loader``; written for a georeferenced map, core/geo.py).
+PROJECTOR_INFO_NAME = "map_projector_info.yaml"
+#: Its ``projector_type`` values and the keys each needs (Autoware's loader refuses a file
+#: without them).
+_PROJECTOR_KEYS = {
+    "local": (),
+    "MGRS": ("vertical_datum", "mgrs_grid"),
+    "LocalCartesianUTM": ("vertical_datum", "map_origin"),
+    "TransverseMercator": ("vertical_datum", "map_origin"),
+    "LocalCartesian": ("vertical_datum", "map_origin"),
+}
 #: Our sidecar: grid settings and tile versions (Autoware does not read it).
 GRID_SIDECAR_NAME = "randt_tile_grid.yaml"
 #: The sidecar's ``format`` value.
@@ -194,6 +209,42 @@ def read_sidecar(directory: Path, tile_size_m: int) -> tuple[dict[str, Any], dic
     if not isinstance(raw_versions, dict) or not all(_is_int(v) and v >= 1 for v in raw_versions.values()):
         raise FormatError(f"{path}: versions must map tile ids to integers >= 1")
     return saved, {str(k): int(v) for k, v in raw_versions.items()}
+
+
+def write_projector_info(directory: Path, info: Mapping[str, Any]) -> Path:
+    """Write :data:`PROJECTOR_INFO_NAME` (``info``: :meth:`core.geo.LocalCartesianUTM.projector_info`),
+    atomically; returns its path. Checked as :func:`read_projector_info` reads it."""
+    document = _checked_projector_info(dict(info), "projector info")
+    path = directory / PROJECTOR_INFO_NAME
+    with atomic_open(path, "w") as fh:
+        fh.write(yaml.safe_dump(document, sort_keys=False, default_flow_style=False))
+    return path
+
+
+def read_projector_info(directory: Path) -> dict[str, Any] | None:
+    """A directory's :data:`PROJECTOR_INFO_NAME` (``None`` when it has none: a map in a local
+    frame); :class:`FormatError` when it is not one Autoware's loader would take."""
+    path = directory / PROJECTOR_INFO_NAME
+    if not path.is_file():
+        return None
+    return _checked_projector_info(_read_yaml_mapping(path), str(path))
+
+
+def _checked_projector_info(document: dict[Any, Any], where: str) -> dict[str, Any]:
+    kind = document.get("projector_type")
+    if kind not in _PROJECTOR_KEYS:
+        raise FormatError(f"{where}: projector_type {kind!r}, expected one of {', '.join(_PROJECTOR_KEYS)}")
+    missing = [key for key in _PROJECTOR_KEYS[kind] if key not in document]
+    if missing:
+        raise FormatError(f"{where}: a {kind} projection needs {', '.join(missing)}")
+    origin = document.get("map_origin")
+    if "map_origin" in _PROJECTOR_KEYS[kind]:
+        keys = ("latitude", "longitude", "altitude")
+        if not isinstance(origin, dict) or not all(
+            isinstance(origin.get(k), int | float) and not isinstance(origin.get(k), bool) for k in keys
+        ):
+            raise FormatError(f"{where}: map_origin needs numbers latitude, longitude and altitude")
+    return document
 
 
 def remove_stale_tile_files(directory: Path, keep: Mapping[str, object]) -> None:

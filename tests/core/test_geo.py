@@ -86,3 +86,40 @@ def test_bad_origins_are_refused_with_the_reason() -> None:
         GeoOrigin(10.0, 190.0, 0.0)
     with pytest.raises(InvalidRequestError, match="finite"):
         GeoOrigin(float("nan"), 0.0, 0.0)
+
+
+def test_the_projector_info_file_is_autowares_and_reads_back(tmp_path) -> None:
+    from core.errors import FormatError
+    from core.io.autoware import PROJECTOR_INFO_NAME, read_projector_info, write_projector_info
+
+    proj = LocalCartesianUTM(GeoOrigin.on_grid(35.6762, 139.6503, 40.7, grid_m=20.0))
+    assert read_projector_info(tmp_path) is None  # a map in a local frame has none
+    for kind in ("LocalCartesianUTM", "MGRS"):
+        path = write_projector_info(tmp_path, proj.projector_info(kind))  # type: ignore[arg-type]
+        assert path.name == PROJECTOR_INFO_NAME
+        text = path.read_text(encoding="utf-8")
+        assert text.startswith(f"projector_type: {kind}\nvertical_datum: WGS84\n"), text
+        info = read_projector_info(tmp_path)
+        assert info == proj.projector_info(kind)  # type: ignore[arg-type]
+    # the latitude keeps every digit (a 1e-9 degree is 0.1 mm)
+    write_projector_info(tmp_path, proj.projector_info())
+    info = read_projector_info(tmp_path)
+    assert info is not None and info["map_origin"]["latitude"] == proj.origin.latitude_deg
+    # Autoware's own example files read as they are (map_projection_loader's README)
+    (tmp_path / PROJECTOR_INFO_NAME).write_text(
+        "projector_type: LocalCartesianUTM\nvertical_datum: WGS84\nmap_origin:\n"
+        "  latitude: 35.6762 # [deg]\n  longitude: 139.6503 # [deg]\n  altitude: 0.0 # [m]\n"
+    )
+    assert read_projector_info(tmp_path)["map_origin"]["longitude"] == 139.6503  # type: ignore[index]
+    (tmp_path / PROJECTOR_INFO_NAME).write_text("projector_type: local\n")
+    assert read_projector_info(tmp_path) == {"projector_type": "local"}
+    for bad, why in [
+        ("projector_type: UTM\n", "projector_type 'UTM'"),
+        ("projector_type: MGRS\nvertical_datum: WGS84\n", "needs mgrs_grid"),
+        ("projector_type: LocalCartesianUTM\nvertical_datum: WGS84\nmap_origin: {latitude: 1}\n", "numbers"),
+    ]:
+        (tmp_path / PROJECTOR_INFO_NAME).write_text(bad)
+        with pytest.raises(FormatError, match=why):
+            read_projector_info(tmp_path)
+    with pytest.raises(FormatError, match="projector_type"):
+        write_projector_info(tmp_path, {"projector_type": "nope"})
