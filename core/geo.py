@@ -149,6 +149,30 @@ class LocalCartesianUTM:
         c, s = math.cos(theta), math.sin(theta)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
+    def pose_to_map(
+        self,
+        latitude_deg: float,
+        longitude_deg: float,
+        altitude_m: float,
+        R_enu_sensor: np.ndarray,
+        covariance_enu: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """A GNSS/INS pose in the map frame: the 4x4 ``T_map_sensor`` of a sensor at a WGS84
+        position with orientation ``R_enu_sensor`` (3x3, in the East-North-Up frame there), and its
+        6x6 covariance (left perturbation ``tx ty tz rx ry rz``, as :mod:`core.transforms`) turned
+        from ENU axes to the map's, when given. Lengths are not rescaled: a fix's metre-level
+        uncertainty does not see UTM's 0.04 % scale."""
+        R_map_enu = self.enu_to_map_rotation(latitude_deg, longitude_deg)
+        T = np.eye(4)
+        T[:3, :3] = R_map_enu @ np.asarray(R_enu_sensor, dtype=np.float64).reshape(3, 3)
+        T[:3, 3] = self.to_map(latitude_deg, longitude_deg, altitude_m)[0]
+        if covariance_enu is None:
+            return T, None
+        A = np.zeros((6, 6))
+        A[:3, :3] = A[3:, 3:] = R_map_enu  # a turn of the world frame: both blocks turn with it
+        cov = np.asarray(covariance_enu, dtype=np.float64).reshape(6, 6)
+        return T, A @ cov @ A.T
+
     def mgrs_offset(self) -> np.ndarray:
         """(3,) what is added to map coordinates to give MGRS ones (Autoware's ``MGRS`` projector:
         the position in the origin's 100 km square, height above the ellipsoid)."""

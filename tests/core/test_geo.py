@@ -123,3 +123,27 @@ def test_the_projector_info_file_is_autowares_and_reads_back(tmp_path) -> None:
             read_projector_info(tmp_path)
     with pytest.raises(FormatError, match="projector_type"):
         write_projector_info(tmp_path, {"projector_type": "nope"})
+
+
+def test_a_gnss_pose_lands_in_the_map_frame_with_its_heading_and_covariance_turned() -> None:
+    """A vehicle heading true north 2 km east of an origin in Tokyo (zone 54, west of its central
+    meridian at 141 E, so true north leans east on the grid): the pose's position is the
+    projection's, its heading is true north as seen on the grid, and a covariance long along true
+    north stays long along the heading."""
+    origin = GeoOrigin(35.6762, 139.6503, 40.0)
+    proj = LocalCartesianUTM(origin)
+    lat, lon = proj.to_geodetic(np.array([[2000.0, 500.0, 0.0]]))[:2]
+    yaw_north = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # sensor x -> north
+    cov = np.diag([0.01, 1.0, 0.04, 1e-4, 1e-4, 1e-3])  # long along north
+    T, C = proj.pose_to_map(float(lat[0]), float(lon[0]), 43.0, yaw_north, cov)
+    assert C is not None
+    assert np.allclose(T[:3, 3], [2000.0, 500.0, 3.0], atol=1e-6)
+    # the sensor's x axis points where a step north goes on the grid
+    step = proj.to_map(float(lat[0]) + 1e-4, float(lon[0]), 43.0)[0] - T[:3, 3]
+    heading = T[:3, 0]
+    assert np.degrees(np.arccos(heading[:2] @ step[:2] / np.linalg.norm(step[:2]))) < 1e-4
+    assert step[0] > 0  # west of the central meridian: true north leans east
+    # the long axis of the position covariance follows true north on the grid
+    w, V = np.linalg.eigh(C[:3, :3])
+    assert w[-1] == pytest.approx(1.0) and abs(V[:2, -1] @ heading[:2]) == pytest.approx(1.0, abs=1e-9)
+    assert np.allclose(C, C.T) and np.allclose(np.linalg.eigvalsh(C), np.sort(np.diag(cov)))
