@@ -26,10 +26,19 @@ import numpy as np
 from core.errors import FormatError
 from core.io.clouds import PointCloud
 
-__all__ = ["DATATYPES", "TIME_FIELDS", "PointCloud2Fields", "PointField", "decode_pointcloud2"]
+__all__ = [
+    "DATATYPES",
+    "TIME_FIELDS",
+    "PointCloud2Fields",
+    "PointField",
+    "decode_pointcloud2",
+    "pointcloud2_arrays",
+]
 
 #: ``sensor_msgs/PointField`` datatype codes and their numpy types.
 DATATYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+#: The FLOAT32 datatype code.
+FLOAT32 = 7
 #: Per-point time fields, in the order they are looked for.
 TIME_FIELDS = ("t", "timestamp", "time")
 #: A sweep whose per-point times span more than this is refused (wrong units, or not one sweep).
@@ -81,7 +90,29 @@ class PointCloud2Fields:
 
 
 def decode_pointcloud2(msg: _Cloud) -> PointCloud:
-    """The cloud's points (float64 x, y, z), intensity and per-point time offsets (module docstring).
+    """The cloud's points (float64 x, y, z), intensity and per-point time offsets (module
+    docstring); rows with a non-finite coordinate dropped.
+
+    Raises
+    ------
+    FormatError
+        As :func:`pointcloud2_arrays`.
+    """
+    points, _, time_name = _points(msg)
+    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64, copy=False)
+    keep = np.isfinite(xyz[:, 0]) & np.isfinite(xyz[:, 1]) & np.isfinite(xyz[:, 2])
+    if not keep.all():  # (np.compress: numpy's boolean index of an (N, 3) array is its slow path)
+        xyz, points = np.compress(keep, xyz, axis=0), points[keep]
+    intensity = points["intensity"].astype(np.float32) if "intensity" in (points.dtype.names or ()) else None
+    offsets = _offsets(points[time_name], time_name) if time_name is not None else None
+    return PointCloud(xyz=xyz, intensity=intensity, time_offset_s=offsets)
+
+
+def pointcloud2_arrays(msg: _Cloud) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(xyz, time offsets, intensity)`` of every point, float32, as the service's matcher takes a
+    scan (``service.matchers.decoded_sweep``): non-finite rows kept (the matcher drops and counts
+    them), ``xyz`` a view of the message's bytes when x, y, z are consecutive little-endian
+    float32 (every driver's layout), the time offsets in seconds from the earliest point.
 
     Raises
     ------
@@ -89,18 +120,33 @@ def decode_pointcloud2(msg: _Cloud) -> PointCloud:
         No ``x``/``y``/``z`` field, an unknown datatype, a field past the point's end, fewer bytes
         than the layout needs, or per-point times spanning more than :data:`MAX_SWEEP_SPAN_S`.
     """
+    points, table, time_name = _points(msg)
+    fields = points.dtype.fields
+    assert fields is not None  # a structured dtype
+    (tx, ox), (ty, oy), (tz, oz) = (fields[c][:2] for c in ("x", "y", "z"))
+    f4 = np.dtype("<f4")
+    if len(points) and tx == ty == tz == f4 and oy == ox + 4 and oz == ox + 8:
+        step = points.dtype.itemsize
+        xyz = np.ndarray((len(points), 3), dtype=f4, buffer=table, offset=ox, strides=(step, 4))
+    else:
+        xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float32)
+    intensity = points["intensity"].astype(np.float32) if "intensity" in fields else None
+    offsets = None
+    if time_name is not None:
+        offsets = _offsets(points[time_name], time_name).astype(np.float32)
+    return xyz, offsets, intensity
+
+
+def _points(msg: _Cloud) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """The message's points as one structured array of the fields this module reads, over the
+    points' bytes (returned too: a view of the message's when rows have no padding), and the name
+    of its time field (or None)."""
     columns = _columns(msg)
     n = int(msg.height) * int(msg.width)
     table = _rows(msg, n)
-    points = (
-        np.ndarray(n, dtype=_dtype(columns, msg), buffer=table) if n else np.zeros(0, _dtype(columns, msg))
-    )
-    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64, copy=False)
-    keep = np.isfinite(xyz).all(axis=1)
-    intensity = points["intensity"][keep].astype(np.float32) if "intensity" in columns else None
-    time_name = next((f for f in TIME_FIELDS if f in columns), None)
-    offsets = _offsets(points[time_name][keep], time_name) if time_name is not None else None
-    return PointCloud(xyz=xyz[keep], intensity=intensity, time_offset_s=offsets)
+    dtype = _dtype(columns, msg)
+    points = np.ndarray(n, dtype=dtype, buffer=table) if n else np.zeros(0, dtype)
+    return points, table, next((f for f in TIME_FIELDS if f in columns), None)
 
 
 def _columns(msg: _Cloud) -> dict[str, _Field]:
@@ -160,10 +206,13 @@ def _offsets(times: np.ndarray, name: str) -> np.ndarray:
         offsets = (times - t0).astype(np.float64) * 1e-9  # before widening: uint64 ns stay exact
     else:
         t = times.astype(np.float64)
-        if not np.isfinite(t).all():
+        t0 = t.min()
+        if not np.isfinite(t0):
             raise FormatError(f"PointCloud2 per-point time {name!r} has non-finite values")
-        offsets = t - t.min()
+        offsets = t - t0
     span = float(offsets.max())
+    if not np.isfinite(span):
+        raise FormatError(f"PointCloud2 per-point time {name!r} has non-finite values")
     if span > MAX_SWEEP_SPAN_S:
         raise FormatError(
             f"PointCloud2 per-point time {name!r} spans {span:.3g} s (read as "

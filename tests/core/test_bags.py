@@ -144,6 +144,48 @@ def test_decoding_reads_the_layout_not_a_fixed_one() -> None:
         np.testing.assert_allclose(cloud.time_offset_s, 100e-9 * keep, atol=1e-15)
 
 
+def test_the_services_arrays_are_float32_views_with_every_row() -> None:
+    """``pointcloud2_arrays`` (what the ROS 2 ingest hands the matcher, as a v1 scan's decode):
+    float32, x/y/z a view of the message's bytes in the drivers' packed layout (no copy of a
+    120k-point sweep), non-finite rows kept for the matcher to drop and count, time offsets from
+    the earliest point; any other layout is read as well, as a copy."""
+    from core.io.pointcloud2 import pointcloud2_arrays
+
+    n = 10
+    packed = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("t", "<u4")])
+    rows = np.zeros(n, packed)
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(n, 3)).astype(np.float32)
+    rows["x"], rows["y"], rows["z"] = xyz.T
+    rows["x"][3] = np.nan
+    rows["intensity"], rows["t"] = np.arange(n), 5_000 + 1_000 * np.arange(n)
+    fields = [
+        PointField(name, int(packed.fields[name][1]), code)
+        for name, code in zip(packed.names or (), (7, 7, 7, 7, 6), strict=True)
+    ]
+    msg = _cloud(fields, rows)
+    got, offsets, intensity = pointcloud2_arrays(msg)
+    assert got.dtype == np.float32 and np.shares_memory(got, msg.data)
+    np.testing.assert_array_equal(got[[0, 1, 2, 4]], xyz[[0, 1, 2, 4]])
+    assert np.isnan(got[3, 0]) and len(got) == n
+    assert offsets is not None and offsets.dtype == np.float32 and intensity is not None
+    np.testing.assert_allclose(offsets, 1e-6 * np.arange(n), atol=1e-12)
+    np.testing.assert_array_equal(intensity, np.arange(n, dtype=np.float32))
+    # the file reader's view of the same message: float64, the NaN row dropped
+    cloud = decode_pointcloud2(msg)
+    np.testing.assert_array_equal(cloud.xyz, got[np.arange(n) != 3].astype(np.float64))
+    # another layout (y before x, padding): the same values, copied
+    other = np.dtype({"names": ["y", "x", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8], "itemsize": 16})
+    rows2 = np.zeros(n, other)
+    rows2["x"], rows2["y"], rows2["z"] = xyz.T
+    msg2 = _cloud(
+        [PointField("y", 0, 7), PointField("x", 4, 7), PointField("z", 8, 7)], rows2, pad=4, height=2
+    )
+    got2, no_times, no_intensity = pointcloud2_arrays(msg2)
+    np.testing.assert_array_equal(got2, xyz)
+    assert not np.shares_memory(got2, msg2.data) and no_times is None and no_intensity is None
+
+
 def test_decoding_refuses_what_it_cannot_read_with_the_reason() -> None:
     rows = np.zeros(4, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("time", "<f4")]))
     xyz_fields = [PointField("x", 0, 7), PointField("y", 4, 7), PointField("z", 8, 7)]
