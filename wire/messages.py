@@ -74,6 +74,7 @@ __all__ = [
     "CompactScanMessage",
     "CorrectionMessage",
     "ErrorMessage",
+    "GeoPrior",
     "PoseMessage",
     "Prior",
     "ScanEncoding",
@@ -93,6 +94,7 @@ __all__ = [
     "decode_tile_update",
     "encode",
     "encode_scan_v2",
+    "geo_prior",
     "matrix_to_pose",
     "peek_ids",
     "peek_seq",
@@ -212,6 +214,7 @@ def _as_tuple(value: Any) -> Any:
 
 Floats16 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=16, max_length=16)]
 Floats36 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=36, max_length=36)]
+Floats4 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=4, max_length=4)]
 Vec3 = Annotated[tuple[float, ...], BeforeValidator(_as_tuple), Field(min_length=3, max_length=3)]
 Count = Annotated[int, Field(ge=0, le=_INT64_MAX)]
 
@@ -328,6 +331,58 @@ class Prior(BaseModel):
         return self
 
 
+class GeoPrior(BaseModel):
+    """An external pose for a scan in WGS84 (GNSS/INS as receivers give it), with its uncertainty;
+    the service places it in its map's frame through the map's geodetic origin (core/geo.py).
+
+    Attributes
+    ----------
+    latitude, longitude:
+        Degrees, WGS84.
+    altitude:
+        Metres above the WGS84 ellipsoid (``sensor_msgs/NavSatFix``'s altitude).
+    orientation:
+        4 floats, the quaternion ``(x, y, z, w)`` of the sensor's axes in the local East-North-Up
+        frame at the position (unit length within 1e-3).
+    covariance:
+        36 floats, row-major 6x6 covariance of the left perturbation ``(tx, ty, tz, rx, ry, rz)``
+        in East-North-Up axes (m², rad²), symmetric positive semi-definite.
+    """
+
+    model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=False)
+
+    latitude: float = Field(ge=-90.0, le=90.0)
+    longitude: float = Field(ge=-180.0, le=180.0)
+    altitude: float = Field(ge=-1e5, le=1e5)
+    orientation: Floats4
+    covariance: Floats36
+
+    @model_validator(mode="after")
+    def _check(self) -> GeoPrior:
+        norm = float(np.linalg.norm(self.orientation))
+        if not abs(norm - 1.0) <= 1e-3:
+            raise _fail(ErrorCode.INVALID_PRIOR, f"orientation: quaternion of length {norm:.6g}, not 1")
+        problem = _covariance_problem(self.covariance)
+        if problem is not None:
+            raise _fail(ErrorCode.INVALID_PRIOR, f"covariance {problem}")
+        return self
+
+    def rotation_enu(self) -> np.ndarray:
+        """(3, 3) rotation of the sensor's axes into East-North-Up (the quaternion, normalized)."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_quat(self.orientation).as_matrix()
+
+    def covariance_matrix(self) -> np.ndarray:
+        """(6, 6) float64 covariance, East-North-Up axes."""
+        return np.asarray(self.covariance, dtype=np.float64).reshape(6, 6)
+
+
+def _one_prior(prior: Prior | None, geo_prior: GeoPrior | None) -> None:
+    if prior is not None and geo_prior is not None:
+        raise _fail(ErrorCode.INVALID_PRIOR, "a scan carries a prior or a geo_prior, not both")
+
+
 class ScanMessage(_Message):
     """One LiDAR sweep, vehicle to service, on ``randt/fleet/<vehicle>/scan``.
 
@@ -351,6 +406,8 @@ class ScanMessage(_Message):
     prior:
         Optional :class:`Prior` pose of the sensor at the moment the answer's pose refers to:
         ``stamp_ns``, or the sweep's middle (``stamp_ns`` + period / 2) with ``time_offsets``.
+    geo_prior:
+        Optional :class:`GeoPrior`: the same in WGS84 (not with ``prior``).
 
     A compact (v2) payload decodes to this same model, its bodies expanded to these float32 buffers,
     with :attr:`encoding` telling how it travelled (``None`` for a v1 payload).
@@ -364,6 +421,8 @@ class ScanMessage(_Message):
     points: bytes
     time_offsets: bytes | None = None
     prior: Prior | None = None
+    # (absent rather than nil when not given: a scan without one is the same bytes as before)
+    geo_prior: GeoPrior | None = Field(default=None, exclude_if=lambda v: v is None)
 
     _encoding: ScanEncoding | None = PrivateAttr(default=None)
 
@@ -379,6 +438,7 @@ class ScanMessage(_Message):
 
     @model_validator(mode="after")
     def _check_points(self, info: ValidationInfo) -> ScanMessage:
+        _one_prior(self.prior, self.geo_prior)
         limits = _limits_of(info)
         size = _POINT_SIZE[self.fields]
         if len(self.points) % size:
@@ -528,6 +588,7 @@ class CompactScanMessage(BaseModel):
     time_offsets: bytes | None = None
     intensity: bytes | None = None
     prior: Prior | None = None
+    geo_prior: GeoPrior | None = None
 
     @field_validator("vehicle", "session")
     @classmethod
@@ -544,6 +605,7 @@ class CompactScanMessage(BaseModel):
                 ErrorCode.TOO_MANY_POINTS,
                 f"n_points: {self.n_points} points exceed the limit of {limits.max_points}",
             )
+        _one_prior(self.prior, self.geo_prior)
         return self
 
 
@@ -572,6 +634,7 @@ def _expand(compact: CompactScanMessage, limits: WireLimits) -> ScanMessage:
         "points": table.tobytes(),
         "time_offsets": offsets,
         "prior": compact.prior,
+        "geo_prior": compact.geo_prior,
     }
     scan = _validate(ScanMessage, obj, limits)
     scan._encoding = enc
@@ -662,6 +725,8 @@ def encode_scan_v2(
         **bodies,
         "prior": None if scan.prior is None else scan.prior.model_dump(),
     }
+    if scan.geo_prior is not None:
+        obj["geo_prior"] = scan.geo_prior.model_dump()
     return msgpack.packb(obj, use_bin_type=True)
 
 
@@ -1256,6 +1321,7 @@ class ScanHeader:
     stamp_ns: int
     n_points: int
     prior: Prior | None = None
+    geo_prior: GeoPrior | None = None
 
     def prior_pose(self) -> np.ndarray | None:
         """(4, 4) float64 ``T_map_sensor`` of the prior, or ``None``."""
@@ -1280,9 +1346,9 @@ def decode_scan_header(payload: bytes, limits: WireLimits | None = None) -> Scan
         obj = _unpack(payload, limits, SCAN_VERSIONS)
         if obj["v"] == SCAN_V2:
             c = _validate(CompactScanMessage, obj, limits)
-            return ScanHeader(c.v, c.vehicle, c.session, c.seq, c.stamp_ns, c.n_points, c.prior)
+            return ScanHeader(c.v, c.vehicle, c.session, c.seq, c.stamp_ns, c.n_points, c.prior, c.geo_prior)
         m = _validate(ScanMessage, obj, limits)
-        return ScanHeader(m.v, m.vehicle, m.session, m.seq, m.stamp_ns, m.n_points, m.prior)
+        return ScanHeader(m.v, m.vehicle, m.session, m.seq, m.stamp_ns, m.n_points, m.prior, m.geo_prior)
     except BadMessageError:
         raise
     except Exception as exc:  # a decoder bug must not take down a transport callback
@@ -1422,6 +1488,7 @@ def scan_from_arrays(
     prior_pose: np.ndarray | None = None,
     prior_covariance: np.ndarray | None = None,
     *,
+    geo_prior: GeoPrior | None = None,
     limits: WireLimits | None = None,
 ) -> ScanMessage:
     """Build a validated scan from arrays (points and offsets converted to little-endian float32).
@@ -1438,6 +1505,8 @@ def scan_from_arrays(
         (N,) seconds after ``stamp_ns``, or ``None``.
     prior_pose, prior_covariance:
         (4, 4) ``T_map_sensor`` and its (6, 6) covariance (tx ty tz rx ry rz), both or neither.
+    geo_prior:
+        The prior in WGS84 instead (:class:`GeoPrior`, e.g. :func:`geo_prior`).
     limits:
         Limits to validate against (the defaults when ``None``).
 
@@ -1495,8 +1564,42 @@ def scan_from_arrays(
         "points": points,
         "time_offsets": offsets,
         "prior": prior,
+        "geo_prior": geo_prior,
     }
     return _validate(ScanMessage, obj, limits)
+
+
+def geo_prior(
+    latitude_deg: float,
+    longitude_deg: float,
+    altitude_m: float,
+    R_enu_sensor: np.ndarray,
+    covariance_enu: np.ndarray,
+) -> GeoPrior:
+    """A validated :class:`GeoPrior` from a WGS84 position, the sensor's rotation into the local
+    East-North-Up frame (3x3) and the 6x6 covariance in East-North-Up axes (raises
+    :class:`~core.errors.BadMessageError` ``invalid_prior`` as the service would)."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R_enu_sensor, dtype=np.float64)
+    problem = _rigid_problem(
+        tuple(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]).ravel())
+    )
+    if problem is not None:
+        raise BadMessageError(f"geo_prior: orientation {problem}", code=ErrorCode.INVALID_PRIOR)
+    obj = {
+        "latitude": float(latitude_deg),
+        "longitude": float(longitude_deg),
+        "altitude": float(altitude_m),
+        "orientation": tuple(Rotation.from_matrix(R).as_quat().tolist()),
+        "covariance": tuple(np.asarray(covariance_enu, dtype=np.float64).ravel().tolist()),
+    }
+    try:
+        return GeoPrior.model_validate(obj)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(part) for part in ("geo_prior", *first["loc"]))
+        raise BadMessageError(f"{where}: {first['msg']}", code=ErrorCode.INVALID_PRIOR) from None
 
 
 def tile_update_from_arrays(

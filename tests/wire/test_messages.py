@@ -1152,3 +1152,39 @@ def test_correction_round_trip_and_its_checks() -> None:
     error = rejected(pack({**good, "live": nan.astype("<f8").tobytes()}), decode_correction)
     assert "live[2]: has 1 non-finite entries" in str(error)
     assert rejected(pack({**good, "map": "a/b"}), decode_correction).code == "invalid_id"
+
+
+def test_a_geo_prior_travels_in_v1_and_v2_and_in_the_header() -> None:
+    """A WGS84 prior (issue 34): the same values back from a v1 and a v2 payload and from the
+    header alone; a scan without one is the same bytes as before (no ``geo_prior`` key); with a
+    map-frame prior too, or a quaternion that is not a rotation, it is refused ``invalid_prior``."""
+    from wire.messages import decode_scan_header, encode_scan_v2, geo_prior
+
+    R = make_transform([0.0, 0.0, 0.3], [0.0, 0.0, 0.0])[:3, :3]
+    cov = np.diag([0.25, 0.25, 1.0, 1e-4, 1e-4, 1e-3])
+    g = geo_prior(35.6762, 139.6503, 40.25, R, cov)
+    xyz = np.random.default_rng(1).normal(size=(50, 3))
+    scan = scan_from_arrays("car", "s", 3, 17, xyz, geo_prior=g)
+    for payload in (encode(scan), encode_scan_v2(scan)):
+        back = decode_scan(payload).geo_prior
+        assert back is not None and back == g
+        assert np.allclose(back.rotation_enu(), R) and np.array_equal(back.covariance_matrix(), cov)
+        header = decode_scan_header(payload)
+        assert header.geo_prior == g and header.prior is None and header.prior_pose() is None
+    plain = scan_from_arrays("car", "s", 3, 17, xyz)
+    assert b"geo_prior" not in encode(plain) and b"geo_prior" not in encode_scan_v2(plain)
+    with pytest.raises(BadMessageError, match="not both") as info:
+        scan_from_arrays(
+            "car", "s", 3, 17, xyz, prior_pose=np.eye(4), prior_covariance=np.eye(6), geo_prior=g
+        )
+    assert info.value.code == "invalid_prior"
+    bad = msgpack.unpackb(encode(scan), raw=False)
+    bad["geo_prior"]["orientation"] = [0.0, 0.0, 0.0, 2.0]
+    with pytest.raises(BadMessageError, match="quaternion of length 2") as info:
+        decode_scan(msgpack.packb(bad, use_bin_type=True))
+    assert info.value.code == "invalid_prior"
+    with pytest.raises(BadMessageError, match="not a rotation") as info:
+        geo_prior(35.0, 139.0, 0.0, 2 * np.eye(3), cov)
+    with pytest.raises(BadMessageError, match="latitude") as info:
+        geo_prior(95.0, 139.0, 0.0, R, cov)
+    assert info.value.code == "invalid_prior"
