@@ -64,6 +64,7 @@ from wire.codes import ErrorCode
 from wire.keys import error_key, pose_key, scan_key
 from wire.messages import (
     ErrorMessage,
+    GeoPrior,
     PoseMessage,
     ScanMessage,
     WireLimits,
@@ -250,6 +251,7 @@ def encode_sweep(
     time_offset_s: np.ndarray | None = None,
     prior_pose: np.ndarray | None = None,
     prior_covariance: np.ndarray | None = None,
+    geo_prior: GeoPrior | None = None,
     settings: PublisherSettings | None = None,
 ) -> bytes:
     """The payload :meth:`VehiclePublisher.publish` sends for one sweep.
@@ -265,7 +267,7 @@ def encode_sweep(
         The scan's addressing (``stamp_ns``: the sweep's first point, ns since the Unix epoch).
     points:
         (N, 3) x, y, z or (N, 4) x, y, z, intensity, metres, sensor frame.
-    intensity, time_offset_s, prior_pose, prior_covariance:
+    intensity, time_offset_s, prior_pose, prior_covariance, geo_prior:
         As :meth:`VehiclePublisher.publish`.
     settings:
         The link settings; ``None``: ``PublisherSettings()`` (the defaults, or ``RANDT_VEHICLE_*``).
@@ -306,6 +308,7 @@ def encode_sweep(
             time_offset_s=None if offsets is None else offsets[sel],
             prior_pose=prior_pose,
             prior_covariance=prior_covariance,
+            geo_prior=geo_prior,
             limits=limits,
         )
 
@@ -421,6 +424,7 @@ class VehiclePublisher:
         time_offset_s: np.ndarray | None = None,
         prior_pose: np.ndarray | None = None,
         prior_covariance: np.ndarray | None = None,
+        geo_prior: GeoPrior | None = None,
     ) -> int:
         """Reduce and encode one sweep (:func:`encode_sweep`), queue it for sending and return its
         ``seq``; never waits for the network.
@@ -442,6 +446,11 @@ class VehiclePublisher:
             both or neither, at the moment the answer's pose refers to (``stamp_ns``, or the
             sweep's middle with ``time_offset_s``). A session whose first scan has a prior joins
             the shared map.
+        geo_prior:
+            The prior in WGS84 instead (:func:`wire.messages.geo_prior`: latitude, longitude,
+            ellipsoidal altitude, orientation and covariance in East-North-Up), as a GNSS/INS
+            receiver gives it; the service places it through its map's geodetic origin, which the
+            first such prior sets (docs/mapping.md, "Georeferenced maps").
 
         Returns
         -------
@@ -471,6 +480,7 @@ class VehiclePublisher:
             time_offset_s=time_offset_s,
             prior_pose=prior_pose,
             prior_covariance=prior_covariance,
+            geo_prior=geo_prior,
             settings=self.settings,
         )
         with self._cond:

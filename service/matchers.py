@@ -219,11 +219,16 @@ class MapFrame:
         With a session's first sweep that carries a prior: the map's points around the prior
         (world frame, float32), which the matcher places the sweep against
         (:meth:`core.odometry.IncrementalMatcher.register_scan`'s ``map_seed``); ``None`` else.
+    prior:
+        The scan's prior in the map frame when the session thread placed it there (a WGS84
+        ``geo_prior``, through the map's geodetic origin: core/geo.py); it replaces the payload's
+        own (which then has none). ``None``: the payload's ``prior``, if any.
     """
 
     token: tuple[str, int, int]
     correction: np.ndarray | None = None
     seed_xyz: np.ndarray | None = None
+    prior: PosePrior | None = None
 
 
 @dataclass(frozen=True)
@@ -284,14 +289,16 @@ class Registered:
 
 
 def decoded_sweep(
-    payload: bytes, limits: WireLimits | None
+    payload: bytes, limits: WireLimits | None, frame: MapFrame | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, PosePrior | None, float]:
     """A scan payload decoded for the matcher (:func:`wire.messages.decode_scan`: v2 bodies
     decompressed here): ``(xyz float32 view, time offsets float32 or None, intensity float32 or
-    None, prior, stamp s)``. Raises :class:`~core.errors.BadMessageError` as the decoder does."""
+    None, prior, stamp s)``; the prior is ``frame``'s when it has one (:attr:`MapFrame.prior`).
+    Raises :class:`~core.errors.BadMessageError` as the decoder does."""
     scan = decode_scan(payload, limits)
     offsets = None if scan.time_offsets is None else np.frombuffer(scan.time_offsets, dtype="<f4")
-    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior_of(scan), scan.stamp_ns * 1e-9
+    prior = frame.prior if frame is not None and frame.prior is not None else prior_of(scan)
+    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior, scan.stamp_ns * 1e-9
 
 
 def prior_of(scan: ScanMessage | ScanHeader) -> PosePrior | None:
@@ -454,7 +461,7 @@ class _Sessions:
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`): the service
         process routes the bytes and reads only the header, the numeric work is the worker's."""
-        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
+        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits, frame)
         registered = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
         return _with_intensity(registered, intensity)
 
@@ -1095,7 +1102,7 @@ class LocalMatcher(IncrementalMatcher):
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`)."""
         t0 = time.thread_time()
-        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits)
+        xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits, frame)
         self._carried_cpu_s += time.thread_time() - t0  # (the decoding, billed by register)
         registered = self.register(
             xyz,

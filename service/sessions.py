@@ -120,6 +120,7 @@ from core.odometry import (
 from core.tiles import Tile, TileGrid
 from service.agreement import AgreementGate, Held
 from service.capacity import Capacity, CapacityFigures
+from service.georef import MapProjections
 from service.graph import MapGeometry, ServiceGraph
 from service.graph_log import GRAPH_DIRNAME
 from service.intake import Intake
@@ -431,7 +432,11 @@ class SessionWorker:
         map points, account for it, answer it, offer it to the pose graph. A stage that answers
         the scan with an error ends it (``None``/``False``)."""
         scan = job.scan
-        prior = prior_of(scan)
+        try:
+            prior = self._manager.prior_in_map(scan)
+        except BadMessageError as exc:  # a WGS84 prior its map cannot place (service/georef.py)
+            self._manager.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
+            return
         # Several more of this session's scans wait: the keyframe model may lag one keyframe
         # rather than delay them (IncrementalMatcher.update_model).
         behind = self.depth() >= BEHIND_DEPTH
@@ -487,7 +492,10 @@ class SessionWorker:
                 limits=m.limits,
                 behind=behind,
                 keyframe_voxel_m=keyframe_voxel_m,
-                frame=self._map_frame(self._map_seed(prior) if self.info.n_scans == 0 else None),
+                frame=self._map_frame(
+                    self._map_seed(prior) if self.info.n_scans == 0 else None,
+                    prior if scan.geo_prior is not None else None,  # (placed here: the payload has none)
+                ),
             )
         except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
             log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
@@ -586,13 +594,13 @@ class SessionWorker:
             return None, info.map_name
         return graph.fold_target(info.vehicle, info.session, info.map_name)
 
-    def _map_frame(self, seed_xyz: np.ndarray | None = None) -> MapFrame:
+    def _map_frame(self, seed_xyz: np.ndarray | None = None, prior: PosePrior | None = None) -> MapFrame:
         """Where this sweep's map points go (:class:`~service.matchers.MapFrame`): the matcher
         moves them by the correction and sends only voxels it has not sent to this map's content
-        (``seed_xyz``: :meth:`_map_seed`)."""
+        (``seed_xyz``: :meth:`_map_seed`; ``prior``: a WGS84 prior placed in the map)."""
         C, fold_map = self._fold_target()
         grid = self.grid if fold_map == self.info.map_name else self._manager.map_grid(fold_map)
-        return MapFrame((fold_map, *grid.content_token), C, seed_xyz)
+        return MapFrame((fold_map, *grid.content_token), C, seed_xyz, prior)
 
     def _map_seed(self, prior: PosePrior | None) -> np.ndarray | None:
         """For a session's first sweep with a prior: its map's points within
@@ -935,6 +943,8 @@ class SessionManager:
             key: loaded.record for key, loaded in contents.sessions.items()
         }
         self.maps: dict[str, TileGrid] = dict(contents.maps)
+        #: Each map's geodetic origin, if it has one (service/georef.py).
+        self.projections = MapProjections(store)
         #: Per map, the tiles as last saved: what HTTP, the queryable and tile updates serve.
         self._durable: dict[str, dict[str, Tile]] = {}
         self._digests: dict[tuple[str, str, int], str] = {}
@@ -1306,7 +1316,7 @@ class SessionManager:
         else:
             # A new session (or one whose first save never completed: nothing was acknowledged).
             self.store.reset_pose_log(*key)
-            in_map = scan.prior_pose() is not None
+            in_map = scan.prior_pose() is not None or scan.geo_prior is not None
             map_name = self.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
             info = SessionState(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
         grid = self.map_grid(info.map_name)
@@ -1324,6 +1334,15 @@ class SessionManager:
         return SessionWorker(info, matcher, grid, self)
 
     # -- maps and persistence -----------------------------------------------------------------
+    def prior_in_map(self, scan: ScanHeader) -> PosePrior | None:
+        """The scan's prior in the map frame: its ``prior``, or its ``geo_prior`` placed in the
+        shared map through that map's geodetic origin (service/georef.py; raises
+        :class:`~core.errors.BadMessageError` ``invalid_prior`` when it cannot be)."""
+        if scan.geo_prior is None:
+            return prior_of(scan)
+        name = self.settings.default_map
+        return self.projections.prior_in_map(name, self.map_grid(name), scan.geo_prior)
+
     def map_grid(self, map_name: str) -> TileGrid:
         """The tiles of ``map_name``, an empty map with the settings' sizes if it is new."""
         with self._lock:
@@ -1683,6 +1702,7 @@ class SessionManager:
             del self.maps[map_name]
             self._durable.pop(map_name, None)
             self._dirty_tiles.pop(map_name, None)
+            self.projections.forget(map_name)
         log.info("map %s deleted (%d tiles)", map_name, n_tiles)
         return n_tiles
 

@@ -118,7 +118,14 @@ from scipy.spatial.transform import Rotation
 from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
 from core.io import atomic_write_bytes, read_tum, write_tum
 from core.io.atomic import append_durably, atomic_open, fsync_directory
-from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME, read_sidecar
+from core.io.autoware import (
+    AUTOWARE_METADATA_NAME,
+    GRID_SIDECAR_NAME,
+    make_directory,
+    read_projector_info,
+    read_sidecar,
+    write_projector_info,
+)
 from core.tiles import Tile, TileGrid, load_autoware
 from wire.ids import legacy_session_map_name, session_map_name, validate_id
 
@@ -935,6 +942,28 @@ class Store:
                 return load_autoware(directory)
             except NotFoundError as exc:  # the metadata exists, so a missing tile is damage
                 raise FormatError(f"map {map_name} is incomplete: {exc}") from exc
+
+    def save_projection(self, map_name: str, info: dict[str, object]) -> None:
+        """Write a map's ``map_projector_info.yaml`` (its geodetic origin, core/geo.py) into its
+        folder, atomically and durably (the folder is created if the map has no tile yet): a
+        pose answered in the map's frame is only as durable as the origin that defines it."""
+        self._check_open()
+        directory = make_directory(self.map_dir(map_name))
+        fsync_directory(directory.parent)  # (a new map's folder: its name durable too)
+        with self._map_lock(map_name):
+            write_projector_info(directory, info)
+
+    def load_projection(self, map_name: str) -> dict[str, object] | None:
+        """A map's ``map_projector_info.yaml`` (``None``: the map has no geodetic origin).
+
+        Raises
+        ------
+        FormatError
+            The file is there but is not one Autoware's loader would take.
+        """
+        self._check_open()
+        with self._map_lock(map_name):
+            return read_projector_info(self.map_dir(map_name))
 
     def version_floor(self, map_name: str) -> int:
         """The highest tile version a deleted map of this name reached (0 if none was deleted):

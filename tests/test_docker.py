@@ -387,10 +387,10 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     _set_environment(monkeypatch, _environment(service, {"RANDT_EXECUTOR": "rya"}))
     with pytest.raises(ValueError, match="executor"):
         ServiceSettings()
-    # the image has Ray: it installs the ray extra
+    # the image has Ray and the geodetic projections: it installs the ray and geo extras
     _, stages = _dockerfile_stages()
     installs = [rest for stage in stages for word, rest in stage if word == "RUN" and "pip install" in rest]
-    assert any('".[ray]"' in rest for rest in installs), installs
+    assert any('".[ray,geo]"' in rest for rest in installs), installs
 
 
 def test_the_tls_override_mounts_what_randt_security_init_writes(

@@ -1,0 +1,124 @@
+"""Georeferenced maps in the service: each map's geodetic origin, and WGS84 priors placed in it.
+
+A map's origin lives in its folder as Autoware's ``map_projector_info.yaml`` (``LocalCartesianUTM``,
+core/geo.py), beside its tiles, so the service's own data directory is a map Autoware and GIS
+tools can place. The first scan whose ``geo_prior`` (wire.messages.GeoPrior) reaches a map without
+an origin sets it: the fix's point on the map's tile grid (:meth:`core.geo.GeoOrigin.on_grid`),
+written durably before that scan is matched (an answer in the map's frame is only as durable as
+the origin that defines it). A map that already holds points but has no origin was built in a
+local frame: a WGS84 prior cannot be placed in it, and the scan is refused ``invalid_prior`` with
+that reason (the vehicle may send map-frame priors instead).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Protocol
+
+from core.errors import BadMessageError, FormatError, RandtError
+from core.geo import GeoOrigin, LocalCartesianUTM
+from core.odometry import PosePrior
+from core.tiles import TileGrid
+from wire.codes import ErrorCode
+from wire.messages import GeoPrior
+
+__all__ = ["MapProjections"]
+
+log = logging.getLogger(__name__)
+
+
+class _ProjectionStore(Protocol):
+    def save_projection(self, map_name: str, info: dict[str, object]) -> None: ...
+
+    def load_projection(self, map_name: str) -> dict[str, object] | None: ...
+
+
+class MapProjections:
+    """The projections of the service's maps, read from the store once and kept."""
+
+    def __init__(self, store: _ProjectionStore) -> None:
+        self._store = store
+        self._lock = threading.Lock()
+        self._known: dict[str, LocalCartesianUTM | None] = {}
+
+    def prior_in_map(self, map_name: str, grid: TileGrid, prior: GeoPrior) -> PosePrior:
+        """``prior`` as a pose in ``map_name``'s frame (its origin set from it if the map has
+        none and no points). Raises :class:`~core.errors.BadMessageError` ``invalid_prior`` with
+        the reason when it cannot be placed."""
+        projection = self._projection(map_name, grid, prior)
+        T, cov = projection.pose_to_map(
+            prior.latitude, prior.longitude, prior.altitude, prior.rotation_enu(), prior.covariance_matrix()
+        )
+        assert cov is not None
+        return PosePrior(T, cov)
+
+    def projection(self, map_name: str) -> LocalCartesianUTM | None:
+        """``map_name``'s projection, ``None`` when it has no geodetic origin (raises
+        :class:`~core.errors.FormatError` when its file cannot be read)."""
+        with self._lock:
+            return self._load(map_name)
+
+    def forget(self, map_name: str) -> None:
+        """The map was deleted: its origin goes with it."""
+        with self._lock:
+            self._known.pop(map_name, None)
+
+    def _projection(self, map_name: str, grid: TileGrid, fix: GeoPrior) -> LocalCartesianUTM:
+        with self._lock:
+            try:
+                known = self._load(map_name)
+            except RandtError as exc:  # a damaged file, or no pyproj (the geo extra)
+                raise BadMessageError(
+                    f"geo_prior: map {map_name!r}'s geodetic origin cannot be read: {exc}",
+                    code=ErrorCode.INVALID_PRIOR,
+                ) from exc
+            if known is not None:
+                return known
+            if len(grid):
+                raise BadMessageError(
+                    f"geo_prior: map {map_name!r} has no geodetic origin (it was built in a local "
+                    "frame), so a WGS84 prior cannot be placed in it: send the prior in the map's "
+                    "frame (prior) or map into a map that has an origin",
+                    code=ErrorCode.INVALID_PRIOR,
+                )
+            try:
+                origin = GeoOrigin.on_grid(fix.latitude, fix.longitude, fix.altitude, float(grid.tile_size_m))
+                projection = LocalCartesianUTM(origin)
+                self._store.save_projection(map_name, projection.projector_info())
+            except RandtError as exc:  # no pyproj (the geo extra), a polar fix, a write that failed
+                raise BadMessageError(
+                    f"geo_prior: map {map_name!r} cannot take a geodetic origin: {exc}",
+                    code=ErrorCode.INVALID_PRIOR,
+                ) from exc
+            self._known[map_name] = projection
+            log.info(
+                "map %s: geodetic origin %.9f, %.9f, %.3f m (WGS84; UTM zone %d, MGRS %s), from its "
+                "first WGS84 prior",
+                map_name,
+                origin.latitude_deg,
+                origin.longitude_deg,
+                origin.altitude_m,
+                projection.zone,
+                projection.mgrs_grid,
+            )
+            return projection
+
+    def _load(self, map_name: str) -> LocalCartesianUTM | None:
+        """From the cache, else the store (under the lock)."""
+        if map_name in self._known:
+            return self._known[map_name]
+        info = self._store.load_projection(map_name)
+        projection = None
+        if info is not None:
+            origin = info.get("map_origin")
+            if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(origin, dict):
+                raise FormatError(
+                    f"map {map_name}: its map_projector_info.yaml is {info.get('projector_type')!r}; the "
+                    "service's maps are LocalCartesianUTM"
+                )
+            projection = LocalCartesianUTM(
+                GeoOrigin(float(origin["latitude"]), float(origin["longitude"]), float(origin["altitude"]))
+            )
+        self._known[map_name] = projection
+        return projection

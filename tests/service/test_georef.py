@@ -1,0 +1,151 @@
+"""Georeferenced maps (issue 34): a vehicle sends its GNSS/INS poses in WGS84 (``geo_prior``); the
+service sets the map's geodetic origin from the first, writes Autoware's ``map_projector_info.yaml``
+beside the tiles, and answers in that frame. Checked with pyproj alone, from the files: the tiles'
+points and the answered poses, taken back to WGS84, land where the fixes say.
+
+The simulated town's frame is made a place on Earth: its coordinates are read as the UTM grid of a
+point in Munich (zone 32) less that point's UTM coordinates, so each true pose has a latitude,
+longitude and height (the fixes, exact), and each true surface too.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+pyproj = pytest.importorskip("pyproj")
+pytest.importorskip("mgrs")
+
+from core.errors import BadMessageError  # noqa: E402
+from core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
+from core.io import read_cloud  # noqa: E402
+from service.matchers import NEXT_REQUEST_WAIT_S  # noqa: E402
+from service.metrics import ServiceMetrics  # noqa: E402
+from service.sessions import SessionManager  # noqa: E402
+from service.settings import ServiceSettings  # noqa: E402
+from service.store import Store  # noqa: E402
+from sim.drive import plan_fleet, simulate  # noqa: E402
+from sim.lidar import Lidar64  # noqa: E402
+from sim.town import Town  # noqa: E402
+from wire.codes import ErrorCode  # noqa: E402
+from wire.messages import ErrorMessage, PoseMessage, encode, geo_prior, scan_from_arrays  # noqa: E402
+
+#: Where the simulated town is on Earth (its frame's origin), WGS84.
+MUNICH = GeoOrigin(48.137, 11.575, 520.0)
+N_SCANS = 40
+COV_ENU = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+
+
+def _answered(out: list) -> int:
+    return sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out))
+
+
+def _send(mgr: SessionManager, out: list, payload: bytes, vehicle: str = "car") -> None:
+    n = _answered(out)
+    mgr.submit(vehicle, payload)
+    deadline = time.monotonic() + 60
+    while _answered(out) < n + 1:
+        assert time.monotonic() < deadline, "the service stopped answering"
+        time.sleep(0.002)
+    time.sleep(2 * NEXT_REQUEST_WAIT_S)
+
+
+def _to_wgs84_with_pyproj(xyz: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map coordinates to latitude, longitude, height with pyproj alone, from the yaml's origin."""
+    o = info["map_origin"]
+    zone = int((o["longitude"] + 180) // 6) + 1  # (no zone exception near Munich)
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{32600 + zone}", always_xy=True)
+    e0, n0 = to_utm.transform(o["longitude"], o["latitude"])
+    lon, lat = to_utm.transform(xyz[:, 0] + e0, xyz[:, 1] + n0, direction="INVERSE")
+    return np.asarray(lat), np.asarray(lon), xyz[:, 2] + o["altitude"]
+
+
+def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) -> None:
+    town = Town.generate(0)
+    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    scans = list(
+        simulate(
+            town, plan.route, n_scans=N_SCANS, seed=3, lidar=Lidar64(n_azimuth=1000, max_range_m=70.0),
+            start_s_m=plan.start_s_m, workers=2,
+        )
+    )  # fmt: skip
+    earth = LocalCartesianUTM(MUNICH)  # the town's frame on Earth
+    fixes = []
+    out: list = []
+    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, graph=False)
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        assert mgr.wait_matchers(300)
+        for s in scans:
+            lat, lon, alt = (float(v[0]) for v in earth.to_geodetic(s.T_world_sensor[:3, 3]))
+            R_enu = earth.enu_to_map_rotation(lat, lon).T @ s.T_world_sensor[:3, :3]
+            fixes.append((lat, lon, alt))
+            g = geo_prior(lat, lon, alt, R_enu, COV_ENU)
+            _send(
+                mgr,
+                out,
+                encode(scan_from_arrays("car", "d1", s.index, s.stamp_ns, s.points_xyz, geo_prior=g)),
+            )
+        mgr.flush()
+    finally:
+        mgr.stop()
+    poses = {m.seq: np.reshape(m.pose, (4, 4)) for m in out if isinstance(m, PoseMessage)}
+    assert sorted(poses) == list(range(N_SCANS)), [m for m in out if isinstance(m, ErrorMessage)][:3]
+    # the map folder, as Autoware reads it: the projection beside the tiles
+    folder = tmp_path / "maps" / "default"
+    info = yaml.safe_load((folder / "map_projector_info.yaml").read_text(encoding="utf-8"))
+    assert info["projector_type"] == "LocalCartesianUTM" and info["vertical_datum"] == "WGS84"
+    geod = pyproj.Geod(ellps="WGS84")
+    # the answered poses, taken to WGS84 with pyproj: on the fixes
+    xyz = np.array([poses[k][:3, 3] for k in range(N_SCANS)])
+    lat, lon, alt = _to_wgs84_with_pyproj(xyz, info)
+    flat, flon, falt = (np.array(c) for c in zip(*fixes, strict=True))
+    _, _, horizontal = geod.inv(lon, lat, flon, flat)
+    error = np.hypot(horizontal, alt - falt)
+    assert error.max() < 0.05, error
+    # the origin was set from the first fix: on the tile grid, within a tile of it
+    _, _, to_origin = geod.inv(
+        flon[0], flat[0], info["map_origin"]["longitude"], info["map_origin"]["latitude"]
+    )
+    assert to_origin < 20.0 * np.sqrt(2) and info["map_origin"]["altitude"] == np.floor(falt[0])
+    # the tiles' points, taken to WGS84 with pyproj and into the town's frame: on its surfaces
+    points = np.concatenate([read_cloud(p).xyz for p in sorted(folder.glob("*.pcd"))])
+    plat, plon, palt = _to_wgs84_with_pyproj(points.astype(np.float64), info)
+    in_town = earth.to_map(plat, plon, palt)
+    distance = town.surface_distance(in_town)
+    assert len(points) > 10_000 and np.percentile(distance, 90) < 0.05, np.percentile(distance, [50, 90, 99])
+
+
+def test_a_wgs84_prior_into_a_map_built_without_an_origin_is_refused_with_the_reason(tmp_path: Path) -> None:
+    """A map that holds points but no origin was built in a local frame: a WGS84 prior cannot be
+    placed in it (``invalid_prior``, saying so); a map-frame prior still can."""
+    town = Town.generate(0)
+    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    scans = list(
+        simulate(town, plan.route, n_scans=3, seed=3, lidar=Lidar64(n_azimuth=500), start_s_m=plan.start_s_m)
+    )
+    out: list = []
+    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, graph=False)
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        assert mgr.wait_matchers(300)
+        cov = np.diag([1e-4] * 3 + [1e-5] * 3)
+        first = scan_from_arrays(
+            "car", "d1", 0, 0, scans[0].points_xyz, prior_pose=scans[0].T_world_sensor, prior_covariance=cov
+        )
+        _send(mgr, out, encode(first))
+        mgr.flush()
+        g = geo_prior(48.137, 11.575, 520.0, np.eye(3), COV_ENU)
+        _send(mgr, out, encode(scan_from_arrays("van", "d1", 0, 0, scans[1].points_xyz, geo_prior=g)), "van")
+    finally:
+        mgr.stop()
+    refused = [m for m in out if isinstance(m, ErrorMessage)]
+    assert len(refused) == 1 and refused[0].vehicle == "van" and refused[0].code == ErrorCode.INVALID_PRIOR
+    assert "has no geodetic origin" in refused[0].reason, refused[0].reason
+    assert not (tmp_path / "maps" / "default" / "map_projector_info.yaml").exists()
+    with pytest.raises(BadMessageError):  # (the same check, without a service)
+        mgr.projections.prior_in_map("default", mgr.maps["default"], g)
