@@ -43,6 +43,8 @@ __all__ = ["ApiError", "ApiNotFoundError", "DownloadResult", "MapClient"]
 DEFAULT_URL = "http://127.0.0.1:8080"
 ETAGS_FILE = ".randt-tile-etags.json"
 METADATA_FILE = "pointcloud_map_metadata.yaml"
+#: A georeferenced map's projection, as Autoware's map projection loader reads it.
+PROJECTOR_INFO_FILE = "map_projector_info.yaml"
 
 CloudFormat = Literal["pcd", "ply", "las"]
 
@@ -191,6 +193,15 @@ class MapClient:
         """Autoware's ``pointcloud_map_metadata.yaml`` of the map."""
         return self._get(f"/maps/{map_name}/metadata.yaml").text
 
+    def projector_info_yaml(self, map_name: str = "default") -> str | None:
+        """Autoware's ``map_projector_info.yaml`` of a georeferenced map; ``None`` when the map has
+        no geodetic origin (raises :class:`ApiNotFoundError` when there is no such map)."""
+        self._get(f"/maps/{map_name}")  # (a missing map is an error, a map without an origin is not)
+        try:
+            return self._get(f"/maps/{map_name}/map_projector_info.yaml").text
+        except ApiNotFoundError:
+            return None
+
     # ------------------------------------------------------------------ bulk
     def download_map(
         self,
@@ -201,7 +212,8 @@ class MapClient:
     ) -> DownloadResult:
         """Download every tile of ``map_name`` into ``directory`` in Autoware's divided-map layout.
 
-        Writes ``<ix>_<iy>.pcd`` per tile and ``pointcloud_map_metadata.yaml`` last; tiles whose
+        Writes ``<ix>_<iy>.pcd`` per tile, ``map_projector_info.yaml`` when the map has a geodetic
+        origin, and ``pointcloud_map_metadata.yaml`` last; tiles whose
         ETag has not changed since the last download into the same folder are not fetched again.
         ``on_tile(tile_id, downloaded)`` is called after each tile (for progress bars).
         """
@@ -230,6 +242,11 @@ class MapClient:
             if on_tile is not None:
                 on_tile(tid, body is not None)
         atomic_write_bytes(etag_path, json.dumps(etags, indent=1, sort_keys=True).encode())
+        projector_info = self.projector_info_yaml(map_name)  # (a georeferenced map's origin)
+        if projector_info is None:
+            (out / PROJECTOR_INFO_FILE).unlink(missing_ok=True)
+        else:
+            atomic_write_bytes(out / PROJECTOR_INFO_FILE, projector_info.encode())
         atomic_write_bytes(out / METADATA_FILE, self.metadata_yaml(map_name).encode())
         return DownloadResult(out, len(index["tiles"]), downloaded, unchanged, points)
 

@@ -24,7 +24,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 
 from core.errors import InvalidRequestError, NotFoundError
-from core.io.autoware import AUTOWARE_METADATA_NAME
+from core.io.autoware import AUTOWARE_METADATA_NAME, PROJECTOR_INFO_NAME
 from core.metrics.cloud import pdu
 from core.tiles import Tile, TileGrid, tile_id
 from service.api.deps import (
@@ -345,6 +345,31 @@ def get_metadata(map: MapName, mgr: ManagerDep) -> Response:
         text,
         media_type="application/yaml",
         headers={"Content-Disposition": f'attachment; filename="{AUTOWARE_METADATA_NAME}"'},
+    )
+
+
+@router.get(
+    "/{map}/map_projector_info.yaml",
+    response_class=Response,
+    responses={**_404, 200: {"content": {"application/yaml": {}}, "description": PROJECTOR_INFO_NAME}},
+)
+def get_projector_info(map: MapName, mgr: ManagerDep) -> Response:
+    """Autoware's ``map_projector_info.yaml`` of a georeferenced map (``LocalCartesianUTM``: its
+    geodetic origin, set by the first WGS84 prior; docs/mapping.md, "Georeferenced maps"); 404
+    when the map has no geodetic origin (it is in a local frame)."""
+    _saved_map(mgr, map)
+    projection = mgr.projections.projection(map)
+    if projection is None:
+        raise NotFoundError(
+            f"map {map!r} has no geodetic origin (a local frame: no WGS84 prior reached it)",
+            resource="projection",
+            ident=map,
+        )
+    text = yaml.safe_dump(projection.projector_info(), sort_keys=False, default_flow_style=False)
+    return Response(
+        text,
+        media_type="application/yaml",
+        headers={"Content-Disposition": f'attachment; filename="{PROJECTOR_INFO_NAME}"'},
     )
 
 

@@ -86,6 +86,7 @@ def test_health_ready_docs_and_openapi(served) -> None:
         "/maps/{map}/tiles",
         "/maps/{map}/tiles/{ix}/{iy}",
         "/maps/{map}/metadata.yaml",
+        "/maps/{map}/map_projector_info.yaml",
         "/maps/{map}/export",
     } <= paths
     assert "SessionDetail" in schema["components"]["schemas"]
@@ -393,6 +394,16 @@ def test_metadata_yaml_has_integer_corners(served) -> None:
         (server.settings.data_dir / "maps/default/pointcloud_map_metadata.yaml").read_text()
     )
     assert yaml.safe_load(r.text) == stored
+
+
+def test_a_map_in_a_local_frame_has_no_projector_info(served) -> None:
+    """Its fleet's priors are in the map frame: no geodetic origin, 404 saying so (a georeferenced
+    map's file: tests/service/test_georef.py); a map that does not exist is a 404 of its own."""
+    _, _, client = served
+    r = client.get("/maps/default/map_projector_info.yaml")
+    assert r.status_code == 404 and "has no geodetic origin" in r.json()["detail"], r.text
+    r = client.get("/maps/nowhere/map_projector_info.yaml")
+    assert r.status_code == 404 and "nowhere" in r.json()["detail"], r.text
 
 
 def test_export_streams_the_merged_map(served, tmp_path) -> None:

@@ -20,6 +20,7 @@ import yaml
 pyproj = pytest.importorskip("pyproj")
 pytest.importorskip("mgrs")
 
+from clients.rest import MapClient  # noqa: E402
 from core.errors import BadMessageError  # noqa: E402
 from core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
 from core.io import read_cloud  # noqa: E402
@@ -31,6 +32,7 @@ from service.store import Store  # noqa: E402
 from sim.drive import plan_fleet, simulate  # noqa: E402
 from sim.lidar import Lidar64  # noqa: E402
 from sim.town import Town  # noqa: E402
+from tests.service.api_server import live_server  # noqa: E402
 from wire.codes import ErrorCode  # noqa: E402
 from wire.messages import ErrorMessage, PoseMessage, encode, geo_prior, scan_from_arrays  # noqa: E402
 
@@ -75,11 +77,9 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
     )  # fmt: skip
     earth = LocalCartesianUTM(MUNICH)  # the town's frame on Earth
     fixes = []
-    out: list = []
-    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, graph=False)
-    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
-    try:
-        assert mgr.wait_matchers(300)
+    with live_server(tmp_path / "data", capacity_target=0, graph=False) as server:
+        mgr, out = server.service.sessions, server.service._sent
+        assert mgr is not None
         for s in scans:
             lat, lon, alt = (float(v[0]) for v in earth.to_geodetic(s.T_world_sensor[:3, 3]))
             R_enu = earth.enu_to_map_rotation(lat, lon).T @ s.T_world_sensor[:3, :3]
@@ -91,14 +91,18 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
                 encode(scan_from_arrays("car", "d1", s.index, s.stamp_ns, s.points_xyz, geo_prior=g)),
             )
         mgr.flush()
-    finally:
-        mgr.stop()
+        # the map as `randt tiles download` fetches it: the projection comes with the tiles
+        with MapClient(server.url) as api:
+            api.download_map("default", tmp_path / "download")
+            served = api.projector_info_yaml("default")
     poses = {m.seq: np.reshape(m.pose, (4, 4)) for m in out if isinstance(m, PoseMessage)}
     assert sorted(poses) == list(range(N_SCANS)), [m for m in out if isinstance(m, ErrorMessage)][:3]
     # the map folder, as Autoware reads it: the projection beside the tiles
-    folder = tmp_path / "maps" / "default"
+    folder = tmp_path / "data" / "maps" / "default"
     info = yaml.safe_load((folder / "map_projector_info.yaml").read_text(encoding="utf-8"))
     assert info["projector_type"] == "LocalCartesianUTM" and info["vertical_datum"] == "WGS84"
+    assert served is not None and yaml.safe_load(served) == info
+    assert yaml.safe_load((tmp_path / "download" / "map_projector_info.yaml").read_text()) == info
     geod = pyproj.Geod(ellps="WGS84")
     # the answered poses, taken to WGS84 with pyproj: on the fixes
     xyz = np.array([poses[k][:3, 3] for k in range(N_SCANS)])
@@ -149,3 +153,4 @@ def test_a_wgs84_prior_into_a_map_built_without_an_origin_is_refused_with_the_re
     assert not (tmp_path / "maps" / "default" / "map_projector_info.yaml").exists()
     with pytest.raises(BadMessageError):  # (the same check, without a service)
         mgr.projections.prior_in_map("default", mgr.maps["default"], g)
+    assert mgr.projections.projection("default") is None
