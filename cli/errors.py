@@ -23,6 +23,7 @@ from core.errors import (
     DegenerateProblemError,
     FormatError,
     InvalidCloudError,
+    InvalidRequestError,
     NotFoundError,
     RandtError,
     RegistrationFailedError,
@@ -120,6 +121,7 @@ EXIT_CODES: tuple[tuple[type[BaseException] | str, ExitCode], ...] = (
     (InvalidCloudError, ExitCode.INVALID_CLOUD),
     (DegenerateProblemError, ExitCode.DEGENERATE),
     (RegistrationFailedError, ExitCode.REGISTRATION_FAILED),
+    (InvalidRequestError, ExitCode.INVALID_VALUE),
     (RandtError, ExitCode.OTHER_ERROR),
     (ValueError, ExitCode.INVALID_VALUE),
 )

@@ -72,6 +72,7 @@ def serve(
     import uvicorn
 
     from service.app import create_app
+    from service.georef import check_map_origin
     from service.settings import ServiceSettings
     from service.store import check_data_dir_free
 
@@ -89,6 +90,7 @@ def serve(
     settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
     check_ports_free(settings)
     check_data_dir_free(settings.data_dir)
+    check_map_origin(settings.data_dir, settings.default_map, settings.map_origin)
     logging.getLogger().setLevel(logging.INFO)
     app_ = create_app(settings)
     typer.echo(

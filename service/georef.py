@@ -14,16 +14,18 @@ from __future__ import annotations
 
 import logging
 import threading
+from pathlib import Path
 from typing import Protocol
 
-from core.errors import BadMessageError, FormatError, RandtError
+from core.errors import BadMessageError, FormatError, InvalidRequestError, RandtError
 from core.geo import GeoOrigin, LocalCartesianUTM
+from core.io.autoware import AUTOWARE_METADATA_NAME, PROJECTOR_INFO_NAME, read_projector_info
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from wire.codes import ErrorCode
 from wire.messages import GeoPrior
 
-__all__ = ["MapProjections"]
+__all__ = ["MapProjections", "check_map_origin", "origin_conflict"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,22 @@ class MapProjections:
         )
         assert cov is not None
         return PosePrior(T, cov)
+
+    def give(self, map_name: str, has_points: bool, origin: GeoOrigin) -> None:
+        """Set ``map_name``'s origin as configured (``RANDT_MAP_ORIGIN``), writing its file if the
+        map has none; :class:`~core.errors.InvalidRequestError` when the map already has another
+        origin, or holds points in a local frame (moving it would move every pose answered)."""
+        with self._lock:
+            known = self._load(map_name)
+            problem = origin_conflict(map_name, None if known is None else known.origin, has_points, origin)
+            if problem is not None:
+                raise InvalidRequestError(problem)
+            if known is not None:
+                return
+            projection = LocalCartesianUTM(origin)
+            self._store.save_projection(map_name, projection.projector_info())
+            self._known[map_name] = projection
+            log.info("map %s: geodetic origin %s (RANDT_MAP_ORIGIN)", map_name, origin.as_dict())
 
     def projection(self, map_name: str) -> LocalCartesianUTM | None:
         """``map_name``'s projection, ``None`` when it has no geodetic origin (raises
@@ -122,3 +140,49 @@ class MapProjections:
             )
         self._known[map_name] = projection
         return projection
+
+
+def origin_conflict(map_name: str, known: GeoOrigin | None, has_points: bool, given: GeoOrigin) -> str | None:
+    """Why ``given`` cannot be ``map_name``'s origin (``None``: it can): the map has another one,
+    or holds points in a local frame."""
+    if known is not None:
+        same = (
+            abs(known.latitude_deg - given.latitude_deg) < 1e-9
+            and abs(known.longitude_deg - given.longitude_deg) < 1e-9
+            and abs(known.altitude_m - given.altitude_m) < 1e-3
+        )
+        if same:
+            return None
+        return (
+            f"map_origin {given.as_dict()}: map {map_name!r} already has the geodetic origin "
+            f"{known.as_dict()} (its poses and tiles are in that frame): unset RANDT_MAP_ORIGIN or "
+            "give that one"
+        )
+    if has_points:
+        return (
+            f"map_origin: map {map_name!r} holds points in a local frame; a geodetic origin cannot be "
+            "given to it afterwards (start a new map: RANDT_DEFAULT_MAP)"
+        )
+    return None
+
+
+def check_map_origin(data_dir: Path, map_name: str, origin: tuple[float, float, float] | None) -> None:
+    """The configured origin (``RANDT_MAP_ORIGIN``) against the map's folder, read only, before
+    anything starts (``randt serve``): one clear error instead of a failed startup. Raises
+    :class:`~core.errors.InvalidRequestError` (a bad value or a conflict) or
+    :class:`~core.errors.FormatError` (no ``geo`` extra, an unreadable projection file)."""
+    if origin is None:
+        return
+    given = GeoOrigin(*origin)
+    LocalCartesianUTM(given)  # (the geo extra is there)
+    folder = data_dir / "maps" / map_name
+    info = read_projector_info(folder) if folder.is_dir() else None
+    known = None
+    if info is not None:
+        o = info.get("map_origin")
+        if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(o, dict):
+            raise FormatError(f"{folder / PROJECTOR_INFO_NAME}: not a LocalCartesianUTM projection")
+        known = GeoOrigin(float(o["latitude"]), float(o["longitude"]), float(o["altitude"]))
+    problem = origin_conflict(map_name, known, (folder / AUTOWARE_METADATA_NAME).is_file(), given)
+    if problem is not None:
+        raise InvalidRequestError(problem)

@@ -109,6 +109,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError, UnavailableError
+from core.geo import GeoOrigin
 from core.odometry import (
     MAP_SEED_MIN_POINTS,
     RELOCALIZED,
@@ -871,6 +872,9 @@ class SessionManager:
     ) -> None:
         self.settings = settings
         self.store = store
+        if settings.map_origin is not None:  # before anything starts: a wrong one stops it, saying why
+            name = settings.default_map
+            MapProjections(store).give(name, name in store.list_maps(), GeoOrigin(*settings.map_origin))
         self.outbox = outbox
         self.metrics = metrics or ServiceMetrics()
         self.limits = WireLimits(max_points=settings.max_points, max_payload_bytes=settings.max_payload_bytes)

@@ -176,6 +176,12 @@ class ServiceSettings(BaseSettings):
         description="the shared map (sessions with prior poses); an id without a dot, since every "
         "session's own map has one (wire.ids.session_map_name)",
     )
+    map_origin: tuple[float, float, float] | None = Field(
+        default=None,
+        description="the shared map's geodetic origin: latitude, longitude (deg, WGS84), height above "
+        "the ellipsoid (m), e.g. RANDT_MAP_ORIGIN='[48.137, 11.575, 520]'; unset: the first WGS84 "
+        "prior (geo_prior) sets it (docs/mapping.md, Georeferenced maps)",
+    )
     tile_size_m: int = Field(default=20, ge=1)
     map_voxel_m: float = Field(default=0.2, gt=0)
     flush_interval_s: float = Field(

@@ -154,3 +154,76 @@ def test_a_wgs84_prior_into_a_map_built_without_an_origin_is_refused_with_the_re
     with pytest.raises(BadMessageError):  # (the same check, without a service)
         mgr.projections.prior_in_map("default", mgr.maps["default"], g)
     assert mgr.projections.projection("default") is None
+
+
+def test_a_given_origin_is_the_maps_and_a_conflicting_one_stops_the_service(tmp_path: Path) -> None:
+    """``RANDT_MAP_ORIGIN``: written as the shared map's origin at start (the first WGS84 prior
+    then lands in that frame); a restart with another origin, or one given to a map that holds
+    points in a local frame, is refused before anything starts, saying why."""
+    from core.errors import InvalidRequestError
+
+    def manager(data: Path, origin: tuple[float, float, float] | None) -> SessionManager:
+        settings = ServiceSettings(data_dir=data, capacity_target=0, graph=False, map_origin=origin)
+        return SessionManager(settings, Store(data), [].append, ServiceMetrics())
+
+    given = (48.137, 11.575, 520.0)
+    mgr = manager(tmp_path / "a", given)
+    try:
+        g = geo_prior(48.1375, 11.576, 521.0, np.eye(3), COV_ENU)
+        placed = mgr.projections.prior_in_map("default", mgr.map_grid("default"), g)
+    finally:
+        mgr.stop()
+    info = yaml.safe_load((tmp_path / "a/maps/default/map_projector_info.yaml").read_text())
+    assert info["map_origin"] == {"latitude": 48.137, "longitude": 11.575, "altitude": 520.0}
+    expected = LocalCartesianUTM(GeoOrigin(*given)).to_map(48.1375, 11.576, 521.0)[0]
+    assert np.allclose(placed.T_world_sensor[:3, 3], expected, atol=1e-6) and abs(expected[2] - 1.0) < 1e-9
+    manager(tmp_path / "a", given).stop()  # the same origin again: fine
+    with pytest.raises(InvalidRequestError, match="already has the geodetic origin"):
+        manager(tmp_path / "a", (48.2, 11.5, 500.0))
+    # a map built in a local frame (map-frame priors) cannot be given an origin afterwards
+    mgr = manager(tmp_path / "b", None)
+    try:
+        assert mgr.wait_matchers(300)
+        town = Town.generate(0)
+        plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+        scan = next(
+            iter(
+                simulate(
+                    town,
+                    plan.route,
+                    n_scans=1,
+                    seed=3,
+                    lidar=Lidar64(n_azimuth=500),
+                    start_s_m=plan.start_s_m,
+                )
+            )
+        )
+        cov = np.diag([1e-4] * 3 + [1e-5] * 3)
+        mgr.submit(
+            "car",
+            encode(
+                scan_from_arrays(
+                    "car", "d1", 0, 0, scan.points_xyz, prior_pose=scan.T_world_sensor, prior_covariance=cov
+                )
+            ),
+        )
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "b/maps/default/pointcloud_map_metadata.yaml").exists():
+            assert time.monotonic() < deadline, "the map was not saved"
+            mgr.flush()
+            time.sleep(0.1)
+    finally:
+        mgr.stop()
+    with pytest.raises(InvalidRequestError, match="local frame"):
+        manager(tmp_path / "b", given)
+    # randt serve checks the same from the files before anything starts (one line, exit code 8)
+    from service.georef import check_map_origin
+
+    check_map_origin(tmp_path / "a", "default", given)
+    check_map_origin(tmp_path / "new", "default", given)
+    with pytest.raises(InvalidRequestError, match="already has the geodetic origin"):
+        check_map_origin(tmp_path / "a", "default", (48.2, 11.5, 500.0))
+    with pytest.raises(InvalidRequestError, match="local frame"):
+        check_map_origin(tmp_path / "b", "default", given)
+    with pytest.raises(InvalidRequestError, match="UPS"):
+        manager(tmp_path / "c", (88.0, 0.0, 0.0))
