@@ -32,6 +32,13 @@ class CloudOutFormat(StrEnum):
     las = "las"
 
 
+class Projector(StrEnum):
+    """A georeferenced map's projection, as Autoware's map projection loader names it."""
+
+    LOCAL_CARTESIAN_UTM = "LocalCartesianUTM"
+    MGRS = "MGRS"
+
+
 def _client(url: str, token: str | None) -> MapClient:
     from clients.rest import MapClient
 
@@ -101,12 +108,19 @@ def tiles_list(
 def tiles_download(
     map_name: Annotated[str, typer.Argument(metavar="MAP", help="Map name, e.g. default.")],
     out: Annotated[Path, typer.Argument(help="Folder for <ix>_<iy>.pcd + pointcloud_map_metadata.yaml.")],
+    projector: Annotated[
+        Projector,
+        typer.Option(
+            help="a georeferenced map's projection (map_projector_info.yaml): as served, or moved into "
+            "its MGRS square (the geo extra)"
+        ),
+    ] = Projector.LOCAL_CARTESIAN_UTM,
     url: UrlOption = DEFAULT_URL,
     token: TokenOption = None,
 ) -> None:
     """Download every tile of a map in Autoware's divided-map layout (only changed tiles again)."""
     with _client(url, token) as api:
-        r = api.download_map(map_name, out)
+        r = api.download_map(map_name, out, projector=projector.value)
     typer.echo(
         f"{r.tiles} tiles ({r.downloaded} downloaded, {r.unchanged} unchanged), {r.points} points -> {out}"
     )

@@ -28,7 +28,7 @@ import json
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -45,6 +45,8 @@ ETAGS_FILE = ".randt-tile-etags.json"
 METADATA_FILE = "pointcloud_map_metadata.yaml"
 #: A georeferenced map's projection, as Autoware's map projection loader reads it.
 PROJECTOR_INFO_FILE = "map_projector_info.yaml"
+#: Where ``download_map(projector="MGRS")`` keeps the map as served (LocalCartesianUTM).
+MGRS_SOURCE_DIR = ".randt-local-cartesian-utm"
 
 CloudFormat = Literal["pcd", "ply", "las"]
 
@@ -209,6 +211,7 @@ class MapClient:
         directory: str | os.PathLike[str],
         *,
         on_tile: Callable[[str, bool], None] | None = None,
+        projector: Literal["LocalCartesianUTM", "MGRS"] = "LocalCartesianUTM",
     ) -> DownloadResult:
         """Download every tile of ``map_name`` into ``directory`` in Autoware's divided-map layout.
 
@@ -216,7 +219,18 @@ class MapClient:
         origin, and ``pointcloud_map_metadata.yaml`` last; tiles whose
         ETag has not changed since the last download into the same folder are not fetched again.
         ``on_tile(tile_id, downloaded)`` is called after each tile (for progress bars).
+
+        ``projector="MGRS"``: a georeferenced map in Autoware's MGRS projection instead (the map
+        as served is kept in ``directory/.randt-local-cartesian-utm`` for the next download, and
+        written moved into its MGRS square: :func:`core.geo.write_mgrs_map`, the ``geo`` extra).
         """
+        if projector == "MGRS":
+            from core.geo import write_mgrs_map  # (pyproj, mgrs: the geo extra)
+
+            local = Path(directory) / MGRS_SOURCE_DIR
+            result = self.download_map(map_name, local, on_tile=on_tile)
+            write_mgrs_map(local, Path(directory))
+            return replace(result, directory=Path(directory))
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         etag_path = out / ETAGS_FILE

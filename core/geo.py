@@ -24,17 +24,31 @@ letters are theirs, not ours.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
 from core.errors import FormatError, InvalidRequestError
+from core.io.autoware import (
+    PROJECTOR_INFO_NAME,
+    make_directory,
+    read_metadata,
+    read_projector_info,
+    remove_stale_tile_files,
+    tile_file_name,
+    write_metadata,
+    write_projector_info,
+)
+from core.io.clouds import read_cloud, write_pcd
 
 __all__ = [
     "GeoOrigin",
     "LocalCartesianUTM",
     "ProjectorType",
+    "read_map_projection",
+    "write_mgrs_map",
 ]
 
 #: The projector types a map can be written in (Autoware's names).
@@ -191,3 +205,59 @@ class LocalCartesianUTM:
         if projector == "MGRS":
             return {"projector_type": projector, "vertical_datum": "WGS84", "mgrs_grid": self.mgrs_grid}
         raise InvalidRequestError(f"projector {projector!r}: expected LocalCartesianUTM or MGRS")
+
+
+def read_map_projection(directory: Path) -> LocalCartesianUTM | None:
+    """The projection of an Autoware map folder in ``LocalCartesianUTM`` (``None``: no
+    ``map_projector_info.yaml``, a local frame); :class:`FormatError` for another projector."""
+    info = read_projector_info(directory)
+    if info is None:
+        return None
+    origin = info.get("map_origin")
+    if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(origin, dict):
+        raise FormatError(
+            f"{directory}: its map_projector_info.yaml is {info.get('projector_type')!r}, "
+            "not LocalCartesianUTM"
+        )
+    return LocalCartesianUTM(
+        GeoOrigin(float(origin["latitude"]), float(origin["longitude"]), float(origin["altitude"]))
+    )
+
+
+def write_mgrs_map(source: Path, destination: Path) -> int:
+    """Write the georeferenced map folder ``source`` (tiles, metadata and a LocalCartesianUTM
+    ``map_projector_info.yaml``, as the service and ``randt tiles download`` write it) into
+    ``destination`` as Autoware's ``MGRS`` projection: every point moved by
+    :meth:`LocalCartesianUTM.mgrs_offset` (whole tiles: the tiles are renamed, not cut again),
+    the metadata's corners and the yaml (``mgrs_grid``) to match; stale tile files removed.
+    Returns the number of tiles written.
+
+    MGRS coordinates run to 100 km: float32 PCD points keep about 8 mm there (Autoware's own MGRS
+    maps share the limit). Raises :class:`InvalidRequestError` when the map has no geodetic origin
+    or an origin off its tile grid (a given one: the tiles would have to be cut again)."""
+    projection = read_map_projection(source)
+    if projection is None:
+        raise InvalidRequestError(
+            f"{source}: the map has no geodetic origin (no {PROJECTOR_INFO_NAME}): no MGRS"
+        )
+    tile_size, files = read_metadata(source)
+    offset = projection.mgrs_offset()
+    shift = offset[:2] / tile_size
+    if not np.allclose(shift, np.round(shift), atol=1e-6):
+        raise InvalidRequestError(
+            f"{source}: the map's origin is {offset[0] % tile_size:.3f}, {offset[1] % tile_size:.3f} m off "
+            f"its {tile_size} m tile grid in MGRS, so its tiles would have to be cut again: keep "
+            "LocalCartesianUTM"
+        )
+    dix, diy = (int(v) for v in np.round(shift))
+    make_directory(destination)
+    corners: dict[str, tuple[int, int]] = {}
+    for name, (ix, iy) in files.items():
+        cloud = read_cloud(source / name)
+        tid = f"{ix + dix}_{iy + diy}"
+        write_pcd(destination / tile_file_name(tid), replace(cloud, xyz=cloud.xyz + offset))
+        corners[tid] = ((ix + dix) * tile_size, (iy + diy) * tile_size)
+    remove_stale_tile_files(destination, {tile_file_name(t): None for t in corners})
+    write_projector_info(destination, projection.projector_info("MGRS"))
+    write_metadata(destination, tile_size, corners)
+    return len(corners)

@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 pyproj = pytest.importorskip("pyproj")
-pytest.importorskip("mgrs")
+mgrs = pytest.importorskip("mgrs")
 
 from clients.rest import MapClient  # noqa: E402
 from core.errors import BadMessageError  # noqa: E402
@@ -94,6 +94,7 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
         # the map as `randt tiles download` fetches it: the projection comes with the tiles
         with MapClient(server.url) as api:
             api.download_map("default", tmp_path / "download")
+            api.download_map("default", tmp_path / "mgrs", projector="MGRS")
             served = api.projector_info_yaml("default")
     poses = {m.seq: np.reshape(m.pose, (4, 4)) for m in out if isinstance(m, PoseMessage)}
     assert sorted(poses) == list(range(N_SCANS)), [m for m in out if isinstance(m, ErrorMessage)][:3]
@@ -122,6 +123,26 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
     in_town = earth.to_map(plat, plon, palt)
     distance = town.surface_distance(in_town)
     assert len(points) > 10_000 and np.percentile(distance, 90) < 0.05, np.percentile(distance, [50, 90, 99])
+    # the same map downloaded in MGRS: its square's corner from the mgrs package, the rest pyproj's
+    mgrs_info = yaml.safe_load((tmp_path / "mgrs" / "map_projector_info.yaml").read_text(encoding="utf-8"))
+    assert mgrs_info["projector_type"] == "MGRS" and mgrs_info["vertical_datum"] == "WGS84"
+    grid = mgrs_info["mgrs_grid"]
+    zone, _, east, north = mgrs.MGRS().MGRSToUTM(grid + "5000050000")  # the square's middle metre
+    corner = np.array([east, north]) - 50_000.5
+    to_utm = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{32600 + zone}", always_xy=True)
+    mgrs_points = np.concatenate([read_cloud(p).xyz for p in sorted((tmp_path / "mgrs").glob("*.pcd"))])
+    assert (
+        len(mgrs_points) == len(points) and mgrs_points[:, :2].min() >= 0 and mgrs_points[:, :2].max() < 1e5
+    )
+    mlon, mlat = to_utm.transform(
+        mgrs_points[:, 0] + corner[0], mgrs_points[:, 1] + corner[1], direction="INVERSE"
+    )
+    distance = town.surface_distance(earth.to_map(mlat, mlon, mgrs_points[:, 2]))
+    assert np.percentile(distance, 90) < 0.05, np.percentile(
+        distance, [50, 90, 99]
+    )  # (float32: 8 mm at 100 km)
+    meta = yaml.safe_load((tmp_path / "mgrs" / "pointcloud_map_metadata.yaml").read_text(encoding="utf-8"))
+    assert len(meta) - 2 == len(list((tmp_path / "mgrs").glob("*.pcd")))
 
 
 def test_a_wgs84_prior_into_a_map_built_without_an_origin_is_refused_with_the_reason(tmp_path: Path) -> None:
