@@ -50,7 +50,7 @@ def _resume(data: Path, scans: list) -> list[PoseMessage | ErrorMessage]:
 
 
 def test_a_session_killed_far_past_its_snapshot_resumes_matching(tmp_path: Path) -> None:
-    scans = _drive(Town.generate(MAPPED), CUT + AFTER, seed=1)
+    scans = list(_drive(Town.generate(MAPPED), CUT + AFTER, seed=1))
     out: list = []
     # Snapshots by time only, and not for an hour: the session's only one is its first.
     live = tmp_path / "live"
