@@ -130,7 +130,7 @@ def pointcloud2_arrays(msg: _Cloud) -> tuple[np.ndarray, np.ndarray | None, np.n
         xyz = np.ndarray((len(points), 3), dtype=f4, buffer=table, offset=ox, strides=(step, 4))
     else:
         xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float32)
-    intensity = points["intensity"].astype(np.float32) if "intensity" in fields else None
+    intensity = points["intensity"].astype(np.float32, copy=False) if "intensity" in fields else None
     offsets = None
     if time_name is not None:
         times = points[time_name]
