@@ -100,6 +100,9 @@ _Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
 LEVEL_MARGIN = 8.0
 RECENT_CORRECTIONS = 5
 MIN_CORRECTIONS = 3
+#: A session's first match that moves the first pose by less than this (m) tries every yaw
+#: hypothesis too (:meth:`IncrementalMatcher._try_hypotheses`): it may have stuck where it started.
+FIRST_MATCH_STAYED_M = 0.25
 CORRECTION_REACH_M = 30.0
 
 #: ``ScanResult.message`` of a match found by relocalization (one global registration: the
@@ -856,9 +859,12 @@ class IncrementalMatcher:
         # only: the retries (up to 8 registrations) cannot find it and would starve others.
         lost = self._state.fallback_run >= LOST_AFTER_FALLBACKS
         # The first match (the second sweep) has no velocity to predict from and no recent inlier
-        # ratio to judge by: it tries every hypothesis and keeps the best. From the first pose, a
-        # sweep 0.8 m ahead once matched 1 cm from it with 33 % inliers where the true pose has
-        # 50 %, and passed (randt demo's noisy-GNSS vehicle, with ground_voxel_factor 1).
+        # ratio to judge by. From the first pose, a sweep 0.8 m ahead once matched 1 cm from it
+        # with 33 % inliers where the true pose has 50 %, and passed (randt demo's noisy-GNSS
+        # vehicle, with ground_voxel_factor 1). So a first match that stays where it started
+        # (a vehicle standing still, or one stuck there) tries every hypothesis and keeps the
+        # best; one that moved found the motion (the hypotheses cost 6 registrations: at 10 Hz
+        # they queued a session's first sweeps behind it).
         first_match = len(self._state.poses) < 2
         for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
             if lost and attempt > 0:
@@ -890,7 +896,8 @@ class IncrementalMatcher:
                     res.inlier_ratio,
                 )
             message = message or (why or "")
-            if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio) and not first_match:
+            stayed = first_match and _translation_m(T_pred, res.T_target_source) < FIRST_MATCH_STAYED_M
+            if best is not None and best[0] == 0 and not self._weak(res.inlier_ratio) and not stayed:
                 break  # the prediction's match passed and looks like the recent ones: no retries
         return best, _Outcome(T_pred, "fallback", message, converged, fitness, cov, inliers, xyz, feats)
 
@@ -1283,6 +1290,11 @@ class IncrementalMatcher:
         if prior_T is not None and status != "fallback":
             self._state.prior_offset = T[:3, 3] - prior_T[:3, 3]
             self._state.prior_offset_travel_m = self._state.travel_m
+
+
+def _translation_m(A: np.ndarray, B: np.ndarray) -> float:
+    """Distance between two poses' positions (m)."""
+    return float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
 
 
 def _correction_m(T_pred_match: np.ndarray) -> float:

@@ -576,9 +576,7 @@ def test_adaptive_levels_skip_the_coarse_levels_a_good_prediction_does_not_need(
     all_levels = list(adaptive.registration.voxel_sizes_m or ())
     assert len(all_levels) == 5 and all_levels[-1] == pytest.approx(0.8)
     assert levels[0] == []  # the first sweep is the first keyframe
-    # the first match tries the prediction and every yaw hypothesis (no velocity known yet)
-    assert levels[1] == all_levels * (1 + 2 * len(adaptive.settings.retry_yaw_deg))
-    assert all(levels[k] == all_levels for k in (2, 3, 4))  # too few corrections known yet
+    assert all(levels[k] == all_levels for k in (1, 2, 3, 4))  # too few corrections known yet
     corrections = adaptive._state.recent_corrections
     assert 0 < max(corrections) * LEVEL_MARGIN < 1.6  # centimetres: the two finest levels do
     assert all(levels[k] == all_levels[-2:] for k in range(5, 11)), levels

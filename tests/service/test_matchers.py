@@ -314,8 +314,8 @@ def test_the_first_match_tries_every_hypothesis_and_keeps_the_best() -> None:
     library sends them, the ground at the objects' voxel) placed its first sweep on the map at
     the pose below (the service's answer, a reference input here), and its second sweep's match
     from there stopped 1 cm from the first pose with 33 % inliers (0.79 m off) and passed: there
-    was no recent inlier ratio to find it weak. The first match now tries every hypothesis and
-    keeps the one with the most inliers (the true pose has about 50 %)."""
+    was no recent inlier ratio to find it weak. A first match that stays where it started now
+    tries every hypothesis and keeps the one with the most inliers (the true pose has about 50 %)."""
     from scipy.spatial.transform import Rotation
 
     from clients.publisher import encode_sweep
