@@ -1352,12 +1352,7 @@ class ServiceGraph:
                 old = self._states[home]
                 old.placed.discard(key)
                 for moving in old.keyframes.pop(key, {}).values():
-                    # Held by the graph in its own map, it is held in this one where the join put
-                    # it, until an update reports it (one that never moves again is never reported:
-                    # a join late in a drive left its keyframes without a pose, and its corrected
-                    # trajectory and loop edges stopped at the join). One never held stays without.
-                    if moving.optimized is not None:
-                        moving.optimized = T_map_session @ moving.optimized
+                    moving.optimized = None
                     st.keyframes.setdefault(key, {})[moving.index] = moving
                 joins.append((key, T_map_session))  # (logged by on_join)
             # Moved keyframes are corrected (and said to their vehicle); held ones are in the graph
