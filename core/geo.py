@@ -47,6 +47,7 @@ __all__ = [
     "GeoOrigin",
     "LocalCartesianUTM",
     "ProjectorType",
+    "origin_of",
     "read_map_projection",
     "write_mgrs_map",
 ]
@@ -207,21 +208,23 @@ class LocalCartesianUTM:
         raise InvalidRequestError(f"projector {projector!r}: expected LocalCartesianUTM or MGRS")
 
 
-def read_map_projection(directory: Path) -> LocalCartesianUTM | None:
-    """The projection of an Autoware map folder in ``LocalCartesianUTM`` (``None``: no
-    ``map_projector_info.yaml``, a local frame); :class:`FormatError` for another projector."""
-    info = read_projector_info(directory)
+def origin_of(info: dict[str, Any] | None, where: str) -> GeoOrigin | None:
+    """The geodetic origin a ``map_projector_info.yaml``'s content gives (``None`` for none: a
+    local frame); :class:`FormatError` naming ``where`` for a projector other than
+    ``LocalCartesianUTM``, the only one a map is kept in."""
     if info is None:
         return None
     origin = info.get("map_origin")
     if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(origin, dict):
-        raise FormatError(
-            f"{directory}: its map_projector_info.yaml is {info.get('projector_type')!r}, "
-            "not LocalCartesianUTM"
-        )
-    return LocalCartesianUTM(
-        GeoOrigin(float(origin["latitude"]), float(origin["longitude"]), float(origin["altitude"]))
-    )
+        raise FormatError(f"{where}: the projection is {info.get('projector_type')!r}, not LocalCartesianUTM")
+    return GeoOrigin(float(origin["latitude"]), float(origin["longitude"]), float(origin["altitude"]))
+
+
+def read_map_projection(directory: Path) -> LocalCartesianUTM | None:
+    """The projection of an Autoware map folder in ``LocalCartesianUTM`` (``None``: no
+    ``map_projector_info.yaml``, a local frame); :class:`FormatError` for another projector."""
+    origin = origin_of(read_projector_info(directory), str(directory / PROJECTOR_INFO_NAME))
+    return None if origin is None else LocalCartesianUTM(origin)
 
 
 def write_mgrs_map(source: Path, destination: Path) -> int:

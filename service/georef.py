@@ -17,9 +17,9 @@ import threading
 from pathlib import Path
 from typing import Protocol
 
-from core.errors import BadMessageError, FormatError, InvalidRequestError, RandtError
-from core.geo import GeoOrigin, LocalCartesianUTM
-from core.io.autoware import AUTOWARE_METADATA_NAME, PROJECTOR_INFO_NAME, read_projector_info
+from core.errors import BadMessageError, InvalidRequestError, RandtError
+from core.geo import GeoOrigin, LocalCartesianUTM, origin_of, read_map_projection
+from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from wire.codes import ErrorCode
@@ -126,18 +126,8 @@ class MapProjections:
         """From the cache, else the store (under the lock)."""
         if map_name in self._known:
             return self._known[map_name]
-        info = self._store.load_projection(map_name)
-        projection = None
-        if info is not None:
-            origin = info.get("map_origin")
-            if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(origin, dict):
-                raise FormatError(
-                    f"map {map_name}: its map_projector_info.yaml is {info.get('projector_type')!r}; the "
-                    "service's maps are LocalCartesianUTM"
-                )
-            projection = LocalCartesianUTM(
-                GeoOrigin(float(origin["latitude"]), float(origin["longitude"]), float(origin["altitude"]))
-            )
+        origin = origin_of(self._store.load_projection(map_name), f"map {map_name}")
+        projection = None if origin is None else LocalCartesianUTM(origin)
         self._known[map_name] = projection
         return projection
 
@@ -176,13 +166,9 @@ def check_map_origin(data_dir: Path, map_name: str, origin: tuple[float, float, 
     given = GeoOrigin(*origin)
     LocalCartesianUTM(given)  # (the geo extra is there)
     folder = data_dir / "maps" / map_name
-    info = read_projector_info(folder) if folder.is_dir() else None
-    known = None
-    if info is not None:
-        o = info.get("map_origin")
-        if info.get("projector_type") != "LocalCartesianUTM" or not isinstance(o, dict):
-            raise FormatError(f"{folder / PROJECTOR_INFO_NAME}: not a LocalCartesianUTM projection")
-        known = GeoOrigin(float(o["latitude"]), float(o["longitude"]), float(o["altitude"]))
-    problem = origin_conflict(map_name, known, (folder / AUTOWARE_METADATA_NAME).is_file(), given)
+    known = read_map_projection(folder) if folder.is_dir() else None
+    problem = origin_conflict(
+        map_name, None if known is None else known.origin, (folder / AUTOWARE_METADATA_NAME).is_file(), given
+    )
     if problem is not None:
         raise InvalidRequestError(problem)
