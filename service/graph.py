@@ -1342,7 +1342,9 @@ class ServiceGraph:
             for name, T_map_session in placed.items():
                 key = cast(SessionKey, tuple(name.split("/", 1)))
                 home = self._session_map.get(key)
-                if home is None or home == map_name:
+                if home is None or home == map_name or key in self._joined:
+                    # (once joined, it stays: its own map's graph, answering keyframes offered to
+                    # it before the service learned of the join, still lists it as placed there)
                     continue
                 # A session without priors was placed into this map: it lives here from now on.
                 self._joined[key] = (map_name, T_map_session)

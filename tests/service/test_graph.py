@@ -185,6 +185,46 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     assert [m.seqs().tolist() for m in sent if m.vehicle == "nognss"] == [[10, 20]]  # held: not said
 
 
+def test_a_late_update_of_a_joined_sessions_own_map_is_not_a_join() -> None:
+    """When the graph process lags, keyframes a session offered to its own map before the service
+    learned of its join are answered after the join; each such answer of its own map's graph
+    lists it as placed there (at its own frame). Taken for a join back into its own map, that
+    moved the session's keyframes between the two maps and dropped their optimized poses: in the
+    full CI suite, its corrected trajectory covered 184 of 318 sweeps and the viewer drew 7 of
+    its 9 loop edges."""
+    from service.graph import ServiceGraph, _Keyframe
+
+    sent: list[CorrectionMessage] = []
+    graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
+    key = ("nognss", "d1")
+    T_map_session = _pose(90.0, (-34.0, -5.5, 1.7))
+    live = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
+    graph._session_map[key] = "nognss.d1"
+    graph._states["nognss.d1"] = GraphState(
+        "nognss.d1",
+        keyframes={key: {i: _Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
+        placed={key},
+    )
+    graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
+    graph._session_map[("gnss", "d1")] = "default"
+    placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
+    moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (0, 10)]
+    graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
+    # keyframe 20, offered to its own map before the join was known, answered by both graphs
+    own = [("nognss", "d1", 20, 20, live[20])]
+    graph._apply(("update", "nognss.d1", 2, [], own, 0, [], {"nognss/d1": np.eye(4)}, 0.01))
+    assert graph.joined(*key) == ("default", pytest.approx(T_map_session))  # type: ignore[comparison-overlap]
+    shared = [("nognss", "d1", 20, 20, T_map_session @ live[20])]
+    graph._apply(("join", "default", 4, shared, [], 0, [], placed, 0.01))
+    kfs = graph.snapshot("default").session_keyframes(key)  # type: ignore[union-attr]
+    assert [k.index for k in kfs if k.optimized is not None] == [0, 10, 20]
+    corrected, graph_map = graph.corrected(*key, live)
+    assert graph_map == "default"
+    err = np.linalg.norm(corrected[:, :3, 3] - (T_map_session @ live)[:, :3, 3], axis=1)
+    assert err.max() < 1e-9, f"corrected up to {err.max():.1f} m off"
+    assert graph.snapshot("nognss.d1").session_keyframes(key) == []  # type: ignore[union-attr]
+
+
 @dataclass
 class LoopDrive:
     scans: list
