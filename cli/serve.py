@@ -62,6 +62,18 @@ def serve(
     ray_address: Annotated[
         str | None, typer.Option(help="With --executor ray: the Ray cluster to join (none: a local Ray).")
     ] = None,
+    ros2: Annotated[
+        bool,
+        typer.Option(
+            "--ros2",
+            help="Also take ROS 2 robots' PointCloud2 topics on rmw_zenoh and answer them with Odometry "
+            '(pip install "randt-fleet[ros2]"; RANDT_ROS2__*; docs/ros2.md).',
+        ),
+    ] = False,
+    ros2_connect: Annotated[
+        list[str] | None,
+        typer.Option(help="With --ros2: the robots' rmw_zenohd router, repeatable [RANDT_ROS2__CONNECT]."),
+    ] = None,
 ) -> None:
     """Run the fleet mapping service (Zenoh ingest + HTTP) until SIGTERM or Ctrl-C.
 
@@ -88,6 +100,8 @@ def serve(
         "ray_address": ray_address,
     }
     settings = ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
+    if ros2 or ros2_connect:
+        settings = with_ros2(settings, ros2_connect)
     check_ports_free(settings)
     check_data_dir_free(settings.data_dir)
     check_map_origin(settings.data_dir, settings.default_map, settings.map_origin)
@@ -99,10 +113,27 @@ def serve(
         f"{f' config {settings.zenoh_config}' if settings.zenoh_config else ''}; "
         f"http://{settings.http_host}:{settings.http_port}; "
         f"matchers {settings.executor}{f' at {settings.ray_address}' if settings.ray_address else ''}; "
-        f"data {settings.data_dir}",
+        f"data {settings.data_dir}{ros2_line(settings)}",
         err=True,
     )
     uvicorn.run(app_, host=settings.http_host, port=settings.http_port, log_level="info")
+
+
+def ros2_line(settings: ServiceSettings) -> str:
+    r = settings.ros2
+    return f"; ROS 2 domain {r.domain} via {list(r.connect)}, topics {list(r.topics)}" if r.enabled else ""
+
+
+def with_ros2(settings: ServiceSettings, connect: list[str] | None) -> ServiceSettings:
+    """``settings`` with the ROS 2 bridge on (and its router, when given), checked: the ``ros2``
+    extra must be installed (one line naming it, before anything starts)."""
+    from service.settings import Ros2Settings
+    from wire.ros2 import typestore
+
+    typestore()  # FormatError naming the extra, without rosbags
+    ros2 = settings.ros2.model_dump()
+    ros2.update(enabled=True, **({"connect": tuple(connect)} if connect else {}))
+    return settings.model_copy(update={"ros2": Ros2Settings(**ros2)})
 
 
 def check_ports_free(settings: ServiceSettings) -> None:

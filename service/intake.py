@@ -43,6 +43,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from wire.ros2 import Ros2Scan
+
 __all__ = ["ITEM_OVERHEAD_BYTES", "Intake"]
 
 log = logging.getLogger(__name__)
@@ -52,14 +54,14 @@ log = logging.getLogger(__name__)
 ITEM_OVERHEAD_BYTES = 256
 
 #: ``handle(vehicle, payload, received_ns)``: decode, validate and admit one payload.
-Handler = Callable[[str, bytes, int], None]
+Handler = Callable[[str, "bytes | Ros2Scan", int], None]
 #: ``on_drop(vehicle, payload, reason)``: answer a payload the intake dropped (``dropped``).
-DropHandler = Callable[[str, bytes, str], None]
+DropHandler = Callable[[str, "bytes | Ros2Scan", str], None]
 
 
 @dataclass
 class _Item:
-    payload: bytes
+    payload: bytes | Ros2Scan
     received_ns: int
 
     @property
@@ -122,7 +124,7 @@ class Intake:
             t.start()
 
     # -- the callback side ------------------------------------------------------------------------
-    def put(self, vehicle: str, payload: bytes, received_ns: int) -> None:
+    def put(self, vehicle: str, payload: bytes | Ros2Scan, received_ns: int) -> None:
         """Queue one payload of ``vehicle`` (O(1) and non-blocking but for the overload answers)."""
         item = _Item(payload, received_ns)
         dropped: list[tuple[str, _Item, str]] = []

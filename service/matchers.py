@@ -56,6 +56,7 @@ from core.tiles import SentVoxels, TileGrid
 from core.transforms import invert, transform_points
 from core.voxel import pack_keys, voxel_coords
 from wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
+from wire.ros2 import Ros2Scan, sweep_arrays
 
 __all__ = [
     "CpuLedger",
@@ -102,7 +103,7 @@ class SessionMatcher(Protocol):
 
     def register_payload(
         self,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         *,
         limits: WireLimits | None = None,
         behind: bool = False,
@@ -289,12 +290,16 @@ class Registered:
 
 
 def decoded_sweep(
-    payload: bytes, limits: WireLimits | None, frame: MapFrame | None = None
+    payload: bytes | Ros2Scan, limits: WireLimits | None, frame: MapFrame | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, PosePrior | None, float]:
     """A scan payload decoded for the matcher (:func:`wire.messages.decode_scan`: v2 bodies
-    decompressed here): ``(xyz float32 view, time offsets float32 or None, intensity float32 or
-    None, prior, stamp s)``; the prior is ``frame``'s when it has one (:attr:`MapFrame.prior`).
-    Raises :class:`~core.errors.BadMessageError` as the decoder does."""
+    decompressed here; a ROS 2 PointCloud2 by :func:`wire.ros2.sweep_arrays`): ``(xyz float32
+    view, time offsets float32 or None, intensity float32 or None, prior, stamp s)``; the prior is
+    ``frame``'s when it has one (:attr:`MapFrame.prior`). Raises
+    :class:`~core.errors.BadMessageError` as the decoder does."""
+    if isinstance(payload, Ros2Scan):
+        xyz, offsets, intensity, stamp_s = sweep_arrays(payload)
+        return xyz, offsets, intensity, None if frame is None else frame.prior, stamp_s
     scan = decode_scan(payload, limits)
     offsets = None if scan.time_offsets is None else np.frombuffer(scan.time_offsets, dtype="<f4")
     prior = frame.prior if frame is not None and frame.prior is not None else prior_of(scan)
@@ -454,7 +459,7 @@ class _Sessions:
     def register_payload(
         self,
         key: Key,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         limits: WireLimits | None,
         keyframe_voxel_m: float | None,
         frame: MapFrame | None = None,
@@ -904,7 +909,7 @@ class ForwardingMatcher:
 
     def register_payload(
         self,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         *,
         limits: WireLimits | None = None,
         behind: bool = False,
@@ -992,7 +997,7 @@ class RemoteMatcher(ForwardingMatcher):
 
     def register_payload(
         self,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         *,
         limits: WireLimits | None = None,
         behind: bool = False,
@@ -1093,7 +1098,7 @@ class LocalMatcher(IncrementalMatcher):
 
     def register_payload(
         self,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         *,
         limits: WireLimits | None = None,
         behind: bool = False,

@@ -124,6 +124,12 @@ class ServiceMetrics:
             "randt_graph_keyframes", "Keyframes offered to the pose graph", ["result"], registry=r
         )
         self.graph_loops = Counter("randt_graph_loops", "Loop verifications", ["result"], registry=r)
+        self.ros2_samples = Counter(
+            "randt_ros2_samples",
+            "ROS 2 PointCloud2 samples by topic and outcome (accepted, ignored, or the error code)",
+            ["topic", "outcome"],
+            registry=r,
+        )
         self.graph_update_seconds = Histogram(
             "randt_graph_update_seconds",
             "Pose graph time per keyframe (place recognition, verification, iSAM2)",

@@ -74,6 +74,7 @@ from service.matchers import (
     warm_up,
 )
 from wire.messages import WireLimits
+from wire.ros2 import Ros2Scan
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
 
@@ -576,7 +577,7 @@ class RayMatcher(ForwardingMatcher):
 
     def register_payload(
         self,
-        payload: bytes,
+        payload: bytes | Ros2Scan,
         *,
         limits: WireLimits | None = None,
         behind: bool = False,

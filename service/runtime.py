@@ -13,12 +13,14 @@ import time
 from collections.abc import Callable
 
 from service.matchers import MatcherExecutor, single_threaded_blas
+from service.ros2 import Ros2Bridge
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store
 from service.transport import ZenohTransport
 from wire.messages import WireMessage, encode
+from wire.ros2 import Ros2Scan
 
 __all__ = ["Service"]
 
@@ -40,6 +42,7 @@ class Service:
         self.store: Store | None = None
         self.sessions: SessionManager | None = None
         self.transport: ZenohTransport | None = None
+        self.ros2: Ros2Bridge | None = None  # ROS 2 robots on rmw_zenoh (settings.ros2)
         self._with_zenoh = with_zenoh
         self._sent: list[WireMessage] = []  # outbound messages when running without Zenoh (tests)
 
@@ -51,17 +54,29 @@ class Service:
         if self._with_zenoh:
             self.transport = ZenohTransport(s, self._on_scan, self.tile_payload)
             outbox = self.transport.send
+            if s.ros2.enabled:
+                self.ros2 = Ros2Bridge(s.ros2, self._on_scan, self.metrics)
+                outbox = self._answer_both
         else:
             outbox = self._sent.append
         self.sessions = SessionManager(s, self.store, outbox, self.metrics, self._executor)
         self.metrics.watch(self.map_stats, instance=s.instance)
         if self.transport is not None:
             self.transport.open()
+        if self.ros2 is not None:
+            self.ros2.open()
         log.info("service %s started, data in %s", s.instance, s.data_dir)
 
-    def _on_scan(self, vehicle: str, payload: bytes, received_ns: int) -> None:
+    def _on_scan(self, vehicle: str, payload: bytes | Ros2Scan, received_ns: int) -> None:
         if self.sessions is not None:
             self.sessions.submit(vehicle, payload, received_ns)
+
+    def _answer_both(self, message: WireMessage) -> None:
+        """Every answer on our keys; a ROS 2 session's also on its robot's topics."""
+        if self.transport is not None:
+            self.transport.send(message)
+        if self.ros2 is not None:
+            self.ros2.send(message)
 
     def tile_payload(self, map_name: str, tile_id: str) -> bytes | None:
         """The tile update message of one tile as last saved (the Zenoh queryable's answer)."""
@@ -82,6 +97,9 @@ class Service:
         """Stop intake, drain and save everything, close Zenoh (idempotent)."""
         if self.sessions is not None:
             self.sessions.stop()
+        if self.ros2 is not None:  # (after the sessions: their last answers go out)
+            self.ros2.close()
+            self.ros2 = None
         if self.transport is not None:
             self.transport.close()
             self.transport = None
@@ -99,6 +117,11 @@ class Service:
         return (
             self.sessions is not None
             and (not self._with_zenoh or (self.transport is not None and self.transport.is_open))
+            and (
+                not self._with_zenoh
+                or not self.settings.ros2.enabled
+                or (self.ros2 is not None and self.ros2.is_open)
+            )
             and self.store is not None
             and self.store.writable()
         )

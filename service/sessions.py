@@ -167,6 +167,9 @@ from wire.messages import (
     tile_update_from_arrays,
     tile_update_from_table,
 )
+from wire.ros2 import Ros2Scan
+from wire.ros2 import scan_header as ros2_scan_header
+from wire.ros2 import sweep_arrays as ros2_sweep_arrays
 
 __all__ = [
     "DurableMap",
@@ -215,7 +218,7 @@ class _Job:
 
     scan: ScanHeader
     received_ns: int
-    payload: bytes = b""
+    payload: bytes | Ros2Scan = b""
 
 
 @dataclass
@@ -983,7 +986,7 @@ class SessionManager:
         self._flusher.start()
 
     # -- intake (transport callback thread: enqueue only; service/intake.py) -----------------------
-    def submit(self, key_vehicle: str, payload: bytes, received_ns: int | None = None) -> None:
+    def submit(self, key_vehicle: str, payload: bytes | Ros2Scan, received_ns: int | None = None) -> None:
         """Queue one scan payload published on ``randt/fleet/<key_vehicle>/scan`` (never blocks).
 
         The payload waits in ``key_vehicle``'s intake queue until an intake worker calls
@@ -1000,35 +1003,51 @@ class SessionManager:
             return
         self.intake.put(key_vehicle, payload, received_ns)
 
-    def _answer_intake_drop(self, vehicle: str, payload: bytes, reason: str) -> None:
+    def _answer_intake_drop(self, vehicle: str, payload: bytes | Ros2Scan, reason: str) -> None:
         """Answer a payload the intake dropped unread: ``dropped``, addressed by a bounded peek."""
-        _, session = peek_ids(payload, self.limits)
+        session, seq = self._peek(payload)
         self.metrics.scans_dropped.inc()
-        self.reject(vehicle, session or UNKNOWN_ID, peek_seq(payload), ErrorCode.DROPPED, reason, count=False)
+        self.reject(vehicle, session, seq, ErrorCode.DROPPED, reason, count=False)
 
-    def handle(self, key_vehicle: str, payload: bytes, received_ns: int) -> None:
+    def _peek(self, payload: bytes | Ros2Scan) -> tuple[str, int | None]:
+        """``(session, seq)`` of a payload that may not decode, to answer it on (never raises):
+        a ROS 2 scan's are its publisher's; ours are read by a bounded peek."""
+        if isinstance(payload, Ros2Scan):
+            return payload.session, payload.seq
+        _, session = peek_ids(payload, self.limits)
+        return session or UNKNOWN_ID, peek_seq(payload)
+
+    def _header(self, payload: bytes | Ros2Scan) -> ScanHeader:
+        """A scan's header, its bodies not decoded (raises BadMessageError)."""
+        if isinstance(payload, Ros2Scan):
+            return ros2_scan_header(payload, self.limits)
+        return decode_scan_header(payload, self.limits)
+
+    def handle(self, key_vehicle: str, payload: bytes | Ros2Scan, received_ns: int) -> None:
         """Decode, validate and admit one scan (an intake worker's call; flow in the module docstring).
 
         Never waits for a store read or a matcher: a scan that opens a session is queued behind
         an ``_Opening`` placeholder and an opener thread does the opening.
         """
         try:
-            scan = decode_scan_header(payload, self.limits)  # the bodies: the matcher's
+            scan = self._header(payload)  # the bodies: the matcher's
             if self._refused_for_capacity(scan, key_vehicle):  # (before its body costs anything)
                 return
-            if (scan.vehicle, scan.session) not in self._workers and scan.v == SCAN_V2:
+            if (scan.vehicle, scan.session) not in self._workers:
                 # A scan that may open a session is decoded whole first (rare: once a session):
                 # a body that does not decode never takes a slot, opens a session or reads the store.
-                decode_scan(payload, self.limits)
+                if isinstance(payload, Ros2Scan):
+                    ros2_sweep_arrays(payload)
+                elif scan.v == SCAN_V2:
+                    decode_scan(payload, self.limits)
             if scan.vehicle != key_vehicle:
                 raise BadMessageError(
                     f"vehicle: message says {scan.vehicle!r} but was published on {key_vehicle!r}'s key",
                     code=ErrorCode.INVALID_FIELD,
                 )
         except BadMessageError as exc:
-            _, session = peek_ids(payload, self.limits)
-            seq = peek_seq(payload)
-            self.reject(key_vehicle, session or UNKNOWN_ID, seq, exc.code, str(exc))
+            session, seq = self._peek(payload)
+            self.reject(key_vehicle, session, seq, exc.code, str(exc))
             return
         key = (scan.vehicle, scan.session)
         job = _Job(scan, received_ns, payload)

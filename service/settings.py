@@ -20,10 +20,11 @@ A whole group can also be given as one JSON object (``RANDT_MATCHER='{"max_range
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from core.config import RegistrationSettings
@@ -32,7 +33,7 @@ from core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from wire.ids import ID_REGEX
 from wire.zenoh_config import check_endpoints, check_protocols, load_config_file
 
-__all__ = ["ServiceSettings"]
+__all__ = ["Ros2Settings", "ServiceSettings"]
 
 
 #: The matcher's finest NDT level, in map voxels (:meth:`ServiceSettings.session_matcher`): 1 m
@@ -41,6 +42,72 @@ __all__ = ["ServiceSettings"]
 #: 0.8 m cost 96 ms per sweep, 1 m 70 ms, 1.6 m 50 ms; the reduced trajectory was 4.1, 0.5 and
 #: 12.8 cm (ATE) from the raw one matched at the same levels.
 NDT_VOXELS_PER_MAP_VOXEL = 5.0
+
+
+_ROS_NAME = r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$"
+
+
+class Ros2Settings(BaseModel):
+    """ROS 2 robots on rmw_zenoh (docs/ros2.md): ``RANDT_ROS2__<FIELD>``, or ``randt serve --ros2``.
+
+    Names without a leading slash are relative to each robot's namespace: the robot in namespace
+    ``/robot7`` publishing ``/robot7/lidar/points`` is vehicle ``robot7`` and hears its poses on
+    ``/robot7/randt/odometry``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(default=False, description="subscribe to the robots' PointCloud2 topics")
+    connect: tuple[str, ...] = Field(
+        default=("tcp/127.0.0.1:7447",),
+        description="the rmw_zenohd router(s) the service connects to, as a Zenoh client (rmw_zenoh's "
+        "router forwards to clients, not between peers)",
+    )
+    domain: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
+    topics: tuple[str, ...] = Field(
+        default=("lidar/points",),
+        min_length=1,
+        description="PointCloud2 topics: relative (under any namespace, which names the vehicle) or "
+        "absolute (one topic; its vehicle from `vehicles`)",
+    )
+    vehicles: dict[str, str] = Field(
+        default_factory=dict,
+        description="namespace or absolute topic -> vehicle id, where the namespace is not the id "
+        "(e.g. {\"/\": \"robot7\"} for a robot without a namespace); default: the namespace, '/' as '.'",
+    )
+    odometry_topic: str = Field(default="randt/odometry", pattern=_ROS_NAME)
+    correction_topic: str = Field(default="randt/correction", pattern=_ROS_NAME)
+    status_topic: str = Field(default="randt/status", pattern=_ROS_NAME)
+    map_frame: str = Field(default="map", min_length=1, description="the corrections' parent frame")
+    odom_frame: str = Field(
+        default="randt_odom",
+        min_length=1,
+        description="the frame of the Odometry poses (the session's, as answered); map_frame -> "
+        "odom_frame is the correction",
+    )
+    sensor_frame: str | None = Field(
+        default=None, description="the Odometry child_frame_id; None: the PointCloud2's frame_id"
+    )
+
+    @field_validator("connect")
+    @classmethod
+    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return check_endpoints(value)
+
+    @field_validator("topics")
+    @classmethod
+    def _topics(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for topic in value:
+            if not re.fullmatch(_ROS_NAME, topic):
+                raise ValueError(f"{topic!r} is not a ROS 2 topic name")
+        return value
+
+    @field_validator("vehicles")
+    @classmethod
+    def _vehicle_ids(cls, value: dict[str, str]) -> dict[str, str]:
+        for name, vehicle in value.items():
+            if not re.fullmatch(ID_REGEX, vehicle):
+                raise ValueError(f"vehicles[{name!r}]: {vehicle!r} is not a vehicle id")
+        return value
 
 
 class ServiceSettings(BaseSettings):
@@ -278,6 +345,9 @@ class ServiceSettings(BaseSettings):
     registration: RegistrationSettings = Field(
         default=MATCHER_REGISTRATION,
         description="the matcher's NDT registration; fields not given keep the matcher's defaults",
+    )
+    ros2: Ros2Settings = Field(
+        default_factory=Ros2Settings, description="ROS 2 robots on rmw_zenoh (docs/ros2.md)"
     )
 
     @property

@@ -31,6 +31,7 @@ __all__ = [
     "TIME_FIELDS",
     "PointCloud2Fields",
     "PointField",
+    "check_pointcloud2",
     "decode_pointcloud2",
     "pointcloud2_arrays",
 ]
@@ -147,6 +148,34 @@ def pointcloud2_arrays(msg: _Cloud) -> tuple[np.ndarray, np.ndarray | None, np.n
     return xyz, offsets, intensity
 
 
+def check_pointcloud2(msg: _Cloud) -> int:
+    """The number of points of a cloud whose layout :func:`pointcloud2_arrays` can read (``x``,
+    ``y``, ``z`` present, known datatypes, fields within a point, enough bytes), checked without
+    reading a point: what the service's intake checks before it admits a ROS 2 scan.
+
+    Raises
+    ------
+    FormatError
+        As :func:`pointcloud2_arrays`, but for the per-point times' span (only reading them tells).
+    """
+    _columns(msg)
+    n = int(msg.height) * int(msg.width)
+    if n == 0:
+        return 0
+    _require_bytes(msg, msg.data.nbytes if isinstance(msg.data, np.ndarray) else memoryview(msg.data).nbytes)
+    return n
+
+
+def _require_bytes(msg: _Cloud, size: int) -> None:
+    """FormatError unless ``size`` bytes hold the cloud's rows (``height`` rows ``row_step`` apart)."""
+    height, width, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
+    if height < 0 or width < 0 or row < width * step or size < (height - 1) * row + width * step:
+        raise FormatError(
+            f"PointCloud2 of {height} x {width} points of {step} bytes (rows {row} bytes) "
+            f"holds only {size} bytes"
+        )
+
+
 def _points(msg: _Cloud) -> tuple[np.ndarray, np.ndarray, str | None]:
     """The message's points as one structured array of the fields this module reads, over the
     points' bytes (returned too: a view of the message's when rows have no padding), and the name
@@ -197,11 +226,7 @@ def _rows(msg: _Cloud, n: int) -> np.ndarray:
     height, width, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
     if n == 0:
         return raw[:0]
-    if row < width * step or raw.size < (height - 1) * row + width * step:
-        raise FormatError(
-            f"PointCloud2 of {height} x {width} points of {step} bytes (rows {row} bytes) "
-            f"holds only {raw.size} bytes"
-        )
+    _require_bytes(msg, raw.size)
     if row == width * step:
         return raw[: n * step]
     return np.ascontiguousarray(np.lib.stride_tricks.as_strided(raw, (height, width * step), (row, 1)))

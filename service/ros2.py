@@ -1,0 +1,400 @@
+"""The ROS 2 bridge: robots on rmw_zenoh feed the service and hear its answers, with no code on
+the robot (docs/ros2.md). With :mod:`service.transport`, the only code of the service that talks
+to Zenoh.
+
+In: one Zenoh session, a *client* of the robots' ``rmw_zenohd`` router (``ros2.connect``: the
+router forwards to clients, while its ``peers_failover_brokering`` is off for peers), subscribed
+to every PointCloud2 of the domain (``<domain>/**/sensor_msgs::msg::dds_::PointCloud2_/*``).
+The callback only reads the key and the attachment (:mod:`wire.rmw_zenoh`) and hands a
+:class:`wire.ros2.Ros2Scan` to the session manager's intake, as our own scans go:
+
+* the topic must be one of ``ros2.topics`` (a relative name under any namespace, or an absolute
+  one); the robot's namespace is its vehicle id (``/`` as ``.``), unless ``ros2.vehicles`` says;
+* the session is the publisher's GID (hex): a restarted driver is a new session;
+* the scan's ``seq`` is the attachment's sequence number, its stamp the cloud's header stamp.
+
+A sample that is not for us (another topic) is counted and ignored; one that cannot be a scan
+(no attachment, a key or a vehicle that does not parse) is counted and logged per topic, never
+answered (there is no session to answer), never fatal. Decoding, admission, durability and
+errors are the session manager's, as for every scan.
+
+Out (the session manager's outbox, tapped): for a ROS 2 session, each ``first`` and ``ok`` pose as
+``nav_msgs/msg/Odometry`` on ``<namespace>/<ros2.odometry_topic>`` (``odom_frame`` ->
+the sensor's frame, the matcher's covariance), every other answer (a fallback, a refusal, an
+error) as one JSON line of ``std_msgs/msg/String`` on ``<namespace>/<ros2.status_topic>``, and the
+pose graph's newest correction as ``geometry_msgs/msg/TransformStamped`` (``map_frame`` ->
+``odom_frame``) on ``<namespace>/<ros2.correction_topic>``. Each sample carries rmw_zenoh's
+attachment (sequence number from 1, source time, the publisher's GID), and each publisher is
+announced by a liveliness token under ``@ros2_lv`` (with the node's, ``randt_fleet``), so
+``ros2 topic list``/``echo`` and RViz 2 see them. The keys use the type hash the robot used
+(``RIHS01_...``, or Humble's placeholder). One sender thread serializes and publishes: neither
+the Zenoh callback nor a session worker waits on it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import itertools
+import logging
+import queue
+import struct
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from core.errors import BadMessageError
+from core.transforms import invert
+from service.metrics import ServiceMetrics
+from service.settings import Ros2Settings
+from wire.codes import ErrorCode
+from wire.ids import is_valid_id
+from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, WireMessage
+from wire.rmw_zenoh import (
+    Attachment,
+    Qos,
+    dds_type_name,
+    decode_attachment,
+    encode_attachment,
+    liveliness_token,
+    parse_topic_key,
+)
+from wire.ros2 import (
+    ODOMETRY,
+    POINTCLOUD2,
+    STRING,
+    TRANSFORM_STAMPED,
+    Ros2Scan,
+    odometry_cdr,
+    string_cdr,
+    transform_cdr,
+    type_hash,
+)
+from wire.zenoh_config import zenoh_config
+
+__all__ = ["NODE_NAME", "Ros2Bridge", "vehicle_of_topic"]
+
+log = logging.getLogger(__name__)
+
+#: The node the service appears as in the ROS graph.
+NODE_NAME = "randt_fleet"
+#: ROS 2 sessions whose answer route is remembered (the oldest forgotten beyond).
+MAX_ROUTES = 4096
+#: Distinct topics counted by name in ``randt_ros2_samples_total``; beyond, as ``other``.
+MAX_TOPIC_LABELS = 64
+#: Longest frame_id read from a PointCloud2's header for the answers' child frame.
+MAX_FRAME_ID = 256
+
+
+def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | None:
+    """``(vehicle, namespace)`` of a PointCloud2 topic, or ``None`` when it is not one of
+    ``settings.topics``. :class:`~core.errors.BadMessageError` when it is one but names no vehicle
+    (no namespace and none given in ``settings.vehicles``, or a namespace that is not an id)."""
+    for wanted in settings.topics:
+        if wanted.startswith("/"):
+            if topic != wanted:
+                continue
+            namespace = ""
+            vehicle = settings.vehicles.get(topic)
+        else:
+            suffix = "/" + wanted
+            if not topic.endswith(suffix):
+                continue
+            namespace = topic[: -len(suffix)]
+            vehicle = settings.vehicles.get(topic) or settings.vehicles.get(namespace or "/")
+            if vehicle is None and namespace:
+                vehicle = namespace.strip("/").replace("/", ".")
+        if vehicle is None:
+            raise BadMessageError(
+                f"topic {topic}: no vehicle id (no namespace): name one in RANDT_ROS2__VEHICLES",
+                code=ErrorCode.INVALID_ID,
+            )
+        if not is_valid_id(vehicle):
+            raise BadMessageError(
+                f"topic {topic}: namespace {namespace!r} is not a vehicle id (letters, digits, _ . -): "
+                "name one in RANDT_ROS2__VEHICLES",
+                code=ErrorCode.INVALID_ID,
+            )
+        return vehicle, namespace
+    return None
+
+
+def _frame_id(cdr: bytes) -> str | None:
+    """The header's frame_id of a CDR PointCloud2 (the first string: after the 4-byte
+    encapsulation header and the stamp's two 32-bit fields, a uint32 length then the characters
+    with their NUL), without decoding the message: the callback decodes nothing."""
+    if len(cdr) < 16:
+        return None
+    (n,) = struct.unpack_from("<I" if cdr[1] == 1 else ">I", cdr, 12)
+    if not 1 <= n <= MAX_FRAME_ID or len(cdr) < 16 + n:
+        return None
+    try:
+        return cdr[16 : 16 + n - 1].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+
+
+_Answer = PoseMessage | ErrorMessage | CorrectionMessage
+
+
+@dataclass
+class _Route:
+    """Where a ROS 2 session's answers go."""
+
+    domain: int
+    namespace: str
+    hash_like: str
+    frame_id: str
+    last_stamp_ns: int = 0
+
+
+@dataclass
+class _Publisher:
+    key: str
+    gid: bytes
+    token: Any
+    seq: itertools.count[int] = field(default_factory=lambda: itertools.count(1))
+
+
+class Ros2Bridge:
+    """The Zenoh session to the robots' router, the PointCloud2 subscriber and the answers (module
+    docstring). ``on_scan(vehicle, scan, received_ns)`` is the session manager's ``submit``."""
+
+    def __init__(
+        self,
+        settings: Ros2Settings,
+        on_scan: Callable[[str, Ros2Scan, int], None],
+        metrics: ServiceMetrics,
+        *,
+        max_outbound: int = 10_000,
+    ) -> None:
+        self.settings = settings
+        self._on_scan = on_scan
+        self._metrics = metrics
+        self._session: zenoh.Session | None = None
+        self._zid = ""
+        self._handles: list[Any] = []
+        self._routes: OrderedDict[tuple[str, str], _Route] = OrderedDict()
+        self._publishers: dict[str, _Publisher] = {}
+        self._listening: dict[str, Any] = {}  # topic -> its subscription's liveliness token
+        self._entities = itertools.count(1)
+        self._lock = threading.Lock()
+        self._out: queue.Queue[_Answer | None] = queue.Queue(max_outbound)
+        self._sender: threading.Thread | None = None
+        self._topics: set[str] = set()
+        self._warned: dict[tuple[str, str], int] = {}
+        self.dropped_outbound = 0
+
+    @property
+    def is_open(self) -> bool:
+        return self._session is not None
+
+    def open(self) -> None:
+        s = self.settings
+        try:
+            self._session = zenoh.open(zenoh_config("client", (), s.connect))
+        except zenoh.ZError as exc:
+            reason = str(exc).split(" at /", 1)[0]
+            raise ValueError(
+                f"Zenoh cannot open the ROS 2 session (router {', '.join(s.connect)}): {reason}"
+            ) from exc
+        self._zid = str(self._session.info.zid())
+        self._sender = threading.Thread(target=self._send_loop, name="ros2-sender", daemon=True)
+        self._sender.start()
+        node = liveliness_token(
+            domain=s.domain,
+            zid=self._zid,
+            node_id=0,
+            entity_id=0,
+            kind="NN",
+            namespace="/",
+            node_name=NODE_NAME,
+        )
+        self._handles = [
+            self._session.declare_subscriber(
+                f"{s.domain}/**/{dds_type_name(POINTCLOUD2)}/*", self._on_sample
+            ),
+            self._session.liveliness().declare_token(node),
+        ]
+        log.info(
+            "ROS 2: client of %s, domain %d, topics %s", ", ".join(s.connect), s.domain, ", ".join(s.topics)
+        )
+
+    # -- in (Zenoh's callback thread: no decoding, no waiting) ---------------------------------
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            self._take(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment)
+        except Exception:  # never let an exception escape into Zenoh's thread
+            log.exception("ROS 2 sample on %s failed", sample.key_expr)
+
+    def _take(self, key: str, cdr: bytes, attachment: zenoh.ZBytes | None) -> None:
+        topic = key
+        try:
+            parsed = parse_topic_key(key)
+            topic = parsed.topic
+            found = vehicle_of_topic(topic, self.settings)
+            if found is None:
+                self._count(topic, "ignored")
+                return
+            vehicle, namespace = found
+            att: Attachment = decode_attachment(None if attachment is None else attachment.to_bytes())
+        except BadMessageError as exc:
+            self._count(topic, exc.code)
+            self._warn(topic, exc.code, str(exc))
+            return
+        session = att.gid.hex()
+        with self._lock:
+            route = self._routes.get((vehicle, session))
+            if route is None:
+                frame = self.settings.sensor_frame or _frame_id(cdr) or "lidar"
+                route = self._routes[(vehicle, session)] = _Route(
+                    parsed.domain, namespace, parsed.type_hash, frame
+                )
+                while len(self._routes) > MAX_ROUTES:
+                    self._routes.popitem(last=False)
+                log.info(
+                    "ROS 2: %s (publisher %s) is vehicle %s, session %s", topic, session, vehicle, session
+                )
+            else:
+                self._routes.move_to_end((vehicle, session))
+            listening = topic in self._listening
+        if not listening:
+            self._listen(topic, parsed.type_hash)
+        self._count(topic, "accepted")
+        self._on_scan(vehicle, Ros2Scan(cdr, topic, vehicle, session, att.sequence_number), time.time_ns())
+
+    def _listen(self, topic: str, hash_like: str) -> None:
+        """Announce our subscription to ``topic`` (an ``MS`` token: ``ros2 topic info`` lists us)."""
+        if self._session is None:
+            return
+        s = self.settings
+        token = liveliness_token(
+            domain=s.domain, zid=self._zid, node_id=0, entity_id=next(self._entities), kind="MS",
+            namespace="/", node_name=NODE_NAME, topic=topic, ros_type=POINTCLOUD2,
+            type_hash=type_hash(POINTCLOUD2, hash_like), qos=Qos(reliability=2, depth=5),
+        )  # fmt: skip
+        with self._lock:
+            if topic in self._listening:
+                return
+            self._listening[topic] = self._session.liveliness().declare_token(token)
+
+    def _count(self, topic: str, outcome: str) -> None:
+        with self._lock:
+            if topic not in self._topics and len(self._topics) < MAX_TOPIC_LABELS:
+                self._topics.add(topic)
+            label = topic if topic in self._topics else "other"
+        self._metrics.ros2_samples.labels(label, outcome).inc()
+
+    def _warn(self, topic: str, code: str, reason: str) -> None:
+        """Logged per topic and reason: the first time, then every 100th."""
+        with self._lock:
+            n = self._warned[(topic, code)] = self._warned.get((topic, code), 0) + 1
+        if n == 1 or n % 100 == 0:
+            log.warning("ROS 2 sample on %s refused (%s, %d so far): %s", topic, code, n, reason)
+
+    # -- out (the outbox's tap; serialized and published by the sender thread) -----------------
+    def owns(self, vehicle: str, session: str) -> bool:
+        with self._lock:
+            return (vehicle, session) in self._routes
+
+    def send(self, message: WireMessage) -> None:
+        """Queue an answer for a ROS 2 session (others are ignored; dropped, counted, when full)."""
+        if not isinstance(message, PoseMessage | ErrorMessage | CorrectionMessage):
+            return
+        if not self.owns(message.vehicle, message.session):
+            return
+        try:
+            self._out.put_nowait(message)
+        except queue.Full:
+            self.dropped_outbound += 1
+
+    def _send_loop(self) -> None:
+        while True:
+            message = self._out.get()
+            if message is None:
+                return
+            try:
+                self._publish(message)
+            except Exception:
+                log.exception("ROS 2: answering %s/%s failed", message.vehicle, message.session)
+
+    def _publish(self, message: _Answer) -> None:
+        s = self.settings
+        with self._lock:
+            route = self._routes.get((message.vehicle, message.session))
+        if route is None:
+            return
+        if isinstance(message, PoseMessage):
+            route.last_stamp_ns = max(route.last_stamp_ns, message.stamp_ns)
+            if message.status in ("first", "ok"):
+                frame = s.sensor_frame or route.frame_id
+                payload = odometry_cdr(message, frame_id=s.odom_frame, child_frame_id=frame)
+                self._put(route, s.odometry_topic, ODOMETRY, payload)
+                return
+            status: dict[str, Any] = {
+                "seq": message.seq,
+                "status": message.status,
+                "stamp_ns": message.stamp_ns,
+            }
+        elif isinstance(message, ErrorMessage):
+            status = {"seq": message.seq, "status": message.code, "reason": message.reason}
+            if message.retry_after_s is not None:
+                status["retry_after_s"] = message.retry_after_s
+        else:
+            poses, live = message.poses(), message.live_poses()
+            newest = int(np.argmax(message.seqs()))
+            C = poses[newest] @ invert(live[newest])
+            payload = transform_cdr(
+                route.last_stamp_ns or time.time_ns(), C, frame_id=s.map_frame, child_frame_id=s.odom_frame
+            )
+            self._put(route, s.correction_topic, TRANSFORM_STAMPED, payload)
+            return
+        status.update(vehicle=message.vehicle, session=message.session)
+        self._put(route, s.status_topic, STRING, string_cdr(status))
+
+    def _put(self, route: _Route, name: str, ros_type: str, payload: bytes) -> None:
+        """Publish on ``name`` (relative: under the robot's namespace) as rmw_zenoh does."""
+        if self._session is None:
+            return
+        topic = name if name.startswith("/") else f"{route.namespace}/{name}"
+        publisher = self._publisher(route, topic, ros_type)
+        attachment = encode_attachment(Attachment(next(publisher.seq), time.time_ns(), publisher.gid))
+        self._session.put(publisher.key, payload, attachment=attachment)
+
+    def _publisher(self, route: _Route, topic: str, ros_type: str) -> _Publisher:
+        """The publisher of ``topic`` (declared on first use: its liveliness token and GID)."""
+        hash_ = type_hash(ros_type, route.hash_like)
+        key = f"{route.domain}/{topic.strip('/')}/{dds_type_name(ros_type)}/{hash_}"
+        found = self._publishers.get(key)
+        if found is not None:
+            return found
+        assert self._session is not None
+        token = liveliness_token(
+            domain=route.domain, zid=self._zid, node_id=0, entity_id=next(self._entities), kind="MP",
+            namespace="/", node_name=NODE_NAME, topic=topic, ros_type=ros_type, type_hash=hash_,
+            qos=Qos(depth=10),
+        )  # fmt: skip
+        gid = hashlib.blake2b(token.encode(), digest_size=16).digest()
+        publisher = self._publishers[key] = _Publisher(
+            key, gid, self._session.liveliness().declare_token(token)
+        )
+        return publisher
+
+    def close(self) -> None:
+        """Publish what is queued, then close the session (its tokens go with it)."""
+        if self._sender is not None:
+            self._out.put(None)
+            self._sender.join(10)
+        tokens = [*self._handles, *self._listening.values(), *(p.token for p in self._publishers.values())]
+        for handle in tokens:
+            with contextlib.suppress(Exception):
+                handle.undeclare()
+        if self._session is not None:
+            self._session.close()
+            self._session = None

@@ -1,0 +1,212 @@
+"""ROS 2 messages in and out of the service: a ``sensor_msgs/msg/PointCloud2`` sample as a scan,
+and the answers as ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/TransformStamped`` and
+``std_msgs/msg/String`` (docs/ros2.md).
+
+A robot running rmw_zenoh puts its LiDAR topic on Zenoh as CDR (:mod:`wire.rmw_zenoh` has the
+keys and the attachment). The service's ROS 2 bridge (service/ros2.py) turns each sample into a
+:class:`Ros2Scan`: the CDR bytes as they came, the vehicle (the robot's namespace), the session
+(the publisher's GID, so a restarted driver is a new session) and the sequence number of the
+attachment. From there it follows our own scans' path: :func:`scan_header` is what the intake
+reads of it (the layout checked, no point read: ``wire.messages.decode_scan_header`` for ours),
+:func:`sweep_arrays` what the matcher process decodes (``service.matchers.decoded_sweep``).
+
+CDR is ``rosbags``' (pure Python, Apache-2.0; the ``ros2`` extra), with its Jazzy type store:
+the five message types used here have the same definition in Humble, Jazzy, Kilted and Rolling
+(their RIHS01 hashes are equal in rosbags' stores; Humble sends no hash). ``import wire.ros2``
+needs neither rosbags nor Zenoh; the first decode or encode loads rosbags.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from core.errors import BadMessageError, FormatError
+from core.io.pointcloud2 import check_pointcloud2, pointcloud2_arrays
+from wire.codes import ErrorCode
+from wire.messages import SCHEMA_VERSION, PoseMessage, ScanHeader, WireLimits
+from wire.rmw_zenoh import HUMBLE_TYPE_HASH
+
+__all__ = [
+    "NAV_SAT_FIX",
+    "ODOMETRY",
+    "POINTCLOUD2",
+    "STRING",
+    "TRANSFORM_STAMPED",
+    "Ros2Scan",
+    "odometry_cdr",
+    "read_pointcloud2",
+    "scan_header",
+    "string_cdr",
+    "sweep_arrays",
+    "transform_cdr",
+    "type_hash",
+    "typestore",
+]
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+STRING = "std_msgs/msg/String"
+NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+
+
+@functools.cache
+def typestore() -> Any:
+    """rosbags' ROS 2 Jazzy type store (:class:`~core.errors.FormatError` naming the extra when
+    rosbags is not installed)."""
+    try:
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise FormatError("ROS 2 messages need rosbags: pip install 'randt-fleet[ros2]'") from None
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@functools.cache
+def type_hash(ros_type: str, like: str = "") -> str:
+    """The type hash to put in a key for ``ros_type``: ``RIHS01_<hex>``, or Humble's placeholder
+    when ``like`` (the hash chunk of the robot's own key) is it, so a Humble robot hears us."""
+    if like == HUMBLE_TYPE_HASH:
+        return HUMBLE_TYPE_HASH
+    return str(typestore().hash_rihs01(ros_type))
+
+
+@dataclass(frozen=True)
+class Ros2Scan:
+    """A PointCloud2 sample of a ROS 2 robot, as the service holds it before decoding: its CDR
+    bytes (with the 4-byte encapsulation header), the ROS topic it came on, the vehicle and
+    session it was assigned (the robot's namespace and the publisher's GID, in hex), and the
+    attachment's sequence number. ``len()`` is the payload's size (the intake's byte limits)."""
+
+    cdr: bytes
+    topic: str
+    vehicle: str
+    session: str
+    seq: int
+
+    def __len__(self) -> int:
+        return len(self.cdr)
+
+
+def read_pointcloud2(cdr: bytes) -> Any:
+    """The PointCloud2 message of CDR bytes (:class:`~core.errors.BadMessageError` ``malformed``
+    when they are not one)."""
+    store = typestore()
+    if len(cdr) < 4 or cdr[0] != 0 or cdr[1] not in (0, 1):
+        raise BadMessageError(
+            "PointCloud2: not CDR (no plain CDR encapsulation header 00 00 or 00 01)",
+            code=ErrorCode.MALFORMED,
+        )
+    try:
+        return store.deserialize_cdr(cdr, POINTCLOUD2)
+    except Exception as exc:  # rosbags raises plain exceptions on short or bad bytes
+        raise BadMessageError(
+            f"PointCloud2: the CDR does not decode ({type(exc).__name__}: {exc})", code=ErrorCode.MALFORMED
+        ) from None
+
+
+def _stamp_ns(msg: Any) -> int:
+    sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < 1_000_000_000:
+        raise BadMessageError(
+            f"PointCloud2 header.stamp {sec} s {nanosec} ns: not a time since the Unix epoch",
+            code=ErrorCode.INVALID_FIELD,
+        )
+    return sec * 1_000_000_000 + nanosec
+
+
+def scan_header(scan: Ros2Scan, limits: WireLimits) -> ScanHeader:
+    """What the intake reads of a ROS 2 scan: ids, seq, stamp and point count, with the cloud's
+    layout checked (fields, datatypes, bytes) but no point read. Raises
+    :class:`~core.errors.BadMessageError`: ``malformed`` (not a PointCloud2), ``invalid_points``
+    (a layout that cannot be read), ``empty_scan``, ``too_many_points``, ``invalid_field`` (the stamp)."""
+    msg = read_pointcloud2(scan.cdr)
+    try:
+        n = check_pointcloud2(msg)
+    except FormatError as exc:
+        raise BadMessageError(str(exc), code=ErrorCode.INVALID_POINTS) from None
+    if n == 0:
+        raise BadMessageError("PointCloud2 without points", code=ErrorCode.EMPTY_SCAN)
+    if n > limits.max_points:
+        raise BadMessageError(
+            f"PointCloud2 of {n} points: more than the service takes ({limits.max_points})",
+            code=ErrorCode.TOO_MANY_POINTS,
+        )
+    return ScanHeader(SCHEMA_VERSION, scan.vehicle, scan.session, scan.seq, _stamp_ns(msg), n)
+
+
+def sweep_arrays(scan: Ros2Scan) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, float]:
+    """What the matcher takes of a ROS 2 scan: ``(xyz float32, time offsets float32 s or None,
+    intensity float32 or None, stamp s)`` (:func:`core.io.pointcloud2.pointcloud2_arrays`)."""
+    msg = read_pointcloud2(scan.cdr)
+    try:
+        xyz, offsets, intensity = pointcloud2_arrays(msg)
+    except FormatError as exc:
+        raise BadMessageError(str(exc), code=ErrorCode.INVALID_POINTS) from None
+    return xyz, offsets, intensity, _stamp_ns(msg) * 1e-9
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    types = typestore().types
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+
+
+def _pose(T: np.ndarray) -> Any:
+    types = typestore().types
+    x, y, z = (float(v) for v in T[:3, 3])
+    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    return types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+
+
+def odometry_cdr(pose: PoseMessage, *, frame_id: str, child_frame_id: str) -> bytes:
+    """A pose answer as ``nav_msgs/msg/Odometry`` CDR: the scan's stamp, the pose of
+    ``child_frame_id`` (the sensor) in ``frame_id``, the matcher's covariance (x, y, z, rotation
+    about x, y, z, as ROS orders it; all zero when the matcher gave none) and a zero twist with an
+    unknown covariance (-1 first, REP 145's convention: the service estimates no velocity)."""
+    types = typestore().types
+    T = np.asarray(pose.pose, dtype=np.float64).reshape(4, 4)
+    cov = np.zeros(36) if pose.covariance is None else np.asarray(pose.covariance, dtype=np.float64)
+    twist_cov = np.zeros(36)
+    twist_cov[0] = -1.0
+    zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    msg = types[ODOMETRY](
+        header=_header(pose.stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(T), covariance=cov),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=twist_cov
+        ),
+    )
+    return bytes(typestore().serialize_cdr(msg, ODOMETRY))
+
+
+def transform_cdr(stamp_ns: int, T: np.ndarray, *, frame_id: str, child_frame_id: str) -> bytes:
+    """``geometry_msgs/msg/TransformStamped`` CDR: ``child_frame_id`` in ``frame_id`` is ``T``."""
+    types = typestore().types
+    p = _pose(np.asarray(T, dtype=np.float64))
+    msg = types[TRANSFORM_STAMPED](
+        header=_header(stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=p.position.x, y=p.position.y, z=p.position.z),
+            rotation=p.orientation,
+        ),
+    )
+    return bytes(typestore().serialize_cdr(msg, TRANSFORM_STAMPED))
+
+
+def string_cdr(payload: dict[str, Any]) -> bytes:
+    """``std_msgs/msg/String`` CDR holding ``payload`` as one line of JSON."""
+    text = json.dumps(payload, separators=(",", ":"), sort_keys=True)
+    return bytes(typestore().serialize_cdr(typestore().types[STRING](data=text), STRING))
