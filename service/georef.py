@@ -17,13 +17,15 @@ import threading
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
+
 from core.errors import BadMessageError, InvalidRequestError, RandtError
 from core.geo import GeoOrigin, LocalCartesianUTM, origin_of, read_map_projection
 from core.io.autoware import AUTOWARE_METADATA_NAME
 from core.odometry import PosePrior
 from core.tiles import TileGrid
 from wire.codes import ErrorCode
-from wire.messages import GeoPrior
+from wire.messages import GeoPrior, GnssFix
 
 __all__ = ["MapProjections", "check_map_origin", "origin_conflict"]
 
@@ -55,6 +57,14 @@ class MapProjections:
         assert cov is not None
         return PosePrior(T, cov)
 
+    def fix_in_map(self, map_name: str, grid: TileGrid, fix: GnssFix) -> tuple[np.ndarray, np.ndarray]:
+        """A position-only fix as ``(position (3,), covariance (3, 3))`` in ``map_name``'s frame (its
+        origin set from it if the map has none and no points; raises as :meth:`prior_in_map`)."""
+        projection = self._projection(map_name, grid, fix)
+        xyz = projection.to_map(fix.latitude, fix.longitude, fix.altitude)[0]
+        R = projection.enu_to_map_rotation(fix.latitude, fix.longitude)
+        return xyz, R @ fix.covariance_matrix() @ R.T
+
     def give(self, map_name: str, has_points: bool, origin: GeoOrigin) -> None:
         """Set ``map_name``'s origin as configured (``RANDT_MAP_ORIGIN``), writing its file if the
         map has none; :class:`~core.errors.InvalidRequestError` when the map already has another
@@ -82,7 +92,7 @@ class MapProjections:
         with self._lock:
             self._known.pop(map_name, None)
 
-    def _projection(self, map_name: str, grid: TileGrid, fix: GeoPrior) -> LocalCartesianUTM:
+    def _projection(self, map_name: str, grid: TileGrid, fix: GeoPrior | GnssFix) -> LocalCartesianUTM:
         with self._lock:
             try:
                 known = self._load(map_name)

@@ -350,14 +350,15 @@ class _ProcessMap:
         A session's first keyframe places it at the identity: its poses are in its map's frame
         already. With ``joining``, the keyframe is of a session without priors that lives in a map
         of its own: it enters unplaced, and FleetMapper places it once two registrations against
-        this map agree (its points are then folded into this map's tiles by the next re-fold)."""
+        this map agree, or by a fit of its GNSS fixes (a ROS 2 robot's NavSatFix, in this map's
+        frame) (its points are then folded into this map's tiles by the next re-fold)."""
         _, _, vehicle, session, seq, index, T_live, points, intensity, gnss, _ = message
         mapper = self.mapper
         name = f"{vehicle}/{session}"
         if name not in mapper.sessions and not joining:
             mapper.place(name, np.eye(4))
         was_placed = set(mapper.placed_sessions())
-        key = mapper.add_keyframe(name, T_live, points, None if joining else gnss)
+        key = mapper.add_keyframe(name, T_live, points, gnss)
         self.meta[key] = (vehicle, session, seq, index)
         self.reported.setdefault(key, T_live)
         xyz = np.asarray(points, dtype=np.float32)
@@ -560,7 +561,8 @@ def _graph_main(
             graph = maps.get(map_name) or maps.setdefault(
                 map_name, _ProcessMap(map_name, settings, geometry, spill)
             )
-            update = graph.add(message)
+            # a joining session's fixes are in the shared map's frame, not its own map's
+            update = graph.add(message if join is None or join == map_name else (*message[:-2], None, join))
         except Exception as exc:  # bad input (or a bug): this keyframe is refused, the graph goes on
             if not isinstance(exc, RandtError):
                 log.exception("graph process: keyframe %s/%s seq %d failed", vehicle, session, seq)
@@ -569,7 +571,9 @@ def _graph_main(
             continue
         conn.send((*update, time.perf_counter() - t0))
         shared = None if join is None or join == map_name else maps.get(join)
-        if shared is None:  # (no session with priors has made the shared map's graph yet)
+        if shared is None and join is not None and join != map_name and message[-2] is not None:
+            shared = maps[join] = new_map(join)  # GNSS fixes alone can place it: a graph for them
+        if shared is None:  # (no session with priors, or with fixes, has made the shared map's graph yet)
             continue
         # A session without priors, in a map of its own: the same keyframe, unplaced, in the shared
         # map's graph, which places it once two registrations against its keyframes agree.

@@ -41,7 +41,7 @@ import queue
 import struct
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,7 +55,7 @@ from service.metrics import ServiceMetrics
 from service.settings import Ros2Settings
 from wire.codes import ErrorCode
 from wire.ids import is_valid_id
-from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, WireMessage
+from wire.messages import CorrectionMessage, ErrorMessage, GnssFix, PoseMessage, WireMessage
 from wire.rmw_zenoh import (
     Attachment,
     Qos,
@@ -66,12 +66,14 @@ from wire.rmw_zenoh import (
     parse_topic_key,
 )
 from wire.ros2 import (
+    NAV_SAT_FIX,
     ODOMETRY,
     POINTCLOUD2,
     STRING,
     TRANSFORM_STAMPED,
     Ros2Scan,
     odometry_cdr,
+    read_navsatfix,
     string_cdr,
     transform_cdr,
     type_hash,
@@ -90,6 +92,10 @@ MAX_ROUTES = 4096
 MAX_TOPIC_LABELS = 64
 #: Longest frame_id read from a PointCloud2's header for the answers' child frame.
 MAX_FRAME_ID = 256
+#: NavSatFix messages kept per vehicle to find the one nearest a scan's stamp.
+FIXES_KEPT = 64
+#: Vehicles whose fixes are kept (the oldest forgotten beyond).
+MAX_GNSS_VEHICLES = 4096
 
 
 def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | None:
@@ -125,19 +131,21 @@ def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | No
     return None
 
 
-def _frame_id(cdr: bytes) -> str | None:
-    """The header's frame_id of a CDR PointCloud2 (the first string: after the 4-byte
-    encapsulation header and the stamp's two 32-bit fields, a uint32 length then the characters
-    with their NUL), without decoding the message: the callback decodes nothing."""
-    if len(cdr) < 16:
-        return None
-    (n,) = struct.unpack_from("<I" if cdr[1] == 1 else ">I", cdr, 12)
+def _peek_header(cdr: bytes) -> tuple[int | None, str | None]:
+    """``(stamp ns, frame_id)`` of a CDR message that starts with a ``std_msgs/Header`` (after the
+    4-byte encapsulation header: int32 sec, uint32 nanosec, a uint32 length and the frame_id's
+    characters with their NUL), without decoding the message: the callback decodes no scan.
+    ``None`` for what does not read (the intake's decode then says why)."""
+    if len(cdr) < 16 or cdr[0] != 0 or cdr[1] not in (0, 1):
+        return None, None
+    sec, nanosec, n = struct.unpack_from("<iII" if cdr[1] == 1 else ">iII", cdr, 4)
+    stamp = sec * 1_000_000_000 + nanosec if sec >= 0 and nanosec < 1_000_000_000 else None
     if not 1 <= n <= MAX_FRAME_ID or len(cdr) < 16 + n:
-        return None
+        return stamp, None
     try:
-        return cdr[16 : 16 + n - 1].decode("utf-8")
+        return stamp, cdr[16 : 16 + n - 1].decode("utf-8")
     except UnicodeDecodeError:
-        return None
+        return stamp, None
 
 
 _Answer = PoseMessage | ErrorMessage | CorrectionMessage
@@ -188,8 +196,11 @@ class Ros2Bridge:
         self._out: queue.Queue[_Answer | None] = queue.Queue(max_outbound)
         self._sender: threading.Thread | None = None
         self._topics: set[str] = set()
+        self._fixes: OrderedDict[str, deque[tuple[int, GnssFix]]] = OrderedDict()
         self._warned: dict[tuple[str, str], int] = {}
         self.dropped_outbound = 0
+        #: the settings with the NavSatFix topic as the only topic (vehicle_of_topic for fixes)
+        self._gnss_topics = settings.model_copy(update={"topics": (settings.gnss_topic or "gnss/fix",)})
 
     @property
     def is_open(self) -> bool:
@@ -222,6 +233,9 @@ class Ros2Bridge:
             ),
             self._session.liveliness().declare_token(node),
         ]
+        if s.gnss_topic is not None:
+            gnss = f"{s.domain}/**/{dds_type_name(NAV_SAT_FIX)}/*"
+            self._handles.append(self._session.declare_subscriber(gnss, self._on_fix))
         log.info(
             "ROS 2: client of %s, domain %d, topics %s", ", ".join(s.connect), s.domain, ", ".join(s.topics)
         )
@@ -249,10 +263,12 @@ class Ros2Bridge:
             self._warn(topic, exc.code, str(exc))
             return
         session = att.gid.hex()
+        stamp_ns, frame_id = _peek_header(cdr)
         with self._lock:
+            fix = None if stamp_ns is None else self._fix_at(vehicle, stamp_ns)
             route = self._routes.get((vehicle, session))
             if route is None:
-                frame = self.settings.sensor_frame or _frame_id(cdr) or "lidar"
+                frame = self.settings.sensor_frame or frame_id or "lidar"
                 route = self._routes[(vehicle, session)] = _Route(
                     parsed.domain, namespace, parsed.type_hash, frame
                 )
@@ -267,7 +283,44 @@ class Ros2Bridge:
         if not listening:
             self._listen(topic, parsed.type_hash)
         self._count(topic, "accepted")
-        self._on_scan(vehicle, Ros2Scan(cdr, topic, vehicle, session, att.sequence_number), time.time_ns())
+        scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
+        self._on_scan(vehicle, scan, time.time_ns())
+
+    def _on_fix(self, sample: zenoh.Sample) -> None:
+        """A NavSatFix: kept for the vehicle's next scans (a few hundred bytes, decoded here)."""
+        key = topic = str(sample.key_expr)
+        try:
+            topic = parse_topic_key(key).topic
+            found = vehicle_of_topic(topic, self._gnss_topics)
+            if found is None:
+                return
+            stamp_ns, fix = read_navsatfix(sample.payload.to_bytes())
+        except BadMessageError as exc:
+            self._count(topic, exc.code)
+            self._warn(topic, exc.code, str(exc))
+            return
+        except Exception:  # never let an exception escape into Zenoh's thread
+            log.exception("ROS 2 NavSatFix on %s failed", key)
+            return
+        if fix is None:
+            self._count(topic, "no_fix")
+            return
+        with self._lock:
+            kept = self._fixes.get(found[0])
+            if kept is None:
+                kept = self._fixes[found[0]] = deque(maxlen=FIXES_KEPT)
+                while len(self._fixes) > MAX_GNSS_VEHICLES:
+                    self._fixes.popitem(last=False)
+            kept.append((stamp_ns, fix))
+        self._count(topic, "accepted")
+
+    def _fix_at(self, vehicle: str, stamp_ns: int) -> GnssFix | None:
+        """The vehicle's fix nearest ``stamp_ns``, within ``gnss_max_gap_s`` (under the lock)."""
+        kept = self._fixes.get(vehicle)
+        if not kept:
+            return None
+        gap, fix = min(((abs(t - stamp_ns), f) for t, f in kept), key=lambda c: c[0])
+        return fix if gap <= self.settings.gnss_max_gap_s * 1e9 else None
 
     def _listen(self, topic: str, hash_like: str) -> None:
         """Announce our subscription to ``topic`` (an ``MS`` token: ``ros2 topic info`` lists us)."""

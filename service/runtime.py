@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable
 
 from service.matchers import MatcherExecutor, single_threaded_blas
-from service.ros2 import Ros2Bridge
 from service.metrics import ServiceMetrics
+from service.ros2 import Ros2Bridge
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
 from service.store import Store

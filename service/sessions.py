@@ -316,6 +316,7 @@ class SessionWorker:
         self.gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self._fold_lock = threading.Lock()
         self._keyframe_wanted = False  # the graph asked for the sweep being matched as a keyframe
+        self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionManager._save_resume_sweeps).
         self.resume_sweep: ResumeSweep | None = None
@@ -723,9 +724,27 @@ class SessionWorker:
             T_live=result.T_world_sensor,
             points=kf,
             intensity=registered.keyframe_intensity,
-            gnss=None if prior is None else (prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]),
+            gnss=self._gnss(scan, prior),
             join=self._manager.settings.default_map if info.frame == "session" else None,
         )
+
+    def _gnss(self, scan: ScanHeader, prior: PosePrior | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """A keyframe's GNSS for the pose graph: its prior's position (in the session's map), or
+        a ROS 2 robot's NavSatFix in the shared map's frame, which the session may join (the graph
+        places it there by its fixes); ``None`` when the fix cannot be placed (logged once)."""
+        if prior is not None:
+            return prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]
+        if scan.gnss_fix is None:
+            return None
+        m = self._manager
+        name = m.settings.default_map
+        try:
+            return m.projections.fix_in_map(name, m.map_grid(name), scan.gnss_fix)
+        except BadMessageError as exc:
+            if not self._fix_refused:
+                log.warning("session %s/%s: its GNSS fixes are not used: %s", *self.key, exc)
+            self._fix_refused = True
+            return None
 
     def fold(self, *, release: bool = False) -> None:
         """Insert the map points waiting to be folded into the session's map, and mark the tiles

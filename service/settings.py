@@ -87,6 +87,16 @@ class Ros2Settings(BaseModel):
     sensor_frame: str | None = Field(
         default=None, description="the Odometry child_frame_id; None: the PointCloud2's frame_id"
     )
+    gnss_topic: str | None = Field(
+        default="gnss/fix",
+        pattern=_ROS_NAME,
+        description="the robots' sensor_msgs/NavSatFix (relative: under each namespace; null: none): "
+        "a fix within gnss_max_gap_s of a scan goes to the pose graph with it, which places the "
+        "session in the shared map by its fixes and fuses them (docs/ros2.md)",
+    )
+    gnss_max_gap_s: float = Field(
+        default=0.1, gt=0, le=1.0, description="a fix this far in time from a scan's stamp is not its"
+    )
 
     @field_validator("connect")
     @classmethod

@@ -75,6 +75,7 @@ __all__ = [
     "CorrectionMessage",
     "ErrorMessage",
     "GeoPrior",
+    "GnssFix",
     "PoseMessage",
     "Prior",
     "ScanEncoding",
@@ -1304,6 +1305,22 @@ def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage
 
 
 @dataclass(frozen=True)
+class GnssFix:
+    """A position-only GNSS fix in WGS84 (a ROS 2 robot's ``sensor_msgs/msg/NavSatFix``: no
+    orientation), taken as the sensor's position at the scan: latitude and longitude (degrees),
+    height above the ellipsoid (metres) and the position's covariance in East-North-Up (3, 3), m².
+    Not a prior of the matcher: the pose graph fuses it (and places a session by its fixes)."""
+
+    latitude: float
+    longitude: float
+    altitude: float
+    covariance: tuple[float, ...]  # 9 floats, row-major 3x3, East-North-Up
+
+    def covariance_matrix(self) -> np.ndarray:
+        return np.asarray(self.covariance, dtype=np.float64).reshape(3, 3)
+
+
+@dataclass(frozen=True)
 class ScanHeader:
     """What :func:`decode_scan_header` reads of a scan: everything but its bodies.
 
@@ -1322,6 +1339,8 @@ class ScanHeader:
     n_points: int
     prior: Prior | None = None
     geo_prior: GeoPrior | None = None
+    #: a ROS 2 robot's NavSatFix at the scan (wire.ros2; our own scans carry none)
+    gnss_fix: GnssFix | None = None
 
     def prior_pose(self) -> np.ndarray | None:
         """(4, 4) float64 ``T_map_sensor`` of the prior, or ``None``."""

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from core.errors import BadMessageError, FormatError
 from core.io.pointcloud2 import check_pointcloud2, pointcloud2_arrays
 from wire.codes import ErrorCode
-from wire.messages import SCHEMA_VERSION, PoseMessage, ScanHeader, WireLimits
+from wire.messages import SCHEMA_VERSION, GnssFix, PoseMessage, ScanHeader, WireLimits
 from wire.rmw_zenoh import HUMBLE_TYPE_HASH
 
 __all__ = [
@@ -40,6 +40,7 @@ __all__ = [
     "TRANSFORM_STAMPED",
     "Ros2Scan",
     "odometry_cdr",
+    "read_navsatfix",
     "read_pointcloud2",
     "scan_header",
     "string_cdr",
@@ -88,6 +89,8 @@ class Ros2Scan:
     vehicle: str
     session: str
     seq: int
+    #: the robot's NavSatFix nearest the scan's stamp, when it publishes one (service/ros2.py)
+    fix: GnssFix | None = None
 
     def __len__(self) -> int:
         return len(self.cdr)
@@ -114,7 +117,7 @@ def _stamp_ns(msg: Any) -> int:
     sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
     if sec < 0 or not 0 <= nanosec < 1_000_000_000:
         raise BadMessageError(
-            f"PointCloud2 header.stamp {sec} s {nanosec} ns: not a time since the Unix epoch",
+            f"header.stamp {sec} s {nanosec} ns: not a time since the Unix epoch",
             code=ErrorCode.INVALID_FIELD,
         )
     return sec * 1_000_000_000 + nanosec
@@ -137,7 +140,9 @@ def scan_header(scan: Ros2Scan, limits: WireLimits) -> ScanHeader:
             f"PointCloud2 of {n} points: more than the service takes ({limits.max_points})",
             code=ErrorCode.TOO_MANY_POINTS,
         )
-    return ScanHeader(SCHEMA_VERSION, scan.vehicle, scan.session, scan.seq, _stamp_ns(msg), n)
+    return ScanHeader(
+        SCHEMA_VERSION, scan.vehicle, scan.session, scan.seq, _stamp_ns(msg), n, gnss_fix=scan.fix
+    )
 
 
 def sweep_arrays(scan: Ros2Scan) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, float]:
@@ -149,6 +154,34 @@ def sweep_arrays(scan: Ros2Scan) -> tuple[np.ndarray, np.ndarray | None, np.ndar
     except FormatError as exc:
         raise BadMessageError(str(exc), code=ErrorCode.INVALID_POINTS) from None
     return xyz, offsets, intensity, _stamp_ns(msg) * 1e-9
+
+
+def read_navsatfix(cdr: bytes) -> tuple[int, GnssFix | None]:
+    """``(stamp ns, fix)`` of a ``sensor_msgs/msg/NavSatFix``; the fix is ``None`` when the
+    receiver has none (``status.status`` < 0, STATUS_NO_FIX) or gives no covariance
+    (``position_covariance_type`` 0, COVARIANCE_TYPE_UNKNOWN: the graph weighs a fix by it).
+    :class:`~core.errors.BadMessageError` ``malformed`` or ``invalid_field`` for what cannot be one."""
+    try:
+        msg = typestore().deserialize_cdr(cdr, NAV_SAT_FIX)
+    except Exception as exc:
+        raise BadMessageError(
+            f"NavSatFix: the CDR does not decode ({type(exc).__name__}: {exc})", code=ErrorCode.MALFORMED
+        ) from None
+    stamp_ns = _stamp_ns(msg)
+    if int(msg.status.status) < 0 or int(msg.position_covariance_type) == 0:
+        return stamp_ns, None
+    lat, lon, alt = float(msg.latitude), float(msg.longitude), float(msg.altitude)
+    cov = np.asarray(msg.position_covariance, dtype=np.float64).reshape(3, 3)
+    cov = 0.5 * (cov + cov.T)
+    if not (abs(lat) <= 90 and abs(lon) <= 180 and np.isfinite(alt) and np.all(np.isfinite(cov))):
+        raise BadMessageError(
+            f"NavSatFix at {lat}, {lon}, {alt}: not a position", code=ErrorCode.INVALID_FIELD
+        )
+    if np.linalg.eigvalsh(cov).min() <= 0:
+        raise BadMessageError(
+            "NavSatFix: position_covariance is not positive definite", code=ErrorCode.INVALID_FIELD
+        )
+    return stamp_ns, GnssFix(lat, lon, alt, tuple(cov.ravel().tolist()))
 
 
 def _header(stamp_ns: int, frame_id: str) -> Any:

@@ -248,3 +248,81 @@ def test_a_given_origin_is_the_maps_and_a_conflicting_one_stops_the_service(tmp_
         check_map_origin(tmp_path / "b", "default", given)
     with pytest.raises(InvalidRequestError, match="UPS"):
         manager(tmp_path / "c", (88.0, 0.0, 0.0))
+
+
+def test_a_ros2_robot_with_navsatfix_joins_the_shared_map_where_its_fixes_say(tmp_path: Path) -> None:
+    """A ROS 2 robot's PointCloud2 with its NavSatFix (position only, with covariance) and no
+    other session: its session runs in its own frame, its keyframes' fixes go to the shared map's
+    pose graph, which places it by a fit of its fixes once they span 40 m (issue 34: "NavSatFix
+    becomes the GNSS prior"); then its corrected trajectory, taken to WGS84 with pyproj from the
+    map's yaml, lies on the fixes, and its points are folded into the shared map."""
+    rosbags = pytest.importorskip("rosbags")  # noqa: F841
+    from wire.messages import GnssFix
+    from wire.ros2 import Ros2Scan, typestore
+
+    n = 75
+    town = Town.generate(0)
+    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    scans = list(
+        simulate(
+            town, plan.route, n_scans=n, seed=3, lidar=Lidar64(n_azimuth=1000, max_range_m=70.0),
+            start_s_m=plan.start_s_m, workers=2,
+        )
+    )  # fmt: skip
+    earth = LocalCartesianUTM(MUNICH)
+    types = typestore().types
+    field = types["sensor_msgs/msg/PointField"]
+    fields = [field(name=c, offset=4 * i, datatype=7, count=1) for i, c in enumerate("xyz")]
+    cov = np.diag([0.02**2, 0.02**2, 0.05**2])
+    rng = np.random.default_rng(7)
+    fixes = []
+    with live_server(tmp_path / "data", capacity_target=0) as server:
+        mgr, out = server.service.sessions, server.service._sent
+        assert mgr is not None and mgr.graph is not None
+        for s in scans:
+            lat, lon, alt = (float(v[0]) for v in earth.to_geodetic(s.T_world_sensor[:3, 3]))
+            fixes.append((lat, lon, alt))
+            noisy = earth.to_geodetic(s.T_world_sensor[:3, 3] + rng.normal(0, [0.02, 0.02, 0.05]))
+            fix = GnssFix(*(float(v[0]) for v in noisy), tuple(cov.ravel().tolist()))
+            sec, nanosec = divmod(s.stamp_ns, 10**9)
+            cloud = types["sensor_msgs/msg/PointCloud2"](
+                header=types["std_msgs/msg/Header"](
+                    stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="lidar"
+                ),
+                height=1, width=len(s.points_xyz), fields=fields, is_bigendian=False, point_step=12,
+                row_step=12 * len(s.points_xyz),
+                data=np.frombuffer(s.points_xyz.astype("<f4").tobytes(), np.uint8),
+                is_dense=True,
+            )  # fmt: skip
+            cdr = bytes(typestore().serialize_cdr(cloud, "sensor_msgs/msg/PointCloud2"))
+            n_answered = _answered(out)
+            mgr.submit("robot7", Ros2Scan(cdr, "/robot7/lidar/points", "robot7", "ab" * 16, s.index + 1, fix))
+            deadline = time.monotonic() + 60
+            while _answered(out) < n_answered + 1:
+                assert time.monotonic() < deadline, "the service stopped answering"
+                time.sleep(0.002)
+        assert mgr.graph.wait_idle(120)
+        joined = mgr.graph.joined("robot7", "ab" * 16)
+        live = mgr.trajectory("robot7", "ab" * 16)
+        assert live is not None
+        corrected, graph_map = mgr.graph.corrected("robot7", "ab" * 16, live[1])
+        mgr.flush()
+    poses = [m for m in out if isinstance(m, PoseMessage)]
+    assert len(poses) == n and all(p.status in ("first", "ok") for p in poses)
+    assert joined is not None and joined[0] == "default", "not placed by its fixes"
+    assert graph_map == "default"
+    info = yaml.safe_load((tmp_path / "data/maps/default/map_projector_info.yaml").read_text())
+    lat, lon, alt = _to_wgs84_with_pyproj(np.asarray(corrected)[:, :3, 3], info)
+    flat, flon, falt = (np.array(c) for c in zip(*fixes, strict=True))
+    _, _, horizontal = pyproj.Geod(ellps="WGS84").inv(lon, lat, flon, flat)
+    error = np.hypot(horizontal, alt - falt)
+    assert error.max() < 0.15, (  # measured: median 2.0 cm, max 4.7 cm (the fixes: 2 cm, 5 cm up)
+        f"corrected trajectory: median {np.median(error):.3f} m, max {error.max():.3f} m"
+    )
+    # its sweeps are in the shared map, where the town's surfaces are
+    points = np.concatenate(
+        [read_cloud(p).xyz for p in sorted((tmp_path / "data/maps/default").glob("*.pcd"))]
+    )
+    in_town = earth.to_map(*_to_wgs84_with_pyproj(points.astype(np.float64), info))
+    distance = town.surface_distance(in_town)
+    assert len(points) > 10_000 and np.percentile(distance, 90) < 0.1, np.percentile(distance, [50, 90, 99])

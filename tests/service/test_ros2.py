@@ -314,3 +314,58 @@ def test_the_service_is_not_ready_without_its_ros2_router(tmp_path: Path) -> Non
     with pytest.raises(ValueError, match=f"ROS 2 session \\(router {endpoint}\\)"):
         service.start()
     service.stop()
+
+
+def test_a_scan_takes_its_robots_navsatfix_nearest_in_time() -> None:
+    """The bridge keeps each robot's NavSatFix (``<namespace>/gnss/fix``) and hands a scan the one
+    nearest its header stamp within ``gnss_max_gap_s``; another robot's, or one too far in time,
+    is not its. Fed through the bridge's Zenoh callbacks with samples as rmw_zenoh sends them."""
+    from types import SimpleNamespace
+
+    from rosbags.typesys import Stores, get_typestore
+
+    from service.metrics import ServiceMetrics
+    from service.ros2 import Ros2Bridge
+    from wire.rmw_zenoh import Attachment, encode_attachment, topic_key
+    from wire.ros2 import NAV_SAT_FIX, POINTCLOUD2, Ros2Scan
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    got: list[Ros2Scan] = []
+    bridge = Ros2Bridge(Ros2Settings(enabled=True), lambda v, scan, t: got.append(scan), ServiceMetrics())
+
+    def sample(topic: str, ros_type: str, cdr: bytes, seq: int) -> Any:
+        key = topic_key(0, topic, ros_type, store.hash_rihs01(ros_type))
+        att = encode_attachment(Attachment(seq, 0, bytes(range(16))))
+        return SimpleNamespace(
+            key_expr=key,
+            payload=SimpleNamespace(to_bytes=lambda: cdr),
+            attachment=SimpleNamespace(to_bytes=lambda: att),
+        )
+
+    def fix(stamp_ns: int, latitude: float) -> bytes:
+        msg = types[NAV_SAT_FIX](
+            header=_header(types, stamp_ns, "gnss"),
+            status=types["sensor_msgs/msg/NavSatStatus"](status=0, service=1),
+            latitude=latitude, longitude=11.0, altitude=500.0,
+            position_covariance=np.diag([0.01, 0.01, 0.04]).ravel(), position_covariance_type=2,
+        )  # fmt: skip
+        return bytes(store.serialize_cdr(msg, NAV_SAT_FIX))
+
+    def cloud(stamp_ns: int) -> bytes:
+        rows = np.zeros(3, np.float32)
+        msg = types[POINTCLOUD2](
+            header=_header(types, stamp_ns), **_cloud(types, np.eye(3, dtype=np.float32), rows, rows)
+        )
+        return bytes(store.serialize_cdr(msg, POINTCLOUD2))
+
+    t0 = STAMP0_NS
+    for k, lat in enumerate((48.0, 48.1, 48.2)):  # 10 Hz fixes of robot7
+        bridge._on_fix(sample("/robot7/gnss/fix", NAV_SAT_FIX, fix(t0 + k * 100_000_000, lat), k))
+    bridge._on_fix(sample("/robot8/gnss/fix", NAV_SAT_FIX, fix(t0 + 130_000_000, 10.0), 0))
+    for k, offset_ms in enumerate((130, 240, 500)):
+        bridge._on_sample(sample("/robot7/lidar/points", POINTCLOUD2, cloud(t0 + offset_ms * 1_000_000), k))
+    assert [s.vehicle for s in got] == ["robot7"] * 3
+    assert got[0].fix is not None and got[0].fix.latitude == 48.1  # 30 ms from the second fix
+    assert got[1].fix is not None and got[1].fix.latitude == 48.2  # 40 ms from the third
+    assert got[2].fix is None  # 300 ms from the newest: not its

@@ -13,10 +13,12 @@ from service.matchers import decoded_sweep
 from wire.messages import PoseMessage, WireLimits, encode, matrix_to_pose, scan_from_arrays
 from wire.rmw_zenoh import HUMBLE_TYPE_HASH
 from wire.ros2 import (
+    NAV_SAT_FIX,
     ODOMETRY,
     POINTCLOUD2,
     Ros2Scan,
     odometry_cdr,
+    read_navsatfix,
     scan_header,
     string_cdr,
     transform_cdr,
@@ -149,3 +151,34 @@ def test_answers_use_the_type_hash_the_robot_used() -> None:
     assert type_hash(ODOMETRY) == typestore().hash_rihs01(ODOMETRY)
     assert type_hash(ODOMETRY, like="RIHS01_" + "0" * 64) == type_hash(ODOMETRY)
     assert type_hash(ODOMETRY, like=HUMBLE_TYPE_HASH) == HUMBLE_TYPE_HASH
+
+
+def _navsatfix(stamp_ns: int, *, status: int = 0, cov_type: int = 2, cov: np.ndarray | None = None) -> bytes:
+    types = typestore().types
+    sec, nanosec = divmod(stamp_ns, 10**9)
+    msg = types["sensor_msgs/msg/NavSatFix"](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="gnss"
+        ),
+        status=types["sensor_msgs/msg/NavSatStatus"](status=status, service=1),
+        latitude=48.137,
+        longitude=11.575,
+        altitude=520.5,
+        position_covariance=np.diag([0.04, 0.09, 0.25]).ravel() if cov is None else cov.ravel(),
+        position_covariance_type=cov_type,
+    )
+    return bytes(typestore().serialize_cdr(msg, NAV_SAT_FIX))
+
+
+def test_a_navsatfix_is_a_position_with_its_covariance_or_none() -> None:
+    stamp, fix = read_navsatfix(_navsatfix(1_700_000_000_500_000_000))
+    assert stamp == 1_700_000_000_500_000_000 and fix is not None
+    assert (fix.latitude, fix.longitude, fix.altitude) == (48.137, 11.575, 520.5)
+    np.testing.assert_array_equal(fix.covariance_matrix(), np.diag([0.04, 0.09, 0.25]))
+    assert read_navsatfix(_navsatfix(1, status=-1))[1] is None  # STATUS_NO_FIX
+    assert read_navsatfix(_navsatfix(1, cov_type=0))[1] is None  # COVARIANCE_TYPE_UNKNOWN
+    with pytest.raises(BadMessageError, match="not positive definite") as err:
+        read_navsatfix(_navsatfix(1, cov=np.zeros((3, 3))))
+    assert err.value.code == "invalid_field"
+    with pytest.raises(BadMessageError, match="does not decode"):
+        read_navsatfix(b"\x00\x01\x00\x00\x01")
