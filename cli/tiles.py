@@ -136,7 +136,11 @@ def tiles_export(
     url: UrlOption = DEFAULT_URL,
     token: TokenOption = None,
 ) -> None:
-    """Export the merged map (or a box of it) as one point cloud file."""
+    """Export the merged map (or a box of it) as one point cloud file; a georeferenced map's
+    map_projector_info.yaml is written beside it (Autoware's map folder: the cloud, the yaml)."""
+    from clients.rest import PROJECTOR_INFO_FILE
+    from core.io.atomic import atomic_write_bytes
+
     box = None
     if bbox is not None:
         values = tuple(float(v) for v in bbox.split(","))
@@ -145,4 +149,9 @@ def tiles_export(
         box = values
     with _client(url, token) as api:
         n = api.export(map_name, out, fmt.value if fmt else None, bbox=box)
-    typer.echo(f"{n} points -> {out}")
+        projector_info = api.projector_info_yaml(map_name)
+    said = f"{n} points -> {out}"
+    if projector_info is not None:
+        atomic_write_bytes(out.parent / PROJECTOR_INFO_FILE, projector_info.encode())
+        said += f", its projection -> {out.parent / PROJECTOR_INFO_FILE}"
+    typer.echo(said)

@@ -96,6 +96,16 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
             api.download_map("default", tmp_path / "download")
             api.download_map("default", tmp_path / "mgrs", projector="MGRS")
             served = api.projector_info_yaml("default")
+        # and as `randt tiles export` writes one file: the projection beside it, as Autoware's map folder
+        from typer.testing import CliRunner
+
+        from cli.main import app
+
+        exported = CliRunner().invoke(
+            app, ["tiles", "export", "default", str(tmp_path / "export/map.pcd"), "--url", server.url]
+        )
+        assert exported.exit_code == 0, exported.output
+        assert "its projection -> " in exported.output
     poses = {m.seq: np.reshape(m.pose, (4, 4)) for m in out if isinstance(m, PoseMessage)}
     assert sorted(poses) == list(range(N_SCANS)), [m for m in out if isinstance(m, ErrorMessage)][:3]
     # the map folder, as Autoware reads it: the projection beside the tiles
@@ -104,6 +114,7 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
     assert info["projector_type"] == "LocalCartesianUTM" and info["vertical_datum"] == "WGS84"
     assert served is not None and yaml.safe_load(served) == info
     assert yaml.safe_load((tmp_path / "download" / "map_projector_info.yaml").read_text()) == info
+    assert yaml.safe_load((tmp_path / "export" / "map_projector_info.yaml").read_text()) == info
     geod = pyproj.Geod(ellps="WGS84")
     # the answered poses, taken to WGS84 with pyproj: on the fixes
     xyz = np.array([poses[k][:3, 3] for k in range(N_SCANS)])
