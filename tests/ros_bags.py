@@ -48,11 +48,14 @@ def write_bag(
     times_s: np.ndarray,
     *,
     time_field: str | None = None,
+    offsets_s: Sequence[np.ndarray] | None = None,
     topic: str = TOPIC,
     extra_topics: Sequence[tuple[str, str]] = (),
 ) -> Path:
     """A bag of ``kind`` (:data:`KINDS`) at ``dst`` (a folder for rosbag2, ``dst.bag`` for ROS 1);
-    ``extra_topics``: (topic, message type) connections with no messages, to choose among."""
+    with ``time_field``, per-point times in that driver's convention, from ``offsets_s`` (each
+    sweep's points' seconds from its start; default: from the azimuth); ``extra_topics``: (topic,
+    message type) connections with no messages, to choose among."""
     from rosbags.typesys import Stores, get_typestore
 
     ros1 = kind == "rosbag1"
@@ -61,7 +64,8 @@ def write_bag(
     messages = []
     for k, (p, i) in enumerate(zip(xyz, intensity, strict=True)):
         t_ns = base_ns + round(float(times_s[k]) * 1e9)  # integer ns: a float64 of 1.7e9 s holds 0.24 us
-        messages.append((t_ns, _cloud_message(store, p, i, t_ns, time_field, ros1)))
+        offsets = None if offsets_s is None else offsets_s[k]
+        messages.append((t_ns, _cloud_message(store, p, i, t_ns, time_field, ros1, offsets)))
     typename = "sensor_msgs/msg/PointCloud2"
     writer: Any
     if ros1:
@@ -85,7 +89,13 @@ def write_bag(
 
 
 def _cloud_message(
-    store: object, xyz: np.ndarray, intensity: np.ndarray, t_ns: int, time_field: str | None, ros1: bool
+    store: object,
+    xyz: np.ndarray,
+    intensity: np.ndarray,
+    t_ns: int,
+    time_field: str | None,
+    ros1: bool,
+    offsets: np.ndarray | None = None,
 ) -> object:
     types = store.types  # type: ignore[attr-defined]
     PointField, Header, Time = (
@@ -101,7 +111,7 @@ def _cloud_message(
     ]
     if time_field is not None:
         name, datatype, np_type, unit = TIMES[time_field]
-        offsets = azimuth_offsets(xyz.astype(np.float64))
+        offsets = azimuth_offsets(xyz.astype(np.float64)) if offsets is None else offsets
         values = {"ouster": offsets, "velodyne": offsets - 0.1, "hesai": t_ns * 1e-9 - 0.1 + offsets}[
             time_field
         ]

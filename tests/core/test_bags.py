@@ -67,6 +67,31 @@ def test_per_point_times_in_each_drivers_convention(driver, kitti, tmp_path) -> 
     assert 0.099 < cloud.time_offset_s.max() <= 0.1
 
 
+@pytest.mark.parametrize("driver", ["ouster", "velodyne", "hesai"])
+def test_argoverse2_sweeps_keep_their_per_point_offsets_through_a_bag(driver, tmp_path) -> None:
+    """Argoverse 2's two real sweeps with their own per-point times (``<ts>_offset_ns.bin``, int64
+    ns from the sweep's stamp), written in each driver's convention: read back as offsets from
+    each sweep's first point, to the convention's resolution, with every point."""
+    root = require_data("pairs/argoverse2/315966265259836000.bin") / "pairs/argoverse2"
+    stamps = (315966265259836000, 315966265360032000)
+    clouds = [read_cloud(root / f"{ts}.bin") for ts in stamps]
+    offsets = [np.fromfile(root / f"{ts}_offset_ns.bin", "<i8") for ts in stamps]
+    seconds = [(o - o.min()) * 1e-9 for o in offsets]
+    assert all(0.09 < s.max() < 0.11 for s in seconds)  # (one 10 Hz sweep each)
+    bag = write_bag(
+        tmp_path / "av2", "mcap",
+        [c.xyz.astype(np.float32) for c in clouds],
+        [np.asarray(c.intensity, np.float32) for c in clouds],
+        np.array([(ts - stamps[0]) * 1e-9 for ts in stamps]),
+        time_field=driver, offsets_s=seconds,
+    )  # fmt: skip
+    tolerance = {"ouster": 1e-9, "velodyne": 8e-9, "hesai": 3e-7}[driver]
+    for cloud, expected, read in zip(clouds, seconds, open_bag(bag), strict=True):
+        assert read.time_offset_s is not None and len(read.xyz) == cloud.n_points > 90_000
+        np.testing.assert_array_equal(read.xyz, cloud.xyz)
+        np.testing.assert_allclose(read.time_offset_s, expected, atol=tolerance)
+
+
 def test_the_topic_is_chosen_or_the_only_pointcloud2(kitti, tmp_path) -> None:
     _, xyz, intensity, times = kitti
     two = write_bag(
