@@ -68,12 +68,15 @@ from wire.rmw_zenoh import (
 from wire.ros2 import (
     NAV_SAT_FIX,
     ODOMETRY,
+    POINT_STAMPED,
     POINTCLOUD2,
     STRING,
     TRANSFORM_STAMPED,
     Ros2Scan,
     odometry_cdr,
+    pointcloud2_cdr,
     read_navsatfix,
+    read_point_stamped,
     string_cdr,
     transform_cdr,
     type_hash,
@@ -150,6 +153,19 @@ def _peek_header(cdr: bytes) -> tuple[int | None, str | None]:
 
 _Answer = PoseMessage | ErrorMessage | CorrectionMessage
 
+#: ``map_near(vehicle, session, x, y, radius_m)``: the saved points of the map the session folds
+#: into within ``radius_m`` (tiles, XY) of ``(x, y)``: ``(xyz, intensity, in the shared map)``, or
+#: ``None`` (no such running session).
+MapNear = Callable[[str, str, float, float, float], "tuple[np.ndarray, np.ndarray | None, bool] | None"]
+
+
+@dataclass(frozen=True)
+class _MapRequest:
+    vehicle: str
+    session: str
+    stamp_ns: int
+    point: np.ndarray
+
 
 @dataclass
 class _Route:
@@ -180,9 +196,11 @@ class Ros2Bridge:
         on_scan: Callable[[str, Ros2Scan, int], None],
         metrics: ServiceMetrics,
         *,
+        map_near: MapNear | None = None,
         max_outbound: int = 10_000,
     ) -> None:
         self.settings = settings
+        self._map_near = map_near
         self._on_scan = on_scan
         self._metrics = metrics
         self._session: zenoh.Session | None = None
@@ -193,14 +211,15 @@ class Ros2Bridge:
         self._listening: dict[str, Any] = {}  # topic -> its subscription's liveliness token
         self._entities = itertools.count(1)
         self._lock = threading.Lock()
-        self._out: queue.Queue[_Answer | None] = queue.Queue(max_outbound)
+        self._out: queue.Queue[_Answer | _MapRequest | None] = queue.Queue(max_outbound)
         self._sender: threading.Thread | None = None
         self._topics: set[str] = set()
         self._fixes: OrderedDict[str, deque[tuple[int, GnssFix]]] = OrderedDict()
         self._warned: dict[tuple[str, str], int] = {}
         self.dropped_outbound = 0
-        #: the settings with the NavSatFix topic as the only topic (vehicle_of_topic for fixes)
+        #: the settings with the NavSatFix (map request) topic as the only topic, for vehicle_of_topic
         self._gnss_topics = settings.model_copy(update={"topics": (settings.gnss_topic or "gnss/fix",)})
+        self._request_topics = settings.model_copy(update={"topics": (settings.map_request_topic,)})
 
     @property
     def is_open(self) -> bool:
@@ -236,6 +255,9 @@ class Ros2Bridge:
         if s.gnss_topic is not None:
             gnss = f"{s.domain}/**/{dds_type_name(NAV_SAT_FIX)}/*"
             self._handles.append(self._session.declare_subscriber(gnss, self._on_fix))
+        if self._map_near is not None:
+            requests = f"{s.domain}/**/{dds_type_name(POINT_STAMPED)}/*"
+            self._handles.append(self._session.declare_subscriber(requests, self._on_map_request))
         log.info(
             "ROS 2: client of %s, domain %d, topics %s", ", ".join(s.connect), s.domain, ", ".join(s.topics)
         )
@@ -314,6 +336,35 @@ class Ros2Bridge:
             kept.append((stamp_ns, fix))
         self._count(topic, "accepted")
 
+    def _on_map_request(self, sample: zenoh.Sample) -> None:
+        """A PointStamped on ``<namespace>/randt/map_request``: the map around its point, queued for
+        the sender thread (the tiles are read and serialized there, not here)."""
+        key = topic = str(sample.key_expr)
+        try:
+            topic = parse_topic_key(key).topic
+            found = vehicle_of_topic(topic, self._request_topics)
+            if found is None:
+                return
+            stamp_ns, _, point = read_point_stamped(sample.payload.to_bytes())
+        except BadMessageError as exc:
+            self._count(topic, exc.code)
+            self._warn(topic, exc.code, str(exc))
+            return
+        except Exception:  # never let an exception escape into Zenoh's thread
+            log.exception("ROS 2 map request on %s failed", key)
+            return
+        with self._lock:  # the vehicle's newest session (routes are kept in order of use)
+            session = next((s for v, s in reversed(self._routes) if v == found[0]), None)
+        if session is None:
+            self._count(topic, "no_session")
+            self._warn(topic, "no_session", f"no session of vehicle {found[0]} to send a map to")
+            return
+        self._count(topic, "accepted")
+        try:
+            self._out.put_nowait(_MapRequest(found[0], session, stamp_ns, point))
+        except queue.Full:
+            self.dropped_outbound += 1
+
     def _fix_at(self, vehicle: str, stamp_ns: int) -> GnssFix | None:
         """The vehicle's fix nearest ``stamp_ns``, within ``gnss_max_gap_s`` (under the lock)."""
         kept = self._fixes.get(vehicle)
@@ -377,11 +428,14 @@ class Ros2Bridge:
             except Exception:
                 log.exception("ROS 2: answering %s/%s failed", message.vehicle, message.session)
 
-    def _publish(self, message: _Answer) -> None:
+    def _publish(self, message: _Answer | _MapRequest) -> None:
         s = self.settings
         with self._lock:
             route = self._routes.get((message.vehicle, message.session))
         if route is None:
+            return
+        if isinstance(message, _MapRequest):
+            self._send_map(route, message)
             return
         if isinstance(message, PoseMessage):
             route.last_stamp_ns = max(route.last_stamp_ns, message.stamp_ns)
@@ -410,6 +464,19 @@ class Ros2Bridge:
             return
         status.update(vehicle=message.vehicle, session=message.session)
         self._put(route, s.status_topic, STRING, string_cdr(status))
+
+    def _send_map(self, route: _Route, request: _MapRequest) -> None:
+        """The saved map around the requested point as one PointCloud2 on ``map_topic``: in
+        ``map_frame`` for a session in the shared map, else in its own frame (``odom_frame``)."""
+        s = self.settings
+        assert self._map_near is not None
+        x, y = float(request.point[0]), float(request.point[1])
+        found = self._map_near(request.vehicle, request.session, x, y, s.map_radius_m)
+        if found is None:
+            return
+        xyz, intensity, shared = found
+        frame = s.map_frame if shared else s.odom_frame
+        self._put(route, s.map_topic, POINTCLOUD2, pointcloud2_cdr(request.stamp_ns, frame, xyz, intensity))
 
     def _put(self, route: _Route, name: str, ros_type: str, payload: bytes) -> None:
         """Publish on ``name`` (relative: under the robot's namespace) as rmw_zenoh does."""

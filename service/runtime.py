@@ -12,6 +12,8 @@ import logging
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from service.matchers import MatcherExecutor, single_threaded_blas
 from service.metrics import ServiceMetrics
 from service.ros2 import Ros2Bridge
@@ -55,7 +57,7 @@ class Service:
             self.transport = ZenohTransport(s, self._on_scan, self.tile_payload)
             outbox = self.transport.send
             if s.ros2.enabled:
-                self.ros2 = Ros2Bridge(s.ros2, self._on_scan, self.metrics)
+                self.ros2 = Ros2Bridge(s.ros2, self._on_scan, self.metrics, map_near=self.map_near)
                 outbox = self._answer_both
         else:
             outbox = self._sent.append
@@ -87,6 +89,25 @@ class Service:
         if tile is None:
             return None
         return encode(self.sessions.tile_message(map_name, tile))
+
+    def map_near(
+        self, vehicle: str, session: str, x: float, y: float, radius_m: float
+    ) -> tuple[np.ndarray, np.ndarray | None, bool] | None:
+        """The saved points of the map a running session folds into, in the tiles within
+        ``radius_m`` of ``(x, y)`` (a ROS 2 robot's map request): ``(xyz, intensity, whether it is
+        the shared map)``; ``None`` when the session is not running."""
+        sessions = self.sessions
+        name = None if sessions is None else sessions.fold_map(vehicle, session)
+        saved = None if sessions is None or name is None else sessions.durable_map(name)
+        if saved is None:
+            return None
+        wanted = set(saved.grid.tiles_within_radius((x, y), radius_m))
+        tiles = [t for t in saved.tiles() if t.id in wanted]
+        if not tiles:
+            return np.zeros((0, 3), np.float32), None, name == self.settings.default_map
+        xyz = np.concatenate([t.points for t in tiles])
+        intensity = np.concatenate([t.intensity for t in tiles])
+        return xyz, intensity, name == self.settings.default_map
 
     def map_stats(self) -> dict[str, tuple[int, int]]:
         """``{map name: (tiles, points)}`` of the live maps (read by ``/metrics`` at each scrape)."""

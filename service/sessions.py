@@ -1405,6 +1405,13 @@ class SessionManager:
             # Unreadable: versions from 1 could repeat a deleted map's; refuse rather than lie.
             raise RandtError(f"map {map_name}: cannot read its version floor: {exc}") from exc
 
+    def fold_map(self, vehicle: str, session: str) -> str | None:
+        """The map a running session's points go into (the shared map it joined, or its own);
+        ``None`` when the session is not running."""
+        with self._lock:
+            w = self._workers.get((vehicle, session))
+            return None if w is None else (w.info.joined_map or w.info.map_name)
+
     def durable_map(self, map_name: str) -> DurableMap | None:
         """The map as last saved (:class:`DurableMap`), ``None`` if there is no such map."""
         with self._lock:

@@ -97,6 +97,16 @@ class Ros2Settings(BaseModel):
     gnss_max_gap_s: float = Field(
         default=0.1, gt=0, le=1.0, description="a fix this far in time from a scan's stamp is not its"
     )
+    map_request_topic: str = Field(
+        default="randt/map_request",
+        pattern=_ROS_NAME,
+        description="a geometry_msgs/PointStamped here asks for the map around its point, answered "
+        "as one sensor_msgs/PointCloud2 on map_topic (docs/ros2.md)",
+    )
+    map_topic: str = Field(default="randt/map", pattern=_ROS_NAME)
+    map_radius_m: float = Field(
+        default=100.0, gt=0, le=1000.0, description="the map tiles within this of the requested point"
+    )
 
     @field_validator("connect")
     @classmethod

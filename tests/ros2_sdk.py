@@ -22,6 +22,7 @@ TYPES = (
     "geometry_msgs/msg/TransformStamped",
     "std_msgs/msg/String",
     "sensor_msgs/msg/NavSatFix",
+    "geometry_msgs/msg/PointStamped",
 )
 
 

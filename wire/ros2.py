@@ -36,11 +36,14 @@ __all__ = [
     "NAV_SAT_FIX",
     "ODOMETRY",
     "POINTCLOUD2",
+    "POINT_STAMPED",
     "STRING",
     "TRANSFORM_STAMPED",
     "Ros2Scan",
     "odometry_cdr",
+    "pointcloud2_cdr",
     "read_navsatfix",
+    "read_point_stamped",
     "read_pointcloud2",
     "scan_header",
     "string_cdr",
@@ -55,6 +58,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 STRING = "std_msgs/msg/String"
 NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 
 
 @functools.cache
@@ -182,6 +186,47 @@ def read_navsatfix(cdr: bytes) -> tuple[int, GnssFix | None]:
             "NavSatFix: position_covariance is not positive definite", code=ErrorCode.INVALID_FIELD
         )
     return stamp_ns, GnssFix(lat, lon, alt, tuple(cov.ravel().tolist()))
+
+
+def read_point_stamped(cdr: bytes) -> tuple[int, str, np.ndarray]:
+    """``(stamp ns, frame_id, point (3,))`` of a ``geometry_msgs/msg/PointStamped``
+    (:class:`~core.errors.BadMessageError` for what cannot be one)."""
+    try:
+        msg = typestore().deserialize_cdr(cdr, POINT_STAMPED)
+    except Exception as exc:
+        raise BadMessageError(
+            f"PointStamped: the CDR does not decode ({type(exc).__name__}: {exc})", code=ErrorCode.MALFORMED
+        ) from None
+    point = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=np.float64)
+    if not np.all(np.isfinite(point)):
+        raise BadMessageError("PointStamped: the point is not finite", code=ErrorCode.INVALID_FIELD)
+    return _stamp_ns(msg), str(msg.header.frame_id), point
+
+
+def pointcloud2_cdr(stamp_ns: int, frame_id: str, xyz: np.ndarray, intensity: np.ndarray | None) -> bytes:
+    """``sensor_msgs/msg/PointCloud2`` CDR of points (float32 x, y, z and intensity, 16 bytes a
+    point, unorganized, little-endian): the layout every ROS 2 point cloud consumer reads."""
+    types = typestore().types
+    n = len(xyz)
+    rows = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    rows["x"], rows["y"], rows["z"] = np.asarray(xyz, dtype=np.float32).T
+    rows["intensity"] = 0.0 if intensity is None else intensity
+    field = types["sensor_msgs/msg/PointField"]
+    msg = types[POINTCLOUD2](
+        header=_header(stamp_ns, frame_id),
+        height=1,
+        width=n,
+        fields=[
+            field(name=c, offset=4 * i, datatype=7, count=1)
+            for i, c in enumerate(("x", "y", "z", "intensity"))
+        ],
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * n,
+        data=rows.view(np.uint8),
+        is_dense=True,
+    )
+    return bytes(typestore().serialize_cdr(msg, POINTCLOUD2))
 
 
 def _header(stamp_ns: int, frame_id: str) -> Any:

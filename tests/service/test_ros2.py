@@ -46,6 +46,8 @@ class Ros2Drive:
     ros_poses: list[PoseMessage] = field(default_factory=list)  # robot7's answers on our keys
     raw_poses: list[PoseMessage] = field(default_factory=list)  # the same sweeps sent raw
     topics: list[tuple[str, list[str]]] = field(default_factory=list)  # the SDK's discovery
+    map_clouds: list[Any] = field(default_factory=list)  # (SDK) the map asked for, PointCloud2
+    map_tiles: list[dict[str, Any]] = field(default_factory=list)  # the same tiles over HTTP
     stamps_ns: list[int] = field(default_factory=list)
     metrics: str = ""
     url: str = ""
@@ -119,7 +121,7 @@ def ros2_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros2Drive]:
         zenoh_mode="client",
         listen=(),
         connect=(endpoint,),
-        ros2=Ros2Settings(enabled=True, connect=(endpoint,)),
+        ros2=Ros2Settings(enabled=True, connect=(endpoint,), map_radius_m=30.0),
     ) as server:
         drive.url = server.url
         listener = zenoh.open(zenoh_config("client", connect=(endpoint,)))
@@ -185,6 +187,33 @@ def ros2_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros2Drive]:
                 raw.publish(xyz[k], drive.stamps_ns[k], intensity=intensity[k], time_offset_s=offsets)
                 _wait(lambda k=k: len(drive.raw_poses) > k, f"raw pose {k}")
             raw.close()
+            # the map around the robot, asked for with a PointStamped, as a PointCloud2
+            maps_url = f"{server.url}/maps"
+            _wait(
+                lambda: any(
+                    m["name"].startswith("robot7.") and m["tiles"] for m in httpx.get(maps_url).json()["maps"]
+                ),
+                "robot7's saved tiles",
+            )
+            own = next(
+                m["name"] for m in httpx.get(maps_url).json()["maps"] if m["name"].startswith("robot7.")
+            )
+            params = {"x": 2.0, "y": 1.0, "radius": 30.0}
+            drive.map_tiles = httpx.get(f"{maps_url}/{own}/tiles", params=params).json()["tiles"]
+            asked = sdk.ROS2Publisher(
+                topic="/robot7/randt/map_request", msg_type="geometry_msgs/msg/PointStamped",
+                node_name="operator", router_port=port, domain_id=0,
+            )  # fmt: skip
+            answers = sdk.ROS2Subscriber(
+                topic="/robot7/randt/map", msg_type="sensor_msgs/msg/PointCloud2",
+                callback=drive.map_clouds.append, router_port=port, domain_id=0,
+            )  # fmt: skip
+            time.sleep(0.5)  # (the SDK's subscriber declared through the router)
+            point = types["geometry_msgs/msg/Point"](x=2.0, y=1.0, z=0.0)
+            asked.publish(header=_header(types, STAMP0_NS + 5 * 10**9, "randt_odom"), point=point)
+            _wait(lambda: drive.map_clouds, "the map asked for")
+            asked.close()
+            answers.close()
             # a cloud without x, y, z: answered on the status topic, nothing else breaks
             broken = _cloud(types, xyz[0][:10], intensity[0][:10], np.zeros(10, np.float32))
             broken["fields"] = broken["fields"][3:]
@@ -276,6 +305,25 @@ def test_bad_samples_are_answered_or_counted_never_fatal(ros2_drive: Ros2Drive) 
         ln for ln in d.metrics.splitlines() if ln.startswith("randt_ros2_samples_total") and "accepted" in ln
     )
     assert accepted.endswith(f" {N_FRAMES + 1}.0")
+
+
+def test_the_map_around_a_point_comes_as_a_pointcloud2_on_request(ros2_drive: Ros2Drive) -> None:
+    """A PointStamped on ``<ns>/randt/map_request`` is answered with the saved tiles within
+    ``map_radius_m`` (30 m here, RANDT_ROS2__MAP_RADIUS_M) of its point as one PointCloud2 on
+    ``<ns>/randt/map``: the same tiles and points the HTTP radius query lists, in the robot's
+    session frame (its own map: no priors), readable by any PointCloud2 consumer."""
+    from core.io.pointcloud2 import decode_pointcloud2
+
+    d = ros2_drive
+    (cloud,) = d.map_clouds
+    assert cloud.header.frame_id == "randt_odom"
+    assert (cloud.header.stamp.sec, cloud.header.stamp.nanosec) == divmod(STAMP0_NS + 5 * 10**9, 10**9)
+    points = decode_pointcloud2(cloud)
+    assert d.map_tiles and points.n_points == sum(t["points"] for t in d.map_tiles) > 10_000
+    lo = np.array([min(t["bounds"]["min_xyz"][k] for t in d.map_tiles) for k in range(3)])
+    hi = np.array([max(t["bounds"]["max_xyz"][k] for t in d.map_tiles) for k in range(3)])
+    assert np.all(points.xyz >= lo - 1e-3) and np.all(points.xyz <= hi + 1e-3)
+    assert points.intensity is not None  # (this KITTI copy's intensities are all 0)
 
 
 @pytest.mark.parametrize(
