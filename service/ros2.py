@@ -160,6 +160,14 @@ MapNear = Callable[[str, str, float, float, float], "tuple[np.ndarray, np.ndarra
 
 
 @dataclass(frozen=True)
+class _Listen:
+    """Announce our subscription to a scan topic (its ``MS`` token), from the sender thread."""
+
+    topic: str
+    hash_like: str
+
+
+@dataclass(frozen=True)
 class _MapRequest:
     vehicle: str
     session: str
@@ -208,10 +216,10 @@ class Ros2Bridge:
         self._handles: list[Any] = []
         self._routes: OrderedDict[tuple[str, str], _Route] = OrderedDict()
         self._publishers: dict[str, _Publisher] = {}
-        self._listening: dict[str, Any] = {}  # topic -> its subscription's liveliness token
+        self._listening: dict[str, Any] = {}  # topic -> its subscription's liveliness token (or None: queued)
         self._entities = itertools.count(1)
         self._lock = threading.Lock()
-        self._out: queue.Queue[_Answer | _MapRequest | None] = queue.Queue(max_outbound)
+        self._out: queue.Queue[_Answer | _MapRequest | _Listen | None] = queue.Queue(max_outbound)
         self._sender: threading.Thread | None = None
         self._topics: set[str] = set()
         self._fixes: OrderedDict[str, deque[tuple[int, GnssFix]]] = OrderedDict()
@@ -301,9 +309,12 @@ class Ros2Bridge:
                 )
             else:
                 self._routes.move_to_end((vehicle, session))
-            listening = topic in self._listening
-        if not listening:
-            self._listen(topic, parsed.type_hash)
+            listen = topic not in self._listening and len(self._listening) < MAX_ROUTES
+            if listen:
+                self._listening[topic] = None  # (declared by the sender thread)
+        if listen:
+            with contextlib.suppress(queue.Full):
+                self._out.put_nowait(_Listen(topic, parsed.type_hash))
         self._count(topic, "accepted")
         scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
         self._on_scan(vehicle, scan, time.time_ns())
@@ -373,20 +384,19 @@ class Ros2Bridge:
         gap, fix = min(((abs(t - stamp_ns), f) for t, f in kept), key=lambda c: c[0])
         return fix if gap <= self.settings.gnss_max_gap_s * 1e9 else None
 
-    def _listen(self, topic: str, hash_like: str) -> None:
-        """Announce our subscription to ``topic`` (an ``MS`` token: ``ros2 topic info`` lists us)."""
+    def _listen(self, request: _Listen) -> None:
+        """Announce our subscription to a topic (an ``MS`` token: ``ros2 topic info`` lists us)."""
         if self._session is None:
             return
         s = self.settings
         token = liveliness_token(
             domain=s.domain, zid=self._zid, node_id=0, entity_id=next(self._entities), kind="MS",
-            namespace="/", node_name=NODE_NAME, topic=topic, ros_type=POINTCLOUD2,
-            type_hash=type_hash(POINTCLOUD2, hash_like), qos=Qos(reliability=2, depth=5),
+            namespace="/", node_name=NODE_NAME, topic=request.topic, ros_type=POINTCLOUD2,
+            type_hash=type_hash(POINTCLOUD2, request.hash_like), qos=Qos(reliability=2, depth=5),
         )  # fmt: skip
+        declared = self._session.liveliness().declare_token(token)
         with self._lock:
-            if topic in self._listening:
-                return
-            self._listening[topic] = self._session.liveliness().declare_token(token)
+            self._listening[request.topic] = declared
 
     def _count(self, topic: str, outcome: str) -> None:
         with self._lock:
@@ -398,6 +408,8 @@ class Ros2Bridge:
     def _warn(self, topic: str, code: str, reason: str) -> None:
         """Logged per topic and reason: the first time, then every 100th."""
         with self._lock:
+            if len(self._warned) > MAX_ROUTES:  # (a flood of topics: counting starts again)
+                self._warned.clear()
             n = self._warned[(topic, code)] = self._warned.get((topic, code), 0) + 1
         if n == 1 or n % 100 == 0:
             log.warning("ROS 2 sample on %s refused (%s, %d so far): %s", topic, code, n, reason)
@@ -426,10 +438,13 @@ class Ros2Bridge:
             try:
                 self._publish(message)
             except Exception:
-                log.exception("ROS 2: answering %s/%s failed", message.vehicle, message.session)
+                log.exception("ROS 2: sending %s failed", type(message).__name__)
 
-    def _publish(self, message: _Answer | _MapRequest) -> None:
+    def _publish(self, message: _Answer | _MapRequest | _Listen) -> None:
         s = self.settings
+        if isinstance(message, _Listen):
+            self._listen(message)
+            return
         with self._lock:
             route = self._routes.get((message.vehicle, message.session))
         if route is None:
@@ -501,6 +516,10 @@ class Ros2Bridge:
             qos=Qos(depth=10),
         )  # fmt: skip
         gid = hashlib.blake2b(token.encode(), digest_size=16).digest()
+        while len(self._publishers) >= 4 * MAX_ROUTES:  # (the oldest robots' answer topics go)
+            oldest = self._publishers.pop(next(iter(self._publishers)))
+            with contextlib.suppress(Exception):
+                oldest.token.undeclare()
         publisher = self._publishers[key] = _Publisher(
             key, gid, self._session.liveliness().declare_token(token)
         )
@@ -511,7 +530,8 @@ class Ros2Bridge:
         if self._sender is not None:
             self._out.put(None)
             self._sender.join(10)
-        tokens = [*self._handles, *self._listening.values(), *(p.token for p in self._publishers.values())]
+        listening = [t for t in self._listening.values() if t is not None]
+        tokens = [*self._handles, *listening, *(p.token for p in self._publishers.values())]
         for handle in tokens:
             with contextlib.suppress(Exception):
                 handle.undeclare()
