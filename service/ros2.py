@@ -236,7 +236,7 @@ class Ros2Bridge:
     def open(self) -> None:
         s = self.settings
         try:
-            self._session = zenoh.open(zenoh_config("client", (), s.connect))
+            self._session = zenoh.open(zenoh_config("client", (), s.connect, config_file=s.zenoh_config))
         except zenoh.ZError as exc:
             reason = str(exc).split(" at /", 1)[0]
             raise ValueError(

@@ -62,6 +62,11 @@ class Ros2Settings(BaseModel):
         description="the rmw_zenohd router(s) the service connects to, as a Zenoh client (rmw_zenoh's "
         "router forwards to clients, not between peers)",
     )
+    zenoh_config: Path | None = Field(
+        default=None,
+        description="a native Zenoh config file for the session to the router (TLS, user/password: "
+        "docs/security.md); its mode and connect endpoints are replaced by client and `connect`",
+    )
     domain: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
     topics: tuple[str, ...] = Field(
         default=("lidar/points",),
@@ -112,6 +117,19 @@ class Ros2Settings(BaseModel):
     @classmethod
     def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
         return check_endpoints(value)
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _zenoh_config_file(cls, value: Path | None) -> Path | None:
+        if value is not None:
+            load_config_file(value)  # a missing or invalid file is one clear error, before anything starts
+        return value
+
+    @model_validator(mode="after")
+    def _endpoints_fit_the_config_file(self) -> Ros2Settings:
+        if self.zenoh_config is not None:
+            check_protocols(load_config_file(self.zenoh_config), self.connect, self.zenoh_config)
+        return self
 
     @field_validator("topics")
     @classmethod

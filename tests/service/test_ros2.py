@@ -417,3 +417,17 @@ def test_a_scan_takes_its_robots_navsatfix_nearest_in_time() -> None:
     assert got[0].fix is not None and got[0].fix.latitude == 48.1  # 30 ms from the second fix
     assert got[1].fix is not None and got[1].fix.latitude == 48.2  # 40 ms from the third
     assert got[2].fix is None  # 300 ms from the newest: not its
+
+
+def test_a_zenoh_config_for_the_router_is_checked_against_the_endpoints(tmp_path: Path) -> None:
+    """RANDT_ROS2__ZENOH_CONFIG: a file that does not read, or allows only TLS while the router is
+    given as tcp/, is one clear error before anything starts."""
+    from pydantic import ValidationError
+
+    tls_only = tmp_path / "tls.json5"
+    tls_only.write_text('{ transport: { link: { protocols: ["tls"] } } }')
+    with pytest.raises(ValidationError, match="tcp"):
+        Ros2Settings(zenoh_config=tls_only, connect=("tcp/127.0.0.1:7447",))
+    assert Ros2Settings(zenoh_config=tls_only, connect=("tls/router:7447",)).zenoh_config == tls_only
+    with pytest.raises(ValidationError, match=r"missing\.json5"):
+        Ros2Settings(zenoh_config=tmp_path / "missing.json5")
