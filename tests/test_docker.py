@@ -28,6 +28,7 @@ import yaml
 from typer.main import get_command
 
 from cli.main import app as randt_app
+from cli.serve import SETTINGS_OPTIONS, with_ros2
 from clients.publisher import PublisherSettings
 from service.app import create_app
 from service.settings import ServiceSettings
@@ -284,8 +285,10 @@ def test_every_randt_command_line_parses_with_the_real_cli(monkeypatch: pytest.M
         _set_environment(monkeypatch, _environment(service))
         command, params = _parse(_argv(service))
         seen.add(command)
-        if command == "serve":
-            settings = ServiceSettings(**_flags(params, *params))
+        if command == "serve":  # (as cli/serve.py builds them: its settings options, then --ros2)
+            settings = ServiceSettings(**_flags(params, *SETTINGS_OPTIONS))
+            if params["ros2"] or params["ros2_connect"]:
+                settings = with_ros2(settings, params["ros2_connect"])
             assert settings.zenoh_mode == "client", name
         elif command == "simulate":
             assert params["vehicles"] == 3 and params["duration"] == 60.0
@@ -387,10 +390,10 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     _set_environment(monkeypatch, _environment(service, {"RANDT_EXECUTOR": "rya"}))
     with pytest.raises(ValueError, match="executor"):
         ServiceSettings()
-    # the image has Ray and the geodetic projections: it installs the ray and geo extras
+    # the image has Ray, the geodetic projections and ROS 2's CDR: it installs those extras
     _, stages = _dockerfile_stages()
     installs = [rest for stage in stages for word, rest in stage if word == "RUN" and "pip install" in rest]
-    assert any('".[ray,geo]"' in rest for rest in installs), installs
+    assert any('".[ray,geo,ros2]"' in rest for rest in installs), installs
 
 
 def test_the_tls_override_mounts_what_randt_security_init_writes(
