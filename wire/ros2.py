@@ -110,7 +110,9 @@ def read_pointcloud2(cdr: bytes) -> Any:
             code=ErrorCode.MALFORMED,
         )
     try:
-        return store.deserialize_cdr(cdr, POINTCLOUD2)
+        # (from a memoryview rosbags' data field is a view of the bytes: 0.01 ms, not a 0.25 ms
+        # copy of a 2.5 MB sweep)
+        return store.deserialize_cdr(memoryview(cdr), POINTCLOUD2)
     except Exception as exc:  # rosbags raises plain exceptions on short or bad bytes
         raise BadMessageError(
             f"PointCloud2: the CDR does not decode ({type(exc).__name__}: {exc})", code=ErrorCode.MALFORMED
