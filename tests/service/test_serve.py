@@ -57,10 +57,17 @@ def test_serve_answers_and_flushes_on_signal(tmp_path, sig) -> None:
         sub = vehicle.declare_subscriber(
             "randt/fleet/car7/pose", lambda s: (poses.append(decode_pose(s.payload.to_bytes())), got.set())
         )
-        time.sleep(0.5)
+        # Sent once the service's scan subscription is known here (a condition, not a clock: the
+        # fixed 0.5 s wait lost the scan once, beside two CPU burners), with our answer
+        # subscription declared before it.
+        publisher = vehicle.declare_publisher("randt/fleet/car7/scan")
+        deadline = time.monotonic() + 60
+        while not publisher.matching_status.matching:
+            assert time.monotonic() < deadline, "the service's scan subscription never reached the vehicle"
+            time.sleep(0.05)
         room = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
-        vehicle.put("randt/fleet/car7/scan", encode(scan_from_arrays("car7", "d1", 0, 0, room)))
-        assert got.wait(30), "a pose came back over Zenoh"
+        publisher.put(encode(scan_from_arrays("car7", "d1", 0, 0, room)))
+        assert got.wait(60), "a pose came back over Zenoh"
         assert poses[0].seq == 0 and poses[0].status == "first"
         status = httpx.get(f"http://127.0.0.1:{hport}/status", timeout=5).json()
         assert status["sessions"][0]["vehicle"] == "car7" and status["sessions"][0]["frame"] == "session"
