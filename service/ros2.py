@@ -44,7 +44,7 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
@@ -152,6 +152,7 @@ def _peek_header(cdr: bytes) -> tuple[int | None, str | None]:
 
 
 _Answer = PoseMessage | ErrorMessage | CorrectionMessage
+_T = TypeVar("_T")
 
 #: ``map_near(vehicle, session, x, y, radius_m)``: the saved points of the map the session folds
 #: into within ``radius_m`` (tiles, XY) of ``(x, y)``: ``(xyz, intensity, in the shared map)``, or
@@ -319,29 +320,37 @@ class Ros2Bridge:
         scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
         self._on_scan(vehicle, scan, time.time_ns())
 
-    def _on_fix(self, sample: zenoh.Sample) -> None:
-        """A NavSatFix: kept for the vehicle's next scans (a few hundred bytes, decoded here)."""
+    def _read_small(
+        self, sample: zenoh.Sample, topics: Ros2Settings, read: Callable[[bytes], _T]
+    ) -> tuple[str, str, _T] | None:
+        """``(topic, vehicle, message)`` of a small sample (a fix, a request: decoded here, in
+        Zenoh's callback) on one of ``topics``' topics; ``None`` for another topic, or for one that
+        does not read (counted and logged per topic, never raised into Zenoh's thread)."""
         key = topic = str(sample.key_expr)
         try:
             topic = parse_topic_key(key).topic
-            found = vehicle_of_topic(topic, self._gnss_topics)
-            if found is None:
-                return
-            stamp_ns, fix = read_navsatfix(sample.payload.to_bytes())
+            found = vehicle_of_topic(topic, topics)
+            return None if found is None else (topic, found[0], read(sample.payload.to_bytes()))
         except BadMessageError as exc:
             self._count(topic, exc.code)
             self._warn(topic, exc.code, str(exc))
+        except Exception:
+            log.exception("ROS 2 sample on %s failed", key)
+        return None
+
+    def _on_fix(self, sample: zenoh.Sample) -> None:
+        """A NavSatFix: kept for the vehicle's next scans (a few hundred bytes)."""
+        got = self._read_small(sample, self._gnss_topics, read_navsatfix)
+        if got is None:
             return
-        except Exception:  # never let an exception escape into Zenoh's thread
-            log.exception("ROS 2 NavSatFix on %s failed", key)
-            return
+        topic, vehicle, (stamp_ns, fix) = got
         if fix is None:
             self._count(topic, "no_fix")
             return
         with self._lock:
-            kept = self._fixes.get(found[0])
+            kept = self._fixes.get(vehicle)
             if kept is None:
-                kept = self._fixes[found[0]] = deque(maxlen=FIXES_KEPT)
+                kept = self._fixes[vehicle] = deque(maxlen=FIXES_KEPT)
                 while len(self._fixes) > MAX_GNSS_VEHICLES:
                     self._fixes.popitem(last=False)
             kept.append((stamp_ns, fix))
@@ -350,29 +359,19 @@ class Ros2Bridge:
     def _on_map_request(self, sample: zenoh.Sample) -> None:
         """A PointStamped on ``<namespace>/randt/map_request``: the map around its point, queued for
         the sender thread (the tiles are read and serialized there, not here)."""
-        key = topic = str(sample.key_expr)
-        try:
-            topic = parse_topic_key(key).topic
-            found = vehicle_of_topic(topic, self._request_topics)
-            if found is None:
-                return
-            stamp_ns, _, point = read_point_stamped(sample.payload.to_bytes())
-        except BadMessageError as exc:
-            self._count(topic, exc.code)
-            self._warn(topic, exc.code, str(exc))
+        got = self._read_small(sample, self._request_topics, read_point_stamped)
+        if got is None:
             return
-        except Exception:  # never let an exception escape into Zenoh's thread
-            log.exception("ROS 2 map request on %s failed", key)
-            return
+        topic, vehicle, (stamp_ns, _, point) = got
         with self._lock:  # the vehicle's newest session (routes are kept in order of use)
-            session = next((s for v, s in reversed(self._routes) if v == found[0]), None)
+            session = next((s for v, s in reversed(self._routes) if v == vehicle), None)
         if session is None:
             self._count(topic, "no_session")
-            self._warn(topic, "no_session", f"no session of vehicle {found[0]} to send a map to")
+            self._warn(topic, "no_session", f"no session of vehicle {vehicle} to send a map to")
             return
         self._count(topic, "accepted")
         try:
-            self._out.put_nowait(_MapRequest(found[0], session, stamp_ns, point))
+            self._out.put_nowait(_MapRequest(vehicle, session, stamp_ns, point))
         except queue.Full:
             self.dropped_outbound += 1
 

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from core.config import RegistrationSettings
@@ -44,6 +44,24 @@ __all__ = ["Ros2Settings", "ServiceSettings"]
 NDT_VOXELS_PER_MAP_VOXEL = 5.0
 
 
+def _readable_config(value: Path | None) -> Path | None:
+    """A missing or invalid Zenoh config file is one clear error, before anything starts."""
+    if value is not None:
+        load_config_file(value)
+    return value
+
+
+def _fits_config(path: Path | None, endpoints: tuple[str, ...]) -> None:
+    """e.g. tcp/... endpoints with a TLS-only file: one error now, not Zenoh's at open."""
+    if path is not None:
+        check_protocols(load_config_file(path), endpoints, path)
+
+
+#: Zenoh endpoints (``tcp/host:port``...), checked.
+Endpoints = Annotated[tuple[str, ...], AfterValidator(check_endpoints)]
+#: A native Zenoh config file that reads.
+ZenohConfigFile = Annotated[Path | None, AfterValidator(_readable_config)]
+
 _ROS_NAME = r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$"
 
 
@@ -57,12 +75,12 @@ class Ros2Settings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = Field(default=False, description="subscribe to the robots' PointCloud2 topics")
-    connect: tuple[str, ...] = Field(
+    connect: Endpoints = Field(
         default=("tcp/127.0.0.1:7447",),
         description="the rmw_zenohd router(s) the service connects to, as a Zenoh client (rmw_zenoh's "
         "router forwards to clients, not between peers)",
     )
-    zenoh_config: Path | None = Field(
+    zenoh_config: ZenohConfigFile = Field(
         default=None,
         description="a native Zenoh config file for the session to the router (TLS, user/password: "
         "docs/security.md); its mode and connect endpoints are replaced by client and `connect`",
@@ -113,22 +131,9 @@ class Ros2Settings(BaseModel):
         default=100.0, gt=0, le=1000.0, description="the map tiles within this of the requested point"
     )
 
-    @field_validator("connect")
-    @classmethod
-    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        return check_endpoints(value)
-
-    @field_validator("zenoh_config")
-    @classmethod
-    def _zenoh_config_file(cls, value: Path | None) -> Path | None:
-        if value is not None:
-            load_config_file(value)  # a missing or invalid file is one clear error, before anything starts
-        return value
-
     @model_validator(mode="after")
     def _endpoints_fit_the_config_file(self) -> Ros2Settings:
-        if self.zenoh_config is not None:
-            check_protocols(load_config_file(self.zenoh_config), self.connect, self.zenoh_config)
+        _fits_config(self.zenoh_config, self.connect)
         return self
 
     @field_validator("topics")
@@ -159,10 +164,10 @@ class ServiceSettings(BaseSettings):
     instance: str = Field(default="randt-1", pattern=ID_REGEX)
     # Zenoh
     zenoh_mode: Literal["peer", "client"] = "peer"
-    listen: tuple[str, ...] = Field(default=("tcp/127.0.0.1:7447",), description="Zenoh endpoints")
-    connect: tuple[str, ...] = Field(default=(), description="routers or peers to connect to")
+    listen: Endpoints = Field(default=("tcp/127.0.0.1:7447",), description="Zenoh endpoints")
+    connect: Endpoints = Field(default=(), description="routers or peers to connect to")
     # Zenoh security (docs/security.md)
-    zenoh_config: Path | None = Field(
+    zenoh_config: ZenohConfigFile = Field(
         default=None,
         description="native Zenoh JSON5 config file (TLS, mTLS, user/password, access control); "
         "mode, listen and connect still come from these settings",
@@ -421,24 +426,9 @@ class ServiceSettings(BaseSettings):
             return {**MATCHER_REGISTRATION.model_dump(exclude_defaults=True), **value}
         return value
 
-    @field_validator("listen", "connect")
-    @classmethod
-    def _endpoints(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        return check_endpoints(value)
-
-    @field_validator("zenoh_config")
-    @classmethod
-    def _zenoh_config_file(cls, value: Path | None) -> Path | None:
-        if value is not None:
-            load_config_file(value)  # a missing or invalid file is one clear error, before anything starts
-        return value
-
     @model_validator(mode="after")
     def _endpoints_fit_the_config_file(self) -> ServiceSettings:
-        if self.zenoh_config is not None:  # e.g. --listen tcp/... with a TLS-only file: one error now
-            check_protocols(
-                load_config_file(self.zenoh_config), self.listen + self.connect, self.zenoh_config
-            )
+        _fits_config(self.zenoh_config, self.listen + self.connect)
         return self
 
     @model_validator(mode="after")

@@ -1,5 +1,6 @@
 """zenoh-ros2-sdk (PyPI, Apache-2.0; not ours) for the tests: an independent Python implementation
-of rmw_zenoh's format, publishing and subscribing as a ROS 2 node would (docs/rmw_zenoh.md §5).
+of rmw_zenoh's format, publishing and subscribing as a ROS 2 node would (docs/rmw_zenoh.md §5);
+and the PointCloud2 fields the tests publish, built with rosbags' message classes.
 
 It fetches message definitions with git at first use unless it finds them in a local tree, and
 there is no network here: :func:`message_tree` writes that tree from ``rosbags``' Jazzy type store
@@ -14,6 +15,8 @@ import os
 import re
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 #: The types the tests publish or receive (their dependencies are written too).
 TYPES = (
@@ -66,3 +69,34 @@ def load_sdk(root: Path) -> Any:
         _LOADED = message_tree(root / "msgs")
         get_registry(str(_LOADED))
     return zenoh_ros2_sdk
+
+
+#: The columns of the tests' clouds: float32 x, y, z, intensity and a Velodyne-style ``time``
+#: (float32 seconds), 20 bytes a point.
+FIELDS = ("x", "y", "z", "intensity", "time")
+
+
+def cloud_fields(types: Any, xyz: np.ndarray, intensity: np.ndarray, offsets: np.ndarray) -> dict[str, Any]:
+    """A PointCloud2's fields but its header (rosbags' ``types``), for the SDK's publish or the
+    message class."""
+    rows = np.empty(len(xyz), dtype=[(f, "<f4") for f in FIELDS])
+    rows["x"], rows["y"], rows["z"] = xyz.T
+    rows["intensity"], rows["time"] = intensity, offsets
+    point = types["sensor_msgs/msg/PointField"]
+    return {
+        "height": 1,
+        "width": len(rows),
+        "fields": [point(name=f, offset=4 * i, datatype=7, count=1) for i, f in enumerate(FIELDS)],
+        "is_bigendian": False,
+        "point_step": 20,
+        "row_step": 20 * len(rows),
+        "data": rows.view(np.uint8),
+        "is_dense": True,
+    }
+
+
+def header(types: Any, stamp_ns: int, frame: str = "velodyne") -> Any:
+    """A ``std_msgs/msg/Header`` at ``stamp_ns``."""
+    sec, nanosec = divmod(stamp_ns, 10**9)
+    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+    return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)

@@ -66,15 +66,18 @@ def _to_wgs84_with_pyproj(xyz: np.ndarray, info: dict) -> tuple[np.ndarray, np.n
     return np.asarray(lat), np.asarray(lon), xyz[:, 2] + o["altitude"]
 
 
-def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) -> None:
+def _drive(n: int) -> tuple[Town, list]:
+    """The simulated town 0 and ``n`` sweeps of one car's drive through it."""
     town = Town.generate(0)
     plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
-    scans = list(
-        simulate(
-            town, plan.route, n_scans=N_SCANS, seed=3, lidar=Lidar64(n_azimuth=1000, max_range_m=70.0),
-            start_s_m=plan.start_s_m, workers=2,
-        )
-    )  # fmt: skip
+    lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
+    return town, list(
+        simulate(town, plan.route, n_scans=n, seed=3, lidar=lidar, start_s_m=plan.start_s_m, workers=2)
+    )
+
+
+def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) -> None:
+    town, scans = _drive(N_SCANS)
     earth = LocalCartesianUTM(MUNICH)  # the town's frame on Earth
     fixes = []
     with live_server(tmp_path / "data", capacity_target=0, graph=False) as server:
@@ -272,14 +275,7 @@ def test_a_ros2_robot_with_navsatfix_joins_the_shared_map_where_its_fixes_say(tm
     from wire.ros2 import Ros2Scan, typestore
 
     n = 75
-    town = Town.generate(0)
-    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
-    scans = list(
-        simulate(
-            town, plan.route, n_scans=n, seed=3, lidar=Lidar64(n_azimuth=1000, max_range_m=70.0),
-            start_s_m=plan.start_s_m, workers=2,
-        )
-    )  # fmt: skip
+    town, scans = _drive(n)
     earth = LocalCartesianUTM(MUNICH)
     types = typestore().types
     field = types["sensor_msgs/msg/PointField"]

@@ -22,7 +22,14 @@ from scipy.spatial import cKDTree
 
 from core.fleet_map import FleetMapSettings
 from core.transforms import invert, transform_error, umeyama
-from service.graph import MAX_TILE_SPAN, GraphState, MapGeometry, _ProcessMap, correct_trajectory
+from service.graph import (
+    MAX_TILE_SPAN,
+    GraphState,
+    MapGeometry,
+    ServiceGraph,
+    _ProcessMap,
+    correct_trajectory,
+)
 from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
 from service.transport import ZenohTransport
@@ -142,15 +149,12 @@ def test_correct_trajectory_with_one_or_no_keyframe() -> None:
     np.testing.assert_array_equal(correct_trajectory(poses, np.array([], int), poses[:0], poses[:0]), poses)
 
 
-def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() -> None:
-    """A session without priors joins the shared map; its first keyframe never reached that map's
-    graph (offered before the graph existed: seen when its first sweep was matched before the
-    other vehicle's). Its corrected trajectory must come from the keyframes the graph holds, in
-    the shared map's frame: it used to take such a keyframe's live pose (its own frame) as
-    optimized, and the corrected trajectory was 31 m off on average, 106 m at worst."""
-    from service.graph import ServiceGraph, _Keyframe
+def _joining(sent: list[CorrectionMessage]) -> tuple[ServiceGraph, tuple[str, str], np.ndarray, np.ndarray]:
+    """A service's graph view before a join: ``gnss/d1`` placed in ``default``, ``nognss/d1`` in its
+    own map with keyframes 0, 10 and 20 of a 30-sweep drive (``live``), to be placed in
+    ``default`` at ``T_map_session``; ``(graph, key, T_map_session, live)``."""
+    from service.graph import _Keyframe
 
-    sent: list[CorrectionMessage] = []
     graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
     key = ("nognss", "d1")
     T_map_session = _pose(90.0, (-34.0, -5.5, 1.7))
@@ -163,6 +167,19 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     )
     graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
     graph._session_map[("gnss", "d1")] = "default"
+    return graph, key, T_map_session, live
+
+
+def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() -> None:
+    """A session without priors joins the shared map; its first keyframe never reached that map's
+    graph (offered before the graph existed: seen when its first sweep was matched before the
+    other vehicle's). Its corrected trajectory must come from the keyframes the graph holds, in
+    the shared map's frame: it used to take such a keyframe's live pose (its own frame) as
+    optimized, and the corrected trajectory was 31 m off on average, 106 m at worst."""
+    from service.graph import _Keyframe
+
+    sent: list[CorrectionMessage] = []
+    graph, key, T_map_session, live = _joining(sent)
     # the shared map's graph places it, with the two keyframes it holds (10 and 20), moved
     moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (10, 20)]
     placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
@@ -192,21 +209,9 @@ def test_a_late_update_of_a_joined_sessions_own_map_is_not_a_join() -> None:
     moved the session's keyframes between the two maps and dropped their optimized poses: in the
     full CI suite, its corrected trajectory covered 184 of 318 sweeps and the viewer drew 7 of
     its 9 loop edges."""
-    from service.graph import ServiceGraph, _Keyframe
 
     sent: list[CorrectionMessage] = []
-    graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
-    key = ("nognss", "d1")
-    T_map_session = _pose(90.0, (-34.0, -5.5, 1.7))
-    live = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
-    graph._session_map[key] = "nognss.d1"
-    graph._states["nognss.d1"] = GraphState(
-        "nognss.d1",
-        keyframes={key: {i: _Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
-        placed={key},
-    )
-    graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
-    graph._session_map[("gnss", "d1")] = "default"
+    graph, key, T_map_session, live = _joining(sent)
     placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
     moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (0, 10)]
     graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))

@@ -25,6 +25,8 @@ from service.ros2 import vehicle_of_topic
 from service.runtime import Service
 from service.settings import Ros2Settings, ServiceSettings
 from tests.data import require_data
+from tests.ros2_sdk import cloud_fields as _cloud
+from tests.ros2_sdk import header as _header
 from tests.ros2_sdk import load_sdk
 from tests.ros_bags import azimuth_offsets, kitti_frames
 from tests.service.api_server import live_server
@@ -35,7 +37,6 @@ from wire.zenoh_config import zenoh_config
 
 N_FRAMES = 8
 STAMP0_NS = 1_700_000_000 * 10**9
-FIELDS = ("x", "y", "z", "intensity", "time")
 
 
 @dataclass
@@ -51,30 +52,6 @@ class Ros2Drive:
     stamps_ns: list[int] = field(default_factory=list)
     metrics: str = ""
     url: str = ""
-
-
-def _cloud(types: Any, xyz: np.ndarray, intensity: np.ndarray, offsets: np.ndarray) -> dict[str, Any]:
-    """A PointCloud2's fields (Velodyne-style float32 ``time``, seconds), for the SDK's publish."""
-    rows = np.empty(len(xyz), dtype=[(f, "<f4") for f in FIELDS])
-    rows["x"], rows["y"], rows["z"] = xyz.T
-    rows["intensity"], rows["time"] = intensity, offsets
-    point = types["sensor_msgs/msg/PointField"]
-    return {
-        "height": 1,
-        "width": len(rows),
-        "fields": [point(name=f, offset=4 * i, datatype=7, count=1) for i, f in enumerate(FIELDS)],
-        "is_bigendian": False,
-        "point_step": 20,
-        "row_step": 20 * len(rows),
-        "data": rows.view(np.uint8),
-        "is_dense": True,
-    }
-
-
-def _header(types: Any, stamp_ns: int, frame: str = "velodyne") -> Any:
-    sec, nanosec = divmod(stamp_ns, 10**9)
-    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-    return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
 
 def _wait(done: Any, what: Any, timeout: float = 60.0) -> None:

@@ -10,6 +10,7 @@ import pytest
 
 from core.errors import BadMessageError
 from service.matchers import decoded_sweep
+from tests.ros2_sdk import cloud_fields, header
 from wire.messages import PoseMessage, WireLimits, encode, matrix_to_pose, scan_from_arrays
 from wire.rmw_zenoh import HUMBLE_TYPE_HASH
 from wire.ros2 import (
@@ -33,25 +34,7 @@ def _cloud_cdr(
     xyz: np.ndarray, intensity: np.ndarray, offsets: np.ndarray, stamp_ns: int, **over: object
 ) -> bytes:
     types = typestore().types
-    names = ("x", "y", "z", "intensity", "time")
-    rows = np.empty(len(xyz), dtype=[(n, "<f4") for n in names])
-    rows["x"], rows["y"], rows["z"] = xyz.T
-    rows["intensity"], rows["time"] = intensity, offsets
-    field = types["sensor_msgs/msg/PointField"]
-    sec, nanosec = divmod(stamp_ns, 10**9)
-    fields = {
-        "header": types["std_msgs/msg/Header"](
-            stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="lidar"
-        ),
-        "height": 1,
-        "width": len(rows),
-        "fields": [field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(names)],
-        "is_bigendian": False,
-        "point_step": 20,
-        "row_step": 20 * len(rows),
-        "data": rows.view(np.uint8),
-        "is_dense": True,
-    }
+    fields = {"header": header(types, stamp_ns, "lidar"), **cloud_fields(types, xyz, intensity, offsets)}
     fields.update(over)
     return bytes(typestore().serialize_cdr(types[POINTCLOUD2](**fields), POINTCLOUD2))
 
