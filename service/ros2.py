@@ -64,6 +64,7 @@ from wire.rmw_zenoh import (
     encode_attachment,
     liveliness_token,
     parse_topic_key,
+    topic_key,
 )
 from wire.ros2 import (
     NAV_SAT_FIX,
@@ -504,7 +505,7 @@ class Ros2Bridge:
     def _publisher(self, route: _Route, topic: str, ros_type: str) -> _Publisher:
         """The publisher of ``topic`` (declared on first use: its liveliness token and GID)."""
         hash_ = type_hash(ros_type, route.hash_like)
-        key = f"{route.domain}/{topic.strip('/')}/{dds_type_name(ros_type)}/{hash_}"
+        key = topic_key(route.domain, topic, ros_type, hash_)
         found = self._publishers.get(key)
         if found is not None:
             return found
