@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 
 import numpy as np
 import pytest
@@ -368,6 +369,38 @@ def test_a_match_whose_objects_miss_the_map_is_refused_whatever_the_ground_says(
     assert statuses[60] == "ok"
     err = transform_error(invert(matcher.poses[0]) @ matcher.poses[-1], invert(gt[0]) @ gt[-1])
     assert err[0] > 50.0, err
+
+
+def _shifted_sweep_run(**settings: float) -> tuple[list[str], list[str], list[float]]:
+    """30 sweeps of town 1's loop at 12 m/s, then one whose points are moved 1 m forward (as if
+    the vehicle stood 1 m further back than it can be 0.1 s after the last match: a place that
+    looks alike, a wrong-town sweep), then 10 more: (statuses, messages, position errors m)."""
+    scans = _loop_sweeps()[:41]
+    matcher = IncrementalMatcher(MatcherSettings(**settings))
+    statuses, messages, errors = [], [], []
+    for i, s in enumerate(scans):
+        xyz = s.points_xyz.astype(np.float64) + (np.array([1.0, 0.0, 0.0]) if i == 30 else 0.0)
+        r = matcher.register_scan(xyz, stamp_s=0.1 * i)
+        statuses.append(r.status)
+        messages.append(r.message)
+        truth = invert(scans[0].T_world_sensor) @ s.T_world_sensor
+        errors.append(float(np.linalg.norm(r.T_world_sensor[:3, 3] - truth[:3, 3])))
+    return statuses, messages, errors
+
+
+def test_a_tracking_session_refuses_a_match_where_the_vehicle_cannot_be() -> None:
+    """While a session tracks, its prediction is off by what the vehicle accelerated since the
+    last sweep (5 cm at 1 g over 0.1 s) plus the matches' own error: a match 1 m from it is
+    refused (the tracking gate, 0.55 m at 10 Hz), the prediction answered instead (within 5 cm
+    of the truth) and the next sweep matches. Under the 2 m a period the gate allowed before,
+    the shifted sweep was answered ``ok`` about 1 m off."""
+    statuses, messages, errors = _shifted_sweep_run()
+    assert statuses == ["first"] + ["ok"] * 29 + ["fallback"] + ["ok"] * 10, statuses
+    moved = re.fullmatch(r"match moved the prediction ([0-9.]+) m \(limit 0\.55 m\)", messages[30])
+    assert moved and 0.9 < float(moved.group(1)) < 1.1, messages[30]
+    assert max(errors) < 0.05, max(errors)
+    statuses, _, errors = _shifted_sweep_run(max_tracking_correction_m=2.0)
+    assert statuses[30] == "ok" and errors[30] > 0.9, (statuses[30], errors[30])
 
 
 def _gapped_run(use_stamps: bool) -> tuple[int, float, float, int]:
