@@ -4,7 +4,8 @@ check says its sweeps still agree with the map they fold into.
 The NDT fitness of a match says a sweep agrees with the session's own keyframes; a vehicle that
 tracks itself perfectly may still be somewhere the map says something else (a town the map never
 saw along the same coordinates, a wrong prior, a drift the graph has not corrected). So every
-``map_agreement_every`` sweeps (its first, and every sweep the pose graph takes as a keyframe) the matcher
+``map_agreement_every`` sweeps (its first, every sweep the pose graph takes as a keyframe, and
+the first match after a fallback, which passed only the matcher's loose correction gate) the matcher
 also returns the sweep's thinned points, and the session thread measures, above the ground
 (:func:`core.tiles.above_ground`), the share of them within 0.5 m of the map's points where the
 map has content (:meth:`core.tiles.TileGrid.agreement`, a few milliseconds). The points of the

@@ -486,9 +486,12 @@ class SessionWorker:
         if self._keyframe_wanted:
             assert graph is not None
             keyframe_voxel_m = min(graph.settings.keyframe_voxel_m, m.settings.map_voxel_m)
-        elif self.gate.due() or (self.gate.enabled and self.info.lost):
+        elif self.gate.due() or (
+            self.gate.enabled and (self.info.lost or self.info.last_status == "fallback")
+        ):
             # the map agreement check wants the sweep's points too (and a lost session's track
-            # is found again only where its sweep agrees with the map)
+            # is found again only where its sweep agrees with the map; a match after fallbacks
+            # passed only the matcher's loose gate: service/agreement.py)
             keyframe_voxel_m = m.settings.map_voxel_m
         try:
             # the keyframe model is rebuilt after the pose is out

@@ -94,6 +94,12 @@ def towns() -> tuple[Town, Town]:
 
 
 N_GOOD, N_BAD = 80, 40
+#: The joined session's switch to the other town: at this sweep (or 20 after it joined, if later),
+#: where its matcher (measured alone) fell back three times in the new town and then matched
+#: 1.27 m off the prediction, inside the 2 m a period (and more per fallback) its correction gate
+#: allows after fallbacks, and tracked on 1.3 m off (beside two CPU burners, which moved the join
+#: and so the switch here, it was answered ``ok`` nine times 1.24-1.53 m off).
+HARD_SWITCH = 166
 
 
 @pytest.fixture(scope="module")
@@ -211,12 +217,15 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
                 break
             _send(mgr, out, "gnss", next(gnss), prior=k == 0)
             if switch is None and graph.joined("nognss", "d1") is not None:
-                switch = k + 20
+                switch = max(k + 20, HARD_SWITCH)
                 there = _drive(other, switch + 40, seed=2, first=switch, **late)  # type: ignore[arg-type]
                 nognss_there = {s.index: s for s in there}
             _send(
                 mgr, out, "nognss", nognss_there[k] if k in nognss_there else next(nognss_here), prior=False
             )
+            # The graph keeps pace with the drive (a condition, not a clock): beside two CPU
+            # burners it fell so far behind that the session joined after sweep 220, or never.
+            assert graph.wait_idle(120), "the pose graph did not catch up"
         gnss.close()  # (their simulating processes)
         nognss_here.close()
         assert graph.wait_idle(300)
