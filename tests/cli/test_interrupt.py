@@ -16,6 +16,8 @@ SCRIPT = textwrap.dedent(
     import os, signal, sys, time, weakref
     from cli import interrupt
 
+    # (Python's handler even when started with SIGINT ignored, as a background job of a script is)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     if sys.argv[1] == "installed":
         interrupt.install()
 
