@@ -746,6 +746,9 @@ class ServiceGraph:
         self._syncs = 0  # sync requests sent (wait_idle) ...
         self._synced = 0  # ... and answered
         self._cond = threading.Condition()
+        #: One sender on the pipe at a time: the send loop's keyframe and close's ``quit``
+        #: interleaved their bytes once (the process read "invalid load key" at a SIGTERM).
+        self._send_lock = threading.Lock()
         self._closed = False
         self._on_restart = on_restart
         #: The process of the current generation and the service's end of its pipe (``None``
@@ -1111,8 +1114,12 @@ class ServiceGraph:
         """:meth:`close`: ask the process to quit, kill it if it does not."""
         if self.gate is not None:
             self.gate.detach()
-        with contextlib.suppress(OSError, ValueError):
-            conn.send(("quit",))
+        if self._send_lock.acquire(timeout=10.0):  # (else a send is stuck: the kill below ends it)
+            try:
+                with contextlib.suppress(OSError, ValueError):
+                    conn.send(("quit",))
+            finally:
+                self._send_lock.release()
         proc.join(10.0)
         if proc.is_alive():
             proc.kill()
@@ -1254,7 +1261,8 @@ class ServiceGraph:
                     self._progress_at = time.monotonic()
                 self._inflight.append(item)
             try:
-                conn.send(item)
+                with self._send_lock:
+                    conn.send(item)
             except (OSError, ValueError):  # the supervisor restarts it
                 with self._cond:
                     if self._inflight and self._inflight[-1] is item:
