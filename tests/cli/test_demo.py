@@ -67,7 +67,10 @@ def demo(tmp_path_factory):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, start_new_session=True,
     )  # fmt: skip
     try:
-        lines = _read_until(proc, "serving until Ctrl-C", 240)
+        # The matcher processes' warm-up first (numba's compile: once per checkout; beside two CPU
+        # burners on a fresh clone it took 200 s), then the demo itself.
+        lines = _read_until(proc, "... ready in ", 900)
+        lines += _read_until(proc, "serving until Ctrl-C", 240)
         yield proc, lines, data, f"http://127.0.0.1:{hport}"
     finally:
         if proc.poll() is None:
