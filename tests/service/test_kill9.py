@@ -7,6 +7,7 @@ session from the store at every start, so each run continues the previous one's 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -81,11 +82,17 @@ def test_kill9_during_ingest_ten_times(tmp_path) -> None:
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,
+            start_new_session=True,  # (its group: killed whole below if the test stops early)
         )
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
-        time.sleep(rng.uniform(0.5, 2.0))
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(10)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+            time.sleep(rng.uniform(0.5, 2.0))
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+        finally:  # interrupted (Ctrl-C on the suite left the service and its matchers running)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
         versions = _check_readable(data)
         for tid, v in last_versions.items():
             assert versions.get(tid, 0) >= v, f"tile {tid} went back from version {v}"
