@@ -142,9 +142,18 @@ GAP_TURN_DEG = tuple(float(d) for d in range(-100, 101, 5))
 GAP_TURN_CANDIDATES = 3
 
 #: A sweep with point times is deskewed again when its matched motion differs from the one it was
-#: deskewed with by more than this (degrees over one sweep period, metres over one period).
-REDESKEW_DEG = 0.25
-REDESKEW_M = 0.05
+#: deskewed with by more than this (degrees over one sweep period, metres over one period), and
+#: matched again on the two finest levels. The pose follows the deskew closely: at a corner's exit
+#: (yaw rate falling 2-3 deg/s a sweep, the car accelerating) the motion found differs from the
+#: prediction by 0.1-0.4 deg a period, and deskewing again moves the pose 3-8 cm. At 0.25 deg and
+#: 5 cm (before 2026-11-28) most such sweeps kept the prediction's deskew and a simulated 60 s
+#: drive's along-track error reached 13 cm at corner exits; at these values it stays under 9 cm
+#: (bench/service.py's drives, docs/benchmarks.md), for about a third of the sweeps matched twice.
+REDESKEW_DEG = 0.05
+REDESKEW_M = 0.01
+
+#: The keyframe model's density equalization voxel, as a fraction of the finest NDT level r.
+MODEL_VOXEL_FRACTION = 0.3
 
 
 #: The registration settings a matcher uses unless given others (voxel sizes from the first sweep).
@@ -189,7 +198,10 @@ class MatcherSettings(BaseModel):
     max_keyframes: int = Field(default=40, ge=1, description="keyframes fused into the model")
     model_radius_m: float = Field(default=80.0, gt=0, description="model points kept around the sensor")
     model_voxel_m: float | None = Field(
-        default=None, gt=0, description="density equalization of the model; None: r/4"
+        default=None,
+        gt=0,
+        description="density equalization of the model; None: 0.3 r (r/4 before 2026-11-28: the "
+        "denser model let a simulated drive's along-track drift reach 11-12 cm, docs/benchmarks.md)",
     )
     max_range_m: float = Field(default=100.0, gt=0, description="points farther are ignored")
     min_range_m: float = Field(default=2.0, ge=0, description="points nearer are ignored (the vehicle)")
@@ -485,7 +497,8 @@ class IncrementalMatcher:
             auto = auto_voxel_sizes(first_xyz)
             levels = (2.0 * auto[0], *auto)
         r = levels[-1]
-        self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, s.model_voxel_m or r / 4)
+        model_voxel_m = s.model_voxel_m or MODEL_VOXEL_FRACTION * r
+        self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, model_voxel_m)
 
     def _apply_scales(self, levels: tuple[float, ...], feature_voxel_m: float, model_voxel_m: float) -> None:
         base = self._registration_given or MATCHER_REGISTRATION
@@ -668,12 +681,12 @@ class IncrementalMatcher:
             t0 = time.perf_counter()
             has_times = sweep.time_offset_s is not None
             outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
+            if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
+                outcome = self._second_sweep_again(outcome, prepare, T_pred, prior_T, prior, periods)
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
         self._advance(T, index, periods, stamp_s, fell_back if outcome.status == "ok" else 0)
         self._keep_prior_offset(T, prior_T, outcome.status)
-        if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
-            self._deskew_first_keyframe(T)
         keep_map = ~outcome.feats.noise_mask
         mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # 8x faster than xyz[keep_map]
         is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
@@ -994,12 +1007,50 @@ class IncrementalMatcher:
         if stamp_s is not None:
             st.last_stamp_s = float(stamp_s)
 
-    def _deskew_first_keyframe(self, T: np.ndarray) -> None:
-        """Now that the velocity is known, replace the first keyframe by its deskewed sweep."""
+    def _second_sweep_again(
+        self,
+        outcome: _Outcome,
+        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
+        T_pred: np.ndarray,
+        prior_T: np.ndarray | None,
+        prior: PosePrior | None,
+        periods: float,
+    ) -> _Outcome:
+        """The second sweep matched again once the first keyframe is deskewed.
+
+        Until the second sweep is matched no velocity is known: the model is the first sweep as it
+        came, warped by the motion during it (a metre at 10 m/s), and the second sweep's pose is
+        measured against that warp (5-11 cm off on simulated drives). With the velocity the match
+        found, the first keyframe is deskewed and the second sweep, deskewed with the same
+        velocity, matched again from its pose; kept only if it passes the same gate.
+        """
+        velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, periods)
+        self._deskew_first_keyframe(velocity)
+        cloud, feats = prepare(velocity)
+        try:
+            again = register(
+                feats.matching_xyz,
+                None,
+                outcome.T,
+                settings=self.registration,
+                reference=self._state.model,
+                coarsest_voxel_m=self._fine_levels(),
+            )
+        except RandtError:
+            return outcome
+        if self._gate(again, T_pred, prior_T, prior, periods) is not None:
+            return outcome
+        return replace(
+            outcome, T=again.T_target_source, converged=again.converged, fitness=again.fitness,
+            covariance=again.covariance, inlier_ratio=again.inlier_ratio, xyz=cloud, feats=feats,
+        )  # fmt: skip
+
+    def _deskew_first_keyframe(self, velocity: np.ndarray) -> None:
+        """Now that the ``velocity`` is known, replace the first keyframe by its deskewed sweep."""
         st = self._state
         assert st.first_raw is not None
         raw, tau = st.first_raw
-        first = deskew(raw, tau, st.delta, self.period_s, reference_fraction=MID_SWEEP)
+        first = deskew(raw, tau, velocity, self.period_s, reference_fraction=MID_SWEEP)
         st.keyframes.popleft()
         st.keyframes.appendleft(
             (st.poses[0], voxel_downsample(transform_points(st.poses[0], first), self.model_voxel_m))
@@ -1105,6 +1156,11 @@ class IncrementalMatcher:
             return None
         return max(LEVEL_MARGIN * max(recent), levels[-2] if len(levels) > 1 else levels[-1])
 
+    def _fine_levels(self) -> float | None:
+        """The coarsest level a match again from a matched pose needs: the two finest."""
+        levels = self.registration.voxel_sizes_m
+        return None if not levels else levels[-2] if len(levels) > 1 else levels[-1]
+
     def _weak(self, inlier_ratio: float) -> bool:
         """A match whose inlier ratio is below 70 % of the session's recent median is suspect: at a
         corner's onset a wrong match can pass the absolute gate (0.32 where this drive sees 0.8)."""
@@ -1143,6 +1199,7 @@ class IncrementalMatcher:
                 res.T_target_source,
                 settings=self.registration,
                 reference=self._state.model,
+                coarsest_voxel_m=self._fine_levels(),
             )
         except RandtError:
             return best
