@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import re
+from typing import Any
 
 import numpy as np
 import pytest
@@ -257,6 +258,49 @@ def test_deskew_follows_a_corner_onset() -> None:
     fallbacks, err_m, err_deg = _raw_corner_run(True)
     assert fallbacks == 0
     assert err_m < 0.10 and err_deg < 0.3, (err_m, err_deg)
+
+
+def _second_sweep_error_m(start_s_m: float, *, again: bool) -> float:
+    """The second pose's error (m, relative to the first) on town 1's loop from ``start_s_m``:
+    two distorted sweeps at 10 m/s, deskewed by the matcher; ``again=False`` keeps the first match
+    (the first keyframe is still deskewed afterwards, as before 2026-11-28)."""
+    from sim.drive import Motion, Route, simulate
+    from sim.town import Town
+
+    town = Town.generate(1)
+    route = Route.loop(town, 3, length_m=1000.0)
+    motion = Motion(route, 10.0, 0.0, start_s_m=start_s_m)
+    scans = list(
+        simulate(
+            town, route, n_scans=2, speed_mps=10.0, seed=1, deskewed=False, workers=1, start_s_m=start_s_m
+        )
+    )
+    matcher = IncrementalMatcher(MatcherSettings())
+    if not again:
+
+        def first_match(outcome: Any, *_: Any) -> Any:
+            velocity = invert(matcher.poses[-1]) @ outcome.T
+            matcher._deskew_first_keyframe(velocity)
+            return outcome
+
+        matcher._second_sweep_again = first_match  # type: ignore[method-assign]
+    for s in scans:
+        r = matcher.register_scan(
+            s.points_xyz.astype(np.float64), time_offset_s=s.time_offset_s, stamp_s=0.1 * s.index
+        )
+        assert r.status in ("first", "ok")
+    truth = [motion.sensor_poses_at(0.1 * s.index + 0.05)[0] for s in scans]
+    return transform_error(invert(matcher.poses[0]) @ matcher.poses[1], invert(truth[0]) @ truth[1])[0]
+
+
+@pytest.mark.parametrize("start_s_m", [20.0, 60.0])
+def test_the_second_sweep_is_matched_again_once_the_first_is_deskewed(start_s_m: float) -> None:
+    """The second sweep is matched before any velocity is known, against the first sweep as it
+    came (warped by a metre of motion at 10 m/s). Matched again once both are deskewed with the
+    velocity found, its pose is within 1 cm (measured 0.03 and 0.10 cm); the first match alone
+    was 6.3 and 33.5 cm off, answered ``ok``."""
+    assert _second_sweep_error_m(start_s_m, again=True) < 0.01
+    assert _second_sweep_error_m(start_s_m, again=False) > 0.05
 
 
 def _tarp() -> np.ndarray:
