@@ -152,9 +152,6 @@ GAP_TURN_CANDIDATES = 3
 REDESKEW_DEG = 0.05
 REDESKEW_M = 0.01
 
-#: The keyframe model's density equalization voxel, as a fraction of the finest NDT level r.
-MODEL_VOXEL_FRACTION = 0.3
-
 
 #: The registration settings a matcher uses unless given others (voxel sizes from the first sweep).
 #: The density-based feature extraction already removes the sweep's noise, and features are too
@@ -198,10 +195,7 @@ class MatcherSettings(BaseModel):
     max_keyframes: int = Field(default=40, ge=1, description="keyframes fused into the model")
     model_radius_m: float = Field(default=80.0, gt=0, description="model points kept around the sensor")
     model_voxel_m: float | None = Field(
-        default=None,
-        gt=0,
-        description="density equalization of the model; None: 0.3 r (r/4 before 2026-11-28: the "
-        "denser model let a simulated drive's along-track drift reach 11-12 cm, docs/benchmarks.md)",
+        default=None, gt=0, description="density equalization of the model; None: r/4"
     )
     max_range_m: float = Field(default=100.0, gt=0, description="points farther are ignored")
     min_range_m: float = Field(default=2.0, ge=0, description="points nearer are ignored (the vehicle)")
@@ -497,8 +491,7 @@ class IncrementalMatcher:
             auto = auto_voxel_sizes(first_xyz)
             levels = (2.0 * auto[0], *auto)
         r = levels[-1]
-        model_voxel_m = s.model_voxel_m or MODEL_VOXEL_FRACTION * r
-        self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, model_voxel_m)
+        self._apply_scales(tuple(levels), s.feature_voxel_m or r / 2, s.model_voxel_m or r / 4)
 
     def _apply_scales(self, levels: tuple[float, ...], feature_voxel_m: float, model_voxel_m: float) -> None:
         base = self._registration_given or MATCHER_REGISTRATION

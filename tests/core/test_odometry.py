@@ -400,18 +400,15 @@ def test_a_session_that_turned_round_unseen_relocalizes_by_global_registration()
 
 def test_a_match_whose_objects_miss_the_map_is_refused_whatever_the_ground_says() -> None:
     """With the ground as dense as objects (``ground_voxel_factor`` 1) the first sweep after the
-    U-turn, matched from the prediction (25 m on and 180 degrees off), keeps 29 % inliers: the
-    street's ground matches anywhere along it, its objects do not (2 %). With the inlier gate at
-    25 % (30 % by default: it alone refuses this sweep since the model voxel is 0.3 r; at r/4 the
-    sweep kept 30 % and passed it), refused on its objects (``min_object_inlier_ratio``); accepted
-    without that check, its keyframe anchored every later sweep at the wrong place (96 m off at the
-    end). (With ground factor 2 its inlier ratio alone, 22 %, refuses it.)"""
-    statuses, gt, matcher, messages = _blocked_through_a_u_turn(
-        True, ground_voxel_factor=1.0, min_inlier_ratio=0.25
-    )
+    U-turn, matched from the prediction (25 m on and 180 degrees off), keeps 30 % inliers: the
+    street's ground matches anywhere along it (54 %), its objects do not (2 %). Refused on its
+    objects (``min_object_inlier_ratio``); accepted without that check, its keyframe anchored every
+    later sweep at the wrong place (96 m off at the end). (With the default factor 2 its inlier
+    ratio alone, 22 %, refuses it.)"""
+    statuses, gt, matcher, messages = _blocked_through_a_u_turn(True, ground_voxel_factor=1.0)
     assert statuses[60] == "fallback" and messages[60].startswith("objects' inlier ratio 0.0"), messages[60]
     statuses, gt, matcher, messages = _blocked_through_a_u_turn(
-        True, ground_voxel_factor=1.0, min_inlier_ratio=0.25, min_object_inlier_ratio=0.0
+        True, ground_voxel_factor=1.0, min_object_inlier_ratio=0.0
     )
     assert statuses[60] == "ok"
     err = transform_error(invert(matcher.poses[0]) @ matcher.poses[-1], invert(gt[0]) @ gt[-1])
