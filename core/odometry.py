@@ -146,9 +146,9 @@ GAP_TURN_CANDIDATES = 3
 #: matched again on the two finest levels. The pose follows the deskew closely: at a corner's exit
 #: (yaw rate falling 2-3 deg/s a sweep, the car accelerating) the motion found differs from the
 #: prediction by 0.1-0.4 deg a period, and deskewing again moves the pose 3-8 cm. At 0.25 deg and
-#: 5 cm (before 2026-11-28) most such sweeps kept the prediction's deskew and a simulated 60 s
-#: drive's along-track error reached 13 cm at corner exits; at these values it stays under 9 cm
-#: (bench/service.py's drives, docs/benchmarks.md), for about a third of the sweeps matched twice.
+#: 5 cm (before 2026-11-28) most such sweeps kept the prediction's deskew: on bench/service.py's
+#: first drive the horizontal error reached 8.0 cm at corner exits, 5.6 cm at these values, with
+#: about a third of the sweeps matched twice (docs/benchmarks.md).
 REDESKEW_DEG = 0.05
 REDESKEW_M = 0.01
 
