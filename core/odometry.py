@@ -30,7 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields, replace
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -88,6 +88,16 @@ MID_SWEEP = 0.5
 
 #: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
 _Match = tuple[int, RegistrationResult, np.ndarray, Features, np.ndarray]
+
+
+class _Gating(NamedTuple):
+    """What a match of this sweep is gated against (:meth:`IncrementalMatcher._gate`'s arguments)."""
+
+    T_pred: np.ndarray
+    prior_pose: np.ndarray | None
+    prior: PosePrior | None
+    periods: float
+
 
 #: Adaptive levels (``MatcherSettings.adaptive_levels``): a constant-velocity prediction on a
 #: vehicle is off by centimetres, which the coarse NDT levels (up to 16 finest voxels) are there
@@ -675,7 +685,7 @@ class IncrementalMatcher:
             has_times = sweep.time_offset_s is not None
             outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
             if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
-                outcome = self._second_sweep_again(outcome, prepare, T_pred, prior_T, prior, periods)
+                outcome = self._second_sweep_again(outcome, prepare, _Gating(T_pred, prior_T, prior, periods))
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
         self._advance(T, index, periods, stamp_s, fell_back if outcome.status == "ok" else 0)
@@ -814,7 +824,7 @@ class IncrementalMatcher:
         if best is None and prior_T is None and self._relocalization_due():
             best = self._relocalize(xyz, feats)
         if best is not None and best[0] >= 0 and has_times and self.settings.redeskew:
-            best = self._redeskew(best, prepare, T_pred, prior_T, prior, periods)
+            best = self._redeskew(best, prepare, _Gating(T_pred, prior_T, prior, periods))
         if best is not None and best[0] >= 0:
             # Judged once deskewed with the velocity found: a yaw hypothesis's own deskew warps them.
             why = self._objects_refusal(best[1].T_target_source, best[3], self._state.model)
@@ -1001,13 +1011,7 @@ class IncrementalMatcher:
             st.last_stamp_s = float(stamp_s)
 
     def _second_sweep_again(
-        self,
-        outcome: _Outcome,
-        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
-        T_pred: np.ndarray,
-        prior_T: np.ndarray | None,
-        prior: PosePrior | None,
-        periods: float,
+        self, outcome: _Outcome, prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]], gating: _Gating
     ) -> _Outcome:
         """The second sweep matched again once the first keyframe is deskewed.
 
@@ -1017,21 +1021,11 @@ class IncrementalMatcher:
         found, the first keyframe is deskewed and the second sweep, deskewed with the same
         velocity, matched again from its pose; kept only if it passes the same gate.
         """
-        velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, periods)
+        velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, gating.periods)
         self._deskew_first_keyframe(velocity)
         cloud, feats = prepare(velocity)
-        try:
-            again = register(
-                feats.matching_xyz,
-                None,
-                outcome.T,
-                settings=self.registration,
-                reference=self._state.model,
-                coarsest_voxel_m=self._fine_levels(),
-            )
-        except RandtError:
-            return outcome
-        if self._gate(again, T_pred, prior_T, prior, periods) is not None:
+        again = self._match_again(feats, outcome.T, gating)
+        if again is None:
             return outcome
         return replace(
             outcome, T=again.T_target_source, converged=again.converged, fitness=again.fitness,
@@ -1162,13 +1156,7 @@ class IncrementalMatcher:
         return inlier_ratio < 0.7 * float(np.median(self._state.recent_inliers))
 
     def _redeskew(
-        self,
-        best: _Match,
-        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
-        T_pred: np.ndarray,
-        prior_T: np.ndarray | None,
-        prior: PosePrior | None,
-        periods: float = 1.0,
+        self, best: _Match, prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]], gating: _Gating
     ) -> _Match:
         """Deskew once more with the velocity the match found, when it differs from the one used.
 
@@ -1179,26 +1167,30 @@ class IncrementalMatcher:
         (one pass; kept only if it passes the same gate).
         """
         attempt, res, _, _, init = best
-        used = self._per_period(invert(self._state.poses[-1]) @ init, periods)
-        found = self._per_period(invert(self._state.poses[-1]) @ res.T_target_source, periods)
+        used = self._per_period(invert(self._state.poses[-1]) @ init, gating.periods)
+        found = self._per_period(invert(self._state.poses[-1]) @ res.T_target_source, gating.periods)
         change = invert(used) @ found
         if rotation_angle_deg(change[:3, :3]) < REDESKEW_DEG and np.linalg.norm(change[:3, 3]) < REDESKEW_M:
             return best
         cloud, feats = prepare(found)
+        again = self._match_again(feats, res.T_target_source, gating)
+        return best if again is None else (attempt, again, cloud, feats, res.T_target_source)
+
+    def _match_again(self, feats: Features, T_init: np.ndarray, gating: _Gating) -> RegistrationResult | None:
+        """The sweep (deskewed anew) matched again from a matched pose ``T_init`` on the two finest
+        levels; None when it fails or does not pass the same gate."""
         try:
             again = register(
                 feats.matching_xyz,
                 None,
-                res.T_target_source,
+                T_init,
                 settings=self.registration,
                 reference=self._state.model,
                 coarsest_voxel_m=self._fine_levels(),
             )
         except RandtError:
-            return best
-        if self._gate(again, T_pred, prior_T, prior, periods) is not None:
-            return best
-        return (attempt, again, cloud, feats, res.T_target_source)
+            return None
+        return None if self._gate(again, *gating) is not None else again
 
     def _periods_since_last(self, stamp_s: float | None) -> float:
         """Sweep periods since the previous sweep's stamp (1 when either stamp is unknown).
