@@ -34,7 +34,6 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.transform import Rotation
 
 from core.config import RegistrationSettings
 from core.errors import InvalidCloudError, RandtError
@@ -60,6 +59,7 @@ from core.transforms import (
     orthonormalize,
     rotation_angle_deg,
     scale_motion,
+    se3_log,
     so3_exp,
     so3_log,
     transform_points,
@@ -432,16 +432,19 @@ def deskew(
 
     ``delta`` is the sensor motion over one ``period_s`` (``T_start_end``). A point measured at
     ``tau`` seconds after the start was seen from ``exp(s * log(delta))`` relative to the start,
-    ``s = tau / period_s`` (rotation by the scaled rotation vector, translation scaled linearly);
-    it is re-expressed in the frame at ``s = reference_fraction`` (0: the sweep's start, 0.5: its
-    middle).
+    ``s = tau / period_s``, the screw motion (:func:`core.transforms.scale_motion`: turning at
+    constant speed, the sensor moves along an arc); it is re-expressed in the frame at ``s =
+    reference_fraction`` (0: the sweep's start, 0.5: its middle). Until 2026-11-28 the
+    translation was scaled linearly, ``s * delta[:3, 3]``: the chord of the whole period, whose
+    direction is half the period's turn off the heading at any moment, so in a corner at 33
+    deg/s every sweep was sheared by 1.4 cm across at its ends, and each corner left a heading
+    error of about 5 mdeg (bench/service.py's second drive: 10 cm sideways after 600 m;
+    docs/benchmarks.md).
     """
     s = np.clip(np.asarray(time_offset_s, dtype=np.float64) / period_s, 0.0, 1.5) - reference_fraction
-    rotvec = so3_log(delta[:3, :3])
+    rotvec, screw = se3_log(delta)
     pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
-    return deskew_points(
-        pts, np.ascontiguousarray(s), rotvec, np.ascontiguousarray(delta[:3, 3], dtype=float)
-    )
+    return deskew_points(pts, np.ascontiguousarray(s), rotvec, screw)
 
 
 def deskew_reference(
@@ -452,12 +455,11 @@ def deskew_reference(
     *,
     reference_fraction: float = 0.0,
 ) -> np.ndarray:
-    """:func:`deskew` with scipy's rotations (the reference of :func:`core.kernels.deskew_points`)."""
+    """:func:`deskew` point by point, each with its own :func:`core.transforms.scale_motion` of
+    ``delta`` (the reference of :func:`core.kernels.deskew_points`; slow)."""
     s = np.clip(time_offset_s / period_s, 0.0, 1.5) - reference_fraction
-    rotvec = Rotation.from_matrix(delta[:3, :3]).as_rotvec()
-    R = Rotation.from_rotvec(s[:, None] * rotvec[None, :])
-    deskewed: np.ndarray = R.apply(points_xyz) + s[:, None] * delta[:3, 3][None, :]
-    return deskewed
+    moved = [scale_motion(delta, float(k)) for k in s]
+    return np.array([T[:3, :3] @ p + T[:3, 3] for T, p in zip(moved, points_xyz, strict=True)])
 
 
 class IncrementalMatcher:

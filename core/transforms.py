@@ -203,6 +203,14 @@ def _se3_left_jacobian(w: np.ndarray) -> np.ndarray:
     return V
 
 
+def se3_log(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(w, u)`` with ``T = exp([w, u])``: the rotation vector and the screw's translation
+    (``T[:3, 3] = V(w) u``), for rotations under 180 degrees."""
+    w = so3_log(T[:3, :3])
+    u: np.ndarray = np.linalg.solve(_se3_left_jacobian(w), T[:3, 3])
+    return w, u
+
+
 def scale_motion(T: np.ndarray, k: float) -> np.ndarray:
     """``T`` to the real power ``k``: the same screw motion, ``k`` times as long.
 
@@ -213,8 +221,7 @@ def scale_motion(T: np.ndarray, k: float) -> np.ndarray:
     """
     if k == 1.0:
         return T.copy()
-    w = so3_log(T[:3, :3])
-    u = np.linalg.solve(_se3_left_jacobian(w), T[:3, 3])
+    w, u = se3_log(T)
     out = np.eye(4)
     out[:3, :3] = so3_exp(k * w)
     out[:3, 3] = _se3_left_jacobian(k * w) @ (k * u)

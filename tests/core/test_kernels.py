@@ -534,16 +534,17 @@ def test_consistency_graph_and_core_numbers_match_numpy() -> None:
     assert core[:60].min() >= 59 and core[60:].max() < 20
 
 
-def test_deskew_kernel_matches_scipys_rotations() -> None:
-    """Rodrigues per point (core.kernels.deskew_points) against scipy's rotations, on a sweep-like
-    cloud with a vehicle's motion over one period, a spin of 0.5 rad and no rotation at all."""
+def test_deskew_kernel_matches_the_screw_motion() -> None:
+    """core.kernels.deskew_points against each point's own SE(3) power of the period's motion
+    (core.transforms.scale_motion, itself tested against scipy's fractional matrix power), on a
+    sweep-like cloud with a car's motion over one period, a spin of 0.5 rad, and no rotation."""
     from scipy.spatial.transform import Rotation
 
     from core.odometry import deskew, deskew_reference
 
     rng = np.random.default_rng(3)
-    xyz = rng.uniform(-80, 80, (20000, 3))
-    tau = rng.uniform(0.0, 0.1, 20000)
+    xyz = rng.uniform(-80, 80, (2000, 3))
+    tau = rng.uniform(0.0, 0.1, 2000)
     for rotvec, t in (
         ([0.0, 0.01, 0.08], [1.2, 0.05, 0.01]),
         ([0.3, -0.2, 0.3], [0, 0, 0]),
@@ -559,6 +560,28 @@ def test_deskew_kernel_matches_scipys_rotations() -> None:
     # the motion itself is applied: a point seen at the sweep's end moves by the whole of it
     moved = deskew(np.array([[10.0, 0, 0]]), np.array([0.1]), delta, 0.1)
     np.testing.assert_allclose(moved[0], [11.0, 2.0, 3.0], atol=1e-12)
+
+
+def test_deskew_follows_the_arc_not_the_chord() -> None:
+    """Turning 3.3 deg a period at 10 m/s (33 deg/s, a simulated corner), the sensor half a
+    period from the middle is on the arc: 7.2 mm inside the period's chord, and a point seen then
+    is moved by that, not by half the chord (which put it 14 mm across before 2026-11-28)."""
+    from core.odometry import deskew
+
+    turn = np.radians(3.3)
+    radius = 1.0 / turn  # a 1 m arc
+    delta = make_transform(
+        rotvec=(0, 0, turn), translation=(radius * np.sin(turn), radius * (1 - np.cos(turn)), 0.0)
+    )
+    # A point at the sensor's own origin at the sweep's end, re-expressed at its middle: the
+    # sensor's position then, half the arc on from the middle.
+    end = deskew(np.zeros((1, 3)), np.array([0.1]), delta, 0.1, reference_fraction=0.5)[0]
+    half = turn / 2
+    np.testing.assert_allclose(end, [radius * np.sin(half), radius * (1 - np.cos(half)), 0.0], atol=1e-12)
+    start = deskew(np.zeros((1, 3)), np.array([0.0]), delta, 0.1, reference_fraction=0.5)[0]
+    np.testing.assert_allclose(start, [-radius * np.sin(half), radius * (1 - np.cos(half)), 0.0], atol=1e-12)
+    assert start[1] == pytest.approx(radius * half**2 / 2, rel=1e-3)  # 7.2 mm of sagitta at 1 m
+    assert 0.0071 < start[1] < 0.0073
 
 
 def test_group_int_keys_matches_a_stable_sort() -> None:
