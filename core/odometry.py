@@ -1034,10 +1034,10 @@ class IncrementalMatcher:
         velocity is itself measured against the warp (on bench/service.py's second drive 0.886 m
         a period for 1.000): both sweeps deskewed with it align (the second sweep's pose 0.4 mm
         off) but the first keyframe stays warped, and the third sweep, deskewed with the right
-        velocity, was matched 19 mdeg off in yaw, a heading error the session kept (11 cm
-        sideways after 500 m). So it goes round again with the velocity of the new match, until
-        that changes by less than :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most
-        :data:`SECOND_SWEEP_PASSES` times).
+        velocity, was matched 19 mdeg off in yaw, a heading error the session kept. So it goes
+        round again with the velocity of the new match, until that changes by less than
+        :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most :data:`SECOND_SWEEP_PASSES`
+        times).
         """
         for _ in range(SECOND_SWEEP_PASSES):
             velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, gating.periods)
