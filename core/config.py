@@ -58,7 +58,7 @@ class RegistrationSettings(BaseModel):
     min_points_per_voxel: int = Field(default=6, ge=3)
     eigenvalue_ratio: float = Field(default=0.01, gt=0, lt=1, description="Magnusson eq. 6.11")
     outlier_ratio: float = Field(default=0.55, gt=0, lt=1, description="NDT mixture outlier ratio")
-    n_neighbors: Literal[1, 7, 27] = 7
+    n_neighbors: Literal[1, 7, 8, 27] = 7
     max_iterations: int = Field(default=30, ge=1, description="Newton iterations per level")
     translation_eps_m: float = Field(default=1e-4, gt=0)
     rotation_eps_rad: float = Field(default=1e-5, gt=0)

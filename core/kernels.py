@@ -37,6 +37,7 @@ __all__ = [
     "best_voxel",
     "build_grid",
     "build_hash",
+    "cell_shift",
     "conditioned_gaussians",
     "deskew_points",
     "eigh3",
@@ -147,11 +148,25 @@ def _moved(points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray) -> tuple[fl
 
 @nb.njit(cache=True, inline="always")
 def _moved_and_cell(
-    points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray, inv_v: float
+    points: np.ndarray, i: int, R: np.ndarray, t: np.ndarray, inv_v: float, shift: float = 0.0
 ) -> tuple[float, float, float, int, int, int]:
-    """Point ``i`` moved by ``(R, t)`` (:func:`_moved`) and the integer cell it falls in."""
+    """Point ``i`` moved by ``(R, t)`` (:func:`_moved`) and the integer cell of ``q / v - shift``
+    (its own cell at ``shift`` 0; a neighbourhood's base cell with :func:`cell_shift`)."""
     q0, q1, q2 = _moved(points, i, R, t)
-    return q0, q1, q2, int(math.floor(q0 * inv_v)), int(math.floor(q1 * inv_v)), int(math.floor(q2 * inv_v))
+    c0, c1, c2 = q0 * inv_v - shift, q1 * inv_v - shift, q2 * inv_v - shift
+    return q0, q1, q2, int(math.floor(c0)), int(math.floor(c1)), int(math.floor(c2))
+
+
+@nb.njit(cache=True)
+def cell_shift(n_neighbors: int) -> float:
+    """How far (in voxels) a neighbourhood's base cell is below the point's own: 1/2 for the 8
+    voxels whose centres enclose it, 0 for the 1-, 7- and 27-voxel ones (the own cell and the
+    offsets around it). The rule and its reasons: :func:`core.voxel.neighborhood_base`.
+
+    Reference: core.voxel:neighborhood_base
+    Test: tests/core/test_kernels.py::test_derivatives_kernel_matches_numpy
+    """
+    return 0.5 if n_neighbors == 8 else 0.0
 
 
 @nb.njit(cache=True, inline="always")
@@ -220,10 +235,11 @@ def ndt_accumulate(
     K12 = K13 = K14 = K15 = K22 = K23 = K24 = 0.0
     K25 = K33 = K34 = K35 = K44 = K45 = K55 = 0.0
     n_off = offsets.shape[0]
+    shift = cell_shift(n_off)
     use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
     vk = np.empty(n_off, dtype=np.int64)
     for i in range(points.shape[0]):
-        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v, shift)
         if use_cache and cache_cell[i, 0] == cx and cache_cell[i, 1] == cy and cache_cell[i, 2] == cz:
             for k in range(n_off):
                 vk[k] = cache_vox[i, k]
@@ -474,10 +490,11 @@ def ndt_scores(
     """
     inv_v = 1.0 / voxel_size
     n_off = offsets.shape[0]
+    shift = cell_shift(n_off)
     use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
     vk = np.empty(n_off, dtype=np.int64)
     for i in range(points.shape[0]):
-        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v, shift)
         s_sum, s_max, b_m = 0.0, 0.0, np.inf
         if use_cache and cache_cell[i, 0] == cx and cache_cell[i, 1] == cy and cache_cell[i, 2] == cz:
             for k in range(n_off):
@@ -527,8 +544,9 @@ def best_voxel(
     Test: tests/core/test_kernels.py::test_hash_table_finds_every_key_and_no_other
     """
     inv_v = 1.0 / voxel_size
+    shift = cell_shift(offsets.shape[0])
     for i in range(points.shape[0]):
-        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v)
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v, shift)
         best, best_m = -1, np.inf
         for k in range(offsets.shape[0]):
             v = _find(table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2]))

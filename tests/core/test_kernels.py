@@ -43,7 +43,7 @@ def kitti_problem():
     return source, gmap, ndt_constants(1.0), T
 
 
-@pytest.mark.parametrize("n_neighbors", [1, 7, 27])
+@pytest.mark.parametrize("n_neighbors", [1, 7, 8, 27])
 def test_derivatives_kernel_matches_numpy(kitti_problem, n_neighbors: int) -> None:
     source, gmap, consts, T = kitti_problem
     fast = ndt_derivatives(source, T, gmap, consts, n_neighbors)
@@ -59,10 +59,11 @@ def test_derivatives_kernel_matches_numpy(kitti_problem, n_neighbors: int) -> No
     )
 
 
-def test_point_scores_kernel_matches_numpy(kitti_problem) -> None:
+@pytest.mark.parametrize("n_neighbors", [7, 8])
+def test_point_scores_kernel_matches_numpy(kitti_problem, n_neighbors: int) -> None:
     source, gmap, consts, T = kitti_problem
-    fast = ndt_point_scores(source, T, gmap, consts)
-    ref = ndt_point_scores_numpy(source, T, gmap, consts)
+    fast = ndt_point_scores(source, T, gmap, consts, n_neighbors)
+    ref = ndt_point_scores_numpy(source, T, gmap, consts, n_neighbors)
     for a, b in zip(fast, ref, strict=True):
         np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
         ok = np.isfinite(b)
@@ -532,6 +533,22 @@ def test_consistency_graph_and_core_numbers_match_numpy() -> None:
     core = kernels.core_numbers(adj)
     assert np.array_equal(core, _core_numbers_reference(adj))
     assert core[:60].min() >= 59 and core[60:].max() < 20
+
+
+def test_the_8_voxel_neighbourhood_encloses_the_point() -> None:
+    """The 8 voxels a point is scored against are those whose centres enclose it: a point just
+    above a cell boundary (z = 0.02 of a 1 m voxel) sees the layers below and above the boundary
+    alike, where the 7-voxel neighbourhood sees its own layer 5 times and the one below once."""
+    from core.voxel import NEIGHBOR_OFFSETS, neighborhood_base
+
+    p = np.array([[0.3, 0.8, 0.02]])
+    cells8 = neighborhood_base(p, 1.0, 8)[0] + NEIGHBOR_OFFSETS[8]
+    centres = (cells8 + 0.5) * 1.0
+    assert np.all(centres.min(axis=0) <= p[0]) and np.all(centres.max(axis=0) >= p[0])
+    assert sorted(set(cells8[:, 2])) == [-1, 0] and (cells8[:, 2] == -1).sum() == 4
+    cells7 = neighborhood_base(p, 1.0, 7)[0] + NEIGHBOR_OFFSETS[7]
+    assert (cells7[:, 2] == 0).sum() == 5 and (cells7[:, 2] == -1).sum() == 1
+    assert kernels.cell_shift(8) == 0.5 and kernels.cell_shift(7) == 0.0
 
 
 def test_deskew_kernel_matches_the_screw_motion() -> None:
