@@ -1167,13 +1167,16 @@ class IncrementalMatcher:
         """The coarsest NDT level a match from the prediction needs (adaptive levels,
         :data:`LEVEL_MARGIN`); None (every level) without enough recent matches or after a gap."""
         recent = self._state.recent_corrections
-        levels = self.registration.voxel_sizes_m
-        if not self.settings.adaptive_levels or periods > 1.5 or len(recent) < MIN_CORRECTIONS or not levels:
+        fine = self._fine_levels()
+        if fine is None or not self.settings.adaptive_levels or periods > 1.5:
             return None
-        return max(LEVEL_MARGIN * max(recent), levels[-2] if len(levels) > 1 else levels[-1])
+        if len(recent) < MIN_CORRECTIONS:
+            return None
+        return max(LEVEL_MARGIN * max(recent), fine)
 
     def _fine_levels(self) -> float | None:
-        """The coarsest level a match again from a matched pose needs: the two finest."""
+        """The second finest level (the finest when there is only one): a match again from a matched
+        pose runs the two finest, a match from the prediction at least those."""
         levels = self.registration.voxel_sizes_m
         return None if not levels else levels[-2] if len(levels) > 1 else levels[-1]
 
