@@ -157,6 +157,15 @@ def _moved_and_cell(
     return q0, q1, q2, int(math.floor(c0)), int(math.floor(c1)), int(math.floor(c2))
 
 
+@nb.njit(cache=True, inline="always")
+def _trilinear_weight(offsets: np.ndarray, k: int, fx: float, fy: float, fz: float) -> float:
+    """8 times the trilinear weight of the enclosing voxel ``offsets[k]`` (in {0,1}^3) for a point
+    at ``(fx, fy, fz)`` in [0, 1)^3 from the base cell's centre (:func:`core.voxel.trilinear_weights`):
+    the 8 weights sum to 8, as many as the unweighted terms."""
+    w = 8.0 * (fx if offsets[k, 0] else 1.0 - fx) * (fy if offsets[k, 1] else 1.0 - fy)
+    return w * (fz if offsets[k, 2] else 1.0 - fz)
+
+
 @nb.njit(cache=True)
 def cell_shift(n_neighbors: int) -> float:
     """How far (in voxels) a neighbourhood's base cell is below the point's own: 1/2 for the 8
@@ -210,6 +219,9 @@ def ndt_accumulate(
     ``w = -d1 d2 e``, ``J = [I, -[q - pivot]x]``; gradient ``w J^T a``; Hessian
     ``w (J^T Sigma^-1 J - d2 (J^T a)(J^T a)^T + S)``.
     ``out_grad`` (6,), ``out_hess`` and ``out_gn`` (6,6) are overwritten. Returns (cost, pairs).
+    With the 8 enclosing voxels (``offsets`` of 8 rows) each pair's ``e`` is weighted trilinearly
+    (:func:`_trilinear_weight`; the weights held constant in the derivatives, as Magnusson's
+    trilinear NDT does), so the cost is continuous where a point's 8 voxels change.
 
     The 48 sums live in scalar locals, not arrays: LLVM keeps them in registers, where sums into
     heap arrays (which might alias the inputs) cost a load and a store per pair and term; that
@@ -236,6 +248,7 @@ def ndt_accumulate(
     K25 = K33 = K34 = K35 = K44 = K45 = K55 = 0.0
     n_off = offsets.shape[0]
     shift = cell_shift(n_off)
+    trilinear = n_off == 8
     use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
     vk = np.empty(n_off, dtype=np.int64)
     for i in range(points.shape[0]):
@@ -252,6 +265,9 @@ def ndt_accumulate(
                 cache_cell[i, 0], cache_cell[i, 1], cache_cell[i, 2] = cx, cy, cz
                 for k in range(n_off):
                     cache_vox[i, k] = vk[k]
+        fx = q0 * inv_v - shift - cx
+        fy = q1 * inv_v - shift - cy
+        fz = q2 * inv_v - shift - cz
         for k in range(n_off):
             v = vk[k]
             if v < 0:
@@ -266,6 +282,8 @@ def ndt_accumulate(
             if m >= m_max:
                 continue
             e = math.exp(-0.5 * d2 * m)
+            if trilinear:
+                e *= _trilinear_weight(offsets, k, fx, fy, fz)
             cost += d1 * e
             n_pairs += 1
             if not derivatives:

@@ -106,15 +106,16 @@ _PRUNE = 30.0
 
 def _pairs(
     q: np.ndarray, gmap: VoxelGaussianMap, n_neighbors: int, d2: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Point-voxel pairs with ``y = W x`` (whitened offsets) and ``m = |y|^2``, negligible ones pruned."""
-    pidx, vidx = gmap.neighbors(q, n_neighbors)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Point-voxel pairs with ``y = W x`` (whitened offsets), ``m = |y|^2`` and the pair's weight
+    in the cost (:meth:`VoxelGaussianMap.neighbor_pairs`), negligible ones pruned."""
+    pidx, vidx, weight = gmap.neighbor_pairs(q, n_neighbors)
     x = q[pidx] - gmap.means[vidx]
     W = gmap.whitening[vidx]
     y = np.einsum("pij,pj->pi", W, x)
     m = np.einsum("pi,pi->p", y, y)
     keep = m < (2.0 * _PRUNE / d2)
-    return pidx[keep], W[keep], y[keep], m[keep]
+    return pidx[keep], W[keep], y[keep], m[keep], weight[keep]
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -133,8 +134,8 @@ def ndt_cost_numpy(
 ) -> float:
     """The NDT cost ``f(T)`` (module docstring), vectorized numpy reference of :func:`ndt_cost`."""
     q = transform_points(T, points_xyz)
-    _, _, _, m = _pairs(q, gmap, n_neighbors, consts.d2)
-    return float(consts.d1 * np.exp(-0.5 * consts.d2 * m).sum())
+    _, _, _, m, weight = _pairs(q, gmap, n_neighbors, consts.d2)
+    return float(consts.d1 * (weight * np.exp(-0.5 * consts.d2 * m)).sum())
 
 
 def ndt_derivatives_numpy(
@@ -148,9 +149,9 @@ def ndt_derivatives_numpy(
 ) -> NdtEvaluation:
     """Vectorized numpy reference of :func:`ndt_derivatives` (one row per point-voxel pair)."""
     q_all = transform_points(T, points_xyz)
-    pidx, W, y, m = _pairs(q_all, gmap, n_neighbors, consts.d2)
+    pidx, W, y, m, weight = _pairs(q_all, gmap, n_neighbors, consts.d2)
     q = q_all[pidx] - (0.0 if pivot is None else pivot)  # lever arms of the rotation
-    e = np.exp(-0.5 * consts.d2 * m)
+    e = weight * np.exp(-0.5 * consts.d2 * m)  # the weights held constant in the derivatives
     cost = float(consts.d1 * e.sum())
     w = -consts.d1 * consts.d2 * e
     a = np.einsum("pji,pj->pi", W, y)  # Sigma^-1 x = W^T y
@@ -190,8 +191,8 @@ def ndt_point_scores_numpy(
     best_m : (N,) squared Mahalanobis distance to the best voxel (``inf`` where none)
     """
     q = transform_points(T, points_xyz)
-    pidx, _, _, m = _pairs(q, gmap, n_neighbors, consts.d2)
-    s = -consts.d1 * np.exp(-0.5 * consts.d2 * m)
+    pidx, _, _, m, _ = _pairs(q, gmap, n_neighbors, consts.d2)
+    s = -consts.d1 * np.exp(-0.5 * consts.d2 * m)  # unweighted: a point's fit to each voxel
     n = points_xyz.shape[0]
     score_sum = np.bincount(pidx, weights=s, minlength=n)
     score_max = np.zeros(n)

@@ -64,6 +64,24 @@ def _neighbor_offsets(n: int) -> np.ndarray:
 NEIGHBOR_OFFSETS: dict[int, np.ndarray] = {n: _neighbor_offsets(n) for n in (1, 7, 8, 27)}
 
 
+def trilinear_weights(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """(8, N) the weight of each of a point's 8 enclosing voxels (:data:`NEIGHBOR_OFFSETS` [8]
+    order), 8 times its trilinear interpolation weight so that the 8 sum to 8.
+
+    Unweighted, a point's 8 voxels switch at once when it crosses a cell's centre plane, and the
+    NDT cost jumps there: a ripple one voxel long, which pinned poses on walls and ground lined
+    up with the grid (on bench/service.py's one-vehicle drive 9.7 cm of horizontal and 6.7 cm of
+    vertical drift over 600 sweeps; 8.3 and 0.9 weighted; docs/benchmarks.md). Weighted, a voxel
+    leaves the sum at weight 0: the cost is continuous (Magnusson 2009, trilinear NDT).
+    """
+    scaled = np.asarray(points_xyz, dtype=np.float64) / voxel_size_m - cell_shift(8)
+    f = scaled - np.floor(scaled)  # (N,3) in [0,1): from the base cell's centre
+    offsets = NEIGHBOR_OFFSETS[8]
+    per_axis = np.where(offsets[:, None, :] == 1, f[None, :, :], 1.0 - f[None, :, :])  # (8,N,3)
+    weights: np.ndarray = 8.0 * per_axis.prod(axis=2)
+    return weights
+
+
 def neighborhood_base(points_xyz: np.ndarray, voxel_size_m: float, n_neighbors: int) -> np.ndarray:
     """(N,3) int64 base cell of each point's neighbourhood (:data:`NEIGHBOR_OFFSETS` are added).
 
@@ -74,7 +92,7 @@ def neighborhood_base(points_xyz: np.ndarray, voxel_size_m: float, n_neighbors: 
     lies near and one across. A flat ground on a boundary (the simulated town's z = 0) then pulls
     the matched height by the imbalance: 10.6 cm of vertical drift over bench/service.py's first
     drive, 0.1 cm with these 8 (docs/benchmarks.md). :func:`core.kernels.cell_shift` is the same
-    rule for the compiled kernels.
+    rule for the compiled kernels. The 8 are weighted trilinearly (:func:`trilinear_weights`).
     """
     shift = cell_shift(n_neighbors)
     if shift == 0.0:
@@ -416,13 +434,25 @@ class VoxelGaussianMap:
         point_index : (P,) int64 index into ``points_xyz``
         voxel_index : (P,) int64 index into this map's arrays
         """
+        pidx, vidx, _ = self.neighbor_pairs(points_xyz, n_neighbors)
+        return pidx, vidx
+
+    def neighbor_pairs(
+        self, points_xyz: np.ndarray, n_neighbors: int = 7
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`neighbors` and each pair's weight in the NDT cost: 1, or for the 8 enclosing
+        voxels :func:`trilinear_weights`."""
         base = neighborhood_base(points_xyz, self.voxel_size_m, n_neighbors)
         offsets = NEIGHBOR_OFFSETS[n_neighbors]
         cells = (base[None, :, :] + offsets[:, None, :]).reshape(-1, 3)
         vidx = self.lookup(cells)
         pidx = np.tile(np.arange(points_xyz.shape[0], dtype=np.int64), offsets.shape[0])
+        if n_neighbors == 8:
+            weight = trilinear_weights(points_xyz, self.voxel_size_m).reshape(-1)
+        else:
+            weight = np.ones(vidx.shape[0])
         hit = vidx >= 0
-        return pidx[hit], vidx[hit]
+        return pidx[hit], vidx[hit], weight[hit]
 
     def subset(self, mask: np.ndarray) -> VoxelGaussianMap:
         """A map holding only the voxels where ``mask`` is true."""

@@ -551,6 +551,37 @@ def test_the_8_voxel_neighbourhood_encloses_the_point() -> None:
     assert kernels.cell_shift(8) == 0.5 and kernels.cell_shift(7) == 0.0
 
 
+def test_the_8_voxel_cost_is_continuous_where_the_voxels_change(kitti_problem) -> None:
+    """Points on the planes where their 8 enclosing voxels change (the cells' centre planes), a
+    nanometre either side: the trilinearly weighted cost moves by round-off, where unweighted the 8
+    would switch at once and the 7-voxel neighbourhood jumps at its own switch, the cell faces."""
+    _, gmap, consts, _ = kitti_problem
+    v = gmap.voxel_size_m
+    cells = np.floor(gmap.means[:400] / v)
+    eps, jumps7, jumps8 = 1e-9, [], []
+    for c, mu in zip(cells, gmap.means[:400], strict=True):
+        for plane, n in (((c[0] + 0.5) * v, 8), (c[0] * v, 7)):  # the x plane where n's voxels change
+            lo, hi = mu.copy(), mu.copy()
+            lo[0], hi[0] = plane - eps, plane + eps
+            f_lo = ndt_cost(lo[None, :], np.eye(4), gmap, consts, n)
+            f_hi = ndt_cost(hi[None, :], np.eye(4), gmap, consts, n)
+            (jumps8 if n == 8 else jumps7).append(abs(f_hi - f_lo))
+    assert max(jumps8) < 1e-6
+    assert np.median(jumps7) > 1e-3  # the 7's cost is not continuous at its cell faces
+
+
+def test_trilinear_weights_sum_to_8_and_favour_the_nearest_centre() -> None:
+    from core.voxel import trilinear_weights
+
+    rng = np.random.default_rng(4)
+    p = rng.uniform(-50, 50, (1000, 3))
+    w = trilinear_weights(p, 1.0)
+    np.testing.assert_allclose(w.sum(axis=0), 8.0, rtol=1e-12)
+    # a point at a voxel's centre: that voxel alone (the base cell, offset (0,0,0)), weight 8
+    w_c = trilinear_weights(np.array([[3.5, -2.5, 0.5]]), 1.0)[:, 0]
+    assert w_c[0] == pytest.approx(8.0) and np.abs(w_c[1:]).max() < 1e-12
+
+
 def test_deskew_kernel_matches_the_screw_motion() -> None:
     """core.kernels.deskew_points against each point's own SE(3) power of the period's motion
     (core.transforms.scale_motion, itself tested against scipy's fractional matrix power), on a
