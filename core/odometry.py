@@ -453,9 +453,8 @@ def deskew(
     reference_fraction`` (0: the sweep's start, 0.5: its middle). Until 2026-11-28 the
     translation was scaled linearly, ``s * delta[:3, 3]``: the chord of the whole period, whose
     direction is half the period's turn off the heading at any moment, so in a corner at 33
-    deg/s every sweep was sheared by 1.4 cm across at its ends, and each corner left a heading
-    error of about 5 mdeg (bench/service.py's second drive: 10 cm sideways after 600 m;
-    docs/benchmarks.md).
+    deg/s every sweep was sheared by 1.4 cm across at its ends (the pose error it made was small
+    on simulated drives: docs/benchmarks.md).
     """
     s = np.clip(np.asarray(time_offset_s, dtype=np.float64) / period_s, 0.0, 1.5) - reference_fraction
     rotvec, screw = se3_log(delta)
@@ -1039,13 +1038,13 @@ class IncrementalMatcher:
         measured against that warp (5-11 cm off on simulated drives). With the velocity the match
         found, the first keyframe is deskewed and the second sweep, deskewed with the same
         velocity, matched again from its pose; kept only if it passes the same gate. That first
-        velocity is itself measured against the warp (on bench/service.py's second drive 0.886 m
-        a period for 1.000): both sweeps deskewed with it align (the second sweep's pose 0.4 mm
-        off) but the first keyframe stays warped, and the third sweep, deskewed with the right
-        velocity, was matched 19 mdeg off in yaw, a heading error the session kept. So it goes
-        round again with the velocity of the new match, until that changes by less than
-        :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most :data:`SECOND_SWEEP_PASSES`
-        times).
+        velocity is itself measured against the warp (on a simulated drive, the two-vehicle
+        fleet's second, 0.886 m a period for 1.000): both sweeps deskewed with it align (the
+        second sweep's pose 0.4 mm off) but the first keyframe stays warped, and the third sweep,
+        deskewed with the right velocity, was matched 19 mdeg off in yaw, a heading error the
+        session kept. So it goes round again with the velocity of the new match, until that
+        changes by less than :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most
+        :data:`SECOND_SWEEP_PASSES` times).
         """
         for _ in range(SECOND_SWEEP_PASSES):
             velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, gating.periods)

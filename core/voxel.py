@@ -90,9 +90,10 @@ def neighborhood_base(points_xyz: np.ndarray, voxel_size_m: float, n_neighbors: 
     axis): every point sees the Gaussians on both sides of the nearest cell boundary in each
     axis, where the 7-voxel one (own cell and its 6 faces) sees 5 on its own side of a boundary it
     lies near and one across. A flat ground on a boundary (the simulated town's z = 0) then pulls
-    the matched height by the imbalance: 10.6 cm of vertical drift over bench/service.py's first
-    drive, 0.1 cm with these 8 (docs/benchmarks.md). :func:`core.kernels.cell_shift` is the same
-    rule for the compiled kernels. The 8 are weighted trilinearly (:func:`trilinear_weights`).
+    the matched height by the imbalance: 11.1 cm of vertical drift over a 600-sweep simulated
+    drive (the two-vehicle fleet's first), 0.1 cm with these 8 (docs/benchmarks.md).
+    :func:`core.kernels.cell_shift` is the same rule for the compiled kernels. The 8 are weighted
+    trilinearly (:func:`trilinear_weights`).
     """
     shift = cell_shift(n_neighbors)
     if shift == 0.0:
