@@ -259,10 +259,9 @@ def test_deskew_follows_a_corner_onset() -> None:
     assert err_m < 0.10 and err_deg < 0.3, (err_m, err_deg)
 
 
-def _second_sweep_error_m(start_s_m: float, *, again: bool) -> float:
-    """The second pose's error (m, relative to the first) on town 1's loop from ``start_s_m``:
-    two distorted sweeps at 10 m/s, deskewed by the matcher; ``again=False`` keeps the first match
-    (the first keyframe is still deskewed afterwards, as before 2026-11-28)."""
+def _two_raw_sweeps(start_s_m: float) -> tuple[list[SimScan], list[np.ndarray]]:
+    """The first two distorted sweeps on town 1's loop from ``start_s_m`` at 10 m/s and the true
+    sensor poses at their middles."""
     from sim.drive import Motion, Route, simulate
     from sim.town import Town
 
@@ -274,6 +273,14 @@ def _second_sweep_error_m(start_s_m: float, *, again: bool) -> float:
             town, route, n_scans=2, speed_mps=10.0, seed=1, deskewed=False, workers=1, start_s_m=start_s_m
         )
     )
+    return scans, [motion.sensor_poses_at(0.1 * s.index + 0.05)[0] for s in scans]
+
+
+def _second_sweep_error_m(start_s_m: float, *, again: bool) -> float:
+    """The second pose's error (m, relative to the first) on town 1's loop from ``start_s_m``:
+    two distorted sweeps at 10 m/s, deskewed by the matcher; ``again=False`` keeps the first match
+    (the first keyframe is still deskewed afterwards, as before 2026-11-28)."""
+    scans, truth = _two_raw_sweeps(start_s_m)
     matcher = IncrementalMatcher(MatcherSettings())
     if not again:
 
@@ -288,7 +295,6 @@ def _second_sweep_error_m(start_s_m: float, *, again: bool) -> float:
             s.points_xyz.astype(np.float64), time_offset_s=s.time_offset_s, stamp_s=0.1 * s.index
         )
         assert r.status in ("first", "ok")
-    truth = [motion.sensor_poses_at(0.1 * s.index + 0.05)[0] for s in scans]
     return transform_error(invert(matcher.poses[0]) @ matcher.poses[1], invert(truth[0]) @ truth[1])[0]
 
 
@@ -308,17 +314,7 @@ def test_the_first_keyframe_ends_deskewed_with_the_settled_velocity(start_s_m: f
     last velocity it is deskewed with is the true motion over a period to 2 mm and 0.01 deg
     (measured 0.5 mm, 0.005 deg), while the first (the match against the raw first sweep) was
     further off (6.5 cm from 20 m on)."""
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
-
-    town = Town.generate(1)
-    route = Route.loop(town, 3, length_m=1000.0)
-    motion = Motion(route, 10.0, 0.0, start_s_m=start_s_m)
-    scans = list(
-        simulate(
-            town, route, n_scans=2, speed_mps=10.0, seed=1, deskewed=False, workers=1, start_s_m=start_s_m
-        )
-    )
+    scans, truth = _two_raw_sweeps(start_s_m)
     matcher = IncrementalMatcher(MatcherSettings())
     used: list[np.ndarray] = []
     deskew_first = matcher._deskew_first_keyframe
@@ -332,7 +328,6 @@ def test_the_first_keyframe_ends_deskewed_with_the_settled_velocity(start_s_m: f
         matcher.register_scan(
             s.points_xyz.astype(np.float64), time_offset_s=s.time_offset_s, stamp_s=0.1 * s.index
         )
-    truth = [motion.sensor_poses_at(0.1 * s.index + 0.05)[0] for s in scans]
     true_velocity = invert(truth[0]) @ truth[1]
     errors = [transform_error(v, true_velocity) for v in used]
     assert 2 <= len(used) <= 3, errors
