@@ -340,7 +340,7 @@ def live_service(
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="uvicorn-bench", daemon=True)
     thread.start()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + SERVER_START_S
     while not server.started:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
@@ -353,8 +353,31 @@ def live_service(
             f"http://127.0.0.1:{port}", port, endpoint if listen else connect[0], service, data_dir
         )
     finally:
-        server.should_exit = True
-        thread.join(60)
+        stop_server(server, thread)
+
+
+#: How long a server in a thread may take to start or to stop (drain, save, close) before that is
+#: an error. Bounds against a hang only: on a busy machine (two CPU burners beside the suite) a
+#: shutdown draining a flooded session took over a minute, and a caller that went on after a
+#: shorter join restarted on a data directory the first service still held, and left its
+#: processes running.
+SERVER_START_S = 300.0
+SERVER_STOP_S = 600.0
+
+
+def stop_server(server: Any, thread: threading.Thread) -> None:
+    """Ask a uvicorn ``server`` running in ``thread`` to exit and wait until it has (its
+    lifespan shutdown stops the service: sessions drained and saved, processes ended).
+
+    Raises
+    ------
+    RuntimeError
+        It was still running after :data:`SERVER_STOP_S`.
+    """
+    server.should_exit = True
+    thread.join(SERVER_STOP_S)
+    if thread.is_alive():
+        raise RuntimeError(f"the server did not stop within {SERVER_STOP_S:.0f} s")
 
 
 def http_raw(

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import uvicorn
 
+from bench.harness import SERVER_START_S, stop_server
 from service.app import create_app
 from service.runtime import Service
 from service.settings import ServiceSettings
@@ -51,7 +52,7 @@ def live_server(data_dir: Path, *, with_zenoh: bool = False, **overrides: object
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + SERVER_START_S
     while not server.started:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
@@ -61,8 +62,7 @@ def live_server(data_dir: Path, *, with_zenoh: bool = False, **overrides: object
     try:
         yield LiveServer(f"http://127.0.0.1:{port}", app.state.service, settings)
     finally:
-        server.should_exit = True
-        thread.join(30)
+        stop_server(server, thread)
 
 
 @dataclass
