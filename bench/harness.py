@@ -321,7 +321,6 @@ def live_service(
 ) -> Iterator[LiveService]:
     """``create_app`` with its Zenoh transport (peer listening on a free loopback port, or a client of
     ``connect``) served by uvicorn on a free loopback port; yields when the matchers are warm."""
-    import uvicorn
 
     from service.app import create_app
     from service.settings import ServiceSettings
@@ -337,14 +336,7 @@ def live_service(
     )
     app = create_app(settings, with_zenoh=True)
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, name="uvicorn-bench", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + SERVER_START_S
-    while not server.started:
-        if time.monotonic() > deadline or not thread.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.02)
+    server, thread = start_server(app, port, "uvicorn-bench")
     service = app.state.service
     if not service.sessions.wait_matchers(warm_timeout):
         raise RuntimeError("matcher processes did not warm up")
@@ -357,12 +349,34 @@ def live_service(
 
 
 #: How long a server in a thread may take to start or to stop (drain, save, close) before that is
-#: an error. Bounds against a hang only: on a busy machine (two CPU burners beside the suite) a
-#: shutdown draining a flooded session took over a minute, and a caller that went on after a
-#: shorter join restarted on a data directory the first service still held, and left its
-#: processes running.
+#: an error. Bounds against a hang only: a caller that goes on after a short join (60 s here
+#: before) may restart on a data directory the first service still holds and leaves its processes
+#: running, which a suite run beside two CPU burners showed (idle graph and matcher processes of
+#: earlier services, then failures).
 SERVER_START_S = 300.0
 SERVER_STOP_S = 600.0
+
+
+def start_server(app: Any, port: int, name: str) -> tuple[Any, threading.Thread]:
+    """Serve ``app`` with uvicorn on ``127.0.0.1:port`` in a daemon thread called ``name``;
+    returns ``(server, thread)`` once it has started (for :func:`stop_server`).
+
+    Raises
+    ------
+    RuntimeError
+        It had not started within :data:`SERVER_START_S`, or its thread ended first.
+    """
+    import uvicorn
+
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, name=name, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + SERVER_START_S
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    return server, thread
 
 
 def stop_server(server: Any, thread: threading.Thread) -> None:

@@ -9,7 +9,6 @@ runs in seconds.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -17,9 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import uvicorn
 
-from bench.harness import SERVER_START_S, stop_server
+from bench.harness import start_server, stop_server
 from service.app import create_app
 from service.runtime import Service
 from service.settings import ServiceSettings
@@ -48,19 +46,11 @@ def live_server(data_dir: Path, *, with_zenoh: bool = False, **overrides: object
     (without Zenoh by default: the test feeds the session manager and reads ``service._sent``)."""
     settings = ServiceSettings(data_dir=data_dir, flush_interval_s=0.3, queue_size=64, **overrides)
     app = create_app(settings, with_zenoh=with_zenoh)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + SERVER_START_S
-    while not server.started:
-        if time.monotonic() > deadline or not thread.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.02)
+    server, thread = start_server(app, free_port(), "uvicorn-test")
     # Ready as a deployment's probe sees it: the matcher processes have loaded their kernels.
     assert app.state.service.sessions.wait_matchers(300), "matcher processes did not warm up"
     try:
-        yield LiveServer(f"http://127.0.0.1:{port}", app.state.service, settings)
+        yield LiveServer(f"http://127.0.0.1:{server.config.port}", app.state.service, settings)
     finally:
         stop_server(server, thread)
 
