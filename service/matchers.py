@@ -397,10 +397,6 @@ def warm_up() -> None:
         grid.candidate_mask(transform_points(result.T_world_sensor, result.deskewed_xyz))
 
 
-#: How long a matcher process waits for another request after replying before it rebuilds a
-#: deferred keyframe model (a request within this time means the process is behind).
-NEXT_REQUEST_WAIT_S = 0.005
-
 #: The first message a worker process sends, once warmed up (:meth:`MatcherPool.wait_ready`).
 _READY = (True, "ready")
 
@@ -413,6 +409,8 @@ class _Sessions:
         self.matchers: dict[Key, IncrementalMatcher] = {}
         self.grids: dict[Key, TileGrid | None] = {}
         self.sent: dict[Key, SentVoxels] = {}
+        self.ledger = CpuLedger()
+        self.rebuilds = _Rebuilds(self.ledger)
 
     def open(
         self,
@@ -439,14 +437,18 @@ class _Sessions:
         stamp_s: float | None,
         keyframe_voxel_m: float | None,
         frame: MapFrame | None = None,
+        rebuild: bool = False,
     ) -> Registered:
-        """One sweep; the keyframe model is left for the caller to rebuild after replying
-        (``self.matchers[key].model_pending``). With the session's map known, only the points it
-        could keep go back, already in the frame they are folded in (float32, as the map stores
-        them): with a ``frame``, those of voxels not sent before (:class:`SentVoxels`, about a
-        tenth of a sweep once the map around the vehicle is built), else the candidates (about a
-        quarter); the service process's insert handles those and transforms nothing."""
-        result = self.matchers[key].register_scan(
+        """One sweep. A keyframe's model rebuild is deferred: with ``rebuild`` it starts on a thread
+        at once (:class:`_Rebuilds`), beside the rest of this request and the reply, else it is
+        left for the caller (``self.matchers[key].model_pending``). With the session's map known,
+        only the points it could keep go back, already in the frame they are folded in (float32,
+        as the map stores them): with a ``frame``, those of voxels not sent before
+        (:class:`SentVoxels`, about a tenth of a sweep once the map around the vehicle is built),
+        else the candidates (about a quarter); the service process's insert handles those and
+        transforms nothing."""
+        matcher = self.matchers[key]
+        result = matcher.register_scan(
             xyz,
             time_offset_s=offsets,
             prior=prior,
@@ -454,6 +456,8 @@ class _Sessions:
             defer_model=True,
             map_seed=None if frame is None else frame.seed_xyz,
         )
+        if rebuild and matcher.model_pending:  # (it and _registered only read the sweep's points)
+            self.rebuilds.start(key, matcher)
         return _registered(result, self.grids.get(key), keyframe_voxel_m, frame, self.sent.get(key))
 
     def register_payload(
@@ -463,11 +467,12 @@ class _Sessions:
         limits: WireLimits | None,
         keyframe_voxel_m: float | None,
         frame: MapFrame | None = None,
+        rebuild: bool = False,
     ) -> Registered:
         """:meth:`register` of a scan payload, decoded here (:func:`decoded_sweep`): the service
         process routes the bytes and reads only the header, the numeric work is the worker's."""
         xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits, frame)
-        registered = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
+        registered = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame, rebuild)
         return _with_intensity(registered, intensity)
 
     def state(self, key: Key) -> dict[str, np.ndarray]:
@@ -484,40 +489,85 @@ class _Sessions:
 
     def _catch_up(self, key: Key, behind: bool) -> None:
         """A session that is not behind matches against its whole model: a keyframe whose rebuild
-        was left because another request followed the reply at once (:func:`serve_requests`) is
-        folded in before its next sweep. Only a session that is behind lets the model lag (else one
-        vehicle's trajectory depended on when its requests met others': the same 600 sweeps gave
-        11.3, 11.7 and 15.6 cm max error in the service against 8.4 cm offline)."""
+        was left while it was behind is folded in before its next sweep. Only a session that is
+        behind lets the model lag (else one vehicle's trajectory depended on when its requests met
+        others': the same 600 sweeps gave 11.3, 11.7 and 15.6 cm max error in the service against
+        8.4 cm offline)."""
         matcher = self.matchers.get(key)
         if matcher is not None and not behind:
             matcher.update_model()
 
-    def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> tuple[Any, IncrementalMatcher | None]:
-        """One request of the protocol (``open``, ``register``, ``state``, ``snapshot``, ``drop``): its value,
-        and after a ``register`` whose session is not behind the matcher whose keyframe model
-        waits to be rebuilt once the answer is out (else None)."""
+    def handle(self, op: str, key: Key, args: tuple[Any, ...]) -> Any:
+        """One request of the protocol (``open``, ``register``, ``register_payload``, ``state``,
+        ``snapshot``, ``drop``): its value, a :class:`Registered` billed with the CPU it cost
+        (:class:`CpuLedger`). The session's model rebuild started by its previous sweep is waited
+        for first; a ``register`` whose session is not behind starts its keyframe's rebuild
+        (:meth:`register`)."""
+        self.rebuilds.wait(key)
+        t0 = time.thread_time()
+        value = self._value(op, key, args)
+        return self.ledger.bill(op, key, value, time.thread_time() - t0)
+
+    def _value(self, op: str, key: Key, args: tuple[Any, ...]) -> Any:
         if op == "open":
-            self.open(key, *args)
-            return None, None
+            return self.open(key, *args)
         if op == "register":
             xyz, offsets, prior, stamp_s, behind, keyframe_voxel_m, frame = args
             self._catch_up(key, behind)
-            value = self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame)
-            matcher = self.matchers[key]
-            return value, (matcher if matcher.model_pending and not behind else None)
+            return self.register(key, xyz, offsets, prior, stamp_s, keyframe_voxel_m, frame, not behind)
         if op == "register_payload":
             payload, limits, behind, keyframe_voxel_m, frame = args
             self._catch_up(key, behind)
-            value = self.register_payload(key, payload, limits, keyframe_voxel_m, frame)
-            matcher = self.matchers[key]
-            return value, (matcher if matcher.model_pending and not behind else None)
+            return self.register_payload(key, payload, limits, keyframe_voxel_m, frame, not behind)
         if op == "state":
-            return self.state(key), None
+            return self.state(key)
         if op == "snapshot":
-            return self.snapshot(key), None
+            return self.snapshot(key)
         if op == "drop":
-            return self.drop(key), None
+            return self.drop(key)
         raise ValueError(f"unknown request {op!r}")
+
+
+class _Rebuilds:
+    """Keyframe model rebuilds (:meth:`IncrementalMatcher.update_model`) on threads of their own,
+    at most one per session: started as soon as a sweep is matched, so the rebuild (15 ms a sweep
+    on average, up to 40 ms for one keyframe) runs on another core beside the rest of the request
+    (the map points, about 10 ms), the reply and whatever the worker does next, instead of after
+    them. The session's next request waits for it (:meth:`wait`), so every sweep still matches
+    against the model of all keyframes before it, as offline: the poses do not depend on timing.
+    The kernels release the GIL. The rebuild's CPU time is billed to the session's next sweep."""
+
+    def __init__(self, ledger: CpuLedger) -> None:
+        self._ledger = ledger
+        self._lock = threading.Lock()  # (a Ray host serves several connections on threads)
+        self._running: dict[Key, threading.Thread] = {}
+
+    def start(self, key: Key, matcher: IncrementalMatcher) -> None:
+        thread = threading.Thread(target=self._rebuild, args=(key, matcher), name="randt-rebuild")
+        thread.daemon = True  # (a worker that quits waits for them: wait_all)
+        with self._lock:
+            self._running[key] = thread
+        thread.start()
+
+    def _rebuild(self, key: Key, matcher: IncrementalMatcher) -> None:
+        try:
+            with self._ledger.carry(key):
+                matcher.update_model()
+        except Exception:  # a bug, not bad input: the next request would meet it too
+            log.exception("keyframe model update failed")
+
+    def wait(self, key: Key) -> None:
+        """Until ``key``'s rebuild, if one runs, is done."""
+        with self._lock:
+            thread = self._running.pop(key, None)
+        if thread is not None:
+            thread.join()
+
+    def wait_all(self) -> None:
+        with self._lock:
+            threads, self._running = list(self._running.values()), {}
+        for thread in threads:
+            thread.join()
 
 
 def _serve(conn: Connection) -> None:
@@ -545,39 +595,23 @@ def _serve(conn: Connection) -> None:
 
 def serve_requests(conn: Connection, sessions: _Sessions) -> None:
     """The loop of a matcher process (or of a Ray matcher host's connection): one request at a
-    time, ``(op, key, args)`` in, ``(ok, value)`` out, until ``quit`` or the connection closes."""
-    ledger = CpuLedger()
+    time, ``(op, key, args)`` in, ``(ok, value)`` out, until ``quit`` or the connection closes.
+    Keyframe model rebuilds run on threads beside it (:class:`_Rebuilds`)."""
     while True:
         try:
             op, key, args = conn.recv()
         except (EOFError, OSError):  # the service is gone (even a kill -9 closes the pipe)
             return
         if op == "quit":
+            sessions.rebuilds.wait_all()
             conn.send((True, None))
             return
-        deferred: IncrementalMatcher | None = None
         try:
-            # The keyframe model is rebuilt after the reply (below), while the service publishes.
-            t0 = time.thread_time()
-            value, deferred = sessions.handle(op, key, args)
-            value = ledger.bill(op, key, value, time.thread_time() - t0)
+            value = sessions.handle(op, key, args)
         except Exception as exc:  # raised again in the session thread, as itself (module docstring)
             conn.send((False, _portable(exc)))
         else:
             conn.send((True, value))
-        # Rebuild the keyframe model now unless the session said several of its scans wait
-        # (behind) or another request follows at once: a session that is behind lets its next
-        # sweep match without the newest keyframe and rebuilds once for two
-        # (IncrementalMatcher.update_model), which at saturation halves the rebuilds; any other
-        # session's rebuild is done before its next sweep (_Sessions._catch_up). Session threads
-        # take turns on the pipe, so a waiting one usually sends within a millisecond or two of
-        # the reply; an idle process waits NEXT_REQUEST_WAIT_S, with the pose already out.
-        if deferred is not None and not conn.poll(NEXT_REQUEST_WAIT_S):
-            try:
-                with ledger.carry(key):
-                    deferred.update_model()
-            except Exception:  # a bug, not bad input: the next request would meet it too
-                log.exception("matcher process: keyframe model update failed")
 
 
 class CpuLedger:
@@ -890,7 +924,7 @@ class ForwardingMatcher:
     """What a matcher running elsewhere (a worker process, a Ray actor) shares: the trajectory kept
     here as well (appended from each result, so reading it needs no round trip),
     :meth:`register_scan` on top of the subclass's ``register``, and no model update to ask for
-    (the far side rebuilds the model right after replying)."""
+    (the far side rebuilds the model on a thread as soon as the sweep is matched)."""
 
     poses: list[np.ndarray]
 
@@ -938,7 +972,7 @@ class ForwardingMatcher:
         ).result
 
     def update_model(self) -> float:
-        """Nothing to do here: the far side rebuilds the model right after replying."""
+        """Nothing to do here: the far side rebuilds the model itself (``_Rebuilds``)."""
         return 0.0
 
 
@@ -983,12 +1017,11 @@ class RemoteMatcher(ForwardingMatcher):
         points too). Points and time offsets are sent as given
         (float32 straight from the wire: half the bytes of float64; the matcher widens them).
 
-        The process always defers a keyframe's model rebuild until it has replied, and does it
-        then unless ``behind`` (several of the session's scans are waiting) or another request
-        arrives within :data:`NEXT_REQUEST_WAIT_S`. Only when ``behind`` does the next sweep match
-        without the newest keyframe (the model rebuilt once for two,
-        :meth:`IncrementalMatcher.update_model`); otherwise the rebuild comes first
-        (``_Sessions._catch_up``)."""
+        Unless ``behind`` (several of the session's scans are waiting), the process starts a
+        keyframe's model rebuild on a thread as soon as the sweep is matched, beside the reply,
+        and the session's next request waits for it (``_Rebuilds``). Only when ``behind`` does
+        the next sweep match without the newest keyframe (the model rebuilt once for two,
+        :meth:`IncrementalMatcher.update_model`)."""
         registered: Registered = self._proc.call(
             "register", self._key, points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
         )

@@ -20,8 +20,8 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): the session's
                  matcher on the host with fewest sessions, on the node with fewest per CPU
     register  -> RayMatcher.register: one request per sweep, waited for; unless the session is
-                 behind, the host rebuilds a keyframe's model once the answer is out, before its
-                 next request (as a matcher process rebuilds right after replying)
+                 behind, the host rebuilds a keyframe's model on a thread beside the answer, and
+                 the session's next request waits for it (as in a matcher process)
     errors    -> an exception raised in the host is raised again as itself; a closed connection,
                  or a late answer from a host that Ray reports dead (a node whose machine died
                  cannot close its sockets), is a MatcherProcessDiedError, which the session layer
@@ -58,11 +58,10 @@ import numpy as np
 
 from core.config import RegistrationSettings
 from core.errors import RandtError
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
+from core.odometry import MatcherSettings, PosePrior
 from core.tiles import TileGrid
 from service.matchers import (
     _READY,
-    CpuLedger,
     ForwardingMatcher,
     MapFrame,
     MatcherProcessDiedError,
@@ -123,9 +122,7 @@ class _MatcherHost:
             warm_up()
         except Exception:  # a failed warm-up only costs the first sweep its compile time
             log.exception("matcher host warm-up failed")
-        self.sessions = _Sessions()
-        self._rebuilds: list[threading.Thread] = []
-        self._ledger = CpuLedger()  # the CPU each sweep costs, as the local executor measures it
+        self.sessions = _Sessions()  # (with the CPU each sweep costs, as the local executor measures it)
 
     def ready(self) -> str:
         """The node this host runs on, once warmed up."""
@@ -184,31 +181,11 @@ class _MatcherHost:
             conn.close()
 
     # -- Ray calls ----------------------------------------------------------------------------------
-    def _rebuilt(self) -> None:
-        """Wait for the model rebuilds started after the previous answers: a request runs only
-        once its host's rebuilds are done (as a matcher process rebuilds between requests)."""
-        for thread in self._rebuilds:
-            thread.join()
-        self._rebuilds.clear()
-
     def call(self, op: str, key: Key, *args: Any) -> Any:
         """One request of :func:`service.matchers.serve_requests`' protocol as a Ray call
-        (transport "ray"). After a ``register`` whose session is not ``behind``, a keyframe's
-        model is rebuilt on a thread once the answer is on its way (as a matcher process rebuilds
-        after replying), and the host's next request waits for it: one remote call per sweep."""
-        self._rebuilt()
-        t0 = time.thread_time()
-        value, deferred = self.sessions.handle(op, key, args)
-        value = self._ledger.bill(op, key, value, time.thread_time() - t0)
-        if deferred is not None:
-            thread = threading.Thread(target=self._rebuild, args=(key, deferred), daemon=True)
-            thread.start()
-            self._rebuilds.append(thread)
-        return value
-
-    def _rebuild(self, key: Key, matcher: IncrementalMatcher) -> None:
-        with self._ledger.carry(key):  # billed to the session's next sweep
-            matcher.update_model()
+        (transport "ray"): a keyframe's model is rebuilt on a thread beside the answer, and the
+        session's next request waits for it, as in a matcher process. One remote call per sweep."""
+        return self.sessions.handle(op, key, args)
 
 
 def _normal_priority() -> None:

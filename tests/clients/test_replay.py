@@ -30,8 +30,8 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
     matcher process that saw the next request within 5 ms of its reply let that sweep match
     before the newest keyframe was folded in, which depended on timing (frame 10 moved by 4 mm in
     one CI run, frame 4 by 2.3 mm with two CPU burners); now a session that is not behind
-    (``--rate 0``: one scan at a time) always matches against its whole model
-    (``_Sessions._catch_up``), so the poses should be the offline ones to the digit; the 1 cm
+    (``--rate 0``: one scan at a time) always matches against its whole model (its rebuild
+    waited for, ``_Rebuilds``), so the poses should be the offline ones to the digit; the 1 cm
     tolerance against ``randt map`` stays until CI runs with burners confirm it."""
     from tests.ros_bags import KINDS, kitti_frames, write_bag
 

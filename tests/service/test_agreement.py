@@ -20,7 +20,6 @@ import pytest
 from core.odometry import MatcherSettings
 from core.tiles import TileGrid
 from service.agreement import AGREEING_CHECKS, AgreementGate
-from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
 from service.settings import ServiceSettings
@@ -72,7 +71,6 @@ def _send(mgr: SessionManager, out: list, vehicle: str, scan, prior: bool) -> No
     while _answered(out) < n + 1:
         assert time.monotonic() < deadline, "the service stopped answering"
         time.sleep(0.002)
-    time.sleep(2 * NEXT_REQUEST_WAIT_S)  # (its matcher process begins its model rebuild)
 
 
 def _off_surface(mgr: SessionManager, town: Town) -> int:

@@ -24,7 +24,6 @@ from clients.rest import MapClient  # noqa: E402
 from core.errors import BadMessageError  # noqa: E402
 from core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
 from core.io import read_cloud  # noqa: E402
-from service.matchers import NEXT_REQUEST_WAIT_S  # noqa: E402
 from service.metrics import ServiceMetrics  # noqa: E402
 from service.sessions import SessionManager  # noqa: E402
 from service.settings import ServiceSettings  # noqa: E402
@@ -53,7 +52,6 @@ def _send(mgr: SessionManager, out: list, payload: bytes, vehicle: str = "car") 
     while _answered(out) < n + 1:
         assert time.monotonic() < deadline, "the service stopped answering"
         time.sleep(0.002)
-    time.sleep(2 * NEXT_REQUEST_WAIT_S)
 
 
 def _to_wgs84_with_pyproj(xyz: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -30,7 +30,6 @@ from service.graph import (
     _ProcessMap,
     correct_trajectory,
 )
-from service.matchers import NEXT_REQUEST_WAIT_S
 from service.metrics import ServiceMetrics
 from service.transport import ZenohTransport
 from sim.drive import Motion, SimScan, plan_fleet, simulate
@@ -245,7 +244,7 @@ class LoopDrive:
 
 def _feed(server: LiveServer, scans: Iterable[tuple[str, ScanMessage]]) -> None:
     """Send ``(vehicle, scan)`` in order, one at a time: each once the previous one is answered
-    and its matcher has begun rebuilding the keyframe model (see :func:`loop_drive`). ``scans``
+    (see :func:`loop_drive`). ``scans``
     may be simulated as they are taken (the ray casting runs while the service matches)."""
     mgr, out = server.service.sessions, server.service._sent
     assert mgr is not None
@@ -259,7 +258,6 @@ def _feed(server: LiveServer, scans: Iterable[tuple[str, ScanMessage]]) -> None:
         while n_answered() < start + sent:
             assert time.monotonic() < deadline, "the service stopped answering"
             time.sleep(0.002)
-        time.sleep(2 * NEXT_REQUEST_WAIT_S)  # the matcher process has begun its model rebuild
         mgr.submit(vehicle, encode(scan))
         sent += 1
     while n_answered() < start + sent:
@@ -271,10 +269,10 @@ def _feed(server: LiveServer, scans: Iterable[tuple[str, ScanMessage]]) -> None:
 def loop_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopDrive]:
     """The drive, fed to a real uvicorn server (``with_zenoh=False``: the session manager takes the
     wire-encoded scans straight), one scan at a time: each is sent once the previous one is
-    answered and its matcher has begun rebuilding the keyframe model. A service that is never
-    behind matches every sweep against its newest keyframe, so the live trajectory is the same
-    on a slow machine as on a fast one (a matcher that is behind skips rebuilds, and the drift
-    to correct then depends on the machine's speed: live ATE 0.34 to 0.57 m were seen)."""
+    answered. A service that is never behind matches every sweep against its newest keyframe,
+    so the live trajectory is the same on a slow machine as on a fast one (a matcher that is
+    behind skips rebuilds, and the drift to correct then depends on the machine's speed: live
+    ATE 0.34 to 0.57 m were seen)."""
     town = Town.generate(0)
     vehicle = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
     n = int(np.ceil(1.15 * Motion(vehicle.route).lap_time_s * 10))  # 1.15 laps at 10 Hz

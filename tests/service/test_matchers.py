@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import pickle
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from service.matchers import (
     MatcherProcessDiedError,
     MatcherProcessError,
     _portable,
+    _Sessions,
 )
 from service.metrics import ServiceMetrics
 from service.sessions import SessionManager
@@ -62,6 +64,48 @@ def test_a_remote_matcher_gives_the_in_process_poses_and_state() -> None:
         np.testing.assert_allclose(again, local.register_scan(sweeps[-1]).T_world_sensor, atol=1e-12)
     finally:
         pool.close()
+
+
+def test_keyframe_rebuilds_run_beside_the_answers_and_the_next_sweep_waits_for_them(monkeypatch) -> None:
+    """A worker starts a keyframe's model rebuild on a thread of its own as soon as the sweep is
+    matched (beside the map points and the reply), and the session's next request waits for it:
+    sweeps sent back to back get the synchronous matcher's poses to the digit, the rebuilds ran
+    on the rebuild thread, and their CPU time is billed to the next sweep."""
+    rebuilds: list[tuple[str, float]] = []
+    update_model = IncrementalMatcher.update_model
+
+    def recorded(self: IncrementalMatcher) -> float:
+        t0 = time.thread_time()
+        spent = update_model(self)
+        if spent:
+            rebuilds.append((threading.current_thread().name, time.thread_time() - t0))
+        return spent
+
+    add_keyframes = IncrementalMatcher._add_keyframes
+
+    def slow(self: IncrementalMatcher, keyframes: list) -> None:
+        time.sleep(0.05)  # a rebuild still running when the next sweep arrives
+        add_keyframes(self, keyframes)
+
+    monkeypatch.setattr(IncrementalMatcher, "update_model", recorded)
+    monkeypatch.setattr(IncrementalMatcher, "_add_keyframes", slow)
+    settings = MatcherSettings(keyframe_distance_m=0.5)  # a keyframe every second sweep (0.3 m each)
+    sweeps = _sweeps(12)
+    local = IncrementalMatcher(settings)
+    sessions, key = _Sessions(), ("v", "s")
+    sessions.handle("open", key, (None, (20, 0.2, 1), settings, None))
+    cpus = []
+    for xyz in sweeps:
+        expected = local.register_scan(xyz.astype(np.float64))
+        answer = sessions.handle("register", key, (xyz, None, None, None, False, None, None))
+        np.testing.assert_allclose(answer.result.T_world_sensor, expected.T_world_sensor, rtol=0, atol=1e-12)
+        cpus.append(answer.cpu_s)
+    sessions.rebuilds.wait_all()
+    threads = [name for name, _ in rebuilds]
+    assert len(threads) >= 4 and set(threads) == {"randt-rebuild"}, threads
+    np.testing.assert_array_equal(np.array(sessions.matchers[key].poses), np.array(local.poses))
+    # each rebuild's CPU went into a later sweep's bill (the rebuilds before the last sweep's)
+    assert sum(cpus) >= sum(cpu for _, cpu in rebuilds[:-1]) > 0
 
 
 def _answers(out: list[object]) -> list[PoseMessage | ErrorMessage]:
