@@ -4,7 +4,9 @@ One :class:`IncrementalMatcher` per driving session, fed one sweep at a time. Th
 (:meth:`IncrementalMatcher.register_scan`) in one screen::
 
     sanitize  -> finite points only (counted)
-    predict   -> constant velocity: T_pred = T_last @ delta_last  (or the prior pose, if given)
+    predict   -> constant acceleration: T_pred = T_last @ v, v = delta_last extrapolated by its
+                 change since the sweep before (constant velocity after a gap or a fallback;
+                 the prior pose, if given, for the first sweep)
     deskew    -> per-point time offsets: each point moved to the sweep's start pose
     features  -> density-based split (core.features): noise out, ground thinned, objects kept
     get model -> the fused keyframe model (the paper's Get), prepared once per keyframe change
@@ -133,6 +135,11 @@ RELOCALIZE_RANGE_M = 60.0
 
 #: Keyframes that may wait for the model (``defer_model``) while a sweep is matched: one.
 MAX_PENDING_KEYFRAMES = 1
+
+#: A sweep whose stamp follows the last one's by one period within this fraction of a period is
+#: the next sweep (no gap): only then is the velocity's change carried on
+#: (:meth:`IncrementalMatcher._velocity`).
+ONE_PERIOD_TOLERANCE = 0.25
 
 #: A match's object points are judged on their own (``IncrementalMatcher._objects_refusal``) when
 #: the sweep has at least MIN_OBJECT_POINTS, on every k-th of them up to OBJECT_CHECK_POINTS (a
@@ -263,6 +270,22 @@ class MatcherSettings(BaseModel):
         "largest of the session's recent prediction corrections (every level after a gap, a "
         "fallback or a restart, and for the retried hypotheses)",
     )
+    acceleration_gain: float = Field(
+        default=1.0,
+        ge=0,
+        le=1,
+        description="how much of the change in velocity between the last two matched sweeps the "
+        "motion prediction (and the first deskew) carries on: 1 = constant acceleration (a corner's "
+        "growing yaw rate, braking), 0 = constant velocity. On the simulated car-like drives 1 "
+        "halved the sweeps deskewed a second time (docs/benchmarks.md)",
+    )
+    max_angular_acceleration_dps2: float = Field(
+        default=100.0,
+        gt=0,
+        description="the largest change of turn rate the prediction carries on (degrees/s^2; with "
+        "max_acceleration_mps2 for the speed): a car entering a corner at 3 m/s^2 lateral reaches "
+        "about 50; a larger change (a jump no vehicle makes, a bad match) is carried on only this far",
+    )
     redeskew: bool = Field(
         default=True,
         description="with point times: deskew per yaw hypothesis, and again with the matched velocity",
@@ -345,6 +368,9 @@ class MatcherState:
     ----------
     poses : ``T_world_sensor`` (4,4) of every sweep so far.
     delta : (4,4) the sensor's motion over one sweep period (the velocity), from the last two poses.
+    delta_measured : ``delta`` was measured between two matched sweeps one period apart.
+    prev_delta : the velocity before ``delta`` when both were so measured (for the acceleration,
+        :meth:`IncrementalMatcher._velocity`); None after a fallback or a gap.
     keyframes : (pose, model points in the world frame) fused into the model, the newest last.
     model : the fused, density-equalized keyframe model prepared for matching (None before the first).
     store : the incremental keyframe model the matching model is prepared from
@@ -371,6 +397,8 @@ class MatcherState:
     poses: list[np.ndarray]
     delta: np.ndarray
     keyframes: deque[tuple[np.ndarray, np.ndarray]]
+    delta_measured: bool = False
+    prev_delta: np.ndarray | None = None
     model: PreparedReference | None = None
     store: KeyframeModel | None = None
     last_keyframe_pose: np.ndarray | None = None
@@ -690,7 +718,7 @@ class IncrementalMatcher:
         periods = self._periods_since_last(stamp_s)
         T_pred = self._predict(index, prior_T, periods)
         prepare = self._preparer(sweep.xyz, sweep.time_offset_s if index > 0 else None, times)
-        xyz, feats = prepare(self._state.delta)
+        xyz, feats = prepare(self._velocity(periods))
         fell_back = self._state.fallback_run  # sweeps since the last match, before this one
         if index == 0:
             if sweep.time_offset_s is not None:
@@ -705,7 +733,8 @@ class IncrementalMatcher:
                 outcome = self._second_sweep_again(outcome, prepare, _Gating(T_pred, prior_T, prior, periods))
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
-        self._advance(T, index, periods, stamp_s, fell_back if outcome.status == "ok" else 0)
+        matched = outcome.status == "ok"
+        self._advance(T, index, periods, stamp_s, fell_back if matched else 0, matched)
         self._keep_prior_offset(T, prior_T, outcome.status)
         keep_map = ~outcome.feats.noise_mask
         mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # 8x faster than xyz[keep_map]
@@ -797,11 +826,29 @@ class IncrementalMatcher:
         return res.T_target_source, MATCHED_TO_MAP
 
     def _predict(self, index: int, prior_T: np.ndarray | None, periods: float) -> np.ndarray:
-        """Constant velocity: ``T_last @ delta`` over ``periods``; the first sweep at its prior
-        (or the identity)."""
+        """``T_last`` moved by the predicted velocity (:meth:`_velocity`) over ``periods``; the
+        first sweep at its prior (or the identity)."""
         if index == 0:
             return np.eye(4) if prior_T is None else prior_T
-        return orthonormalize(self._state.poses[-1] @ scale_motion(self._state.delta, periods))
+        return orthonormalize(self._state.poses[-1] @ scale_motion(self._velocity(periods), periods))
+
+    def _velocity(self, periods: float) -> np.ndarray:
+        """The motion over the next sweep period: the last velocity ``delta``, carried on by
+        ``acceleration_gain`` times its change since the velocity before (``prev_delta``) when the
+        next sweep follows the last by one period and both velocities came from matches; else
+        ``delta`` (constant velocity: over a gap the yaw hypotheses take the turn,
+        :meth:`_hypotheses`). A car's yaw rate grows through a corner's entry and its speed
+        changes as it brakes: constant velocity is a sweep behind both, and its first deskew
+        warps the sweep by the difference (:meth:`_redeskew` then deskews again)."""
+        st, s = self._state, self.settings
+        if st.prev_delta is None or s.acceleration_gain == 0.0 or abs(periods - 1.0) > ONE_PERIOD_TOLERANCE:
+            return st.delta
+        change = invert(st.prev_delta) @ st.delta
+        dt2 = self.period_s**2
+        turn, move = rotation_angle_deg(change[:3, :3]), float(np.linalg.norm(change[:3, 3]))
+        limit = min(1.0, s.max_angular_acceleration_dps2 * dt2 / max(turn, 1e-12))
+        limit = min(limit, s.max_acceleration_mps2 * dt2 / max(move, 1e-12))
+        return orthonormalize(st.delta @ scale_motion(change, s.acceleration_gain * limit))
 
     def _preparer(
         self, xyz_raw: np.ndarray, tau: np.ndarray | None, times: dict[str, float]
@@ -1008,19 +1055,30 @@ class IncrementalMatcher:
         return None
 
     def _advance(
-        self, T: np.ndarray, index: int, periods: float, stamp_s: float | None, fell_back: int = 0
+        self,
+        T: np.ndarray,
+        index: int,
+        periods: float,
+        stamp_s: float | None,
+        fell_back: int = 0,
+        matched: bool = False,
     ) -> None:
         """Append the pose; the velocity (per period) from the last matched pose, the stamp kept.
 
         ``fell_back``: the sweeps that fell back just before this matched one. Their poses are
         predictions, so the velocity is measured from the last match before them, over the
         periods since (one per fallback): after 20 blocked sweeps while the vehicle stood still,
-        the match 20 m behind the prediction is no velocity of 20 m per period.
+        the match 20 m behind the prediction is no velocity of 20 m per period. The velocity
+        before is kept for the acceleration (:meth:`_velocity`) only when this sweep ``matched``
+        one period after a matched one whose velocity was measured too.
         """
         st = self._state
         if index > 0:
             back = min(fell_back, len(st.poses) - 1)
-            st.delta = orthonormalize(self._per_period(invert(st.poses[-1 - back]) @ T, periods + back))
+            delta = orthonormalize(self._per_period(invert(st.poses[-1 - back]) @ T, periods + back))
+            measured = matched and not fell_back and abs(periods - 1.0) <= ONE_PERIOD_TOLERANCE
+            st.prev_delta = st.delta if measured and st.delta_measured else None
+            st.delta, st.delta_measured = delta, measured
         if st.poses:
             st.travel_m += float(np.linalg.norm(T[:3, 3] - st.poses[-1][:3, 3]))
         st.poses.append(T)
@@ -1101,7 +1159,8 @@ class IncrementalMatcher:
     def state_dict(self) -> dict[str, np.ndarray]:
         """Everything needed to resume this session after a restart, as plain numpy arrays.
 
-        Keys: ``poses`` (N,4,4), ``delta`` (4,4), ``keyframe_poses`` (K,4,4), ``keyframe_points``
+        Keys: ``poses`` (N,4,4), ``delta`` (4,4), ``prev_delta`` (4,4, NaN when none) and
+        ``delta_measured`` (the acceleration's memory), ``keyframe_poses`` (K,4,4), ``keyframe_points``
         (M,3) with ``keyframe_sizes`` (K,), ``scales`` (feature voxel, model voxel), ``levels``,
         ``last_keyframe_pose``, ``last_stamp_s`` (NaN when sweeps came without stamps) and
         ``recent_corrections`` (the adaptive levels' memory), ``travel_m``, ``prior_offset`` (NaN
@@ -1115,6 +1174,8 @@ class IncrementalMatcher:
         return {
             "poses": np.array(st.poses).reshape(-1, 4, 4),
             "delta": st.delta.copy(),
+            "prev_delta": np.full((4, 4), np.nan) if st.prev_delta is None else st.prev_delta.copy(),
+            "delta_measured": np.array(st.delta_measured),
             "keyframe_poses": np.array([p for p, _ in kf]).reshape(-1, 4, 4),
             "keyframe_points": np.vstack([x for _, x in kf]) if kf else np.zeros((0, 3)),
             "keyframe_sizes": np.array([x.shape[0] for _, x in kf], dtype=np.int64),
@@ -1135,6 +1196,10 @@ class IncrementalMatcher:
         st = self._state
         st.poses = [np.asarray(p, dtype=np.float64) for p in state["poses"]]
         st.delta = np.asarray(state["delta"], dtype=np.float64)
+        # Older states have no acceleration: constant velocity until two sweeps have matched.
+        prev = np.asarray(state.get("prev_delta", np.full((4, 4), np.nan)), dtype=np.float64)
+        st.prev_delta = None if np.isnan(prev).any() else prev
+        st.delta_measured = bool(np.asarray(state.get("delta_measured", False)))
         feature_voxel_m, model_voxel_m = (float(v) for v in state["scales"])
         self._apply_scales(tuple(float(v) for v in state["levels"]), feature_voxel_m, model_voxel_m)
         sizes = np.asarray(state["keyframe_sizes"], dtype=np.int64)
@@ -1465,6 +1530,8 @@ def extend_state_dict(
         periods = min(dt, max_gap_s) / period_s if np.isfinite(dt) and dt > 0.0 else 1.0
         motion = invert(poses[-2]) @ poses[-1]
         out["delta"] = orthonormalize(motion if periods == 1.0 else scale_motion(motion, 1.0 / periods))
+    # the logged poses' velocities are not known to be matches: constant velocity for two sweeps
+    out["prev_delta"], out["delta_measured"] = np.full((4, 4), np.nan), np.array(False)
     return out
 
 
