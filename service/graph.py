@@ -787,6 +787,8 @@ class ServiceGraph:
         self._cpu_pid: int | None = None
         self._cpu_last = 0.0
         self._cpu_dead = 0.0
+        #: each process's CPU when it said it is alive (its start, not counted by :meth:`cpu_s`)
+        self._cpu_at_alive: dict[int, float] = {}
         self._restore()
 
     # -- the durable graph (service/graph_log.py) ----------------------------------------------
@@ -932,12 +934,16 @@ class ServiceGraph:
 
     def cpu_s(self) -> float:
         """CPU seconds the graph's processes have used so far, every generation counted (Linux,
-        from /proc; 0 elsewhere): the node's admission counts them (service/capacity.py)."""
+        from /proc; 0 elsewhere): the node's admission counts them (service/capacity.py). A
+        process's start (spawn and imports until it says it is alive, about 2 s of CPU) is not
+        counted: it is no cost per sweep, and billed to the sweeps of the next flush it put the
+        service's CPU per sweep at 0.2 s, past the node's capacity with one vehicle."""
         pid = self.pid
         now = 0.0
         if pid is not None:
             with contextlib.suppress(OSError, ValueError, IndexError):
-                now = process_cpu_s(pid)
+                started = self._cpu_at_alive.get(pid)
+                now = 0.0 if started is None else max(process_cpu_s(pid) - started, 0.0)
         with self._lock:
             if pid != self._cpu_pid:  # a new generation: the last one's CPU stays counted
                 self._cpu_dead += self._cpu_last
@@ -1291,6 +1297,9 @@ class ServiceGraph:
             except (EOFError, OSError):
                 return
             if message[0] == "alive":
+                if pid is not None:
+                    with contextlib.suppress(OSError, ValueError, IndexError):
+                        self._cpu_at_alive[pid] = process_cpu_s(pid)
                 if self.gate is not None and pid is not None and not self._closed:
                     self.gate.attach(pid)
                 continue
