@@ -196,11 +196,13 @@ RESUME_SWEEP_M = 2.0
 MAP_SEED_REACH_M = 60.0
 #: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
 MIN_RESUME_POINTS = 100
-#: A session whose queue holds at least this many scans is behind: its matcher lets the keyframe
-#: model lag one keyframe rather than delay them (IncrementalMatcher.update_model). A shorter
-#: backlog is a transient that clears within a sweep or two (a session's first sweep takes about
-#: 250 ms, a keyframe sweep up to 150 ms): lagging there changed one vehicle's trajectory (the same
-#: 600 sweeps: 11.3 and 11.7 cm max error against 8.4 cm offline; no lag gives 8.4 exactly).
+#: A session whose queue holds at least this many scans is behind: on a node past its capacity
+#: (:meth:`SessionManager.saturated`) its matcher lets the keyframe model lag one keyframe rather
+#: than delay them (IncrementalMatcher.update_model). A shorter backlog is a transient that clears
+#: within a sweep or two; on a node within capacity so is a longer one (a session's first sweeps
+#: take 0.5-0.7 s in all, which queues 5-7 scans; a corner's sweeps up to 120 ms): lagging there
+#: changed one vehicle's trajectory (the same 600 sweeps: 11.3 and 11.7 cm max error against 8.4 cm
+#: offline, no lag gives 8.4 exactly; with lag only at depth 3, 5.7 to 10.8 cm against 5.8 cm).
 BEHIND_DEPTH = 3
 
 #: Where results go: the transport (Zenoh) or, in tests, a list. Must not block for long.
@@ -442,9 +444,9 @@ class SessionWorker:
         except BadMessageError as exc:  # a WGS84 prior its map cannot place (service/georef.py)
             self._manager.reject(scan.vehicle, scan.session, scan.seq, exc.code, str(exc))
             return
-        # Several more of this session's scans wait: the keyframe model may lag one keyframe
-        # rather than delay them (IncrementalMatcher.update_model).
-        behind = self.depth() >= BEHIND_DEPTH
+        # Several more of this session's scans wait and the node is past its capacity: the
+        # keyframe model may lag one keyframe rather than delay them (IncrementalMatcher.update_model).
+        behind = self.depth() >= BEHIND_DEPTH and self._manager.saturated()
         with self.lock:
             registered = self._match(job, prior, behind)
             if registered is not None and self._manager.capacity is not None:
@@ -1819,6 +1821,15 @@ class SessionManager:
         m.capacity_sessions_more.set(f.sessions_more)
         m.capacity_sweep_cpu_seconds.set(f.sweep_cpu_s)
         m.capacity_service_cpu_seconds.set(f.service_cpu_s)
+
+    def saturated(self) -> bool:
+        """Whether the node is past what admission may fill (the running sessions' measured load
+        above 1, :class:`~service.capacity.CapacityFigures`; always without capacity admission):
+        only then does a session that is behind let its keyframe model lag (:data:`BEHIND_DEPTH`).
+        Within capacity a backlog clears by itself, and a session whose model never lags gets the
+        offline matcher's poses to the digit."""
+        f = self.capacity_figures()
+        return f is None or f.load > 1.0
 
     def capacity_figures(self) -> CapacityFigures | None:
         """The node's capacity as measured now (``/status``), or None without capacity admission."""
