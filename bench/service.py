@@ -472,6 +472,7 @@ def run_one(
     return {
         **quality,
         "admitted_vehicles": len(admitted),
+        "admitted_names": sorted(admitted),
         "refused_vehicles": len(refused_vehicles),
         "refused_told_retry": all(v in answers.retry_after for v in refused_vehicles),
         "admitted_ok_share": admitted_ok / admitted_sent if admitted_sent else float("nan"),
@@ -693,6 +694,7 @@ def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str
             str(r["dropped"]),
             str(r["refused"]),
             f"{r['admitted_vehicles']} / {r['refused_vehicles']}"
+            + (f" ({', '.join(r['admitted_names'])} admitted)" if r["refused_vehicles"] else "")
             + (
                 " (yes)"
                 if r["refused_vehicles"] and r["refused_told_retry"]
