@@ -373,15 +373,17 @@ def run_one(
     executor: str = "local",
     timeline: Path | None = None,
     rate_hz: float = RATE_HZ,
+    first: int = 0,
 ) -> dict[str, Any]:
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
-    (``RANDT_EXECUTOR``); each vehicle publishes its 10 Hz sweeps at ``rate_hz``."""
+    (``RANDT_EXECUTOR``); each vehicle publishes its 10 Hz sweeps at ``rate_hz``; the fleet is the
+    spool's ``n_vehicles`` vehicles from its ``first``."""
     from core.transforms import invert
     from wire.codes import ErrorCode
 
     spool = Spool.load(spool_dir)
-    vehicles = spool.vehicles()[:n_vehicles]
+    vehicles = spool.vehicles()[first : first + n_vehicles]
     n_scans = spool.n_scans()
     truth = spool.truth
     sizes = spool.sizes(vehicles)
@@ -528,18 +530,21 @@ def run_one(
 
 
 # -- the same sweeps offline ------------------------------------------------------------------------
-def offline(spool_dir: Path, n_vehicles: int, graph: bool = True) -> dict[str, dict[str, Any]]:
-    """The first ``n_vehicles``' spooled sweeps through a matcher process's code in this process,
-    one thread, none dropped (:func:`offline.matcher_process`: decoding, matching, the map points
-    cut to the voxels not sent before, a keyframe's points where the pose graph would ask for them
-    when ``graph``, the model update): per vehicle its pose error p95 and max against the truth
-    (cm, as :func:`run_one` measures the service's) and its CPU ms per sweep."""
+def offline(
+    spool_dir: Path, n_vehicles: int, graph: bool = True, first: int = 0
+) -> dict[str, dict[str, Any]]:
+    """``n_vehicles`` vehicles' spooled sweeps (from the ``first``) through a matcher process's
+    code in this process, one thread, none dropped (:func:`offline.matcher_process`: decoding,
+    matching, the map points cut to the voxels not sent before, a keyframe's points where the pose
+    graph would ask for them when ``graph``, the model update): per vehicle its pose error p95
+    and max against the truth (cm, as :func:`run_one` measures the service's) and its CPU ms per
+    sweep."""
     from offline import matcher_process
 
     spool = Spool.load(spool_dir)
     try:
         n = spool.n_scans()
-        vehicles = spool.vehicles()[:n_vehicles]
+        vehicles = spool.vehicles()[first : first + n_vehicles]
         matcher_process(spool.get(vehicles[0], k) for k in range(3))  # kernels compiled or loaded: untimed
         out: dict[str, dict[str, Any]] = {}
         for v in vehicles:
@@ -858,6 +863,13 @@ def main() -> None:
         help="publish each vehicle's 10 Hz sweeps at this rate (Hz; default 10): a slower rate carries "
         "more vehicles within capacity, the same sweeps (a reference for the map of a larger fleet)",
     )
+    parser.add_argument(
+        "--first",
+        type=int,
+        default=0,
+        help="the fleet's vehicles from this one on (0: sim000, the default): e.g. `--vehicles 1 --first 2` "
+        "runs sim002 alone, the vehicle a run past capacity admitted, for a like-for-like reference",
+    )
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -868,7 +880,7 @@ def main() -> None:
             timeline = args.timeline / f"timeline-{args.one}-{args.graph}-{args.executor}.csv"
         result = run_one(
             args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor, timeline,
-            args.rate,
+            args.rate, args.first,
         )  # fmt: skip
         print(json.dumps(result))
         return
@@ -879,7 +891,8 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         spool = args.sweeps or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-sweeps-")))
         spool.mkdir(parents=True, exist_ok=True)
-        meta = {"vehicles": max(args.vehicles), "scans": round(args.seconds * RATE_HZ), "link": args.link}
+        n_fleet = args.first + max(args.vehicles)
+        meta = {"vehicles": n_fleet, "scans": round(args.seconds * RATE_HZ), "link": args.link}
         meta["routes"] = "car-like"  # sim.drive since 2026-11-26: clothoids, slower in corners
         meta_path = spool / "meta.json"
         if not _spool_fits(meta_path, meta):
@@ -891,7 +904,7 @@ def main() -> None:
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
         ref = None
         if not args.no_offline:
-            ref = offline(spool, max(args.vehicles), graph=args.graph != "off")
+            ref = offline(spool, max(args.vehicles), graph=args.graph != "off", first=args.first)
         graphs = ["off", "on"] if args.graph == "both" else [args.graph]
         executors = ["local", "ray"] if args.executor == "both" else [args.executor]
         pairs = [(g, e) for g in graphs for e in executors]
@@ -900,7 +913,7 @@ def main() -> None:
                 progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}")
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
-                command += ["--executor", executor, "--rate", str(args.rate)]
+                command += ["--executor", executor, "--rate", str(args.rate), "--first", str(args.first)]
                 if args.timeline is not None:
                     command += ["--timeline", str(args.timeline.resolve())]
                 out = subprocess.run(command, capture_output=True, text=True)
