@@ -110,7 +110,7 @@ class Capacity:
         shares_cores: bool,
         target: float = 0.6,
         rate_hz: float = 10.0,
-        sweep_cpu_s: float = 0.045,
+        sweep_cpu_s: float = 0.09,
         retry_after_s: float = 10.0,
         idle_s: float = 1.0,
         clock: Callable[[], float] = time.monotonic,

@@ -205,12 +205,12 @@ class ServiceSettings(BaseSettings):
         default=10.0, gt=0, description="scan rate a new or not yet measured session is expected to send"
     )
     sweep_cpu_estimate_s: float = Field(
-        default=0.045,
+        default=0.09,
         gt=0,
         description="matcher CPU per sweep a new session is expected to cost until a session has been "
-        "measured (then the measured sessions' mean); 0.045: a reduced simulated sweep's matcher work "
-        "(30 ms on a 2-core Xeon, bench/service.py) with room for the service's and the pose graph's "
-        "(6 and 4.5 ms) until those are measured",
+        "measured (then the measured sessions' mean); 0.09: a reduced simulated sweep's matcher work "
+        "in the service (65-80 ms on a 2-core AMD EPYC, bench/service.py) with room for the service's "
+        "and the pose graph's (17 and 6 ms) until those are measured",
     )
     admission_retry_s: float = Field(
         default=10.0, gt=0, description="retry_after_s told to a vehicle refused for lack of capacity"
