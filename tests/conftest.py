@@ -8,6 +8,9 @@ except in CI (``CI=true``) where they fail.
 from __future__ import annotations
 
 import os
+import resource
+from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -29,3 +32,44 @@ os.environ.setdefault("RANDT_CAPACITY_TARGET", "0")
 def data_dir() -> Path:
     """The shared real-data directory (``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``)."""
     return require_data()
+
+
+# -- CPU per test file (CI time is budgeted on 2 shared cores: CPU, not wall time, is what adds up
+# when the tests run on every core) ---------------------------------------------------------------
+_last_cpu_s: float | None = None
+
+
+def _cpu_s() -> float:
+    """This process's CPU time and its waited-for children's (servers, matcher processes)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    """Each phase's report carries the CPU spent since the previous report of this process
+    (``cpu_s``: pytest-xdist sends it to the controller with the report)."""
+    global _last_cpu_s
+    outcome = yield
+    now = _cpu_s()
+    report = outcome.get_result()
+    report.cpu_s = now - (_last_cpu_s if _last_cpu_s is not None else now)
+    _last_cpu_s = now
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The test files that cost the most CPU, after the slowest durations."""
+    by_file: dict[str, float] = defaultdict(float)
+    seen: set[int] = set()
+    for reports in terminalreporter.stats.values():
+        for r in reports:
+            cpu = getattr(r, "cpu_s", None)
+            if cpu is None or id(r) in seen:
+                continue
+            seen.add(id(r))
+            by_file[r.nodeid.split("::")[0]] += cpu
+    if not by_file:
+        return
+    terminalreporter.write_sep("=", f"CPU by test file: {sum(by_file.values()):.0f} s in all, the top 25")
+    for path, cpu in sorted(by_file.items(), key=lambda kv: -kv[1])[:25]:
+        terminalreporter.write_line(f"{cpu:8.1f}s  {path}")
