@@ -22,8 +22,9 @@ computes the mean origin and the origins' spread, the mean horizontal direction 
 azimuth deviation, and the elevation range. A primitive is a candidate of a chunk only if its
 vertical bounding cylinder, inflated by the origin spread, overlaps the chunk's azimuth wedge and
 elevation band within the maximum range (a conservative test: no hit is lost). The surviving
-(ray, primitive) pairs are intersected in batches of at most ``max_pairs`` and the nearest hit per
-ray kept; memory is bounded by ``max_pairs``, and there is no Python loop over rays or points.
+(chunk, primitive) pairs go to a compiled loop (:mod:`sim._cast`, numba) that intersects each of
+the chunk's rays with the primitive and keeps the nearest hit per ray, with the arithmetic of the
+functions above; there is no Python loop over rays or points.
 
 The sensor
 ----------
@@ -45,6 +46,7 @@ from functools import cached_property
 
 import numpy as np
 
+from sim._cast import BOX, CYLINDER, SPHERE, chunk_stats, nearest_hits
 from sim.town import Boxes, Cylinders, PrimitiveBounds, Spheres, Town
 
 __all__ = [
@@ -224,21 +226,6 @@ def intersect_spheres(
     return np.where(hit, t, np.inf), np.where(hit, cos, 0.0)
 
 
-def _intersect_subset(
-    prim: Boxes | Cylinders | Spheres, origins: np.ndarray, dirs: np.ndarray, idx: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Ray ``i`` against primitive ``idx[i]`` of ``prim`` (pairs, not all combinations)."""
-    if isinstance(prim, Boxes):
-        return intersect_boxes(
-            origins, dirs, prim.centre_xyz[idx], prim.half_extents_xyz[idx], prim.yaw_rad[idx]
-        )
-    if isinstance(prim, Cylinders):
-        return intersect_cylinders(
-            origins, dirs, prim.centre_xy[idx], prim.radius_m[idx], prim.z_min_m[idx], prim.z_max_m[idx]
-        )
-    return intersect_spheres(origins, dirs, prim.centre_xyz[idx], prim.radius_m[idx])
-
-
 # ---------------------------------------------------------------------------------- casting
 @dataclass(frozen=True, eq=False)
 class RayHits:
@@ -276,33 +263,7 @@ class _ChunkStats:
 
 
 def _chunk_stats(origins: np.ndarray, dirs: np.ndarray, chunk_rays: int) -> _ChunkStats:
-    m = origins.shape[0]
-    starts = np.arange(0, m, chunk_rays)
-    ends = np.minimum(starts + chunk_rays, m)
-    counts = ends - starts
-    chunk_of = np.repeat(np.arange(starts.size), counts)
-    centre = np.add.reduceat(origins, starts, axis=0) / counts[:, None]
-    spread = np.maximum.reduceat(np.linalg.norm(origins - centre[chunk_of], axis=1), starts)
-    nxy = np.hypot(dirs[:, 0], dirs[:, 1])
-    unit = dirs[:, :2] / np.maximum(nxy, 1e-12)[:, None]
-    mean = np.add.reduceat(unit, starts, axis=0)
-    mean_norm = np.linalg.norm(mean, axis=1)
-    azimuth_dir = mean / np.maximum(mean_norm, 1e-12)[:, None]
-    cos_dev = np.clip(np.sum(unit * azimuth_dir[chunk_of], axis=1), -1.0, 1.0)
-    half = np.maximum.reduceat(np.arccos(cos_dev), starts)
-    vertical = np.maximum.reduceat((nxy < 1e-6).astype(np.int8), starts) > 0
-    half = np.where(vertical | (mean_norm < 0.5 * counts), np.pi, half)
-    elevation = np.arcsin(np.clip(dirs[:, 2], -1.0, 1.0))
-    return _ChunkStats(
-        starts,
-        ends,
-        centre,
-        spread,
-        azimuth_dir,
-        half,
-        np.minimum.reduceat(elevation, starts),
-        np.maximum.reduceat(elevation, starts),
-    )
+    return _ChunkStats(*chunk_stats(origins, dirs, chunk_rays))
 
 
 def _candidates(stats: _ChunkStats, bd: PrimitiveBounds, max_range_m: float) -> np.ndarray:
@@ -336,7 +297,6 @@ def cast_rays(
     max_range_m: float = 120.0,
     min_range_m: float = 0.0,
     chunk_rays: int = 256,
-    max_pairs: int = 4_000_000,
 ) -> RayHits:
     """Nearest surface of ``town`` along each ray.
 
@@ -353,9 +313,6 @@ def cast_rays(
         ray and gives no return.
     chunk_rays:
         Rays per culling chunk.
-    max_pairs:
-        Upper bound on the (ray, primitive) pairs intersected at once (memory bound: about 40
-        float64 arrays of this length).
 
     Returns
     -------
@@ -368,13 +325,18 @@ def cast_rays(
     if m == 0:
         return RayHits(np.zeros(0), np.zeros(0, np.uint8), np.zeros(0), np.zeros(0))
     t_ground, cos_ground = intersect_ground(origins, dirs, town.ground_gradient)
-    best = t_ground.copy()
-    found: list[tuple[np.ndarray, ...]] = []
+    best, best_cos = t_ground.copy(), cos_ground.copy()
+    best_kind = np.full(m, -1, np.int8)  # -1: the ground (or nothing)
+    best_prim = np.zeros(m, np.int64)
     stats = _chunk_stats(origins, dirs, chunk_rays)
-    sweep_centre = origins.mean(axis=0)
-    sweep_spread = float(np.max(np.linalg.norm(origins - sweep_centre, axis=1)))
+    counts = stats.ends - stats.starts
+    sweep_centre = counts @ stats.origin / m
+    # (an upper bound of the origins' largest distance from their mean: the chunks' spreads about
+    # their own centres, and the centres' distances from the mean)
+    sweep_spread = float(np.max(np.linalg.norm(stats.origin - sweep_centre, axis=1) + stats.spread))
     n_pairs = 0
-    for prim in town.primitives():
+    prims: tuple[Boxes | Cylinders | Spheres, ...] = town.primitives()
+    for kind, prim in zip((BOX, CYLINDER, SPHERE), prims, strict=True):
         if len(prim) == 0:
             continue
         bd = prim.bounds()
@@ -384,41 +346,37 @@ def cast_rays(
             continue
         bd = PrimitiveBounds(bd.centre_xy[keep], bd.radius_m[keep], bd.z_min_m[keep], bd.z_max_m[keep])
         cc, kk = np.nonzero(_candidates(stats, bd, max_range_m))
-        kk = keep[kk]
-        rows = max(1, max_pairs // chunk_rays)
-        lane = np.arange(chunk_rays)
-        for b0 in range(0, cc.size, rows):  # batches of (chunk, primitive) candidates
-            c_b, k_b = cc[b0 : b0 + rows], kk[b0 : b0 + rows]
-            ray = stats.starts[c_b, None] + lane[None, :]
-            valid = ray < stats.ends[c_b, None]
-            ray = ray[valid]
-            pid = np.broadcast_to(k_b[:, None], valid.shape)[valid]
-            n_pairs += ray.size
-            t, cos = _intersect_subset(prim, origins[ray], dirs[ray], pid)
-            hit = t <= max_range_m
-            ray, pid, t, cos = ray[hit], pid[hit], t[hit], cos[hit]
-            np.minimum.at(best, ray, t)
-            found.append((ray, t, cos, prim.material[pid], prim.reflectivity[pid]))
+        n_pairs += nearest_hits(
+            kind, _kernel_params(prim), origins, dirs, stats.starts, stats.ends, cc, keep[kk],
+            max_range_m, best, best_cos, best_kind, best_prim,
+        )  # fmt: skip
 
     material = np.full(m, NO_RETURN, np.uint8)
     reflectivity = np.zeros(m)
-    cos_incidence = np.zeros(m)
-    g_ray = np.flatnonzero(np.isfinite(t_ground) & (t_ground == best))  # the ground is the nearest
-    g_mat = town.ground_material(origins[g_ray, :2] + t_ground[g_ray, None] * dirs[g_ray, :2])
+    g_ray = np.flatnonzero((best_kind < 0) & np.isfinite(best))  # the ground is the nearest
+    g_mat = town.ground_material(origins[g_ray, :2] + best[g_ray, None] * dirs[g_ray, :2])
     material[g_ray] = g_mat
     reflectivity[g_ray] = town.ground_reflectivity(g_mat)
-    cos_incidence[g_ray] = cos_ground[g_ray]
-    for ray, t, cos, mat, refl in found:
-        win = t == best[ray]
-        material[ray[win]] = mat[win]
-        reflectivity[ray[win]] = refl[win]
-        cos_incidence[ray[win]] = cos[win]
+    for kind, prim in zip((BOX, CYLINDER, SPHERE), prims, strict=True):
+        ray = np.flatnonzero(best_kind == kind)
+        material[ray] = prim.material[best_prim[ray]]
+        reflectivity[ray] = prim.reflectivity[best_prim[ray]]
     returned = np.isfinite(best) & (best <= max_range_m) & (best >= min_range_m)
     material[~returned] = NO_RETURN
     reflectivity[~returned] = 0.0
-    cos_incidence[~returned] = 0.0
+    cos_incidence = np.where(returned, best_cos, 0.0)
     log.debug("cast %d rays: %d (ray, primitive) pairs, %d returns", m, n_pairs, int(returned.sum()))
     return RayHits(np.where(returned, best, np.inf), material, reflectivity, cos_incidence)
+
+
+def _kernel_params(prim: Boxes | Cylinders | Spheres) -> np.ndarray:
+    """``prim``'s parameters as :func:`sim._cast.nearest_hits` reads them, one row a primitive."""
+    if isinstance(prim, Boxes):
+        yaw = prim.yaw_rad
+        return np.column_stack((prim.centre_xyz, prim.half_extents_xyz, np.cos(yaw), np.sin(yaw)))
+    if isinstance(prim, Cylinders):
+        return np.column_stack((prim.centre_xy, prim.radius_m, prim.z_min_m, prim.z_max_m))
+    return np.column_stack((prim.centre_xyz, prim.radius_m))
 
 
 # ---------------------------------------------------------------------------------- the sensor

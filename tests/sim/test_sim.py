@@ -149,21 +149,38 @@ def test_culling_loses_no_hit(town: Town, route: Route) -> None:
     T = Motion(route, speed_mps=10.0).sensor_poses_at(np.arange(120) / 1200.0)
     dirs = np.matmul(lidar.ray_directions, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
     origins = np.repeat(T[:, :3, 3], 64, axis=0)
-    # chunks of 8 columns x 64 rings (~24 deg azimuth, 27 deg elevation) in batches of a few thousand pairs
-    fast = cast_rays(town, origins, dirs, max_range_m=120.0, chunk_rays=512, max_pairs=20_000)
-    best = intersect_ground(origins, dirs)[0]
+    # chunks of 8 columns x 64 rings (~24 deg azimuth, 27 deg elevation)
+    fast = cast_rays(town, origins, dirs, max_range_m=120.0, chunk_rays=512)
+    t_ground, cos_ground = intersect_ground(origins, dirs)
     o, d = origins[:, None], dirs[:, None]
     b, c, s = town.boxes, town.cylinders, town.spheres
-    for t in (
-        intersect_boxes(o, d, b.centre_xyz[None], b.half_extents_xyz[None], b.yaw_rad[None])[0],
-        intersect_cylinders(o, d, c.centre_xy[None], c.radius_m[None], c.z_min_m[None], c.z_max_m[None])[0],
-        intersect_spheres(o, d, s.centre_xyz[None], s.radius_m[None])[0],
-    ):
-        best = np.minimum(best, t.min(axis=1))
+    per_kind = [  # (M,K) distances and incidences of every ray against every primitive, materials
+        (*intersect_boxes(o, d, b.centre_xyz[None], b.half_extents_xyz[None], b.yaw_rad[None]), b.material),
+        (
+            *intersect_cylinders(o, d, c.centre_xy[None], c.radius_m[None], c.z_min_m[None], c.z_max_m[None]),
+            c.material,
+        ),
+        (*intersect_spheres(o, d, s.centre_xyz[None], s.radius_m[None]), s.material),
+    ]
+    t_all = np.column_stack([t_ground] + [t for t, _, _ in per_kind])
+    cos_all = np.column_stack([cos_ground] + [np.broadcast_to(cos, t.shape) for t, cos, _ in per_kind])
+    nearest = np.argmin(t_all, axis=1)
+    rows = np.arange(len(t_all))
+    best = t_all[rows, nearest]
     best[best > 120.0] = np.inf
     np.testing.assert_array_equal(np.isfinite(fast.range_m), np.isfinite(best))
     np.testing.assert_allclose(fast.range_m, best, rtol=0, atol=1e-9)
     assert np.isfinite(best).mean() > 0.9
+    # the surface hit: its incidence, and a primitive's material (the ground's from the town)
+    hit = np.isfinite(best)
+    np.testing.assert_allclose(fast.cos_incidence[hit], cos_all[rows, nearest][hit], rtol=0, atol=1e-12)
+    materials = np.concatenate([m for _, _, m in per_kind])
+    on_prim = hit & (nearest > 0)
+    np.testing.assert_array_equal(fast.material[on_prim], materials[nearest[on_prim] - 1])
+    ground = hit & (nearest == 0)
+    xy = origins[ground, :2] + best[ground, None] * dirs[ground, :2]
+    np.testing.assert_array_equal(fast.material[ground], town.ground_material(xy))
+    assert on_prim.sum() > 1000 and ground.sum() > 1000
 
 
 # ---------------------------------------------------------------------------- the town
