@@ -28,6 +28,32 @@ __all__ = ["DATA_DIR_ENV_VAR", "data_dir", "data_root", "require_data"]
 os.environ.setdefault("RANDT_CAPACITY_TARGET", "0")
 
 
+#: Test files that take a minute or more (``--durations`` and the CPU summary below): they start
+#: first, so that pytest-xdist's workers end on many short files rather than one waiting for the
+#: other's last long one (addopts: ``--no-loadscope-reorder`` keeps this order; without it xdist
+#: starts the files with the most tests first).
+LONG_FIRST = (
+    "tests/sim/test_scenarios.py",
+    "tests/service/test_graph.py",
+    "tests/cli/test_demo.py",
+    "tests/test_corpus.py",
+    "tests/service/test_agreement.py",
+    "tests/service/test_graph_durable.py",
+    "tests/service/test_kill9.py",
+    "tests/deploy/test_compose_smoke.py",
+    "tests/core/test_odometry.py",
+    "tests/cli/test_ctrl_c.py",
+    "tests/service/test_ray_executor.py",
+    "tests/service/test_faults.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The files of :data:`LONG_FIRST` first, in its order; every file's tests in their order."""
+    rank = {path: i for i, path in enumerate(LONG_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The shared real-data directory (``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``)."""
