@@ -92,7 +92,7 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
     # one slot: the evicted session gives it to the later one; the first expires on its own
     # (capacity_target=0: one slot and its eviction are this test's admission, not the measured load)
     with live_server(
-        tmp_path / "data", max_sessions=1, idle_expiry_s=1.5, slot_idle_s=0.5, capacity_target=0
+        tmp_path / "data", max_sessions=1, idle_expiry_s=3.0, slot_idle_s=0.5, capacity_target=0
     ) as server:
         mgr = server.service.sessions
         assert mgr is not None and mgr.graph is not None
@@ -108,11 +108,13 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
         assert graph.running and graph.pid == pid, "the graph process died with the first session"
 
         _send(server, "evicted", drives["evicted"][:N_SCANS])
-        assert graph.wait_idle(120)
-        time.sleep(0.7)  # idle past slot_idle_s: it gives its slot to the next session
+        # idle past slot_idle_s but not idle_expiry_s: it gives its slot to the next session (no
+        # wait for the graph in between: beside two CPU burners that took past the expiry)
+        time.sleep(0.7)
         _send(server, "later", drives["later"][:1])
         assert ("evicted", "d1") not in _running(server)
         assert any("gives its slot" in r.getMessage() for r in caplog.records)
+        assert graph.wait_idle(120)
         time.sleep(1.0)
         assert graph.running and graph.pid == pid, "the graph process died with the evicted session"
         assert graph.restarts == 0
