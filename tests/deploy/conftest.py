@@ -1,7 +1,11 @@
-"""The deployment tests run last, and their images are built in the background from the moment they
-are collected: the build (a Debian base from packages, the router stand-in, the project's image,
-about three minutes that mostly wait on disk and the package index) overlaps the rest of the suite
-instead of adding to it (``test_compose_smoke.Images``)."""
+"""In one process (-n0) the deployment tests run last, and their images are built in the background
+from the moment they are collected: the build (a Debian base from packages, the router stand-in,
+the project's image, about three minutes that mostly wait on disk and the package index) overlaps
+the rest of the suite instead of adding to it (``test_compose_smoke.Images``). With pytest-xdist
+(the suite's default) every worker collects every test but only one runs this directory's file:
+the images are built when its fixture asks (``Images.wait`` starts the build), while the other
+worker runs other tests; two workers starting the build at collection started two Docker
+daemons, and the second could not open the first's volume store."""
 
 from __future__ import annotations
 
@@ -18,8 +22,8 @@ def pytest_collection_modifyitems(
     session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
 ) -> None:
     deploy = [item for item in items if HERE in Path(item.path).parents]
-    if not deploy or config.option.collectonly:
-        return
+    if not deploy or config.option.collectonly or hasattr(config, "workerinput"):
+        return  # (an xdist worker: the module docstring)
     items[:] = [item for item in items if item not in deploy] + deploy
     from tests.deploy.test_compose_smoke import IMAGES
 
