@@ -102,6 +102,12 @@ GRAPH_NICE = 10
 #: held it for good: every pose-graph test of the suite failed), and runs at the normal policy
 #: niced by GRAPH_NICE until its queue is empty (:meth:`ServiceGraph._guard_starvation`).
 STARVED_S = 5.0
+#: Raised and still behind this long, it runs at the service's own niceness until its queue is
+#: empty: niced by 10 beside a CPU burner at the normal niceness it gets about a tenth of a core
+#: (the kernel's weights: 110 against 1024), and beside two burners the loop-closure drive's
+#: graph had not caught up after 300 s. Admission counts the graph's CPU with the service
+#: process's (service/capacity.py), so the node's measured capacity leaves it that time.
+ESCALATE_S = 30.0
 #: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
 #: last one is this many re-fold periods old (``graph_refold_s``).
 REFOLD_STARVE_PERIODS = 3.0
@@ -428,13 +434,13 @@ def _lowest_priority() -> None:
                 os.sched_setscheduler(int(tid), os.SCHED_IDLE, os.sched_param(0))
 
 
-def set_graph_priority(pid: int, *, idle: bool) -> bool:
+def set_graph_priority(pid: int, *, idle: bool, nice: int = GRAPH_NICE) -> bool:
     """Every thread of process ``pid`` at ``SCHED_IDLE`` (``idle``), or at the normal policy niced
-    by :data:`GRAPH_NICE` beyond this process's own niceness; False if any was refused (not
-    Linux, not permitted, gone)."""
+    by ``nice`` beyond this process's own niceness; False if any was refused (not Linux, not
+    permitted, gone)."""
     try:
         tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + GRAPH_NICE)
+        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + nice)
         policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
     except (AttributeError, OSError, ValueError):
         return False
@@ -781,9 +787,13 @@ class ServiceGraph:
         #: :meth:`cpu_s`: the process last read, its CPU then, and that of the generations before
         #: the last answer, or when work went in flight to an idle process (_guard_starvation)
         self._progress_at = time.monotonic()
-        #: the process runs above SCHED_IDLE for now (starved), and how often it was raised
+        #: the process runs above SCHED_IDLE for now (starved), and how often it was raised; runs
+        #: at the service's niceness for now (raised and still behind), and how often
         self.raised = False
         self.starvations = 0
+        self.escalated = False
+        self.escalations = 0
+        self._raised_at = 0.0
         self._cpu_pid: int | None = None
         self._cpu_last = 0.0
         self._cpu_dead = 0.0
@@ -996,7 +1006,7 @@ class ServiceGraph:
             receiver.start()
             started = time.monotonic()
             self._metrics.graph_up.set(1)
-            self.raised = False  # a new process starts at SCHED_IDLE (_lowest_priority)
+            self.raised = self.escalated = False  # a new process starts at SCHED_IDLE (_lowest_priority)
             while proc.is_alive() and not self._closed:
                 multiprocessing.connection.wait([proc.sentinel], timeout=0.5)
                 self._guard_starvation(proc.pid)
@@ -1010,15 +1020,17 @@ class ServiceGraph:
                 self._cond.wait_for(lambda: self._closed, timeout=pause)
 
     def _guard_starvation(self, pid: int | None) -> None:
-        """Raise a starved graph process above ``SCHED_IDLE`` (:data:`STARVED_S`), and lower it
-        again once it has caught up."""
+        """Raise a starved graph process above ``SCHED_IDLE`` (:data:`STARVED_S`), to the service's
+        own niceness if it is still behind (:data:`ESCALATE_S`), and lower it again once it has
+        caught up."""
         if pid is None:
             return
+        now = time.monotonic()
         with self._cond:
             busy = bool(self._inflight or self._queued)
-            starved = bool(self._inflight) and time.monotonic() - self._progress_at > STARVED_S
+            starved = bool(self._inflight) and now - self._progress_at > STARVED_S
         if starved and not self.raised and set_graph_priority(pid, idle=False):
-            self.raised = True
+            self.raised, self._raised_at = True, now
             self.starvations += 1
             log.warning(
                 "pose graph: no answer for %.0f s with work in flight (other processes take every "
@@ -1026,8 +1038,17 @@ class ServiceGraph:
                 STARVED_S,
                 GRAPH_NICE,
             )
+        elif busy and self.raised and not self.escalated and now - self._raised_at > ESCALATE_S:
+            if set_graph_priority(pid, idle=False, nice=0):
+                self.escalated = True
+                self.escalations += 1
+                log.warning(
+                    "pose graph: still behind %.0f s after it was raised: it runs at the service's "
+                    "niceness until it catches up",
+                    ESCALATE_S,
+                )
         elif not busy and self.raised and set_graph_priority(pid, idle=True):
-            self.raised = False
+            self.raised = self.escalated = False
             log.info("pose graph: caught up, back to SCHED_IDLE")
 
     def _spawn(self) -> tuple[multiprocessing.process.BaseProcess, Connection]:

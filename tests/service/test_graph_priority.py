@@ -1,6 +1,7 @@
 """The pose graph's process is never starved: at ``SCHED_IDLE`` it yields to every other process,
 so two CPU burners beside the service held it for good (every pose-graph test of the suite failed
-with them); raised above ``SCHED_IDLE`` once starved, it catches up, then goes back."""
+with them); raised above ``SCHED_IDLE`` once starved, and to the service's own niceness once still
+behind, it catches up, then goes back."""
 
 from __future__ import annotations
 
@@ -27,6 +28,16 @@ def _policies(pid: int) -> set[int]:
         except ProcessLookupError:
             continue
     return policies
+
+
+def _nices(pid: int) -> set[int]:
+    nices = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            nices.add(os.getpriority(os.PRIO_PROCESS, int(tid)))
+        except ProcessLookupError:
+            continue
+    return nices
 
 
 def _wait_lowered(graph: ServiceGraph) -> None:
@@ -67,15 +78,29 @@ def test_a_graph_starved_by_other_processes_is_raised_until_it_catches_up(monkey
             burners.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
             os.sched_setaffinity(burners[-1].pid, {cpu})
         monkeypatch.setattr(graph_module, "STARVED_S", 1e9)  # no guard: the failure mode
-        for k in range(1, 9):
+        for k in range(1, 13):
             offer(k)
         assert not graph.wait_idle(10), "the graph caught up at SCHED_IDLE beside the burners"
         assert graph.starvations == starved_before and _policies(pid) == {os.SCHED_IDLE}
-        monkeypatch.setattr(graph_module, "STARVED_S", 2.0)  # the guard (5 s in the service)
+        # The guard (5 s in the service), then the service's own niceness once still behind (30 s
+        # in the service; here from the guard's next check, every 0.5 s)
+        monkeypatch.setattr(graph_module, "STARVED_S", 2.0)
+        monkeypatch.setattr(graph_module, "ESCALATE_S", 0.1)
+        own_nice = os.getpriority(os.PRIO_PROCESS, 0)
+        seen: set[tuple[bool, frozenset[int]]] = set()
         t0 = time.monotonic()
-        assert graph.wait_idle(90), "the graph did not catch up once raised"
-        assert graph.starvations == starved_before + 1 and graph.pid == pid  # raised once, not restarted
+        while time.monotonic() - t0 < 90:
+            if graph.raised:
+                seen.add((graph.escalated, frozenset(_nices(pid))))
+            elif seen:  # lowered again: caught up
+                break
+            time.sleep(0.02)
+        assert graph.wait_idle(30), "the graph did not catch up once raised"
         caught_up_s = time.monotonic() - t0
+        assert graph.starvations == starved_before + 1 and graph.pid == pid  # raised once, not restarted
+        assert graph.escalations == 1, (seen, caught_up_s)
+        assert (False, frozenset({own_nice + graph_module.GRAPH_NICE})) in seen, seen
+        assert (True, frozenset({own_nice})) in seen, seen
         _wait_lowered(graph)
         assert not graph.raised and _policies(pid) == {os.SCHED_IDLE}, caught_up_s
     finally:
