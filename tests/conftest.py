@@ -35,6 +35,7 @@ os.environ.setdefault("RANDT_CAPACITY_TARGET", "0")
 LONG_FIRST = (
     "tests/sim/test_scenarios.py",
     "tests/service/test_graph.py",
+    "tests/service/test_bad_messages.py",
     "tests/cli/test_demo.py",
     "tests/test_corpus.py",
     "tests/service/test_agreement.py",

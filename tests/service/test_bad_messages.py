@@ -56,13 +56,32 @@ BAD = {
 }
 
 
-@pytest.fixture
-def manager(tmp_path):
+def _manager(tmp_path, matcher_processes: int) -> tuple[SessionManager, list[object]]:
     out: list[object] = []
     settings = ServiceSettings(
-        data_dir=tmp_path, max_points=20_000, max_payload_bytes=400_000, flush_interval_s=0.2
+        data_dir=tmp_path,
+        max_points=20_000,
+        max_payload_bytes=400_000,
+        flush_interval_s=0.2,
+        matcher_processes=matcher_processes,
     )
-    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    return SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics()), out
+
+
+@pytest.fixture
+def manager(tmp_path):
+    """A manager whose matchers run in its session threads: what is checked here happens before
+    the matcher (a worker process costs about 3 s of CPU to start, and this file starts many
+    managers)."""
+    mgr, out = _manager(tmp_path, 0)
+    yield mgr, out
+    mgr.stop()
+
+
+@pytest.fixture
+def manager_with_process(tmp_path):
+    """A manager whose matchers run in a worker process, as the service's by default."""
+    mgr, out = _manager(tmp_path, 1)
     yield mgr, out
     mgr.stop()
 
@@ -317,14 +336,14 @@ def test_a_session_beyond_max_sessions_is_refused_and_others_go_on(tmp_path) -> 
         mgr.stop()
 
 
-def test_a_running_sessions_bad_v2_bodies_are_answered_by_its_matcher(manager) -> None:
+def test_a_running_sessions_bad_v2_bodies_are_answered_by_its_matcher(manager_with_process) -> None:
     """Once a session runs, its compact (v2) scans go to the matcher undecoded (the service
     process reads the header only): a body that does not decompress to its declared size is
     answered there with the decoder's code, and the session goes on with its next scan. A first
     scan with such a body is refused before it opens a session, as before."""
     from wire.messages import encode_scan_v2
 
-    mgr, out = manager
+    mgr, out = manager_with_process
 
     def v2(seq: int, session: str = "s1") -> dict:
         return msgpack.unpackb(
