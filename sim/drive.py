@@ -765,7 +765,8 @@ def simulate(
         the sweeps ahead of the consumer (at most :data:`AHEAD_PER_WORKER` each), so ray casting
         runs beside the consumer's work, or on several cores for a ``list(...)``. The scans are
         the same either way (sweep ``k`` depends only on ``k``); a simulated sweep takes about
-        45 ms of ray casting (64 beams x 1000 columns).
+        23 ms of CPU (64 beams x 1000 columns to 70 m; 44 ms before the ray casting's numba
+        kernels, docs/benchmarks.md).
     max_lateral_mps2:
         The driver's limit in corners (:class:`Motion`); ``inf``: the whole route at
         ``speed_mps``, corners included (with ``Route.loop(transition_m=0)``, the yaw rate jumps

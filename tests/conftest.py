@@ -72,6 +72,13 @@ def _cpu_s() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def pytest_runtest_logstart(nodeid: str, location: tuple[str, int | None, str]) -> None:
+    """Counting starts at this process's first test (a module fixture built in its setup counts)."""
+    global _last_cpu_s
+    if _last_cpu_s is None:
+        _last_cpu_s = _cpu_s()
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
     """Each phase's report carries the CPU spent since the previous report of this process
