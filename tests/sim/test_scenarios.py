@@ -4,9 +4,9 @@ Three vehicles on overlapping routes of the town for a little more than one lap 
 without GNSS; the others' GNSS has 1 m noise, a 2 m wandering bias (4 m vertically), 1 % multipath
 jumps and a 15 s outage. ``bench/fleet_map.py`` runs the issue's 2 km fleet and reports the same
 figures. About a minute on 2 cores (92 s of CPU, quiet, 2026-11-29; the 1400 sweeps' simulation
-about 32 s of it at 23 ms each): the sensor sees to 70 m instead of 120 (the town is small). At 5 Hz the odometry loses
-track, and with 600 instead of 1000 columns the session without GNSS met the others too late to
-be placed within 1.1 laps.
+about 32 s of it at 23 ms each): the sensor sees to 70 m instead of 120 (the town is small). At
+5 Hz the odometry loses track, and with 600 instead of 1000 columns the session without GNSS met
+the others too late to be placed within 1.1 laps.
 """
 
 from __future__ import annotations
