@@ -440,7 +440,7 @@ def set_graph_priority(pid: int, *, idle: bool, nice: int = GRAPH_NICE) -> bool:
     permitted, gone)."""
     try:
         tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + nice)
+        niceness = min(19, os.getpriority(os.PRIO_PROCESS, 0) + nice)
         policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
     except (AttributeError, OSError, ValueError):
         return False
@@ -449,7 +449,7 @@ def set_graph_priority(pid: int, *, idle: bool, nice: int = GRAPH_NICE) -> bool:
         try:
             os.sched_setscheduler(tid, policy, os.sched_param(0))
             if not idle:
-                os.setpriority(os.PRIO_PROCESS, tid, nice)
+                os.setpriority(os.PRIO_PROCESS, tid, niceness)
         except ProcessLookupError:  # a thread that ended meanwhile
             continue
         except OSError:
