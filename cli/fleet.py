@@ -16,6 +16,8 @@ from cli import interrupt
 from cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from clients.fleet import FleetSettings, GnssMode
     from clients.publisher import PublisherSettings
     from clients.replay import ReplayResult
@@ -339,10 +341,14 @@ def _fleet_gnss(modes: tuple[str, ...], vehicles: int) -> str:
     return ", ".join(f"sim{v:03d} {modes[v % len(modes)]}" for v in range(vehicles))
 
 
-def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
+def _settle(
+    base: str, tiles_s: float, graph_idle: Callable[[float], bool] | None, timeout_s: float = 120.0
+) -> None:
     """Wait until the matchers' queues are empty and the pose graph has processed every keyframe
-    (it runs at the lowest priority, behind the matchers), then for the tiles' next save, and
-    until map ``default`` on disk has as many tiles as in memory (a busy flusher saves later)."""
+    (it runs at the lowest priority, behind the matchers) and re-folded the tiles of those it moved
+    (``graph_idle``: ServiceGraph.wait_idle; its re-folds otherwise wait for ``graph_refold_s``,
+    20 s, and would change the tiles after the summary), then for the tiles' next save, and until
+    map ``default`` on disk has as many tiles as in memory (a busy flusher saves later)."""
     import time
 
     import httpx
@@ -354,6 +360,8 @@ def _settle(base: str, tiles_s: float, timeout_s: float = 120.0) -> None:
             if not any(status.get("queue_depths", {}).values()) and not status["graph"].get("pending"):
                 break
             interrupt.sleep(0.5)
+        if graph_idle is not None:
+            graph_idle(max(deadline - time.monotonic(), 1.0))
         interrupt.sleep(tiles_s)  # (tiles are saved every tile_save_s, at a flush)
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline:
@@ -497,9 +505,8 @@ def demo(
             capacity_target=0,
         )
         base = f"http://127.0.0.1:{hport}"
-        server = uvicorn.Server(
-            uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_level="warning")
-        )
+        app = create_app(settings)
+        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=hport, log_level="warning"))
         thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
         previous_sigterm = signal.getsignal(signal.SIGTERM)
         interrupt.install(signal.SIGTERM)
@@ -556,7 +563,10 @@ def demo(
             raise fail(RuntimeError(f"the simulated fleet failed (randt simulate exit code {rc})"))
         wall = time.monotonic() - tic
         fleet = json.loads(fleet_json.read_text())
-        _settle(base, settings.tile_save_s + 1.5 * settings.flush_interval_s)
+        manager = app.state.service.sessions
+        graph = None if manager is None else manager.graph
+        idle = None if graph is None else graph.wait_idle
+        _settle(base, settings.tile_save_s + 1.5 * settings.flush_interval_s, idle)
         _print_summary(base, data, data_dir, fleet, wall, exit_)
         summarized = True
         if not exit_:
