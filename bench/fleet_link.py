@@ -30,6 +30,8 @@ class Answers:
     #: the poses in ``map_name`` (others are only counted: a session that lost its anchor)
     pose_of: dict[Key, np.ndarray] = field(default_factory=dict)
     not_in_map: int = 0
+    #: the poses in another map's frame (a session without priors answers in its own)
+    pose_own: dict[Key, np.ndarray] = field(default_factory=dict)
     #: each pose's status (``first``, ``ok``, ``fallback``)
     status_of: dict[Key, str] = field(default_factory=dict)
     statuses: dict[str, int] = field(default_factory=dict)
@@ -54,6 +56,7 @@ class Answers:
                 self.pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
             else:
                 self.not_in_map += 1
+                self.pose_own[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
 
     def on_error(self, sample: Any) -> None:
         from wire.messages import decode_error

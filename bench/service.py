@@ -246,6 +246,8 @@ if graph is not None:
     stats["dropped"] = value("randt_graph_queue_dropped_total") or 0
     gate = getattr(graph, "gate", None)  # (YieldGate; a service before it has none)
     stats["held_s"] = gate.held_s if gate is not None else 0.0
+    snap = graph.snapshot("default")  # sessions without priors it placed: T_map_session
+    stats["joined"] = {f"{v}/{s}": T.tolist() for (v, s), T in getattr(snap, "joined", {}).items()}
 service.stop()
 print(json.dumps({"received": int(received), "graph": stats}), flush=True)
 """
@@ -331,7 +333,8 @@ def write_timeline(
     truth: dict[tuple[str, int], np.ndarray],
 ) -> None:
     """One row per scan sent: vehicle, seq, seconds since the first scan was sent, publish-to-pose
-    latency (ms, empty when not posed) and position error (cm), to see when a run stalled."""
+    latency (ms, empty when not posed) and position error (cm; empty for a pose in another map's
+    frame: a session answered in its own), to see when a run stalled."""
     t0 = min(sent.values(), default=0.0)
     with path.open("w", newline="") as fh:
         out = csv.writer(fh)
@@ -340,8 +343,34 @@ def write_timeline(
             row: list[object] = [key[0], key[1], f"{sent[key] - t0:.3f}", "", ""]
             if key in got:
                 row[3] = f"{1e3 * (got[key] - sent[key]):.1f}"
+            if key in pose_of:
                 row[4] = f"{100 * float(np.linalg.norm(pose_of[key][:3, 3] - truth[key][:3, 3])):.2f}"
             out.writerow(row)
+
+
+def join_errors(
+    joined: dict[str, list[list[float]]],
+    pose_own: dict[tuple[str, int], np.ndarray],
+    truth: dict[tuple[str, int], np.ndarray],
+) -> dict[str, tuple[float, float]]:
+    """Per vehicle the graph joined into the shared map (a session answered in its own frame:
+    no prior on its first admitted scan), how far its ``T_map_session`` is from the truth (m,
+    deg): the truth's is ``T_true @ inv(T_session)`` of each of its answered scans, the median
+    scan's taken (they differ by the session's own drift)."""
+    from core.transforms import invert
+
+    out: dict[str, tuple[float, float]] = {}
+    for sid, T_list in joined.items():
+        vehicle = sid.split("/", 1)[0]
+        keys = sorted(k for k in pose_own if k[0] == vehicle and k in truth)
+        if not keys:
+            continue
+        k = keys[len(keys) // 2]
+        T_true = truth[k] @ invert(pose_own[k])
+        D = invert(T_true) @ np.asarray(T_list)
+        angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        out[vehicle] = (float(np.linalg.norm(D[:3, 3])), float(angle))
+    return out
 
 
 def map_quality(data_dir: Path, map_name: str = "default") -> dict[str, float]:
@@ -467,6 +496,7 @@ def run_one(
     # Admitted vehicles (a pose at least) and the share of their scans answered ok (issue 32:
     # shedding keeps them tracking: at least a third); refused ones (never a pose) and whether
     # every refusal said when to retry.
+    joins = join_errors(graph_stats.get("joined", {}), answers.pose_own, truth)
     admitted = {k[0] for k in got}
     admitted_sent = sum(1 for k in sent if k[0] in admitted)
     admitted_ok = sum(1 for k, st in answers.status_of.items() if st == "ok" and k[0] in admitted)
@@ -489,6 +519,7 @@ def run_one(
         "graph_verified": int(graph_stats.get("verified", 0)),
         "graph_dropped": int(graph_stats.get("dropped", 0)),
         "graph_held_s": float(graph_stats.get("held_s", 0.0)),
+        "joins": joins,
         "cpu_graph_ms": 1e3 * graph_stats.get("cpu_s", 0.0) / poses,
         "mean_ms": float(lat_ms.mean()) if lat_ms.size else float("nan"),
         "seconds": n_scans / RATE_HZ,
@@ -687,6 +718,7 @@ def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str
         "map points",
         "map to true surfaces p50 / p90 cm",
         "map points > 0.3 m off",
+        "answered in their own frame; joined: placement error m / deg",
     ]
     rows = [
         [
@@ -711,6 +743,8 @@ def status_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str
             f"{r['map_points']:,}",
             f"{r['map_p50_cm']:.1f} / {r['map_p90_cm']:.1f}",
             f"{r['map_off']:,}",
+            f"{r['not_in_map']}"
+            + "".join(f"; {v} {m:.2f} / {deg:.2f}" for v, (m, deg) in sorted(r.get("joins", {}).items())),
         ]
         for r in results
     ]
