@@ -88,3 +88,28 @@ def test_every_kitti_revisit_at_keyframe_resolution_is_a_placement_vote() -> Non
     assert len(votes) == 21
     refused = [v for v in votes if not (v[2][0] and v[3] < 0.07)]
     assert not refused, refused
+
+
+def test_a_placement_vote_names_the_bar_it_missed() -> None:
+    """A weak registration of a street that looks like another (as bench/service.py's town gave:
+    32 and 41 consistent correspondences, refinement not kept) is no vote, and says why; without
+    refinement in the settings only the counts decide."""
+    from dataclasses import replace
+
+    from core.global_registration import register_global
+
+    s = FleetMapSettings()
+    points = pairs.kitti00_loops_velodyne(120)
+    strong = register_global(points[::3], points[1::3], s.global_registration)
+    assert strong.confident and strong.refined
+    assert placement_vote(strong, s) == (True, "placement vote: waits for a second one that agrees")
+    assert placement_vote(replace(strong, refined=False), s) == (
+        False,
+        "not a placement vote: NDT's refinement was not kept",
+    )
+    few = placement_vote(replace(strong, n_inliers=29), s)
+    assert few == (False, "not a placement vote: 29 consistent correspondences, fewer than 30")
+    low = placement_vote(replace(strong, overlap=0.55), s)
+    assert low == (False, "not a placement vote: overlap 0.55 below 0.6")
+    unrefined = FleetMapSettings(global_registration={"refine": False, "max_range_m": 60.0})
+    assert placement_vote(replace(strong, refined=False), unrefined)[0]
