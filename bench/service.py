@@ -357,7 +357,7 @@ def join_errors(
     no prior on its first admitted scan), how far its ``T_map_session`` is from the truth (m,
     deg): the truth's is ``T_true @ inv(T_session)`` of each of its answered scans, the median
     scan's taken (they differ by the session's own drift)."""
-    from core.transforms import invert
+    from core.transforms import invert, rotation_angle_deg
 
     out: dict[str, tuple[float, float]] = {}
     for sid, T_list in joined.items():
@@ -368,8 +368,7 @@ def join_errors(
         k = keys[len(keys) // 2]
         T_true = truth[k] @ invert(pose_own[k])
         D = invert(T_true) @ np.asarray(T_list)
-        angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))
-        out[vehicle] = (float(np.linalg.norm(D[:3, 3])), float(angle))
+        out[vehicle] = (float(np.linalg.norm(D[:3, 3])), rotation_angle_deg(D[:3, :3]))
     return out
 
 

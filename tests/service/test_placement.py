@@ -66,10 +66,7 @@ def keyframes():
                 out.append((first + i, name, run.poses[i], reg.keyframe_xyz))
     out.sort(key=lambda k: (k[0], k[1]))
     T_map_session = {
-        first: truth2[i] @ np.linalg.inv(T)
-        for first, name, T, _ in out
-        if name == "sim002"
-        for i in [first - SIM002_SCANS[0]]
+        seq: truth2[seq - SIM002_SCANS[0]] @ np.linalg.inv(T) for seq, name, T, _ in out if name == "sim002"
     }
     return out, T_map_session
 
