@@ -67,7 +67,10 @@ def test_serve_answers_and_flushes_on_signal(tmp_path, sig) -> None:
             time.sleep(0.05)
         room = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
         publisher.put(encode(scan_from_arrays("car7", "d1", 0, 0, room)))
-        assert got.wait(60), "a pose came back over Zenoh"
+        if not got.wait(60):
+            proc.kill()
+            log = proc.communicate()[1][-4000:]
+            pytest.fail(f"no pose came back over Zenoh in 60 s; the service's log:\n{log}")
         assert poses[0].seq == 0 and poses[0].status == "first"
         status = httpx.get(f"http://127.0.0.1:{hport}/status", timeout=5).json()
         assert status["sessions"][0]["vehicle"] == "car7" and status["sessions"][0]["frame"] == "session"
