@@ -120,10 +120,10 @@ def warm_up() -> float:
     """
     import time
 
-    from core.odometry import IncrementalMatcher
-    from core.protocol import synthetic_room
-    from core.registration import register
-    from core.transforms import make_transform, transform_points
+    from randt.core.odometry import IncrementalMatcher
+    from randt.core.protocol import synthetic_room
+    from randt.core.registration import register
+    from randt.core.transforms import make_transform, transform_points
 
     t0 = time.perf_counter()
     room = synthetic_room(np.random.default_rng(0))

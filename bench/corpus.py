@@ -68,8 +68,8 @@ _COV = np.diag([0.01] * 3 + [0.001] * 3).ravel().tolist()
 
 
 def room_points(n: int, seed: int = 0) -> np.ndarray:
-    """(n, 3) float32: floor, walls and a pillar (``core.protocol.synthetic_room``), first n points."""
-    from core.protocol import synthetic_room
+    """(n, 3) float32: floor, walls and a pillar (``randt.core.protocol.synthetic_room``), first n points."""
+    from randt.core.protocol import synthetic_room
 
     pts = synthetic_room(np.random.default_rng(seed), max(n // 3, 8)).astype("<f4")
     return np.ascontiguousarray(pts[np.random.default_rng(seed + 1).permutation(len(pts))[:n]])
@@ -145,7 +145,7 @@ def zstd_bomb(total: int) -> bytes:
 def v2_scan_doc(session: str, seq: int, /, *, n: int = 32, **override: Any) -> dict[str, Any]:
     """A valid compact (v2) scan as a dict in wire order (docs/wire-format.md, Scan v2); bodies
     in stored zstd frames. ``override`` as :func:`scan_doc`."""
-    from wire.packing import pack_int_columns
+    from randt.wire.packing import pack_int_columns
 
     q = np.rint(room_points(n).astype(np.float64).T / _ENCODING["xyz_quantum_m"]).astype(np.int32)
     doc: dict[str, Any] = {
@@ -583,7 +583,7 @@ def wire_cases() -> list[dict[str, Any]]:
         ),
     ]
     # compact (v2) scans: bodies that lie about their size, bombs, bad encodings
-    from wire.packing import pack_int_columns
+    from randt.wire.packing import pack_int_columns
 
     n2 = 32
 

@@ -5,7 +5,7 @@ Run from the repository root::
     python -m bench.crash [--cycles 20] [--sessions 2] [--seed 0] [--data DIR]
 
 prints a :class:`CrashReport` as JSON. Each cycle starts a worker process (``--worker``): a real
-:class:`service.runtime.Service` (without Zenoh: the crash is about the store) whose outbox is
+:class:`randt.service.runtime.Service` (without Zenoh: the crash is about the store) whose outbox is
 replaced by lines on stdout, one per message, written before the message would go out. Its
 ``sessions`` vehicles stream a moving synthetic room (the first session with a prior pose, so it
 folds into the shared map ``default``; the others in their own frames and maps), continuing
@@ -77,18 +77,18 @@ class CrashReport:
 
 
 def _digest(points: bytes) -> str:
-    """A tile content's name: what ``wire.messages.points_digest`` computes (spelled out here so
+    """A tile content's name: what ``randt.wire.messages.points_digest`` computes (spelled out here so
     the harness also measures a service that does not send digests)."""
     return hashlib.sha256(points).hexdigest()[:16]
 
 
 def _worker(data_dir: str, sessions: int, seed: int, matcher_processes: int, flush_s: float) -> None:
     """The crashing side: a Service whose outbox is stdout (one JSON line per message)."""
-    from core.protocol import synthetic_room
-    from core.transforms import make_transform, transform_points
-    from service.runtime import Service
-    from service.settings import ServiceSettings
-    from wire.messages import (
+    from randt.core.protocol import synthetic_room
+    from randt.core.transforms import make_transform, transform_points
+    from randt.service.runtime import Service
+    from randt.service.settings import ServiceSettings
+    from randt.wire.messages import (
         ErrorMessage,
         PoseMessage,
         TileUpdateMessage,
@@ -284,9 +284,9 @@ def _check_store(data: Path, ledger: _Ledger) -> None:
     """After a kill: maps whole, served versions not regressed or reused, acked poses stored."""
     import yaml
 
-    from core.io import read_cloud
-    from core.io.autoware import AUTOWARE_METADATA_NAME
-    from service.store import Store
+    from randt.core.io import read_cloud
+    from randt.core.io.autoware import AUTOWARE_METADATA_NAME
+    from randt.service.store import Store
 
     with Store(data) as store:
         contents = store.load_all()
@@ -396,7 +396,7 @@ def run_kill_cycles(
 def append_cost(data_dir: Path, n: int = 300) -> dict[str, float]:
     """Milliseconds per :meth:`Store.append_pose` (write + fsync of one record): mean, median, max
     over ``n`` appends on ``data_dir``'s file system (``--append-cost``)."""
-    from service.store import PoseLogRecord, Store
+    from randt.service.store import PoseLogRecord, Store
 
     times = []
     with Store(data_dir) as store:

@@ -72,7 +72,8 @@ def one_run(at_s: float, tmp: Path) -> tuple[list[str], float]:
     Ctrl-C to the demo's exit."""
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "cli", "demo", "--vehicles", "1", "--duration", "1", "--azimuth", "500",
+            sys.executable, "-m", "randt.cli",
+            "demo", "--vehicles", "1", "--duration", "1", "--azimuth", "500",
             "--no-progress", "--http-port", str(_free_port()), "--zenoh-port", str(_free_port()),
         ],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,

@@ -8,18 +8,18 @@ Each KITTI 00 sweep (frames 0-10, about 121k points, real; per-point times from 
 ``bench/link.py`` derives them) is encoded once both ways, as a vehicle would send it:
 
 * **v1 raw**: our full scan message (float32 x, y, z, intensity, float32 time offsets;
-  ``wire.messages.scan_from_arrays`` + ``encode``), decoded as a matcher process does
-  (``service.matchers.decoded_sweep``: msgpack, validation, the float32 views).
+  ``randt.wire.messages.scan_from_arrays`` + ``encode``), decoded as a matcher process does
+  (``randt.service.matchers.decoded_sweep``: msgpack, validation, the float32 views).
 * **PointCloud2**: the CDR bytes an rmw_zenoh publisher puts in a sample (4-byte encapsulation
   header, then the message; float32 x, y, z, intensity and an Ouster-style uint32 ``t`` in
   nanoseconds, 20 bytes a point; ``rosbags``' Jazzy type store), as the service's ROS 2 bridge
-  hands it on (``wire.ros2.Ros2Scan``), decoded as the service does: the matcher process's
-  ``decoded_sweep`` (``wire.ros2.sweep_arrays``: ``rosbags``' ``deserialize_cdr``, then
-  ``core.io.pointcloud2.pointcloud2_arrays``: float32 x, y, z as a view of the message's bytes,
+  hands it on (``randt.wire.ros2.Ros2Scan``), decoded as the service does: the matcher process's
+  ``decoded_sweep`` (``randt.wire.ros2.sweep_arrays``: ``rosbags``' ``deserialize_cdr``, then
+  ``randt.core.io.pointcloud2.pointcloud2_arrays``: float32 x, y, z as a view of the message's bytes,
   intensity, time offsets from the earliest point, what the matcher takes from a v1 scan).
 
 Each is timed twice: the matcher's decode alone, and with the intake's header read before it
-(``decode_scan_header``: a v1 scan validated whole; ``wire.ros2.scan_header``: the CDR
+(``decode_scan_header``: a v1 scan validated whole; ``randt.wire.ros2.scan_header``: the CDR
 deserialized and the cloud's layout checked), which every scan also costs.
 
 The decodes are interleaved (one of each, sweep after sweep, ``--repeat`` rounds), single-threaded;
@@ -43,11 +43,11 @@ import common
 import numpy as np
 from common import git_line, heading, machine_line, table, version
 
-from core.datasets import open_sequence
-from core.shared_data import data_root
-from service.matchers import decoded_sweep
-from wire.messages import WireLimits, decode_scan_header, encode, scan_from_arrays
-from wire.ros2 import Ros2Scan, scan_header
+from randt.core.datasets import open_sequence
+from randt.core.shared_data import data_root
+from randt.service.matchers import decoded_sweep
+from randt.wire.messages import WireLimits, decode_scan_header, encode, scan_from_arrays
+from randt.wire.ros2 import Ros2Scan, scan_header
 
 del common
 
@@ -152,9 +152,13 @@ def main(argv: list[str] | None = None) -> int:
         np.testing.assert_array_equal(decode_v1(a), decode_ros(b))
     decoders: list[tuple[str, Callable[[Any], np.ndarray], list[Any]]] = [
         ("v1 raw scan: the matcher's decode (decoded_sweep)", decode_v1, v1),
-        ("PointCloud2 CDR: the matcher's decode (decoded_sweep: wire.ros2.sweep_arrays)", decode_ros, ros),
+        (
+            "PointCloud2 CDR: the matcher's decode (decoded_sweep: randt.wire.ros2.sweep_arrays)",
+            decode_ros,
+            ros,
+        ),
         ("v1 raw scan: intake header + matcher decode", both_v1, v1),
-        ("PointCloud2 CDR: intake header (wire.ros2.scan_header) + matcher decode", both_ros, ros),
+        ("PointCloud2 CDR: intake header (randt.wire.ros2.scan_header) + matcher decode", both_ros, ros),
     ]
     times: dict[str, list[float]] = {name: [] for name, _, _ in decoders}
     for _ in range(args.repeat):

@@ -13,7 +13,7 @@ readers):
 * ``acked_kept``: every pose a vehicle received is in the store, same stamp and same pose (the
   promise: an answered scan is durable; docs/wire-format.md). Zero acknowledged poses lost;
 * ``tiles_intact``: the store opens with no problem reported, every tile file listed by a map's
-  metadata exists and reads (``core.io``), and no tile's stored version is below the highest
+  metadata exists and reads (``randt.core.io``), and no tile's stored version is below the highest
   version a tile update announced on the wire (``tiles_regressed``);
 * ``loud``: while the fault lasted, the service said so (disk faults: an ERROR log line and the
   ``randt_store_errors_total`` counter or error answers; router: the vehicles' scans went
@@ -107,9 +107,9 @@ class StoreCheck:
 
 def check_store(data_dir: Path, answers: list[Answer], tiles_seen: list[TileSeen]) -> StoreCheck:
     """Open the store (the service is stopped) and check every acknowledged pose and every tile."""
-    from core.io.autoware import AUTOWARE_METADATA_NAME, read_metadata
-    from core.io.clouds import read_cloud
-    from service.store import Store
+    from randt.core.io.autoware import AUTOWARE_METADATA_NAME, read_metadata
+    from randt.core.io.clouds import read_cloud
+    from randt.service.store import Store
 
     store = Store(data_dir)
     try:
@@ -358,8 +358,8 @@ def _disk_fault_inner(kind: str, root: Path) -> FaultResult:
         (ro_dir / "maps").mkdir(parents=True)
         _mount("--bind", str(ro_dir), str(ro_dir))
         _mount("-o", "remount,bind,ro", str(ro_dir))
-        from service.runtime import Service
-        from service.settings import ServiceSettings
+        from randt.service.runtime import Service
+        from randt.service.settings import ServiceSettings
 
         svc = Service(ServiceSettings(data_dir=ro_dir, listen=(f"tcp/127.0.0.1:{free_port()}",)))
         try:
@@ -425,7 +425,7 @@ def run_disk_fault(kind: str) -> FaultResult:
 _ROUTER = """
 import sys, time, zenoh
 sys.path.insert(0, sys.argv[2])
-from wire.zenoh_config import zenoh_config
+from randt.wire.zenoh_config import zenoh_config
 s = zenoh.open(zenoh_config("router", listen=(sys.argv[1],)))
 print("ready", flush=True)
 while True:

@@ -44,7 +44,7 @@ class Answers:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_pose(self, sample: Any) -> None:
-        from wire.messages import decode_pose
+        from randt.wire.messages import decode_pose
 
         t = time.monotonic()
         m = decode_pose(sample.payload.to_bytes())
@@ -59,7 +59,7 @@ class Answers:
                 self.pose_own[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
 
     def on_error(self, sample: Any) -> None:
-        from wire.messages import decode_error
+        from randt.wire.messages import decode_error
 
         m = decode_error(sample.payload.to_bytes())
         with self.lock:
@@ -95,8 +95,8 @@ def fleet_link(endpoint: str, sessions: list[str], answers: Answers) -> Iterator
     publishers' sessions), all peers of ``endpoint``; closed at exit."""
     import zenoh
 
-    from wire.keys import ALL_ERRORS, ALL_POSES
-    from wire.zenoh_config import zenoh_config
+    from randt.wire.keys import ALL_ERRORS, ALL_POSES
+    from randt.wire.zenoh_config import zenoh_config
 
     listener = zenoh.open(zenoh_config("peer", connect=(endpoint,)))
     subs = [
@@ -127,7 +127,7 @@ def drive_fleet(
     every scan reaches the service. Returns when all are sent, with the first publication's time."""
     import zenoh
 
-    from wire.keys import scan_key
+    from randt.wire.keys import scan_key
 
     def drive(vehicle: str, session: Any, payload_of: Callable[[int], bytes], start: float) -> None:
         pub = session.declare_publisher(

@@ -4,11 +4,11 @@ Run from the repository root (no test dependencies)::
 
     python bench/fleet_map.py [--markdown] [--vehicles 3] [--laps 1.8] [--seed 0]
 
-A simulated fleet (``sim.scenarios.run_mapping_fleet``): vehicles on overlapping closed routes
+A simulated fleet (``randt.sim.scenarios.run_mapping_fleet``): vehicles on overlapping closed routes
 of the town's street grid, each more than one lap (loops within a session, streets shared between
 sessions), one of them without GNSS, the others with a GNSS receiver of 1 m noise, a 2 m wandering
 bias (4 m vertically), 1 % multipath jumps of 15 m and a 15 s outage. Each vehicle's sweeps go
-through its own incremental matcher; a keyframe every 10 m enters ``core.fleet_map.FleetMapper``
+through its own incremental matcher; a keyframe every 10 m enters ``randt.core.fleet_map.FleetMapper``
 (place recognition, global registration to verify loops, the iSAM2 pose graph). Reported:
 
 - the shared map's ATE after one rigid alignment (its shape) and absolute (bounded by the GNSS
@@ -37,8 +37,8 @@ import common
 import numpy as np
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from sim.lidar import Lidar64
-from sim.scenarios import MappingRun, run_mapping_fleet
+from randt.sim.lidar import Lidar64
+from randt.sim.scenarios import MappingRun, run_mapping_fleet
 
 del common
 

@@ -20,7 +20,7 @@ land 2.9 cm / 0.05 deg (small_gicp GICP) and 6.1 cm / 0.10 deg (Open3D point-to-
 Methods, one thread each (``bench/common.py``; KISS-Matcher's TBB pool is sized to one thread by
 :func:`kiss_matcher_one_thread`), each from the identity:
 
-- **RANDT global** (``core.global_registration.register_global``, defaults: its own ``v`` is
+- **RANDT global** (``randt.core.global_registration.register_global``, defaults: its own ``v`` is
   :func:`case_scale_m`, grown when a cloud keeps more than 3000 voxels);
 - **KISS-Matcher** 1.0 (``kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(v))``, then
   ``.estimate(source, target)``: float32 (N,3) arrays, a solution with ``rotation``,
@@ -29,7 +29,7 @@ Methods, one thread each (``bench/common.py``; KISS-Matcher's TBB pool is sized 
   within 5v, mutual filter, 1.5v correspondence distance, 100k iterations at 0.999) at ``v``, and
   the same result refined by the tutorial's point-to-plane ICP (0.4v on the full clouds, normals
   within 2v), its time the sum of both;
-- **RANDT local** (``core.registration.register`` from the identity) and **small_gicp GICP**
+- **RANDT local** (``randt.core.registration.register`` from the identity) and **small_gicp GICP**
   (downsampling v/2, correspondences within 2v): where local registration fails.
 
 Scale and success, one rule for every method (:func:`case_scale_m`, :func:`verdict`):
@@ -77,10 +77,10 @@ import open3d as o3d
 import small_gicp
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from core import shared_data as sd
-from core.global_registration import register_global
-from core.registration import auto_voxel_sizes, register
-from core.transforms import invert, make_transform, transform_error
+from randt.core import shared_data as sd
+from randt.core.global_registration import register_global
+from randt.core.registration import auto_voxel_sizes, register
+from randt.core.transforms import invert, make_transform, transform_error
 
 del common
 
@@ -113,7 +113,7 @@ FINE = {
 def case_scale_m(source_xyz: np.ndarray, target_xyz: np.ndarray) -> float:
     """The voxel ``v`` (m) every method works at: the finest NDT level of the target's scale.
 
-    ``core.registration.auto_voxel_sizes(target)[-1]``: 0.6-0.8 m for a KITTI sweep, 9 cm for the
+    ``randt.core.registration.auto_voxel_sizes(target)[-1]``: 0.6-0.8 m for a KITTI sweep, 9 cm for the
     3DMatch fragments, 4 mm for a bunny scan. The source does not enter (the target's scale, as
     ``register_global`` takes it); it is an argument so a rule using both needs no new call.
     """

@@ -8,7 +8,7 @@ Two simulated vehicles drive a 400 m loop of the simulator's town 0 (``--scans``
 simulated once and kept in a spool): ``gnss`` with a prior on its first sweep (it makes the
 shared map ``default``), ``nognss`` without priors, starting 100 m behind (it joins the shared map
 through the graph), so the run has keyframes, loops and a join. Each cycle starts a worker process
-(``--worker``: a real :class:`service.runtime.Service` with its pose graph, without Zenoh; its
+(``--worker``: a real :class:`randt.service.runtime.Service` with its pose graph, without Zenoh; its
 outbox is lines on stdout, written before a message would go out) that sends the vehicles' next
 sweeps from where the store says they are, each once the one before is answered. The parent
 kills it with SIGKILL at a random moment (2-10 s after it is ready; every other cycle 0-1.5 s
@@ -79,10 +79,10 @@ class GraphCrashReport:
 
 
 def make_spool(path: Path, n_scans: int) -> None:
-    """Simulate both vehicles once (sim.drive), into an npz the workers read."""
-    from sim.drive import plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    """Simulate both vehicles once (randt.sim.drive), into an npz the workers read."""
+    from randt.sim.drive import plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(0)
     plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
@@ -109,9 +109,9 @@ def make_spool(path: Path, n_scans: int) -> None:
 def _worker(data_dir: str, spool: str, out_path: str | None) -> None:
     """The crashing side: a Service with its graph, fed the spooled drive from where the store
     says each vehicle is; its outbox is stdout (one JSON line per pose or correction)."""
-    from service.runtime import Service
-    from service.settings import ServiceSettings
-    from wire.messages import (
+    from randt.service.runtime import Service
+    from randt.service.settings import ServiceSettings
+    from randt.wire.messages import (
         CorrectionMessage,
         ErrorMessage,
         PoseMessage,
@@ -220,7 +220,7 @@ def run_graph_kill_cycles(
 ) -> GraphCrashReport:
     """``cycles`` kill -9 cycles on one data directory, then the rest of the drive; the same drive
     uninterrupted on another (module docstring)."""
-    from service.graph_log import GRAPH_DIRNAME, GraphLog
+    from randt.service.graph_log import GRAPH_DIRNAME, GraphLog
 
     t0 = time.perf_counter()
     rnd = random.Random(seed)

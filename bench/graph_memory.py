@@ -7,7 +7,7 @@ Run from the repository root (no test dependencies)::
 One simulated vehicle drives a random walk through the town's street grid (it comes back to the
 same streets again and again: loops), with a GNSS fix at each keyframe (0.5 m). Its keyframes (a
 sweep every 10 m, 70 m range, 1000 firings a turn, the matcher's 0.2 m points, its true pose
-with 1 cm of noise as the live pose) go to a real :class:`service.graph.ServiceGraph`, its
+with 1 cm of noise as the live pose) go to a real :class:`randt.service.graph.ServiceGraph`, its
 process, queue and log, as a session's would; after every kilometre the bench waits until the
 graph has taken them all and reads the graph process's resident memory (``VmRSS``) and its spill
 directory's size. ``disk``: the keyframes' points on disk under the graph log's directory, the
@@ -32,13 +32,13 @@ import common
 import numpy as np
 from common import git_line, heading, machine_line, progress, table
 
-from core.fleet_map import FleetMapSettings
-from core.voxel import voxel_downsample
-from service.graph import ServiceGraph
-from service.metrics import ServiceMetrics
-from sim.drive import Route, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.core.fleet_map import FleetMapSettings
+from randt.core.voxel import voxel_downsample
+from randt.service.graph import ServiceGraph
+from randt.service.metrics import ServiceMetrics
+from randt.sim.drive import Route, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
 
 del common
 
@@ -120,7 +120,7 @@ def breakdown(keyframes: list[tuple[np.ndarray, np.ndarray]], seed: int, spill: 
     (gtsam's iSAM2), then with the place index, then with the loop records and sessions."""
     import gc
 
-    from service.graph import MapGeometry, _ProcessMap, _release_memory
+    from randt.service.graph import MapGeometry, _ProcessMap, _release_memory
 
     rng = np.random.default_rng(seed)
     graph = _ProcessMap("default", FleetMapSettings(), MapGeometry(20, 0.2, 5), spill)

@@ -2,7 +2,7 @@
 of its answers, a well-behaved vehicle, store hashes and the latency bound.
 
 Everything runs on 127.0.0.1 with explicit endpoints and multicast scouting off
-(:func:`wire.zenoh_config.zenoh_config`), and every wait has a timeout.
+(:func:`randt.wire.zenoh_config.zenoh_config`), and every wait has a timeout.
 """
 
 from __future__ import annotations
@@ -115,8 +115,8 @@ class Listener:
     def __init__(self, connect: tuple[str, ...], mode: str = "peer") -> None:
         import zenoh
 
-        from wire.keys import ALL_ERRORS, ALL_POSES
-        from wire.zenoh_config import zenoh_config
+        from randt.wire.keys import ALL_ERRORS, ALL_POSES
+        from randt.wire.zenoh_config import zenoh_config
 
         self.lock = threading.Lock()
         self.answers: list[Answer] = []
@@ -129,7 +129,7 @@ class Listener:
         ]
 
     def _on_pose(self, sample: Any) -> None:
-        from wire.messages import decode_pose
+        from randt.wire.messages import decode_pose
 
         t = time.monotonic()
         try:
@@ -143,7 +143,7 @@ class Listener:
             )
 
     def _on_error(self, sample: Any) -> None:
-        from wire.messages import decode_error
+        from randt.wire.messages import decode_error
 
         t = time.monotonic()
         try:
@@ -155,7 +155,7 @@ class Listener:
             self.answers.append(Answer("error", m.vehicle, m.session, m.seq, m.code, t))
 
     def _on_tile(self, sample: Any) -> None:
-        from wire.messages import decode_tile_update
+        from randt.wire.messages import decode_tile_update
 
         t = time.monotonic()
         try:
@@ -231,9 +231,9 @@ class GoodVehicle:
         import zenoh
 
         from bench.corpus import room_points
-        from wire.keys import scan_key
-        from wire.messages import encode, scan_from_arrays
-        from wire.zenoh_config import zenoh_config
+        from randt.wire.keys import scan_key
+        from randt.wire.messages import encode, scan_from_arrays
+        from randt.wire.zenoh_config import zenoh_config
 
         xyz = room_points(self.n_points, seed=7).astype(np.float64)
         session = zenoh.open(zenoh_config(self.mode, connect=self.connect))
@@ -306,7 +306,7 @@ class LiveService:
     url: str
     port: int
     zenoh_endpoint: str
-    service: Any  # service.runtime.Service
+    service: Any  # randt.service.runtime.Service
     data_dir: Path
 
 
@@ -322,8 +322,8 @@ def live_service(
     """``create_app`` with its Zenoh transport (peer listening on a free loopback port, or a client of
     ``connect``) served by uvicorn on a free loopback port; yields when the matchers are warm."""
 
-    from service.app import create_app
-    from service.settings import ServiceSettings
+    from randt.service.app import create_app
+    from randt.service.settings import ServiceSettings
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     listen = (endpoint,) if zenoh_mode == "peer" else ()

@@ -6,14 +6,14 @@ Run from the repository root::
 
 How each surface is run:
 
-* ``wire``: a real :class:`service.runtime.Service` (through ``create_app``: its Zenoh transport,
+* ``wire``: a real :class:`randt.service.runtime.Service` (through ``create_app``: its Zenoh transport,
   a peer listening on a free 127.0.0.1 port, multicast scouting off) receives each payload from a
   second Zenoh session publishing on ``randt/fleet/<key>/scan``: the real transport callback, not a
   shortcut into the session manager. A third session listens to every pose and error. During all
   wire and HTTP cases a well-behaved vehicle (``good``, 3000-point scans at 5 Hz) streams.
 * ``http``: the same service's FastAPI app served by uvicorn on a free 127.0.0.1 port; each request
   is written byte for byte on a socket (no client normalizes ``..`` or percent escapes).
-* ``file``: the ``randt`` command in a subprocess (``python -m cli ...``) on the case's file.
+* ``file``: the ``randt`` command in a subprocess (``python -m randt.cli ...``) on the case's file.
 
 Checks per case (all must hold):
 
@@ -134,7 +134,7 @@ def _run_wire(case: dict[str, Any], corpus: Path, ctx: _Ctx) -> tuple[dict[str, 
     """Checks and detail of one wire case; returns (checks, detail, t_start, t_end)."""
     import zenoh
 
-    from wire.keys import scan_key
+    from randt.wire.keys import scan_key
 
     expect = case["expect"]
     session = case["session"]
@@ -285,7 +285,7 @@ class _Ctx:
     allowed_sessions: set[str] = field(default_factory=set)
 
     def exclude(self, rel: str) -> bool:
-        from wire.ids import session_map_name
+        from randt.wire.ids import session_map_name
 
         parts = rel.split("/")
         if parts[0] == "sessions" and len(parts) > 2:
@@ -305,7 +305,7 @@ def run_service_cases(
     """Wire and HTTP cases against one live service, with the well-behaved vehicle streaming."""
     import zenoh
 
-    from wire.zenoh_config import zenoh_config
+    from randt.wire.zenoh_config import zenoh_config
 
     if not cases:
         return
@@ -422,7 +422,7 @@ def _tree_hash(root: Path) -> dict[str, str]:
 
 def run_file_case(case: dict[str, Any], corpus: Path) -> CaseResult:
     from bench.corpus import room_points
-    from core.io.clouds import PointCloud, write_pcd
+    from randt.core.io.clouds import PointCloud, write_pcd
 
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="randt-file-") as tmp_s:
@@ -446,7 +446,7 @@ def run_file_case(case: dict[str, Any], corpus: Path) -> CaseResult:
         env = {**os.environ, "PYTHONPATH": str(REPO)}
         try:
             done = subprocess.run(
-                [sys.executable, "-m", "cli", *argv],
+                [sys.executable, "-m", "randt.cli", *argv],
                 capture_output=True,
                 text=True,
                 timeout=300,

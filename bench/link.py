@@ -9,10 +9,10 @@ Run from the repository root (no test dependencies)::
    ``bench/odometry.py`` derives them) and a simulated drive (``sim``: a 64-beam sensor at 10 Hz,
    raw sweeps with per-point time offsets and intensities): bytes per sweep (mean, median, max),
    bytes per kept point, Mbit/s per vehicle at 10 Hz (mean sweep), and the vehicle's CPU per sweep
-   (``clients.publisher.encode_sweep``, one thread: mean, median, max), for raw v1 sweeps, the
+   (``randt.clients.publisher.encode_sweep``, one thread: mean, median, max), for raw v1 sweeps, the
    library's defaults and two alternatives; plus the service's decode time per sweep.
-2. **Map**: the same sweeps decoded by the wire decoder (``wire.messages.decode_scan``, as the
-   service does) and fed to ``core.mapping.MapBuilder`` (the service's per-session matcher and map
+2. **Map**: the same sweeps decoded by the wire decoder (``randt.wire.messages.decode_scan``, as the
+   service does) and fed to ``randt.core.mapping.MapBuilder`` (the service's per-session matcher and map
    tiles) once raw and once reduced: ATE of each trajectory against the ground truth, ATE of the
    reduced trajectory against the raw one, PDU of both maps at 0.5 m (as ``bench/odometry.py``),
    map points and the matcher's time per sweep. The issue's criterion: the reduced map within 1 cm
@@ -21,7 +21,7 @@ Run from the repository root (no test dependencies)::
    Both are mapped with the NDT levels the service gives every session
    (``ServiceSettings.session_matcher``: the finest level five map voxels, 1 m). The reduced
    sweeps are mapped a third time with the levels the matcher alone would derive from their first
-   sweep (``core.registration.auto_voxel_sizes``, which depends on the sweep's density: r = 2 m
+   sweep (``randt.core.registration.auto_voxel_sizes``, which depends on the sweep's density: r = 2 m
    on a reduced KITTI sweep against 0.8 m raw), to show why the service ties them to the map.
 """
 
@@ -42,14 +42,14 @@ import common
 import numpy as np
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from clients.publisher import PublisherSettings, encode_sweep
-from core.datasets import open_sequence
-from core.mapping import MapBuilder
-from core.metrics.cloud import pdu
-from core.metrics.trajectory import ate
-from core.shared_data import data_root
-from service.settings import ServiceSettings
-from wire.messages import decode_scan
+from randt.clients.publisher import PublisherSettings, encode_sweep
+from randt.core.datasets import open_sequence
+from randt.core.mapping import MapBuilder
+from randt.core.metrics.cloud import pdu
+from randt.core.metrics.trajectory import ate
+from randt.core.shared_data import data_root
+from randt.service.settings import ServiceSettings
+from randt.wire.messages import decode_scan
 
 del common
 
@@ -218,8 +218,8 @@ def kitti_sweeps() -> tuple[Iterator[Sweep], Callable[[int], np.ndarray], str]:
 
 
 def sim_sweeps(n_scans: int, speed_mps: float) -> tuple[Iterator[Sweep], Callable[[int], np.ndarray], str]:
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Motion, Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)

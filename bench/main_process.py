@@ -8,8 +8,8 @@ Run from the repository root::
 The service's matchers are replaced by a stand-in executor (``Service(executor=...)``) that answers
 each sweep at once with what a matcher process answered for it: before the runs, each vehicle's
 spooled sweeps (bench/service.py's spool, simulated there when ``--sweeps`` holds none) go through
-the matcher processes' own code here (``service.matchers._Sessions.register_payload`` with a
-:class:`~service.matchers.MapFrame`: decoded, matched, moved into the map frame, cut to the voxels
+the matcher processes' own code here (``randt.service.matchers._Sessions.register_payload`` with a
+:class:`~randt.service.matchers.MapFrame`: decoded, matched, moved into the map frame, cut to the voxels
 not sent before; a keyframe's points where the pose graph's rule asks for one). Everything else is
 the real service in its own process: Zenoh intake and admission, the session threads, the pose
 log's group commit, folding into the map, tile saves and snapshots, the pose graph (``--graph on``),
@@ -68,7 +68,7 @@ def _bench_service() -> Any:
 def prepare(spool_dir: Path, vehicles: list[str]) -> Path:
     """Every vehicle's sweeps through the matcher processes' code (:func:`offline.matcher_process`),
     pickled to ``answers-<n>.pkl`` in the spool directory (reused when present): per vehicle,
-    the :class:`~service.matchers.Registered` of each sweep, its final state for snapshots and
+    the :class:`~randt.service.matchers.Registered` of each sweep, its final state for snapshots and
     its CPU ms per sweep."""
     from offline import matcher_process
 
@@ -106,8 +106,8 @@ from pathlib import Path
 sys.path.insert(0, sys.argv[1])
 sys.path.append(sys.argv[2])  # (after the repository: bench/service.py is not the service package)
 from stand_in import StandIn
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
 stand_in = StandIn(Path(sys.argv[5]))
 settings = ServiceSettings(
     data_dir=Path(sys.argv[4]), listen=(sys.argv[3],), http_port=0, graph=sys.argv[6] == "on",
@@ -117,8 +117,8 @@ service = Service(settings, executor=stand_in)
 service.start()
 print(json.dumps({"pid": os.getpid()}), flush=True)
 sys.stdin.read()
-if service.sessions.graph is not None:
-    service.sessions.graph.wait_idle(300)
+if randt.service.sessions.graph is not None:
+    randt.service.sessions.graph.wait_idle(300)
 service.stop()
 print(json.dumps({"missing_keyframes": stand_in.missing_keyframes}), flush=True)
 """

@@ -5,12 +5,12 @@ Run from the repository root::
     python bench/matcher.py [--markdown] [--sim-scans 300] [--repeats 3]
 
 What a matcher process does per sweep in the service, timed in this process on one thread: the
-payload decoded (``service.matchers.decoded_sweep``: the v2 bodies decompressed), then
+payload decoded (``randt.service.matchers.decoded_sweep``: the v2 bodies decompressed), then
 ``IncrementalMatcher.register_scan`` and its keyframe model update, with the settings every
 session gets (``ServiceSettings.session_matcher``, ``ServiceSettings.registration``). KISS-ICP
 (one thread) registers the same decoded sweeps in the same run, beside it.
 
-1. **KITTI 00 frames 0-10** (real), each reduced and encoded by ``clients.publisher.encode_sweep``
+1. **KITTI 00 frames 0-10** (real), each reduced and encoded by ``randt.clients.publisher.encode_sweep``
    with the library's defaults (first point per 0.2 m voxel, 1 cm, zstd; no per-point times:
    KITTI's files have none). ``--repeats`` interleaved runs of both, every sweep pooled.
    Frame-to-frame error against the ground truth (approximate on these frames, data README).
@@ -41,12 +41,12 @@ from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from offline import Run, service_matcher
 
-from clients.publisher import encode_sweep
-from core.datasets import open_sequence
-from core.metrics.trajectory import ate
-from core.shared_data import data_root
-from core.transforms import invert, transform_error
-from service.matchers import decoded_sweep
+from randt.clients.publisher import encode_sweep
+from randt.core.datasets import open_sequence
+from randt.core.metrics.trajectory import ate
+from randt.core.shared_data import data_root
+from randt.core.transforms import invert, transform_error
+from randt.service.matchers import decoded_sweep
 
 del common
 
@@ -167,9 +167,9 @@ def kitti_payloads() -> tuple[list[bytes], np.ndarray]:
 
 def sim_payloads(n_scans: int) -> tuple[list[bytes], np.ndarray]:
     """``bench/service.py``'s first vehicle: the raw sweeps encoded as the vehicle library sends them."""
-    from sim.drive import Motion, plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    from randt.sim.drive import Motion, plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     lidar = Lidar64()

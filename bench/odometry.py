@@ -39,12 +39,12 @@ from common import git_line, heading, machine_line, progress, table, version, wa
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 
-from core.datasets import open_sequence
-from core.mapping import MapBuilder
-from core.metrics.cloud import pdu
-from core.metrics.trajectory import KITTI_LENGTHS_M, ate, kitti_relative_errors
-from core.shared_data import data_root
-from core.transforms import invert, transform_error, transform_points
+from randt.core.datasets import open_sequence
+from randt.core.mapping import MapBuilder
+from randt.core.metrics.cloud import pdu
+from randt.core.metrics.trajectory import KITTI_LENGTHS_M, ate, kitti_relative_errors
+from randt.core.shared_data import data_root
+from randt.core.transforms import invert, transform_error, transform_points
 
 del common
 
@@ -183,8 +183,8 @@ def sim_section(
     n_scans: int, speed_mps: float, markdown: bool, modes: tuple[bool, ...] = (False, True)
 ) -> list[str]:
     """Simulated drive: RANDT (perfect and raw sweeps) and KISS-ICP, scored on exact ground truth."""
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Motion, Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)

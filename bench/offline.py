@@ -1,16 +1,16 @@
 """The service's session matcher run offline: what one matcher process does per sweep, timed.
 
 :func:`service_matcher`, the matcher alone (``bench/matcher.py``, beside KISS-ICP): per sweep the
-payload decoded (``service.matchers.decoded_sweep``), ``IncrementalMatcher.register_scan`` with
+payload decoded (``randt.service.matchers.decoded_sweep``), ``IncrementalMatcher.register_scan`` with
 the model update deferred, then ``update_model``: the matcher process's order (it publishes the
 pose before it updates the model), with the settings every session gets
 (``ServiceSettings.session_matcher``, ``ServiceSettings.registration``).
 
 :func:`matcher_process`, the whole of a matcher process's work per sweep (``bench/service.py``'s
 offline reference, ``bench/main_process.py``'s prepared answers): the same through the process's
-own code (``service.matchers._Sessions.register_payload`` with a ``MapFrame``: the map points
+own code (``randt.service.matchers._Sessions.register_payload`` with a ``MapFrame``: the map points
 moved into the map frame and cut to the voxels not sent before; a keyframe's points where the
-pose graph's rule asks for one, ``service.graph.wants_keyframe``), then ``update_model``. Only
+pose graph's rule asks for one, ``randt.service.graph.wants_keyframe``), then ``update_model``. Only
 the pipe and the service around it are missing.
 """
 
@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.odometry import IncrementalMatcher
-from service.graph import wants_keyframe
-from service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
-from service.settings import ServiceSettings
+from randt.core.odometry import IncrementalMatcher
+from randt.service.graph import wants_keyframe
+from randt.service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
+from randt.service.settings import ServiceSettings
 
 
 @dataclass

@@ -14,7 +14,7 @@ What it runs, one process, one thread (``common`` limits BLAS first), every timi
 small_gicp VGICP in the same run:
 
 1. **Table 1/3 analogue** (KITTI-style real scans: the paper's own Velodyne scans and KITTI 00
-   frames, ``../shared/data``): the paper's protocol (:func:`core.protocol.make_trial`: a known
+   frames, ``../shared/data``): the paper's protocol (:func:`randt.core.protocol.make_trial`: a known
    rigid transform up to 2 m / 10 deg, Gaussian noise of 1-5 cm, 10 % outliers, 50 % partial
    overlap). Per method: RMSE of the source's placement against the true transform, RMSE of the
    nearest-neighbour residuals (1 m cap), Chamfer distance, time, points after registration (the
@@ -63,18 +63,18 @@ from common import REPO, git_line, machine_line, table, warm_up
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from core.config import FAST_SVD_STEP
-from core.global_registration import register_global
-from core.io import read_cloud
-from core.mapping import MapBuilder
-from core.metrics.cloud import chamfer_distance, pdu, voxel_count_std
-from core.metrics.trajectory import ate
-from core.odometry import MatcherSettings
-from core.protocol import make_trial
-from core.registration import centroid_start
-from core.shared_data import bunny, data_root
-from core.transforms import make_transform, transform_error, transform_points
-from core.voxel import pack_keys, voxel_coords
+from randt.core.config import FAST_SVD_STEP
+from randt.core.global_registration import register_global
+from randt.core.io import read_cloud
+from randt.core.mapping import MapBuilder
+from randt.core.metrics.cloud import chamfer_distance, pdu, voxel_count_std
+from randt.core.metrics.trajectory import ate
+from randt.core.odometry import MatcherSettings
+from randt.core.protocol import make_trial
+from randt.core.registration import centroid_start
+from randt.core.shared_data import bunny, data_root
+from randt.core.transforms import make_transform, transform_error, transform_points
+from randt.core.voxel import pack_keys, voxel_coords
 
 del common
 
@@ -146,9 +146,9 @@ class StartableRunner(Protocol):
 
 
 def ours(method: str, **overrides: object) -> StartableRunner:
-    from core.config import RegistrationSettings
-    from core.errors import DegenerateProblemError, RegistrationFailedError
-    from core.registration import register
+    from randt.core.config import RegistrationSettings
+    from randt.core.errors import DegenerateProblemError, RegistrationFailedError
+    from randt.core.registration import register
 
     settings = RegistrationSettings.for_method(method, **overrides)  # type: ignore[arg-type]
 
@@ -244,7 +244,7 @@ def global_runner(source: np.ndarray, target: np.ndarray, scale: Scale) -> np.nd
 
 
 def centred(run: StartableRunner) -> Runner:
-    """``run`` from :func:`core.registration.centroid_start` (the source's centroid moved onto
+    """``run`` from :func:`randt.core.registration.centroid_start` (the source's centroid moved onto
     the target's) instead of the identity, given as each method's own initial guess (as
     ``randt register --centroid-start`` does; moving the source instead changes how a method's
     voxel grid samples it, which on 1024-point objects moved RANDT's clean successes 18 -> 13)."""
@@ -501,9 +501,9 @@ def incremental_ablation(cfg: Config, out: Results, bar: tqdm) -> None:
     """The incremental matcher against the same matcher matching each sweep to the previous one
     only, on KITTI 00 (its ground truth is approximate on these frames: ../shared/data/README.md)
     and on a simulated drive (exact truth)."""
-    from core.io import kitti_velodyne_poses, read_kitti_calib, read_kitti_poses
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
+    from randt.core.io import kitti_velodyne_poses, read_kitti_calib, read_kitti_poses
+    from randt.sim.drive import Motion, Route, simulate
+    from randt.sim.town import Town
 
     root = data_root() / "kitti00"
     files = sorted((root / "velodyne").glob("*.bin"))[: cfg.kitti_frames]
@@ -942,7 +942,8 @@ def report(res: Results, figures: list[Path], figure_link: Callable[[Path], str]
     md += ["#### Table 1/3 analogue: KITTI-style real scans, the paper's protocol", ""]
     md.append(
         "Known rigid transform up to 2 m / 10 deg, Gaussian noise 1-5 cm, 10 % outliers, 50 % partial "
-        "overlap (`core.protocol.make_trial`); success: 5 cm and 0.5 deg; RMSE true: the source's points "
+        "overlap (`randt.core.protocol.make_trial`); success: 5 cm and 0.5 deg; RMSE true: the source's "
+        "points "
         "placed by the estimate against the truth; RMSE nn: nearest-neighbour residuals after "
         "registration (1 m cap; noise and outliers included); points after: the registered pair merged "
         "and equalized at 0.2 m; overlap: share of the source within 0.3 m of the target; density std: "

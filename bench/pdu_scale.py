@@ -7,7 +7,7 @@ Run from the repository root::
 The RANDT map of KITTI 00 frames 0-10 (``../shared/data/kitti00``, the service's defaults:
 density equalization at 0.2 m voxels, one point per voxel) and the raw sweeps accumulated at the
 same poses, scored with the plain reading of the paper's index, ``PDU = 1 - sigma / mean`` of the
-point counts of the occupied voxels (:func:`core.metrics.cloud.pdu`), at measurement voxels from
+point counts of the occupied voxels (:func:`randt.core.metrics.cloud.pdu`), at measurement voxels from
 the equalization voxel up. Equalization makes every occupied 0.2 m voxel hold one point, so the
 map's PDU at exactly 0.2 m (the same grid) is 1 by construction; on any other grid a voxel holds
 as many equalized points as the surfaces it cuts, and the index falls. Also: the voxel at which
@@ -23,11 +23,11 @@ import sys
 import numpy as np
 from common import git_line, heading, machine_line, progress, table  # first: one BLAS thread
 
-from core.io import read_cloud
-from core.mapping import MapBuilder
-from core.metrics.cloud import pdu
-from core.shared_data import data_root
-from core.transforms import transform_points
+from randt.core.io import read_cloud
+from randt.core.mapping import MapBuilder
+from randt.core.metrics.cloud import pdu
+from randt.core.shared_data import data_root
+from randt.core.transforms import transform_points
 
 #: Measurement voxels, metres: the equalization voxel, just above it, then coarser.
 VOXELS_M = (0.2, 0.201, 0.205, 0.21, 0.22, 0.25, 0.3, 0.4, 0.5, 0.75, 1.0, 1.5, 2.0)

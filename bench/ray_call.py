@@ -3,7 +3,7 @@
 A float32 sweep of ``--points`` points goes to another process, which answers with an array of
 ``--answer`` points (by default what a 64-beam sweep and its kept points weigh: 630 kB and 448 kB).
 Reported per call: the wall time, the caller's CPU, the callee's CPU. The Ray side uses the
-service's per-call settings (``service.ray_executor.RAY_ENV``) unless ``--ray-defaults``.
+service's per-call settings (``randt.service.ray_executor.RAY_ENV``) unless ``--ray-defaults``.
 
     unshare -n sh -c "ip link set lo up && python -m bench.ray_call"
 
@@ -96,7 +96,7 @@ class _Echo:
 def _ray_echo(n_answer: int, defaults: bool) -> tuple[Any, Any]:
     """A local Ray (with the service's RAY_ENV unless ``defaults``) and an :class:`_Echo` actor."""
     if not defaults:
-        from service.ray_executor import RAY_ENV
+        from randt.service.ray_executor import RAY_ENV
 
         for name, value in RAY_ENV.items():
             os.environ.setdefault(name, value)

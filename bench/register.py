@@ -15,13 +15,13 @@ Three experiments, one process, one thread (the thread limits are set before num
    ``(i, i+g, i+2g)``, ``g`` = 1 and 2, the pose ``i <- i+2g`` registered directly against the
    product of ``i <- i+g`` and ``i+g <- i+2g``. It measures each method's precision on real
    sweeps (a bias shared by all three poses does not show).
-3. **Robustness protocol** (:func:`core.protocol.make_trial`): seeded trials on the RANDT
+3. **Robustness protocol** (:func:`randt.core.protocol.make_trial`): seeded trials on the RANDT
    paper's Velodyne scans (random rigid transform up to 2 m / 10 deg, 50 % overlap, noise,
    10 % outliers); RANDT, RANDT --fast-svd, its two ablations, classic NDT and small_gicp VGICP.
 
 Our methods run with their defaults (NDT voxel levels derived from the target's scale). The peers
 (small_gicp, Open3D) need scale parameters; :data:`SCALES` lists them and the output repeats them.
-A method that raises :class:`~core.errors.RegistrationFailedError` has no pose: it counts as a
+A method that raises :class:`~randt.core.errors.RegistrationFailedError` has no pose: it counts as a
 failure, and in the protocol statistics its error is that of the identity start.
 """
 
@@ -42,13 +42,13 @@ import open3d as o3d
 import small_gicp
 from common import git_line, heading, machine_line, progress, table, version, warm_up
 
-from core.config import FAST_SVD_STEP, Method, RegistrationSettings
-from core.errors import DegenerateProblemError, RegistrationFailedError
-from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
-from core.protocol import make_trial
-from core.registration import auto_voxel_sizes, register
-from core.shared_data import PAIRS, data_root, kitti00_velodyne
-from core.transforms import transform_error
+from randt.core.config import FAST_SVD_STEP, Method, RegistrationSettings
+from randt.core.errors import DegenerateProblemError, RegistrationFailedError
+from randt.core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
+from randt.core.protocol import make_trial
+from randt.core.registration import auto_voxel_sizes, register
+from randt.core.shared_data import PAIRS, data_root, kitti00_velodyne
+from randt.core.transforms import transform_error
 
 KITTI_FRAMES = (0, 4, 9)  # pairs k -> k+1
 PROTOCOL_SEED = 20261122

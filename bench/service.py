@@ -7,15 +7,15 @@ Run from the repository root::
 
 First, the largest fleet's raw sweeps are simulated (HDL-64E-like, about 120k points, in their
 firing-time frames with per-point time offsets, as a real LiDAR gives them) and encoded as the
-vehicle library would send them: ``--link default`` with ``clients.publisher.encode_sweep`` and the
-library's default :class:`~clients.publisher.PublisherSettings` (reduced, quantized, compressed),
-``--link raw`` as full v1 messages (``wire.messages.scan_from_arrays`` + ``encode``). They are
+vehicle library would send them: ``--link default`` with ``randt.clients.publisher.encode_sweep`` and the
+library's default :class:`~randt.clients.publisher.PublisherSettings` (reduced, quantized, compressed),
+``--link raw`` as full v1 messages (``randt.wire.messages.scan_from_arrays`` + ``encode``). They are
 spooled to a file (a long run would otherwise hold gigabytes of sweeps in memory); a smaller fleet
 drives the largest one's first vehicles. The simulation is the slow part of a run (about 0.2 s a
 sweep on this machine).
 
 For each fleet size, a fresh subprocess (the *bench*) starts a fresh *service process*
-(:class:`service.runtime.Service`, a Zenoh peer on loopback, data in a temporary directory, its
+(:class:`randt.service.runtime.Service`, a Zenoh peer on loopback, data in a temporary directory, its
 environment without the benchmarks' one-thread BLAS settings: the service sets its own), waits
 for its matcher processes to warm up, and publishes every vehicle's sweeps at 10 Hz from one Zenoh
 session per vehicle for ``--seconds``, the vehicles staggered over one period as unsynchronised
@@ -87,9 +87,9 @@ CPU_RATIO_TARGET = 1.1
 
 def _encoder(link: str) -> Callable[..., bytes]:
     """``f(vehicle, seq, stamp_ns, xyz, intensity, offsets, **prior) -> bytes``: the payload the
-    vehicle library sends (``clients.publisher.encode_sweep``), with its defaults (``default``) or
+    vehicle library sends (``randt.clients.publisher.encode_sweep``), with its defaults (``default``) or
     every point as a v1 scan (``raw``)."""
-    from clients.publisher import PublisherSettings, encode_sweep
+    from randt.clients.publisher import PublisherSettings, encode_sweep
 
     settings = PublisherSettings(raw=link == "raw")
 
@@ -153,15 +153,15 @@ class Spool:
 def simulate(n_vehicles: int, n_scans: int, link: str, directory: Path) -> None:
     """Simulate every vehicle's raw sweeps, encode them for ``link`` and write a :class:`Spool`.
 
-    The fleet is :func:`sim.drive.plan_fleet`'s for ``n_vehicles`` (town seed 1, fleet seed 3);
+    The fleet is :func:`randt.sim.drive.plan_fleet`'s for ``n_vehicles`` (town seed 1, fleet seed 3);
     a smaller fleet's run uses its first vehicles. The ground truth of each sweep is the sensor
     pose at mid-sweep (with per-point time offsets the matcher's pose refers to it,
     core/odometry.py); each vehicle's first sweep carries it as its prior, as GNSS/INS would.
     """
-    from sim.drive import Motion, plan_fleet
-    from sim.drive import simulate as drive
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    from randt.sim.drive import Motion, plan_fleet
+    from randt.sim.drive import simulate as drive
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     encode = _encoder(link)
@@ -219,19 +219,19 @@ SERVE_PROGRAM = """
 import json, os, sys
 from pathlib import Path
 sys.path.insert(0, sys.argv[1])
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
 service = Service(ServiceSettings(data_dir=Path(sys.argv[3]), listen=(sys.argv[2],), http_port=0))
 service.start()
-if not service.sessions.wait_matchers(600):
+if not randt.service.sessions.wait_matchers(600):
     raise SystemExit("matcher processes not warm after 600 s")
-pool = service.sessions.pool
+pool = randt.service.sessions.pool
 pids = [p for p in pool.pids() if p] if hasattr(pool, "pids") else []  # (Ray: its actors' processes)
 print(json.dumps({"pid": os.getpid(), "matchers": pids}), flush=True)
 sys.stdin.read()
-value = service.metrics.registry.get_sample_value
+value = randt.service.metrics.registry.get_sample_value
 received = value("randt_scans_received_total") or 0
-graph = service.sessions.graph
+graph = randt.service.sessions.graph
 stats = {}
 if graph is not None:
     graph.wait_idle(300)
@@ -357,7 +357,7 @@ def join_errors(
     no prior on its first admitted scan), how far its ``T_map_session`` is from the truth (m,
     deg): the truth's is ``T_true @ inv(T_session)`` of each of its answered scans, the median
     scan's taken (they differ by the session's own drift)."""
-    from core.transforms import invert, rotation_angle_deg
+    from randt.core.transforms import invert, rotation_angle_deg
 
     out: dict[str, tuple[float, float]] = {}
     for sid, T_list in joined.items():
@@ -376,8 +376,8 @@ def map_quality(data_dir: Path, map_name: str = "default") -> dict[str, float]:
     """The shared map as the service saved it, against the simulated town's true surfaces (town
     seed 1, the spool's): its points and their distance to the nearest surface (p50, p90 cm) and
     how many lie more than 0.3 m off (what a wrong pose folds in)."""
-    from core.io import read_cloud
-    from sim.town import Town
+    from randt.core.io import read_cloud
+    from randt.sim.town import Town
 
     tiles = sorted((data_dir / "maps" / map_name).glob("*.pcd"))
     if not tiles:
@@ -407,8 +407,8 @@ def run_one(
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
     (``RANDT_EXECUTOR``); each vehicle publishes its 10 Hz sweeps at ``rate_hz``; the fleet is the
     spool's ``n_vehicles`` vehicles from its ``first``."""
-    from core.transforms import invert
-    from wire.codes import ErrorCode
+    from randt.core.transforms import invert
+    from randt.wire.codes import ErrorCode
 
     spool = Spool.load(spool_dir)
     vehicles = spool.vehicles()[first : first + n_vehicles]
@@ -926,7 +926,7 @@ def main() -> None:
         spool.mkdir(parents=True, exist_ok=True)
         n_fleet = args.first + max(args.vehicles)
         meta = {"vehicles": n_fleet, "scans": round(args.seconds * RATE_HZ), "link": args.link}
-        meta["routes"] = "car-like"  # sim.drive since 2026-11-26: clothoids, slower in corners
+        meta["routes"] = "car-like"  # randt.sim.drive since 2026-11-26: clothoids, slower in corners
         meta_path = spool / "meta.json"
         if not _spool_fits(meta_path, meta):
             meta_path.unlink(missing_ok=True)

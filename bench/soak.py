@@ -8,7 +8,7 @@ Run from the repository root::
 
 The service is ``randt serve`` in a child process (its own RSS, Zenoh peer on a free 127.0.0.1
 port, data in a temporary directory, ``RANDT_MAX_SESSIONS=0`` and ``RANDT_IDLE_EXPIRY_S=10`` so
-finished laps free their sessions). Each vehicle drives the simulator's town (``sim.drive``, an
+finished laps free their sessions). Each vehicle drives the simulator's town (``randt.sim.drive``, an
 HDL-64E-like LiDAR with 500 columns, about 30k points a sweep) at ``--rate-hz``, one lap of
 ``--lap-scans`` sweeps per session with its true pose as the prior of the lap's first sweep (shared
 map ``default``), then starts a new session and drives the lap again, until ``--minutes`` are up.
@@ -101,9 +101,9 @@ def _laps(
     n_vehicles: int, lap_scans: int, rate_hz: float
 ) -> dict[str, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]]:
     """Per vehicle: (stamp offset ns, xyz float32, intensity float32, T_world_sensor) of one lap."""
-    from sim.drive import simulate_fleet
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    from randt.sim.drive import simulate_fleet
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     out: dict[str, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = {}
@@ -141,9 +141,9 @@ def run_soak(
     """Run the soak (module docstring) and write the CSV and the plot if paths are given."""
     import zenoh
 
-    from wire.keys import scan_key
-    from wire.messages import encode, scan_from_arrays
-    from wire.zenoh_config import zenoh_config
+    from randt.wire.keys import scan_key
+    from randt.wire.messages import encode, scan_from_arrays
+    from randt.wire.zenoh_config import zenoh_config
 
     laps = _laps(vehicles, lap_scans, rate_hz)
     lap_ns = int(lap_scans / rate_hz * 1e9)

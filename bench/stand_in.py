@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from service.matchers import TRAJECTORY_LENGTH_KEY, Registered, with_trajectory
-from wire.messages import WireLimits, peek_seq
+from randt.service.matchers import TRAJECTORY_LENGTH_KEY, Registered, with_trajectory
+from randt.wire.messages import WireLimits, peek_seq
 
 
 class StandInMatcher:
@@ -64,7 +64,7 @@ class StandInMatcher:
 
 
 class StandIn:
-    """The stand-in executor (:class:`service.matchers.MatcherExecutor`): every session's matcher
+    """The stand-in executor (:class:`randt.service.matchers.MatcherExecutor`): every session's matcher
     is a :class:`StandInMatcher` over its vehicle's prepared answers."""
 
     ready = True

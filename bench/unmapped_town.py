@@ -4,7 +4,7 @@ Run from the repository root::
 
     python bench/unmapped_town.py [--good 120] [--bad 60] [--markdown]
 
-One simulated vehicle (sim.drive, the 64-beam LiDAR with 1000 firings per revolution) sends
+One simulated vehicle (randt.sim.drive, the 64-beam LiDAR with 1000 firings per revolution) sends
 ``--good`` sweeps of town 0 along a 400 m loop, its true pose as the prior of its first sweep
 (the shared map ``default``), then ``--bad`` sweeps of town 5 along the same route: a town the map
 never saw, where the map holds town 0's surfaces. A real session manager (matcher processes, the
@@ -34,14 +34,14 @@ OFF_M = 0.3
 
 
 def run(n_good: int, n_bad: int) -> dict[str, object]:
-    from service.metrics import ServiceMetrics
-    from service.sessions import SessionManager
-    from service.settings import ServiceSettings
-    from service.store import Store
-    from sim.drive import plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
-    from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.sessions import SessionManager
+    from randt.service.settings import ServiceSettings
+    from randt.service.store import Store
+    from randt.sim.drive import plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
+    from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
     mapped, other = Town.generate(TOWN_MAPPED), Town.generate(TOWN_NEVER_MAPPED)
     plan = plan_fleet(mapped, 1, seed=0, route_length_m=400.0)[0]

@@ -4,10 +4,10 @@ Run from the repository root::
 
     python bench/workers.py [--sessions 1 2 4] [--repeats 2] [--markdown]
 
-Each session is one :class:`core.odometry.IncrementalMatcher` fed the 11 real KITTI 00 sweeps
+Each session is one :class:`randt.core.odometry.IncrementalMatcher` fed the 11 real KITTI 00 sweeps
 (``--repeats`` times over, as one long session) from memory. The same sessions run three ways in
 one process tree: one after another in one thread (the baseline), one thread per session (what
-``service.sessions`` does), and one process per session (``concurrent.futures`` with the fork
+``randt.service.sessions`` does), and one process per session (``concurrent.futures`` with the fork
 start method, so the sweeps are not pickled). Reported: wall time, sweeps per second and the
 speed-up over the sequential run. BLAS is single-threaded, so the only parallelism is the
 workers'. The question it answers: does the GIL serialize the matcher? (Our kernels release it,
@@ -28,8 +28,8 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 import numpy as np
 from common import git_line, heading, machine_line, table, warm_up
 
-from core.io import read_cloud
-from core.shared_data import data_root
+from randt.core.io import read_cloud
+from randt.core.shared_data import data_root
 
 _SCANS: list[np.ndarray] = []
 
@@ -44,7 +44,7 @@ def _load(repeats: int) -> list[np.ndarray]:
 
 
 def _session(_: int) -> int:
-    from core.odometry import IncrementalMatcher
+    from randt.core.odometry import IncrementalMatcher
 
     matcher = IncrementalMatcher()
     ok = 0

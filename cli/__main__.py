@@ -1,19 +1,19 @@
-"""``python -m cli``: the ``randt`` command.
+"""``python -m randt.cli``: the ``randt`` command.
 
 A Ctrl-C while the command loads, or in the command-line framework around a command (each command
-reports its own: ``cli.errors.exits_on_error``), ends it with one line and exit code 130 too; one
-the import system swallowed is noted (:mod:`cli.interrupt`) and ends the command before it starts.
+reports its own: ``randt.cli.errors.exits_on_error``), ends it with one line and exit code 130 too; one
+the import system swallowed is noted (:mod:`randt.cli.interrupt`) and ends the command before it starts.
 """
 
 try:
-    from cli import interrupt
+    from randt.cli import interrupt
 
     interrupt.install()  # before the imports below: a Ctrl-C swallowed in them is still noted
-    from cli.main import main
+    from randt.cli.main import main
 
     main()
 except (KeyboardInterrupt, Exception) as exc:
-    from cli import interrupt
+    from randt.cli import interrupt
 
     if not interrupt.explains(exc):  # (a Ctrl-C wrapped in another error ends as one too)
         raise

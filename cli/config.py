@@ -23,11 +23,11 @@ __all__ = ["GROUPS", "SettingRow", "SettingsGroup", "settings_command", "setting
 #: The groups ``randt config`` prints, in order: group name -> ``module:Class`` (a pydantic model,
 #: a pydantic-settings model or a dataclass).
 GROUPS: dict[str, str] = {
-    "registration": "core.config:RegistrationSettings",  # randt register (--method, --voxel)
-    "matcher": "core.odometry:MatcherSettings",  # the incremental matcher: randt map, the service
-    "service": "service.settings:ServiceSettings",  # randt serve
-    "publisher": "clients.publisher:PublisherSettings",  # randt replay, randt simulate, vehicles
-    "fleet": "clients.fleet:FleetSettings",  # randt simulate's flags
+    "registration": "randt.core.config:RegistrationSettings",  # randt register (--method, --voxel)
+    "matcher": "randt.core.odometry:MatcherSettings",  # the incremental matcher: randt map, the service
+    "service": "randt.service.settings:ServiceSettings",  # randt serve
+    "publisher": "randt.clients.publisher:PublisherSettings",  # randt replay, randt simulate, vehicles
+    "fleet": "randt.clients.fleet:FleetSettings",  # randt simulate's flags
 }
 
 

@@ -18,8 +18,8 @@ from typing import ParamSpec, TypeVar
 
 import typer
 
-from cli import interrupt
-from core.errors import (
+from randt.cli import interrupt
+from randt.core.errors import (
     DegenerateProblemError,
     FormatError,
     InvalidCloudError,
@@ -105,15 +105,15 @@ class WrongInputError(RandtError):
 
 
 #: Exit codes by error class (first match wins); 0 is success, 1 is an unexpected crash.
-#: Classes of ``service`` and ``core.datasets`` are named by their import path, so ``--help`` does
+#: Classes of ``service`` and ``randt.core.datasets`` are named by their import path, so ``--help`` does
 #: not import them; :func:`exit_code` resolves them when an error is being mapped.
 EXIT_CODES: tuple[tuple[type[BaseException] | str, ExitCode], ...] = (
     (PortInUseError, ExitCode.PORT_IN_USE),
-    ("service.store:DataDirInUseError", ExitCode.DATA_DIR_IN_USE),
+    ("randt.service.store:DataDirInUseError", ExitCode.DATA_DIR_IN_USE),
     (WrongInputError, ExitCode.WRONG_INPUT),
     (IsADirectoryError, ExitCode.WRONG_INPUT),
     (NotADirectoryError, ExitCode.WRONG_INPUT),
-    ("core.datasets:NoScansError", ExitCode.WRONG_INPUT),
+    ("randt.core.datasets:NoScansError", ExitCode.WRONG_INPUT),
     (ConnectionError, ExitCode.NO_SERVICE),
     (FileNotFoundError, ExitCode.NOT_FOUND),
     (NotFoundError, ExitCode.NOT_FOUND),

@@ -12,15 +12,15 @@ from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
 
-from cli import interrupt
-from cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
+from randt.cli import interrupt
+from randt.cli.errors import QUIET_INTERRUPT_ENV, ExitCode, fail
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from clients.fleet import FleetSettings, GnssMode
-    from clients.publisher import PublisherSettings
-    from clients.replay import ReplayResult
+    from randt.clients.fleet import FleetSettings, GnssMode
+    from randt.clients.publisher import PublisherSettings
+    from randt.clients.replay import ReplayResult
 
 
 class VehicleMode(StrEnum):
@@ -35,7 +35,7 @@ def _publisher_settings(
     raw: bool = False,
 ) -> PublisherSettings:
     """``PublisherSettings`` from the flags, falling back to ``RANDT_VEHICLE_*`` and the defaults."""
-    from clients.publisher import PublisherSettings
+    from randt.clients.publisher import PublisherSettings
 
     overrides: dict[str, Any] = {
         "mode": mode.value if mode else None,
@@ -122,7 +122,7 @@ def replay(
     Exit code 0 when every scan got a pose, 11 when some were rejected, dropped or lost (the
     summary line says which), 10 when no service answered.
     """
-    from clients.replay import replay as do_replay
+    from randt.clients.replay import replay as do_replay
 
     settings = _publisher_settings(mode, connect, zenoh_config, raw)
     results = do_replay(
@@ -170,7 +170,7 @@ def _write_replay(out: Path, result: ReplayResult) -> None:
     """poses_kitti.txt, poses_tum.txt (received poses, in scan order) and summary.json of one pass."""
     from dataclasses import asdict
 
-    from core.io import atomic_write_bytes, write_kitti_poses, write_tum
+    from randt.core.io import atomic_write_bytes, write_kitti_poses, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
     seqs, poses = result.trajectory()
@@ -226,7 +226,7 @@ def simulate(
     simulator's exact poses (docs/clients.md). Exit code 11 when some scan got no pose, 10 when
     no service answered.
     """
-    from clients.fleet import FleetSettings, run_fleet, summary_table
+    from randt.clients.fleet import FleetSettings, run_fleet, summary_table
 
     settings = _publisher_settings(mode, connect, zenoh_config, raw)
     fleet = FleetSettings(
@@ -244,7 +244,7 @@ def simulate(
     summaries = [r.summary() for r in runs]
     doc = {"fleet": _fleet_dict(fleet), "vehicles": summaries}
     if json_out is not None:
-        from core.io import atomic_write_bytes
+        from randt.core.io import atomic_write_bytes
 
         atomic_write_bytes(json_out, json.dumps(doc, indent=1).encode())
     for line in summary_table(summaries):
@@ -255,7 +255,7 @@ def simulate(
 
 def _gnss_modes(text: str) -> tuple[GnssMode, ...]:
     """``--gnss``: comma-separated GNSS modes, cycled over the fleet."""
-    from clients.fleet import GNSS_MODES
+    from randt.clients.fleet import GNSS_MODES
 
     modes = tuple(m.strip() for m in text.split(","))
     bad = [m for m in modes if m not in GNSS_MODES]
@@ -296,8 +296,8 @@ def _map_folder_stats(folder: Path, pdu_voxel_m: float) -> tuple[int, int, float
     """Tiles, points and PDU of an Autoware tile folder (the store's ``maps/<map>/``)."""
     import numpy as np
 
-    from core.io import read_cloud
-    from core.metrics.cloud import pdu
+    from randt.core.io import read_cloud
+    from randt.core.metrics.cloud import pdu
 
     files = sorted(folder.glob("*.pcd"))
     if not files:
@@ -379,8 +379,8 @@ def _print_summary(
     joins, the map, and where to go next (no links to a service that stops with ``--exit``)."""
     import httpx
 
-    from clients.fleet import fleet_graph, graph_table, summary_table
-    from clients.rest import ApiError, MapClient
+    from randt.clients.fleet import fleet_graph, graph_table, summary_table
+    from randt.clients.rest import ApiError, MapClient
 
     total = sum(v["scans"] for v in fleet["vehicles"])
     typer.echo(
@@ -475,16 +475,18 @@ def demo(
 
     import uvicorn
 
-    from service.app import create_app
-    from service.settings import ServiceSettings
-    from service.store import check_data_dir_free
+    from randt.service.app import create_app
+    from randt.service.settings import ServiceSettings
+    from randt.service.store import check_data_dir_free
 
     modes = _gnss_modes(gnss)
     if data_dir is not None:
         check_data_dir_free(data_dir)
     data = data_dir or Path(tempfile.mkdtemp(prefix="randt-demo-"))
     try:  # (a Ctrl-C before the service runs leaves no temporary folder either)
-        logging.getLogger("core").setLevel(logging.ERROR)  # fallbacks are counted in the summary instead
+        logging.getLogger("randt.core").setLevel(
+            logging.ERROR
+        )  # fallbacks are counted in the summary instead
         zport, z_ok = _usable_port(zenoh_port)
         hport, h_ok = _usable_port(http_port)
         for name, wanted, got, ok in (("Zenoh", zenoh_port, zport, z_ok), ("HTTP", http_port, hport, h_ok)):
@@ -544,7 +546,7 @@ def demo(
             "slower than real time..."
         )
         cmd = [
-            sys.executable, "-m", "cli", "simulate",
+            sys.executable, "-m", "randt.cli", "simulate",
             "--vehicles", str(vehicles), "--duration", str(duration), "--speed", str(speed),
             "--azimuth", str(azimuth), "--window", "2", "--connect", endpoint, "--mode", "client",
             "--gnss", ",".join(modes), "--shared-routes" if shared_routes else "--own-routes",

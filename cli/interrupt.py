@@ -13,7 +13,7 @@ printed: ``sys.unraisablehook``). Only this module's handler writes the note; no
 (an interrupted command ends).
 
 :func:`say` prints the one line an interrupted command ends with, once: the command's own
-(``cli.errors.exits_on_error``), or ``randt: interrupted`` where the interrupt came outside it
+(``randt.cli.errors.exits_on_error``), or ``randt: interrupted`` where the interrupt came outside it
 (the imports; Typer's argument handling, which turns a ``KeyboardInterrupt`` into exit code 130
 without a word).
 """

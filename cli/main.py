@@ -9,8 +9,8 @@ from typing import Annotated
 import typer
 from typer.core import TyperCommand
 
-from cli import config, fleet, interrupt, mapping, register, security, serve, tiles
-from cli.errors import ExitCode, exit_code_table, exits_on_error
+from randt.cli import config, fleet, interrupt, mapping, register, security, serve, tiles
+from randt.cli.errors import ExitCode, exit_code_table, exits_on_error
 
 # Plain help (rich_markup_mode=None): click's layout, no "<bool>" type column, text as written.
 app = typer.Typer(
@@ -34,11 +34,11 @@ tiles_app = typer.Typer(
     rich_markup_mode=None,
 )
 
-_SERVICE = config.settings_command("service.settings:ServiceSettings", serve.SETTINGS_OPTIONS)
-_PUBLISHER = config.settings_command("clients.publisher:PublisherSettings", fleet.PUBLISHER_OPTIONS)
+_SERVICE = config.settings_command("randt.service.settings:ServiceSettings", serve.SETTINGS_OPTIONS)
+_PUBLISHER = config.settings_command("randt.clients.publisher:PublisherSettings", fleet.PUBLISHER_OPTIONS)
 
 #: Every command, in ``randt --help``'s order: (typer app, name, function, command class). Each is
-#: wrapped by :func:`cli.errors.exits_on_error` here, so no command maps its own errors.
+#: wrapped by :func:`randt.cli.errors.exits_on_error` here, so no command maps its own errors.
 COMMANDS: tuple[tuple[typer.Typer, str, object, type[TyperCommand] | None], ...] = (
     (app, "register", register.register, None),
     (app, "demo-register", register.demo_register, None),

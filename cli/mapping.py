@@ -10,8 +10,8 @@ from typing import Annotated, Any
 
 import typer
 
-from cli.errors import input_file
-from core.errors import FormatError
+from randt.cli.errors import input_file
+from randt.core.errors import FormatError
 
 
 def map_sequence(
@@ -42,10 +42,10 @@ def map_sequence(
     import numpy as np
     from tqdm import tqdm
 
-    from core.datasets import open_scans
-    from core.io import atomic_write_bytes, write_kitti_poses, write_tum
-    from core.mapping import MapBuilder
-    from core.metrics.cloud import pdu
+    from randt.core.datasets import open_scans
+    from randt.core.io import atomic_write_bytes, write_kitti_poses, write_tum
+    from randt.core.mapping import MapBuilder
+    from randt.core.metrics.cloud import pdu
 
     seq = open_scans(dataset_dir, topic=topic, start=start, end=end)
     builder = MapBuilder(tile_size_m=tile_size, map_voxel_m=map_voxel)
@@ -124,8 +124,8 @@ def eval_trajectory(
     a calib.txt (--calib, or found next to REFERENCE) the reference is converted (inv(Tr) P Tr)
     before comparing; the output says which frames were compared.
     """
-    from core.io import kitti_velodyne_poses, read_kitti_calib, read_kitti_poses, read_tum
-    from core.metrics.trajectory import evaluate_trajectory
+    from randt.core.io import kitti_velodyne_poses, read_kitti_calib, read_kitti_poses, read_tum
+    from randt.core.metrics.trajectory import evaluate_trajectory
 
     if calib is not None and no_calib:
         raise ValueError("--calib and --no-calib exclude each other")

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from cli.errors import ExitCode, input_file
-from core.errors import FormatError, RandtError
+from randt.cli.errors import ExitCode, input_file
+from randt.core.errors import FormatError, RandtError
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from core.io.clouds import PointCloud
+    from randt.core.io.clouds import PointCloud
 
 
 class MethodChoice(StrEnum):
@@ -29,7 +29,7 @@ class MethodChoice(StrEnum):
 def _read_init(path: Path | None) -> np.ndarray | None:
     import numpy as np
 
-    from core.transforms import as_transform
+    from randt.core.transforms import as_transform
 
     if path is None:
         return None
@@ -65,7 +65,7 @@ def register(
         typer.Option(
             "--centroid-start",
             help="For object scans posed far apart: start from the translation that moves SOURCE's "
-            "centroid onto TARGET's (core.registration.centroid_start); not for LiDAR sweeps.",
+            "centroid onto TARGET's (randt.core.registration.centroid_start); not for LiDAR sweeps.",
         ),
     ] = False,
     fast_svd: Annotated[
@@ -73,7 +73,7 @@ def register(
         typer.Option(
             "--fast-svd",
             help="The SVD step on the NDT solver's moving points with looser fences, the default "
-            "before 2026-11-26 (core.config.FAST_SVD_STEP): about 25 % faster, twice the error on "
+            "before 2026-11-26 (randt.core.config.FAST_SVD_STEP): about 25 % faster, twice the error on "
             "noisy clouds.",
         ),
     ] = False,
@@ -86,7 +86,7 @@ def register(
         typer.Option(
             "--global",
             help="No initial guess: features, a robust solver, then NDT refinement "
-            "(core.global_registration); exit 15 when the pose is not to be trusted.",
+            "(randt.core.global_registration); exit 15 when the pose is not to be trusted.",
         ),
     ] = False,
 ) -> None:
@@ -99,9 +99,9 @@ def register(
         _register_global(source, target, voxel, as_json, output)
         return
 
-    from core.config import FAST_SVD_STEP, RegistrationSettings
-    from core.io import read_cloud
-    from core.registration import register as do_register
+    from randt.core.config import FAST_SVD_STEP, RegistrationSettings
+    from randt.core.io import read_cloud
+    from randt.core.registration import register as do_register
 
     for flag, given in (("--fast-svd", fast_svd), ("--dense-svd", dense_svd)):
         if given and method is not MethodChoice.randt:
@@ -116,7 +116,7 @@ def register(
     src = read_cloud(input_file(source))
     tgt = read_cloud(input_file(target))
     if centroid_start:
-        from core.registration import centroid_start as start
+        from randt.core.registration import centroid_start as start
 
         init_T = start(src.xyz, tgt.xyz)
     overrides: dict[str, object] = dict(FAST_SVD_STEP) if fast_svd else {}
@@ -145,8 +145,8 @@ def _report(
 
     import numpy as np
 
-    from core.io import write_cloud
-    from core.transforms import transform_points
+    from randt.core.io import write_cloud
+    from randt.core.transforms import transform_points
 
     if output is not None:
         write_cloud(output, replace(src, xyz=transform_points(T, src.xyz)))
@@ -161,11 +161,11 @@ def _report(
 def _register_global(
     source: Path, target: Path, voxel: list[float] | None, as_json: bool, output: Path | None
 ) -> None:
-    """``randt register --global``: :func:`core.global_registration.register_global`."""
+    """``randt register --global``: :func:`randt.core.global_registration.register_global`."""
 
-    from core.config import RegistrationSettings
-    from core.global_registration import GlobalSettings, register_global
-    from core.io import read_cloud
+    from randt.core.config import RegistrationSettings
+    from randt.core.global_registration import GlobalSettings, register_global
+    from randt.core.io import read_cloud
 
     src = read_cloud(input_file(source))
     tgt = read_cloud(input_file(target))
@@ -197,10 +197,10 @@ def demo_register(
     """
     import numpy as np
 
-    from core.config import RegistrationSettings
-    from core.protocol import synthetic_room
-    from core.registration import register as do_register
-    from core.transforms import make_transform, transform_error, transform_points
+    from randt.core.config import RegistrationSettings
+    from randt.core.protocol import synthetic_room
+    from randt.core.registration import register as do_register
+    from randt.core.transforms import make_transform, transform_error, transform_points
 
     rng = np.random.default_rng(0)
     target = synthetic_room(rng)
@@ -217,7 +217,7 @@ def demo_register(
     if not (root / "pairs").is_dir():
         typer.echo(f"(no real data at {root}: set --data-dir or RANDT_SHARED_DATA to try the real pairs)")
         return
-    from core.io import read_cloud
+    from randt.core.io import read_cloud
 
     pairs = {
         "small_gicp (indoor)": (

@@ -1,6 +1,6 @@
 """``randt security init DIR``: certificates, passwords and Zenoh configs of a secured deployment.
 
-A thin shell over :func:`wire.zenoh_security.write_deployment` (``docs/security.md`` is the recipe).
+A thin shell over :func:`randt.wire.zenoh_security.write_deployment` (``docs/security.md`` is the recipe).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def security_init(
     vehicle: randt replay ... --connect tls/HOST:7447 --zenoh-config DIR/vehicle-ID.json5 (copy
     only that vehicle's files to it: ca.pem, ID.pem, ID.key, vehicle-ID.json5).
     """
-    from wire.zenoh_security import write_deployment
+    from randt.wire.zenoh_security import write_deployment
 
     if directory.exists() and any(directory.iterdir()):
         raise ValueError(f"{directory} is not empty: randt security init writes into a fresh directory")

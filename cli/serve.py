@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from cli.errors import PortInUseError
+from randt.cli.errors import PortInUseError
 
 if TYPE_CHECKING:
-    from service.settings import ServiceSettings
+    from randt.service.settings import ServiceSettings
 
 #: The options of ``randt serve`` that override the ``ServiceSettings`` field of the same name.
 SETTINGS_OPTIONS = (
@@ -83,10 +83,10 @@ def serve(
     """
     import uvicorn
 
-    from service.app import create_app
-    from service.georef import check_map_origin
-    from service.settings import ServiceSettings
-    from service.store import check_data_dir_free
+    from randt.service.app import create_app
+    from randt.service.georef import check_map_origin
+    from randt.service.settings import ServiceSettings
+    from randt.service.store import check_data_dir_free
 
     overrides: dict[str, Any] = {
         "data_dir": data_dir,
@@ -127,8 +127,8 @@ def ros2_line(settings: ServiceSettings) -> str:
 def with_ros2(settings: ServiceSettings, connect: list[str] | None) -> ServiceSettings:
     """``settings`` with the ROS 2 bridge on (and its router, when given), checked: the ``ros2``
     extra must be installed (one line naming it, before anything starts)."""
-    from service.settings import Ros2Settings
-    from wire.ros2 import typestore
+    from randt.service.settings import Ros2Settings
+    from randt.wire.ros2 import typestore
 
     typestore()  # FormatError naming the extra, without rosbags
     ros2 = settings.ros2.model_dump()

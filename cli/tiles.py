@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Literal, cast
 import typer
 
 if TYPE_CHECKING:
-    from clients.rest import MapClient
+    from randt.clients.rest import MapClient
 
 UrlOption = Annotated[str, typer.Option("--url", envvar="RANDT_URL", help="The service's HTTP address.")]
 TokenOption = Annotated[
@@ -40,7 +40,7 @@ class Projector(StrEnum):
 
 
 def _client(url: str, token: str | None) -> MapClient:
-    from clients.rest import MapClient
+    from randt.clients.rest import MapClient
 
     return MapClient(url, token=token)
 
@@ -77,7 +77,7 @@ def tiles_trajectory(
     if out is None:
         typer.echo(text, nl=not text.endswith("\n"))
     else:
-        from core.io import atomic_write_bytes
+        from randt.core.io import atomic_write_bytes
 
         atomic_write_bytes(out, text.encode())
         typer.echo(f"{len(text.splitlines())} lines -> {out}", err=True)
@@ -138,8 +138,8 @@ def tiles_export(
 ) -> None:
     """Export the merged map (or a box of it) as one point cloud file; a georeferenced map's
     map_projector_info.yaml is written beside it (Autoware's map folder: the cloud, the yaml)."""
-    from clients.rest import PROJECTOR_INFO_FILE
-    from core.io.atomic import atomic_write_bytes
+    from randt.clients.rest import PROJECTOR_INFO_FILE
+    from randt.core.io.atomic import atomic_write_bytes
 
     box = None
     if bbox is not None:

@@ -2,7 +2,7 @@
 
 ``randt simulate`` and ``randt demo`` are thin shells over :func:`run_fleet`: ``n_vehicles``
 vehicles of :func:`sim.plan_fleet` drive their loops through a procedural town, each in its
-own thread with its own :class:`~clients.publisher.VehiclePublisher` (its own Zenoh session) and
+own thread with its own :class:`~randt.clients.publisher.VehiclePublisher` (its own Zenoh session) and
 session.
 
 GNSS
@@ -11,7 +11,7 @@ Each vehicle has a GNSS mode (``FleetSettings.gnss``, cycled over the fleet), se
 prior poses (what the service fuses as GNSS, docs/clients.md):
 
 - ``exact``: every scan carries its true pose, 2 cm / 0.1 deg (an RTK receiver with an INS);
-- ``noisy``: every scan carries a fix of :class:`sim.gnss.GnssReceiver` (``gnss_noise_m`` white
+- ``noisy``: every scan carries a fix of :class:`randt.sim.gnss.GnssReceiver` (``gnss_noise_m`` white
   noise, a ``gnss_bias_m`` bias wandering over a minute, twice both vertically) and an attitude
   ``gnss_yaw_error_deg`` off in yaw, announced with the receiver's covariance and 1 deg; no
   fix during one outage (from 30 % of the drive, ``gnss_outage_s`` long). Multipath jumps are not
@@ -35,7 +35,7 @@ instead; the service then drops the oldest queued scans, and the summary counts 
 Errors (per vehicle, over the scans that got a pose)
 ----------------------------------------------------
 - ``ate_m``: RMS distance between estimated and true positions, no alignment (the shared frame).
-- ``rpe_cm``, ``rpe_deg``: RMS frame-to-frame error (``core.metrics.trajectory.rpe``, delta 1).
+- ``rpe_cm``, ``rpe_deg``: RMS frame-to-frame error (``randt.core.metrics.trajectory.rpe``, delta 1).
 - ``drift_pct``: KITTI's translation error over the whole drive as one segment,
   ``|t(inv(inv(E_0) E_n) inv(G_0) G_n)| / path length`` in percent; ``kitti_pct`` is the devkit's
   average over 100-800 m segments when the drive is longer than 100 m.
@@ -55,11 +55,11 @@ from typing import Any, Literal, get_args
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
-from sim import FleetVehicle, Lidar64, Town, plan_fleet, simulate
-from sim.gnss import GnssReceiver
-from wire.codes import ErrorCode
-from wire.messages import PoseMessage
+from randt.clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
+from randt.sim import FleetVehicle, Lidar64, Town, plan_fleet, simulate
+from randt.sim.gnss import GnssReceiver
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import PoseMessage
 
 __all__ = [
     "GNSS_MODES",
@@ -285,7 +285,7 @@ def evaluate(
     VehicleErrors or None
         None when fewer than 3 scans have both.
     """
-    from core.metrics.trajectory import kitti_relative_errors, rpe
+    from randt.core.metrics.trajectory import kitti_relative_errors, rpe
 
     seqs = sorted(set(truth) & set(estimate))
     if len(seqs) < 3:
@@ -318,9 +318,9 @@ def evaluate(
 
 def ate_m(estimate_xyz: np.ndarray, truth_xyz: np.ndarray, *, align: bool = False) -> float:
     """RMS distance between ``(N, 3)`` estimated and true positions; with ``align`` after the
-    rigid fit of the estimate to the truth (:func:`core.metrics.trajectory.ate` of the positions,
+    rigid fit of the estimate to the truth (:func:`randt.core.metrics.trajectory.ate` of the positions,
     ``"se3"`` or ``"none"``; N >= 3 to align)."""
-    from core.metrics.trajectory import ate
+    from randt.core.metrics.trajectory import ate
 
     def poses(xyz: np.ndarray) -> np.ndarray:
         P = np.tile(np.eye(4), (len(xyz), 1, 1))
@@ -601,7 +601,7 @@ def fleet_graph(client: Any, summaries: list[dict[str, Any]], map_name: str = "d
     Parameters
     ----------
     client:
-        A :class:`clients.rest.MapClient` of the service.
+        A :class:`randt.clients.rest.MapClient` of the service.
     summaries:
         :meth:`VehicleRun.summary` dicts (their ``truth`` rows).
     map_name:

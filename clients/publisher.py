@@ -2,7 +2,7 @@
 
 ::
 
-    from clients.publisher import VehiclePublisher
+    from randt.clients.publisher import VehiclePublisher
 
     with VehiclePublisher("car-07", connect=["tcp/10.0.0.5:7447"], on_pose=print) as pub:
         for xyz, stamp_ns in lidar:                  # (N,3) or (N,4) arrays, sensor frame
@@ -20,7 +20,7 @@ How it works
   instead of 150 (``docs/clients.md``). ``raw=True`` (``RANDT_VEHICLE_RAW=1``) sends every point
   as float32 in a v1 scan, as before.
 - **publish() never blocks** longer than building the message (10-30 ms for 120k points). The
-  message is validated with the wire format's own checks (:mod:`wire.messages`: a bad array raises
+  message is validated with the wire format's own checks (:mod:`randt.wire.messages`: a bad array raises
   ``BadMessageError`` at once, with the code the service would answer), then put into a bounded
   send queue. A full queue drops its **oldest** scan and counts it (``stats.dropped``): the newest
   data matter most to a mapping service.
@@ -59,10 +59,10 @@ import zenoh
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from core.errors import BadMessageError
-from wire.codes import ErrorCode
-from wire.keys import error_key, pose_key, scan_key
-from wire.messages import (
+from randt.core.errors import BadMessageError
+from randt.wire.codes import ErrorCode
+from randt.wire.keys import error_key, pose_key, scan_key
+from randt.wire.messages import (
     ErrorMessage,
     GeoPrior,
     PoseMessage,
@@ -74,7 +74,7 @@ from wire.messages import (
     encode_scan_v2,
     scan_from_arrays,
 )
-from wire.zenoh_config import check_endpoints, load_config_file, zenoh_config
+from randt.wire.zenoh_config import check_endpoints, load_config_file, zenoh_config
 
 __all__ = [
     "PublisherSettings",
@@ -258,7 +258,7 @@ def encode_sweep(
 
     By default (``settings.raw`` false) the sweep is reduced to the first point of each
     ``settings.voxel_m`` voxel, in its own order, each kept point with its own time offset and
-    intensity, and sent as a compact v2 scan (:func:`wire.messages.encode_scan_v2`). With
+    intensity, and sent as a compact v2 scan (:func:`randt.wire.messages.encode_scan_v2`). With
     ``settings.raw`` it is a v1 scan of every point (float32), as before v2.
 
     Parameters
@@ -344,7 +344,7 @@ class VehiclePublisher:
     Parameters
     ----------
     vehicle:
-        The vehicle id (:mod:`wire.ids`).
+        The vehicle id (:mod:`randt.wire.ids`).
     session:
         The drive's session id; default :func:`default_session_id`.
     mode, connect, listen, queue_size, answer_timeout_s:
@@ -352,7 +352,8 @@ class VehiclePublisher:
     settings:
         A complete settings object instead of the environment.
     on_pose, on_error:
-        Called with each :class:`~wire.messages.PoseMessage` / :class:`~wire.messages.ErrorMessage` of this
+        Called with each :class:`~randt.wire.messages.PoseMessage` /
+        :class:`~randt.wire.messages.ErrorMessage` of this
         session, from the publisher's dispatcher thread (exceptions are logged, not raised).
     first_seq:
         Sequence number of the first scan (the service requires strictly increasing ``seq`` per
@@ -447,7 +448,7 @@ class VehiclePublisher:
             sweep's middle with ``time_offset_s``). A session whose first scan has a prior joins
             the shared map.
         geo_prior:
-            The prior in WGS84 instead (:func:`wire.messages.geo_prior`: latitude, longitude,
+            The prior in WGS84 instead (:func:`randt.wire.messages.geo_prior`: latitude, longitude,
             ellipsoidal altitude, orientation and covariance in East-North-Up), as a GNSS/INS
             receiver gives it; the service places it through its map's geodetic origin, which the
             first such prior sets (docs/mapping.md, "Georeferenced maps").

@@ -1,10 +1,10 @@
 """Replay a recorded drive into the service: ``randt replay`` is a thin shell over :func:`replay`.
 
-Sources (``core.datasets.open_scans``): a KITTI odometry sequence folder (``velodyne/*.bin``,
+Sources (``randt.core.datasets.open_scans``): a KITTI odometry sequence folder (``velodyne/*.bin``,
 ``times.txt`` for the stamps), a folder of ``.bin`` / ``.pcd`` / ``.ply`` / ``.csv`` / ``.txt`` /
 ``.npy`` scans in file-name order (the RANDT paper's CSV conversions, header ``X,Y,Z,Intensity``,
 are such a folder), or a ROS bag's PointCloud2 topic (rosbag2 with sqlite3 or MCAP, ROS 1
-``.bag``; per-point times kept; the record times are the stamps; ``core.io.bags``).
+``.bag``; per-point times kept; the record times are the stamps; ``randt.core.io.bags``).
 
 Pacing
 ------
@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
-from core.datasets import Scans, open_scans
-from core.errors import BadMessageError
-from core.io import PointCloud
-from wire.messages import ErrorMessage, PoseMessage
+from randt.clients.publisher import PublisherSettings, PublisherStats, VehiclePublisher, default_session_id
+from randt.core.datasets import Scans, open_scans
+from randt.core.errors import BadMessageError
+from randt.core.io import PointCloud
+from randt.wire.messages import ErrorMessage, PoseMessage
 
 __all__ = ["ReplayResult", "replay", "sequence_rate_hz"]
 

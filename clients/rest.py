@@ -2,7 +2,7 @@
 
 ``randt tiles ...`` is a thin shell over :class:`MapClient`. ::
 
-    from clients.rest import MapClient
+    from randt.clients.rest import MapClient
 
     with MapClient("http://127.0.0.1:8080") as api:
         api.sessions()                                   # [{"id": "car-07/2024-05-01.a", ...}]
@@ -35,8 +35,8 @@ from typing import Any, Literal
 import httpx
 import numpy as np
 
-from core.errors import NotFoundError, RandtError
-from core.io import atomic_write_bytes
+from randt.core.errors import NotFoundError, RandtError
+from randt.core.io import atomic_write_bytes
 
 __all__ = ["ApiError", "ApiNotFoundError", "DownloadResult", "MapClient"]
 
@@ -222,10 +222,10 @@ class MapClient:
 
         ``projector="MGRS"``: a georeferenced map in Autoware's MGRS projection instead (the map
         as served is kept in ``directory/.randt-local-cartesian-utm`` for the next download, and
-        written moved into its MGRS square: :func:`core.geo.write_mgrs_map`, the ``geo`` extra).
+        written moved into its MGRS square: :func:`randt.core.geo.write_mgrs_map`, the ``geo`` extra).
         """
         if projector == "MGRS":
-            from core.geo import write_mgrs_map  # (pyproj, mgrs: the geo extra)
+            from randt.core.geo import write_mgrs_map  # (pyproj, mgrs: the geo extra)
 
             local = Path(directory) / MGRS_SOURCE_DIR
             result = self.download_map(map_name, local, on_tile=on_tile)

@@ -35,10 +35,10 @@ FAST_SVD_STEP: dict[str, float | bool | None] = {
 
 
 class RegistrationSettings(BaseModel):
-    """How :func:`core.registration.register` aligns two clouds.
+    """How :func:`randt.core.registration.register` aligns two clouds.
 
     Voxel sizes left ``None`` are derived from the target's spatial scale (see
-    :func:`core.registration.auto_voxel_sizes`), so the same defaults serve a 15 cm bunny and a
+    :func:`randt.core.registration.auto_voxel_sizes`), so the same defaults serve a 15 cm bunny and a
     120 m LiDAR sweep.
     """
 
@@ -114,7 +114,7 @@ class RegistrationSettings(BaseModel):
         default=None,
         ge=100,
         description="Newton's iterations on at most about this many of the moving points, a spatially "
-        "stratified subsample (core.voxel.stratified_subsample: the same count from every cell of "
+        "stratified subsample (randt.core.voxel.stratified_subsample: the same count from every cell of "
         "match_cell_voxels finest voxels); None: every moving point",
     )
     match_cell_voxels: float = Field(

@@ -6,7 +6,7 @@
 - **Plain folder**: every ``.bin``, ``.pcd``, ``.ply``, ``.csv``, ``.txt`` or ``.npy`` file in ``DIR``,
   in file-name order (sorted lexicographically: zero-pad your numbers).
 - **ROS bag**: a rosbag2 folder (sqlite3 or MCAP) or a ROS 1 ``.bag`` file, one PointCloud2 topic
-  (:mod:`core.io.bags`; :func:`open_scans` picks it).
+  (:mod:`randt.core.io.bags`; :func:`open_scans` picks it).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, NotFoundError
-from core.io import PointCloud, kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
-from core.io.bags import BagSequence, is_bag, open_bag
-from core.transforms import invert
+from randt.core.errors import FormatError, NotFoundError
+from randt.core.io import PointCloud, kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
+from randt.core.io.bags import BagSequence, is_bag, open_bag
+from randt.core.transforms import invert
 
 __all__ = ["NoScansError", "ScanSequence", "Scans", "open_scans", "open_sequence"]
 

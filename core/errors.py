@@ -7,23 +7,23 @@
     ├── DegenerateProblemError      the geometry does not constrain all 6 DoF (e.g. one plane)
     ├── RegistrationFailedError     the optimiser diverged or produced a non-finite pose
     ├── FormatError                 a file could not be read or written in the named format
-    │   └── NoScansError            a sequence folder holds no scan files (core.datasets)
+    │   └── NoScansError            a sequence folder holds no scan files (randt.core.datasets)
     ├── BadMessageError             a wire message failed to decode or validate (service)
     ├── InvalidRequestError         an API request's parameters are malformed (service)
     ├── NotFoundError               a session, map, tile or file that does not exist
     ├── ConflictError               the request conflicts with the current state
-    │   └── MapInUseError           running sessions fold scans into the map (service.sessions)
+    │   └── MapInUseError           running sessions fold scans into the map (randt.service.sessions)
     ├── AuthError                   missing or wrong credentials (service)
     │   └── ForbiddenError          refused whatever the credentials (mutations disabled)
     ├── UnavailableError            the service is starting or stopping (service)
-    ├── MatcherProcessError         a matcher worker process failed (service.matchers)
+    ├── MatcherProcessError         a matcher worker process failed (randt.service.matchers)
     │   └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
-    ├── DataDirInUseError           another process holds the data directory (service.store)
-    ├── PortInUseError              a port a command would listen on is taken (cli.errors)
-    └── WrongInputError             a directory where a file is expected, or the reverse (cli.errors)
+    ├── DataDirInUseError           another process holds the data directory (randt.service.store)
+    ├── PortInUseError              a port a command would listen on is taken (randt.cli.errors)
+    └── WrongInputError             a directory where a file is expected, or the reverse (randt.cli.errors)
 
-One place maps these to HTTP status codes (``service.api.errors``) and one place to CLI exit codes
-(``cli.errors``); library code only raises them.
+One place maps these to HTTP status codes (``randt.service.api.errors``) and one place to CLI exit codes
+(``randt.cli.errors``); library code only raises them.
 
 Every error of the tree survives pickling with its class, message and attributes
 (``pickle.loads(pickle.dumps(exc))``): the service's matcher processes send the errors raised
@@ -80,7 +80,7 @@ class DegenerateProblemError(RandtError):
     Attributes
     ----------
     result:
-        The :class:`core.registration.RegistrationResult` reached anyway, so a caller can
+        The :class:`randt.core.registration.RegistrationResult` reached anyway, so a caller can
         inspect it; its pose must not be trusted along ``weak_directions``.
     weak_directions:
         Human-readable names of the poorly constrained directions (``"tx"``, ``"rz"``...).

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.kernels import group_min, group_voxels, isolated_points, masked_group_centroids
-from core.voxel import NEIGHBOR_OFFSETS, pack_keys, voxel_coords, voxel_downsample, voxel_groups
+from randt.core.kernels import group_min, group_voxels, isolated_points, masked_group_centroids
+from randt.core.voxel import NEIGHBOR_OFFSETS, pack_keys, voxel_coords, voxel_downsample, voxel_groups
 
 __all__ = ["Features", "extract_features"]
 

@@ -11,10 +11,10 @@ in one world frame:
                  refined, with ``placement_min_inliers`` and ``placement_min_overlap`` (two weak
                  matches of a street that looks like another for 70 m agreed: placement_vote)
     factors   -> odometry between consecutive keyframes (sigma growing with the distance), GNSS
-                 fixes (Huber), verified loops (Cauchy): core.pose_graph, solved by iSAM2
-    loops     -> candidates from place recognition (core.place, Scan Context) and from the graph's
+                 fixes (Huber), verified loops (Cauchy): randt.core.pose_graph, solved by iSAM2
+    loops     -> candidates from place recognition (randt.core.place, Scan Context) and from the graph's
                  own estimate (keyframes within ``proximity_m``), at most one verification per
-                 keyframe; verification is global registration (core.global_registration), prior-
+                 keyframe; verification is global registration (randt.core.global_registration), prior-
                  free, and a loop is accepted only when it is confident and, between placed
                  keyframes, agrees with the graph within ``loop_gate_m``
     estimate  -> :meth:`FleetMapper.poses` (every placed keyframe, optimized), :attr:`loops`
@@ -34,14 +34,14 @@ from typing import cast
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from core.errors import InvalidRequestError
-from core.global_registration import GlobalResult, GlobalSettings, register_global
-from core.keyframe_cache import KeyframeCache
-from core.place import PlaceIndex, PlaceSettings, query_descriptors
-from core.pose_graph import PoseGraph, PoseGraphSettings
-from core.registration import sanitize_points
-from core.transforms import invert, rotation_angle_deg, umeyama
-from core.voxel import voxel_downsample
+from randt.core.errors import InvalidRequestError
+from randt.core.global_registration import GlobalResult, GlobalSettings, register_global
+from randt.core.keyframe_cache import KeyframeCache
+from randt.core.place import PlaceIndex, PlaceSettings, query_descriptors
+from randt.core.pose_graph import PoseGraph, PoseGraphSettings
+from randt.core.registration import sanitize_points
+from randt.core.transforms import invert, rotation_angle_deg, umeyama
+from randt.core.voxel import voxel_downsample
 
 __all__ = ["FleetMapSettings", "FleetMapper", "LoopRecord", "level", "placement_vote"]
 
@@ -133,10 +133,10 @@ class LoopRecord:
 @dataclass
 class _Keyframe:
     """A keyframe's pose, travel and fix. Its points are in :attr:`FleetMapper.points` (a
-    :class:`~core.keyframe_cache.KeyframeCache`: on disk, the recent ones in RAM)."""
+    :class:`~randt.core.keyframe_cache.KeyframeCache`: on disk, the recent ones in RAM)."""
 
     T_odom: np.ndarray
-    #: Scan Context of the sweep, then of it seen from ahead and behind (core.place): [0] goes
+    #: Scan Context of the sweep, then of it seen from ahead and behind (randt.core.place): [0] goes
     #: into the place index, the stack is queried once, when the keyframe comes (then None)
     descriptors: np.ndarray | None
     travel_m: float

@@ -30,8 +30,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from core.errors import FormatError, InvalidRequestError
-from core.io.autoware import (
+from randt.core.errors import FormatError, InvalidRequestError
+from randt.core.io.autoware import (
     PROJECTOR_INFO_NAME,
     make_directory,
     read_metadata,
@@ -41,7 +41,7 @@ from core.io.autoware import (
     write_metadata,
     write_projector_info,
 )
-from core.io.clouds import read_cloud, write_pcd
+from randt.core.io.clouds import read_cloud, write_pcd
 
 __all__ = [
     "GeoOrigin",
@@ -174,7 +174,7 @@ class LocalCartesianUTM:
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """A GNSS/INS pose in the map frame: the 4x4 ``T_map_sensor`` of a sensor at a WGS84
         position with orientation ``R_enu_sensor`` (3x3, in the East-North-Up frame there), and its
-        6x6 covariance (left perturbation ``tx ty tz rx ry rz``, as :mod:`core.transforms`) turned
+        6x6 covariance (left perturbation ``tx ty tz rx ry rz``, as :mod:`randt.core.transforms`) turned
         from ENU axes to the map's, when given. Lengths are not rescaled: a fix's metre-level
         uncertainty does not see UTM's 0.04 % scale."""
         R_map_enu = self.enu_to_map_rotation(latitude_deg, longitude_deg)
@@ -196,7 +196,7 @@ class LocalCartesianUTM:
 
     def projector_info(self, projector: ProjectorType = "LocalCartesianUTM") -> dict[str, Any]:
         """The content of Autoware's ``map_projector_info.yaml`` for the map written in ``projector``
-        (:func:`core.io.autoware.write_projector_info`)."""
+        (:func:`randt.core.io.autoware.write_projector_info`)."""
         if projector == "LocalCartesianUTM":
             return {
                 "projector_type": projector,

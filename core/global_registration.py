@@ -3,7 +3,7 @@
 The pipeline in one screen (:func:`register_global`)::
 
     scale     -> one voxel size v for both clouds, from the target's scale (the finest NDT level
-                 of core.registration.auto_voxel_sizes) unless given
+                 of randt.core.registration.auto_voxel_sizes) unless given
     downsample-> voxel centroids at v, farther points first dropped beyond max_range_m
     normals   -> PCA of each point's neighbours within 2v, oriented towards the sensor (origin)
     features  -> FPFH (Rusu et al., ICRA 2009): a 33-bin histogram of Darboux-frame angles to the
@@ -14,8 +14,8 @@ The pipeline in one screen (:func:`register_global`)::
                  (|d_source - d_target| <= 2 noise bound); the maximum k-core of that graph, then a
                  greedy clique in it (ROBIN / TEASER++ idea: rigid motion preserves distances)
     solve     -> GNC-TLS (Yang et al., RA-L 2020): graduated non-convexity on a truncated least-
-                 squares cost, each step a weighted Kabsch fit (core.transforms.umeyama)
-    refine    -> our NDT registration (core.registration.register) from the coarse pose
+                 squares cost, each step a weighted Kabsch fit (randt.core.transforms.umeyama)
+    refine    -> our NDT registration (randt.core.registration.register) from the coarse pose
     judge     -> confident only when enough mutually consistent correspondences agree, the NDT
                  refinement stays near the coarse pose, and the refined overlap is high enough
 
@@ -33,12 +33,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from core.config import RegistrationSettings
-from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
-from core.kernels import consistency_graph, core_numbers, eigh3, spfh_histograms
-from core.registration import auto_voxel_sizes, register, sanitize_points
-from core.transforms import rotation_angle_deg, transform_points, umeyama
-from core.voxel import voxel_downsample
+from randt.core.config import RegistrationSettings
+from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
+from randt.core.kernels import consistency_graph, core_numbers, eigh3, spfh_histograms
+from randt.core.registration import auto_voxel_sizes, register, sanitize_points
+from randt.core.transforms import rotation_angle_deg, transform_points, umeyama
+from randt.core.voxel import voxel_downsample
 
 __all__ = [
     "GlobalResult",
@@ -64,7 +64,7 @@ class GlobalSettings(BaseModel):
         default=None,
         gt=0,
         description="feature voxel v; None: voxel_fraction x the finest NDT level of the target's scale "
-        "(core.registration.auto_voxel_sizes): 0.6-0.7 m for a KITTI sweep, 4 mm for a bunny scan",
+        "(randt.core.registration.auto_voxel_sizes): 0.6-0.7 m for a KITTI sweep, 4 mm for a bunny scan",
     )
     voxel_fraction: float = Field(
         default=1.0, gt=0, le=4, description="with voxel_m None: v = this x the finest NDT level"
@@ -182,7 +182,7 @@ def _normals(points: np.ndarray, tree: cKDTree, radius: float, k: int) -> np.nda
 
 
 def spfh_reference(points: np.ndarray, normals: np.ndarray, neighbors: np.ndarray, bins: int) -> np.ndarray:
-    """The numpy form of :func:`core.kernels.spfh_histograms` (same arguments and result), kept as
+    """The numpy form of :func:`randt.core.kernels.spfh_histograms` (same arguments and result), kept as
     its reference: 5-10x slower, the cross products and histograms over every pair at once."""
     n = points.shape[0]
     valid = (neighbors < n) & (neighbors != np.arange(n)[:, None])
@@ -224,7 +224,7 @@ def fpfh(points: np.ndarray, normals: np.ndarray, tree: cKDTree, radius: float, 
     """Fast Point Feature Histograms (N,33) of ``points`` with unit ``normals``.
 
     For each point p and neighbour q within ``radius`` (at most ``k``), the Darboux frame of the
-    pair gives three angles, each binned in :data:`FPFH_BINS` bins (:func:`core.kernels.
+    pair gives three angles, each binned in :data:`FPFH_BINS` bins (:func:`randt.core.kernels.
     spfh_histograms`); a point's FPFH adds its neighbours' histograms weighted by 1 / distance and
     averaged (Rusu et al. 2009, eq. 4), each angle's histogram then renormalized to 100. Points
     with no neighbour get zeros.

@@ -5,8 +5,8 @@ Why not a KD-tree: the SVD step only ever asks for partners within one finest ND
 its queries come in scan order, so a grid whose cell is that radius answers with one hash probe
 and a handful of points per query, and is built in one pass (0.7 ms for a KITTI reference against
 5 ms for ``scipy.spatial.cKDTree``). On a KITTI pair its searches take half the KD-tree's time;
-the compiled loops live in :mod:`core.kernels` (:func:`~core.kernels.build_grid`,
-:func:`~core.kernels.grid_nearest`, :func:`~core.kernels.grid_knn_normals`).
+the compiled loops live in :mod:`randt.core.kernels` (:func:`~randt.core.kernels.build_grid`,
+:func:`~randt.core.kernels.grid_nearest`, :func:`~randt.core.kernels.grid_knn_normals`).
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import InvalidCloudError
-from core.kernels import build_grid, cell_block, grid_knn_normals, grid_nearest
+from randt.core.errors import InvalidCloudError
+from randt.core.kernels import build_grid, cell_block, grid_knn_normals, grid_nearest
 
 __all__ = ["PointGrid"]
 
-#: Cell blocks of reach 1-3, nearest cells first (:func:`core.kernels.cell_block`).
+#: Cell blocks of reach 1-3, nearest cells first (:func:`randt.core.kernels.cell_block`).
 _BLOCKS = {reach: cell_block(reach) for reach in (1, 2, 3)}
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.transforms import apply_update, rotation_angle_deg, transform_points, umeyama
+from randt.core.transforms import apply_update, rotation_angle_deg, transform_points, umeyama
 
 __all__ = ["IcpOutcome", "estimate_normals", "icp_point_to_plane", "icp_point_to_point"]
 

@@ -7,20 +7,20 @@ Hessian are sums over (point, neighbour voxel) pairs. In numpy every pair become
 Fused into one pass over the points with no temporaries, the same sums take 1-3 ms. Grouping
 points by voxel (downsampling, Gaussian fits, Algorithm 1) is a hashed pass too: ``np.unique``
 sorts the keys, 8-14 ms for a KITTI sweep against 2-3 ms here. The SVD step's fixed-radius
-searches run on a hashed grid (:mod:`core.grid`), and thousands of 3x3 symmetric eigenproblems
+searches run on a hashed grid (:mod:`randt.core.grid`), and thousands of 3x3 symmetric eigenproblems
 (voxel covariances, local planes) go through a Jacobi loop instead of LAPACK's per-matrix calls.
 
 Every public kernel's docstring ends with ``Reference: module:function`` (the numpy formulation, or
 the numpy/scipy function, it is tested against) and ``Test: tests/...::test_name`` (the test that
 compares them); ``tests/core/test_kernels.py`` checks that both exist. The NDT kernels have numpy
-twins that stay the reference: ``core.ndt`` keeps the vectorized
+twins that stay the reference: ``randt.core.ndt`` keeps the vectorized
 formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
 kernels against it to round-off on real scans. The kernels release the GIL (``nogil``), so the
 service's per-session worker threads run them on several cores at once. Kernels are compiled on
 first use and cached on disk (numba ``cache=True``), so a process pays the compile time (a few
 seconds) once per machine.
 
-Voxel keys are packed exactly as :func:`core.voxel.pack_keys` packs them (21 bits per axis); a map's
+Voxel keys are packed exactly as :func:`randt.core.voxel.pack_keys` packs them (21 bits per axis); a map's
 keys go into an open-addressing hash table (:func:`build_hash`, built once per map), so a lookup
 is one or two probes instead of the binary search ``np.searchsorted`` does.
 """
@@ -160,7 +160,7 @@ def _moved_and_cell(
 @nb.njit(cache=True, inline="always")
 def _trilinear_weight(offsets: np.ndarray, k: int, fx: float, fy: float, fz: float) -> float:
     """8 times the trilinear weight of the enclosing voxel ``offsets[k]`` (in {0,1}^3) for a point
-    at ``(fx, fy, fz)`` in [0, 1)^3 from the base cell's centre (:func:`core.voxel.trilinear_weights`):
+    at ``(fx, fy, fz)`` in [0, 1)^3 from the base cell's centre (:func:`randt.core.voxel.trilinear_weights`):
     the 8 weights sum to 8, as many as the unweighted terms."""
     w = 8.0 * (fx if offsets[k, 0] else 1.0 - fx) * (fy if offsets[k, 1] else 1.0 - fy)
     return w * (fz if offsets[k, 2] else 1.0 - fz)
@@ -170,9 +170,9 @@ def _trilinear_weight(offsets: np.ndarray, k: int, fx: float, fy: float, fz: flo
 def cell_shift(n_neighbors: int) -> float:
     """How far (in voxels) a neighbourhood's base cell is below the point's own: 1/2 for the 8
     voxels whose centres enclose it, 0 for the 1-, 7- and 27-voxel ones (the own cell and the
-    offsets around it). The rule and its reasons: :func:`core.voxel.neighborhood_base`.
+    offsets around it). The rule and its reasons: :func:`randt.core.voxel.neighborhood_base`.
 
-    Reference: core.voxel:neighborhood_base
+    Reference: randt.core.voxel:neighborhood_base
     Test: tests/core/test_kernels.py::test_derivatives_kernel_matches_numpy
     """
     return 0.5 if n_neighbors == 8 else 0.0
@@ -213,7 +213,7 @@ def ndt_accumulate(
 ) -> tuple[float, int]:
     """NDT cost (and, with ``derivatives``, gradient and Hessians) of ``R p + t`` in one pass.
 
-    The formulas are those of :mod:`core.ndt` (Magnusson eq. 6.12-6.13 with the left
+    The formulas are those of :mod:`randt.core.ndt` (Magnusson eq. 6.12-6.13 with the left
     perturbation about ``pivot``): per pair, ``x = q - mu``, ``a = Sigma^-1 x``, ``m = x.a``
     (pairs with ``m >= m_max`` pruned), ``e = exp(-d2 m / 2)``, cost ``d1 e``, weight
     ``w = -d1 d2 e``, ``J = [I, -[q - pivot]x]``; gradient ``w J^T a``; Hessian
@@ -233,7 +233,7 @@ def ndt_accumulate(
     millimetres, so after the first evaluation almost no point changes cell, and the hash lookups,
     half of this loop's time, are skipped.
 
-    Reference: core.ndt:ndt_derivatives_numpy
+    Reference: randt.core.ndt:ndt_derivatives_numpy
     Test: tests/core/test_kernels.py::test_derivatives_kernel_matches_numpy
     """
     inv_v = 1.0 / voxel_size
@@ -424,9 +424,9 @@ def plane_information(
     ``R p + t`` that lie in a map voxel, ``mean(J J^T)`` with ``J = [n, (q - c) x n / rho]``
     (``n`` the voxel's normal, ``c`` the matched points' centroid, ``rho`` their RMS distance from
     it), in two passes with no (N, 6) temporaries. The cell is ``floor(q / voxel_size)``, as
-    :meth:`core.voxel.VoxelGaussianMap.neighbors` finds it.
+    :meth:`randt.core.voxel.VoxelGaussianMap.neighbors` finds it.
 
-    Reference: core.registration:_plane_information_numpy
+    Reference: randt.core.registration:_plane_information_numpy
     Test: tests/core/test_registration.py::test_plane_information_kernel_matches_numpy
     """
     n = points.shape[0]
@@ -500,10 +500,10 @@ def ndt_scores(
     cache_cell: np.ndarray,
     cache_vox: np.ndarray,
 ) -> None:
-    """Per-point Autoware scores (see ``core.ndt.ndt_point_scores``), written into the outputs
+    """Per-point Autoware scores (see ``randt.core.ndt.ndt_point_scores``), written into the outputs
     (``cache_cell``/``cache_vox`` as in :func:`ndt_accumulate`).
 
-    Reference: core.ndt:ndt_point_scores_numpy
+    Reference: randt.core.ndt:ndt_point_scores_numpy
     Test: tests/core/test_kernels.py::test_point_scores_kernel_matches_numpy
     """
     inv_v = 1.0 / voxel_size
@@ -759,7 +759,7 @@ def parent_moments(
     children's (child ``c`` in parent ``inverse[c]``): ``S = sum(S_c + n_c d_c d_c^T) - n e e^T``
     with ``d_c`` the child's mean and ``e`` the parent's about the parent's centre.
 
-    Reference: core.voxel:_parent_moments_numpy
+    Reference: randt.core.voxel:_parent_moments_numpy
     Test: tests/core/test_kernels.py::test_parent_moments_match_bincount
     """
     m = parent_center.shape[0]
@@ -1128,7 +1128,7 @@ def conditioned_gaussians(
     of the smallest eigenvalue): ``(cov, inv, whitening, normals)``, in one pass with no (m,3,3)
     temporaries (the numpy form's batched 3x3 products were most of a pyramid's fit).
 
-    Reference: core.voxel:VoxelGaussianMap._from_moments_numpy
+    Reference: randt.core.voxel:VoxelGaussianMap._from_moments_numpy
     Test: tests/core/test_kernels.py::test_conditioned_gaussians_match_the_numpy_fit
     """
     m = scatter.shape[0]
@@ -1182,7 +1182,7 @@ def mahalanobis_to_assigned(
 ) -> np.ndarray:
     """Squared Mahalanobis distance of each point to its assigned voxel (inf where -1).
 
-    Reference: core.outliers:iqr_inlier_mask_numpy
+    Reference: randt.core.outliers:iqr_inlier_mask_numpy
     Test: tests/core/test_kernels.py::test_algorithm1_kernel_matches_the_lexsort_formulation
     """
     out = np.empty(points.shape[0])
@@ -1214,7 +1214,7 @@ def grouped_fence_mask(
     pooled fences; values of group -1 are outside. One counting sort by group, then a sort of each
     group's few values: no global ``lexsort``.
 
-    Reference: core.outliers:iqr_inlier_mask_numpy
+    Reference: randt.core.outliers:iqr_inlier_mask_numpy
     Test: tests/core/test_kernels.py::test_algorithm1_kernel_matches_the_lexsort_formulation
     """
     n = values.shape[0]
@@ -1271,7 +1271,7 @@ def isolated_points(
     """True for points alone in their voxel whose 26 neighbour voxels are all empty (the voxel
     grouping of :func:`group_voxels` passed in).
 
-    Reference: core.features:_isolated_numpy
+    Reference: randt.core.features:_isolated_numpy
     Test: tests/core/test_kernels.py::test_isolated_point_kernel_matches_numpy
     """
     inv_v = 1.0 / voxel_size
@@ -1347,12 +1347,12 @@ def first_per_voxel_pair(
     tile_keys: np.ndarray, voxel_keys: np.ndarray, xyz32: np.ndarray, cap: int
 ) -> np.ndarray:
     """True for the first ``cap`` distinct points of each (tile key, voxel key) pair, in arrival
-    order: what :meth:`core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
+    order: what :meth:`randt.core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
     twin, two ``np.lexsort`` calls, took 14-30 ms on a KITTI sweep with a cap of 1). A point
     equal (float32 x, y, z) to one already kept in its voxel is not distinct and is skipped, as
     the map's insert drops it: the map's policy (:func:`voxel_table_admit`) against an empty map.
 
-    Reference: core.tiles:TileGrid.candidate_mask_numpy
+    Reference: randt.core.tiles:TileGrid.candidate_mask_numpy
     Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
     """
     n = tile_keys.shape[0]
@@ -1373,11 +1373,11 @@ def tile_voxel_keys(
     xyz32: np.ndarray, tile_size: float, voxel_size: float, tile_offset: int
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Packed tile keys and packed tile-local voxel keys of float32 points,
-    with the same float64 operations as the numpy formulation in :mod:`core.tiles` (``floor(x /
+    with the same float64 operations as the numpy formulation in :mod:`randt.core.tiles` (``floor(x /
     tile)``, ``x - ix * tile``, ``floor(local / voxel)``), so the keys are identical. ``ok`` is
     false when a voxel coordinate leaves the 21-bit key range.
 
-    Reference: core.tiles:TileGrid.candidate_mask_numpy
+    Reference: randt.core.tiles:TileGrid.candidate_mask_numpy
     Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
     """
     n = xyz32.shape[0]
@@ -1498,7 +1498,7 @@ def spfh_histograms(points: np.ndarray, normals: np.ndarray, neighbors: np.ndarr
     ``alpha = v.n_t`` and ``phi = u.d`` are binned over [-1, 1] and
     ``theta = atan2(w.n_t, u.n_t)`` over [-pi, pi] (Rusu et al., ICRA 2009).
 
-    Reference: core.global_registration:spfh_reference
+    Reference: randt.core.global_registration:spfh_reference
     Test: tests/core/test_global_registration.py::test_spfh_kernel_matches_the_numpy_reference
     """
     n, k = neighbors.shape
@@ -1561,7 +1561,7 @@ def projected_pair_moments(
     and the cross-covariance ``sum_i (y_i - mu_y)(q_i - mu_q)^T`` (the matrix whose SVD gives the
     rotation), and returns ``sum_i r_i^2``.
 
-    Reference: core.transforms:umeyama
+    Reference: randt.core.transforms:umeyama
     Test: tests/core/test_kernels.py::test_projected_pair_moments_match_umeyama
     """
     n = src.shape[0]
@@ -1610,7 +1610,7 @@ def deskew_points(points: np.ndarray, s: np.ndarray, rotvec: np.ndarray, screw: 
     reduced 32k-point sweep against 0.3 ms). ``V(s w) s u = s u + s^2 c (w x u) + s^3 e
     (w x (w x u))`` with ``c = (1 - cos t) / t^2``, ``e = (t - sin t) / t^3``, ``t = |s w|``.
 
-    Reference: core.odometry:deskew_reference
+    Reference: randt.core.odometry:deskew_reference
     Test: tests/core/test_kernels.py::test_deskew_kernel_matches_the_screw_motion
     """
     n = points.shape[0]
@@ -1674,7 +1674,7 @@ def voxel_table_admit(
     The table (``table_t`` tile keys, -1 empty; ``table_v`` voxel keys; ``table_c`` counts;
     ``table_xyz`` (size, cap, 3) the kept points when ``cap > 1``, else (size, 0, 3): with one
     point a voxel is full, no duplicate can be admitted) persists across inserts: the cost is
-    the new points', not the map's (:meth:`core.tiles.TileGrid.insert`).
+    the new points', not the map's (:meth:`randt.core.tiles.TileGrid.insert`).
 
     Runs from point ``start`` until the end, or until the table would pass half full; returns
     ``(next point, slots used)`` (grow it with :func:`voxel_table_grow` and call again).
@@ -1807,7 +1807,7 @@ def voxel_table_near(
     a step may cross into the next tile. Probes stop at the first hit. A point whose keys leave
     the 21-bit range is False.
 
-    Reference: core.tiles:TileGrid.near_numpy
+    Reference: randt.core.tiles:TileGrid.near_numpy
     Test: tests/core/test_tiles.py::test_near_map_kernel_equals_the_numpy_reference
     """
     n = xyz.shape[0]
@@ -1868,7 +1868,7 @@ def model_merge(
     keyframe's point added where it has one (``changed``), a new voxel ``born`` at ``kid``, and
     each old voxel's row. Fresh arrays: the model's are not changed.
 
-    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Reference: randt.core.model:KeyframeModel.add_keyframe_numpy
     Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
     """
     n_old, n_new = old_keys.shape[0], new_keys.shape[0]
@@ -1919,7 +1919,7 @@ def model_evict(
     still contributes to: those not reborn after it (``born <= evicted_id``); its keys are
     ascending too, so one merge walk finds them.
 
-    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Reference: randt.core.model:KeyframeModel.add_keyframe_numpy
     Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
     """
     i, n = 0, keys.shape[0]
@@ -1952,7 +1952,7 @@ def model_compact(
     with ``fine`` the packed key of each centroid's voxel of ``finest_m`` (grouped as
     :func:`group_voxels` groups) and ``row`` each input voxel's row in the output (-1: gone).
 
-    Reference: core.model:KeyframeModel.add_keyframe_numpy
+    Reference: randt.core.model:KeyframeModel.add_keyframe_numpy
     Test: tests/core/test_model.py::test_the_compiled_update_is_the_numpy_one
     """
     n = keys.shape[0]
@@ -2023,7 +2023,7 @@ def in_marked_cells(cells: np.ndarray, marked: np.ndarray) -> np.ndarray:
 def group_int_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows grouped by key, in one hashed pass and a counting sort: ``(order, unique keys,
     starts)`` with group ``g``'s rows ``order[starts[g]:starts[g + 1]]`` in their input order and
-    groups in first-seen order. Keys must be >= 0 (the tile keys of :mod:`core.tiles`). A
+    groups in first-seen order. Keys must be >= 0 (the tile keys of :mod:`randt.core.tiles`). A
     few thousand rows over tens of groups take microseconds (a stable ``np.argsort`` of a
     sweep's 27k tile keys took about 1.5 ms).
 

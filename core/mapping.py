@@ -1,7 +1,7 @@
 """Map building: the incremental matcher (Algorithm 2) feeding the tiled, density-equalized map.
 
 One :class:`MapBuilder` per map and session stream offline (``randt map``); the service keeps one
-matcher per session and folds them into one shared :class:`core.tiles.TileGrid`.
+matcher per session and folds them into one shared :class:`randt.core.tiles.TileGrid`.
 
 Only sweeps whose pose was matched (or the first of a session) enter the map: a fallback pose is a
 guess, and a guess must not write points into a shared map.
@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.config import RegistrationSettings
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
-from core.tiles import TileGrid
-from core.transforms import transform_points
+from randt.core.config import RegistrationSettings
+from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
+from randt.core.tiles import TileGrid
+from randt.core.transforms import transform_points
 
 __all__ = ["MapBuilder", "MapUpdate"]
 

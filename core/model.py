@@ -24,10 +24,10 @@ same model is kept up to date instead, as KISS-ICP keeps its voxel hash map:
 * **NDT moments**: per finest NDT voxel the count, the sum and the scatter of the inlier
   centroids about the voxel's centre, in key-sorted arrays: the judged voxels' recomputed from
   their judged inliers, the others' kept less the inliers that left them; the coarser levels
-  follow by the parent rule of :meth:`core.voxel.VoxelGaussianMap.pyramid_from_moments`.
+  follow by the parent rule of :meth:`randt.core.voxel.VoxelGaussianMap.pyramid_from_moments`.
 * **Compiled bookkeeping**: the keyframe's voxels merged into the model's (two ascending key
   runs), the evicted keyframe's walked out, the crop and the centroids' finest cells in one pass
-  each (:func:`core.kernels.model_merge`, ``model_evict``, ``model_compact``, ``in_marked_cells``):
+  each (:func:`randt.core.kernels.model_merge`, ``model_evict``, ``model_compact``, ``in_marked_cells``):
   no sort or binary search over the model. :meth:`KeyframeModel.add_keyframe_numpy` is the same
   update in numpy, the kernels' reference. On the simulated drive (about 100k model voxels, 20k
   a keyframe) a keyframe's update went from 53 to 30 ms, most of it now Algorithm 1's Gaussians
@@ -44,9 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.config import RegistrationSettings
-from core.errors import InvalidCloudError
-from core.kernels import (
+from randt.core.config import RegistrationSettings
+from randt.core.errors import InvalidCloudError
+from randt.core.kernels import (
     group_int_keys,
     group_moments,
     group_weighted_moments,
@@ -55,8 +55,8 @@ from core.kernels import (
     model_evict,
     model_merge,
 )
-from core.registration import PreparedReference, reference_inlier_mask
-from core.voxel import VoxelGaussianMap, pack_keys, unpack_keys, voxel_coords, voxel_groups
+from randt.core.registration import PreparedReference, reference_inlier_mask
+from randt.core.voxel import VoxelGaussianMap, pack_keys, unpack_keys, voxel_coords, voxel_groups
 
 __all__ = ["KeyframeModel", "VoxelMoments"]
 
@@ -68,7 +68,7 @@ class VoxelMoments:
     Attributes
     ----------
     voxel_size_m : edge of the voxels.
-    keys : (F,) int64 packed keys (:func:`core.voxel.pack_keys`), ascending, unique.
+    keys : (F,) int64 packed keys (:func:`randt.core.voxel.pack_keys`), ascending, unique.
     counts : (F,) int64 points per voxel (all > 0).
     sums : (F,3) float64 sum of ``p - c`` (``c`` the voxel's centre).
     scatter : (F,3,3) float64 sum of ``(p - c)(p - c)^T``.
@@ -208,7 +208,7 @@ class KeyframeModel:
     inlier : (M,) bool Algorithm 1's verdict on each centroid: only inliers are matched.
     moments : the inliers' moments at the finest NDT voxel (the matching model's).
     fine : (M,) int64 the packed key of each centroid's finest NDT voxel (as
-        :func:`core.voxel.voxel_groups` groups): the cell its moments are in.
+        :func:`randt.core.voxel.voxel_groups` groups): the cell its moments are in.
     window : ``(id, keys, points)`` of each keyframe in the window, oldest first (keys unique).
     next_id : the id the next keyframe gets.
     n_removed_outliers : centroids Algorithm 1 judged outliers at the last keyframe.
@@ -275,7 +275,7 @@ class KeyframeModel:
         center_xy : the new keyframe's position; points beyond ``radius_m`` of it (x-y) leave.
         max_keyframes : window length; the oldest keyframe leaves when it is full.
 
-        The voxel bookkeeping is compiled (:func:`core.kernels.model_merge`, ``model_evict``,
+        The voxel bookkeeping is compiled (:func:`randt.core.kernels.model_merge`, ``model_evict``,
         ``model_compact``): its cost is a pass over the model's voxels, no sort or search.
         :meth:`add_keyframe_numpy` is the same update in numpy (the tests compare them).
         """
@@ -380,11 +380,11 @@ class KeyframeModel:
     def reference(
         self, settings: RegistrationSettings, voxel_sizes_m: tuple[float, ...]
     ) -> PreparedReference:
-        """The model prepared for :func:`core.registration.register` (``reference=``): its points
+        """The model prepared for :func:`randt.core.registration.register` (``reference=``): its points
         and the NDT pyramid at ``voxel_sizes_m`` from the finest moments (from the points when
         the sizes are not the finest times powers of two).
 
-        Raises :class:`~core.errors.InvalidCloudError` when no voxel of a level holds
+        Raises :class:`~randt.core.errors.InvalidCloudError` when no voxel of a level holds
         ``min_points_per_voxel`` points.
         """
         finest = self.moments.voxel_size_m

@@ -9,7 +9,7 @@ voxel Gaussians, with Magnusson's Gaussian approximation of the Gaussian + unifo
 with ``c1 = 10 (1 - outlier_ratio)``, ``c2 = outlier_ratio / voxel_size^3``, ``d3 = -log c2``,
 ``d1 = -log(c1 + c2) - d3`` (negative) and ``d2 = -2 log((-log(c1 e^-1/2 + c2) - d3) / d1)``.
 
-Derivatives are taken w.r.t. the left perturbation ``delta = (t, r)`` of :mod:`core.transforms`:
+Derivatives are taken w.r.t. the left perturbation ``delta = (t, r)`` of :mod:`randt.core.transforms`:
 ``x(delta) = R(r) q + t - mu`` with ``q = T p``, so ``dx/dt = I``, ``dx/dr = -[q]x`` and the
 second derivative ``d2x/dr_i dr_j = (e_i x (e_j x q) + e_j x (e_i x q)) / 2``. With
 ``a = Sigma^-1 x``, ``m = x^T a``, ``e = exp(-d2 m / 2)`` and ``w = -d1 d2 e`` (> 0)::
@@ -26,9 +26,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from core import kernels
-from core.transforms import apply_update, transform_points
-from core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap
+from randt.core import kernels
+from randt.core.transforms import apply_update, transform_points
+from randt.core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap
 
 __all__ = [
     "NdtConstants",
@@ -238,7 +238,7 @@ def _kernel_args(
 @dataclass(frozen=True)
 class NeighborCache:
     """Each point's cell and neighbour voxels, kept across evaluations on the same points and map
-    (see :func:`core.kernels.ndt_accumulate`). Make one per (points, map, neighbourhood)."""
+    (see :func:`randt.core.kernels.ndt_accumulate`). Make one per (points, map, neighbourhood)."""
 
     cells: np.ndarray
     voxels: np.ndarray
@@ -295,7 +295,7 @@ def ndt_derivatives(
     Derivatives are w.r.t. the left perturbation about ``pivot`` (target frame; the origin when
     ``None``): ``x(delta) = R(r) (q - pivot) + pivot + t - mu`` (:func:`apply_update_about`).
 
-    One fused pass of :func:`core.kernels.ndt_accumulate`; :func:`ndt_derivatives_numpy` is the
+    One fused pass of :func:`randt.core.kernels.ndt_accumulate`; :func:`ndt_derivatives_numpy` is the
     vectorized reference it is tested against.
     """
     cache = cache or _NO_CACHE

@@ -8,14 +8,14 @@ One :class:`IncrementalMatcher` per driving session, fed one sweep at a time. Th
                  change since the sweep before (constant velocity after a gap or a fallback;
                  the prior pose, if given, for the first sweep)
     deskew    -> per-point time offsets: each point moved to the sweep's start pose
-    features  -> density-based split (core.features): noise out, ground thinned, objects kept
+    features  -> density-based split (randt.core.features): noise out, ground thinned, objects kept
     get model -> the fused keyframe model (the paper's Get), prepared once per keyframe change
-    match     -> core.registration.register(features, model, T_pred) with Algorithm 1 and 3
+    match     -> randt.core.registration.register(features, model, T_pred) with Algorithm 1 and 3
     guard     -> failed, low-fitness or prior-inconsistent results fall back to the prediction,
                  flagged on the scan's result, never silently accepted
     relocalize-> a lost session (3 fallbacks in a row, no prior) is searched for with no
-                 prediction, every 5th sweep: its keyframes nearest by Scan Context (core.place),
-                 global registration against their points (core.global_registration), the match
+                 prediction, every 5th sweep: its keyframes nearest by Scan Context (randt.core.place),
+                 global registration against their points (randt.core.global_registration), the match
     set model -> a new keyframe when the sensor moved or turned enough (the paper's Set): its
                  points join the fused model, which is density-equalized and bounded in size
 
@@ -37,15 +37,15 @@ from typing import Literal, NamedTuple
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from core.config import RegistrationSettings
-from core.errors import InvalidCloudError, RandtError
-from core.features import Features, extract_features
-from core.global_registration import GlobalSettings, register_global
-from core.kernels import deskew_points
-from core.model import KeyframeModel
-from core.ndt import ndt_constants, ndt_cost
-from core.place import query_descriptors, scan_context, scan_context_distance
-from core.registration import (
+from randt.core.config import RegistrationSettings
+from randt.core.errors import InvalidCloudError, RandtError
+from randt.core.features import Features, extract_features
+from randt.core.global_registration import GlobalSettings, register_global
+from randt.core.kernels import deskew_points
+from randt.core.model import KeyframeModel
+from randt.core.ndt import ndt_constants, ndt_cost
+from randt.core.place import query_descriptors, scan_context, scan_context_distance
+from randt.core.registration import (
     PreparedReference,
     RegistrationResult,
     auto_voxel_sizes,
@@ -54,7 +54,7 @@ from core.registration import (
     register,
     sanitize_points,
 )
-from core.transforms import (
+from randt.core.transforms import (
     as_transform,
     invert,
     make_transform,
@@ -66,7 +66,7 @@ from core.transforms import (
     so3_log,
     transform_points,
 )
-from core.voxel import voxel_downsample
+from randt.core.voxel import voxel_downsample
 
 __all__ = [
     "MATCHER_REGISTRATION",
@@ -190,7 +190,7 @@ SECOND_SWEEP_PASSES = 3
 #: good prediction it takes about one evaluation fewer per sweep, and on KITTI 00 frames 0-10 the
 #: poses are the same to 0.01 mm travel and 1e-4 deg frame-to-frame error. Each point is scored
 #: against the 8 voxels whose centres enclose it, weighted trilinearly (``n_neighbors=8``,
-#: :func:`core.voxel.neighborhood_base`, :func:`core.voxel.trilinear_weights`), not its own and
+#: :func:`randt.core.voxel.neighborhood_base`, :func:`randt.core.voxel.trilinear_weights`), not its own and
 #: the 6 across its faces: the cost is then continuous and symmetric about every cell boundary.
 #: On bench/service.py's one-vehicle drive (600 sweeps) the max error went 11.69 -> 8.31 cm
 #: (vertical 6.72 -> 0.85); on a drive whose flat ground lies on a voxel boundary the 7 let the
@@ -213,13 +213,14 @@ class MatcherSettings(BaseModel):
     voxel_sizes_m: tuple[float, ...] | None = Field(
         default=None,
         description="NDT levels against the keyframe model, coarse to fine; None: (16r, 8r, 4r, 2r, r) "
-        "with r from the first sweep's scale (core.registration.auto_voxel_sizes), 1 m for a KITTI sweep",
+        "with r from the first sweep's scale (randt.core.registration.auto_voxel_sizes), 1 m for a KITTI "
+        "sweep",
     )
     feature_voxel_m: float | None = Field(default=None, gt=0, description="object downsampling; None: r/2")
     ground_voxel_factor: float = Field(
         default=1.0,
         ge=1,
-        description="ground is downsampled this many times coarser than objects (core.features); 1 "
+        description="ground is downsampled this many times coarser than objects (randt.core.features); 1 "
         "(as dense as objects) keeps pitch and height from drifting on long drives: 8.4 cm max "
         "error over 600 m where 2 gave 17.4 cm (docs/benchmarks.md)",
     )
@@ -374,7 +375,7 @@ class MatcherState:
     keyframes : (pose, model points in the world frame) fused into the model, the newest last.
     model : the fused, density-equalized keyframe model prepared for matching (None before the first).
     store : the incremental keyframe model the matching model is prepared from
-        (:class:`core.model.KeyframeModel`, immutable: replaced, never changed in place).
+        (:class:`randt.core.model.KeyframeModel`, immutable: replaced, never changed in place).
     last_keyframe_pose : where the last keyframe (pending ones included) was taken.
     recent_inliers : inlier ratios of the last accepted matches (the weak-match test).
     recent_corrections : how far (metres at :data:`CORRECTION_REACH_M`) the last matches from the
@@ -476,7 +477,7 @@ def deskew(
 
     ``delta`` is the sensor motion over one ``period_s`` (``T_start_end``). A point measured at
     ``tau`` seconds after the start was seen from ``exp(s * log(delta))`` relative to the start,
-    ``s = tau / period_s``, the screw motion (:func:`core.transforms.scale_motion`: turning at
+    ``s = tau / period_s``, the screw motion (:func:`randt.core.transforms.scale_motion`: turning at
     constant speed, the sensor moves along an arc); it is re-expressed in the frame at ``s =
     reference_fraction`` (0: the sweep's start, 0.5: its middle). Until 2026-11-28 the
     translation was scaled linearly, ``s * delta[:3, 3]``: the chord of the whole period, whose
@@ -498,8 +499,8 @@ def deskew_reference(
     *,
     reference_fraction: float = 0.0,
 ) -> np.ndarray:
-    """:func:`deskew` point by point, each with its own :func:`core.transforms.scale_motion` of
-    ``delta`` (the reference of :func:`core.kernels.deskew_points`; slow)."""
+    """:func:`deskew` point by point, each with its own :func:`randt.core.transforms.scale_motion` of
+    ``delta`` (the reference of :func:`randt.core.kernels.deskew_points`; slow)."""
     s = np.clip(time_offset_s / period_s, 0.0, 1.5) - reference_fraction
     moved = [scale_motion(delta, float(k)) for k in s]
     return np.array([T[:3, :3] @ p + T[:3, 3] for T, p in zip(moved, points_xyz, strict=True)])
@@ -561,7 +562,7 @@ class IncrementalMatcher:
         return self._state.model
 
     def set_keyframe(self, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
-        """Add a keyframe to the fused model (bounded in count and radius; :mod:`core.model`).
+        """Add a keyframe to the fused model (bounded in count and radius; :mod:`randt.core.model`).
 
         All or nothing: if the model cannot be built, the keyframes and the model stay as they were.
         """
@@ -585,7 +586,7 @@ class IncrementalMatcher:
     def _store_add(self, store: KeyframeModel | None, T: np.ndarray, world: np.ndarray) -> KeyframeModel:
         """``store`` with the keyframe at ``T`` (its density-equalized world points ``world``)
         added: Algorithm 1 judges its points, the newest keyframe wins its voxels, the oldest
-        leaves a full window and points beyond ``model_radius_m`` leave (:mod:`core.model`)."""
+        leaves a full window and points beyond ``model_radius_m`` leave (:mod:`randt.core.model`)."""
         levels = self.registration.voxel_sizes_m
         assert levels, "voxel sizes are fixed by the first sweep"
         finest = levels[-1]
@@ -1010,8 +1011,8 @@ class IncrementalMatcher:
         """Find the sweep among the model's keyframes with no prediction.
 
         The window's keyframes are ranked by Scan Context distance to the sweep
-        (:mod:`core.place`; each keyframe seen from its own pose); the :data:`RELOCALIZE_CANDIDATES`
-        nearest are tried in turn: global registration (:func:`core.global_registration.
+        (:mod:`randt.core.place`; each keyframe seen from its own pose); the :data:`RELOCALIZE_CANDIDATES`
+        nearest are tried in turn: global registration (:func:`randt.core.global_registration.
         register_global`) of the sweep against the keyframe's points, then the usual NDT match
         against the model from there. A keyframe, not the fused model, is the target: global
         registration wants two clouds of like extent and density (in the simulated town a sweep

@@ -15,7 +15,7 @@ Algorithm 1 of Johnson et al. (2026), as implemented here
 5. Points outside their fences are removed; the caller refits the Gaussians on what remains.
 
 Per-voxel quartiles come from one counting sort by voxel and a sort of each voxel's few
-distances (:func:`core.kernels.grouped_fence_mask`, 5x faster than one ``np.lexsort`` by (voxel,
+distances (:func:`randt.core.kernels.grouped_fence_mask`, 5x faster than one ``np.lexsort`` by (voxel,
 distance)); :func:`iqr_inlier_mask_numpy` keeps the vectorized formulation the tests compare with.
 """
 
@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.kernels import grouped_fence_mask, mahalanobis_to_assigned
-from core.voxel import VoxelGaussianMap
+from randt.core.kernels import grouped_fence_mask, mahalanobis_to_assigned
+from randt.core.voxel import VoxelGaussianMap
 
 __all__ = [
     "iqr_fence_mask",
@@ -85,8 +85,8 @@ def iqr_inlier_mask(
     min_points_per_voxel : voxels with fewer points get no Gaussian; their points are outliers.
     min_points_for_voxel_quartiles : below this, a voxel uses the pooled fences (module docstring).
     keep_unjudged : points of voxels without a Gaussian are kept (True) instead of outliers.
-    groups : the points' voxels when the caller has them, as :func:`core.voxel.voxel_groups`
-        gives them with ``sort`` (the keyframe model's, :mod:`core.model`).
+    groups : the points' voxels when the caller has them, as :func:`randt.core.voxel.voxel_groups`
+        gives them with ``sort`` (the keyframe model's, :mod:`randt.core.model`).
 
     Returns
     -------
@@ -119,7 +119,7 @@ def iqr_fence_mask(
 
     ``vidx`` (N,) is each point's voxel in ``gmap`` (-1: no Gaussian, an outlier). The quartiles
     of a voxel are those of the distances of the points given in it; :func:`iqr_inlier_mask`
-    gives a cloud's own Gaussians, the incremental keyframe model (:mod:`core.model`) the fused
+    gives a cloud's own Gaussians, the incremental keyframe model (:mod:`randt.core.model`) the fused
     model's, judging a joining keyframe's points only.
     """
     pts = np.ascontiguousarray(points_xyz, dtype=np.float64)

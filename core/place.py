@@ -1,8 +1,8 @@
 """Place recognition: a Scan Context descriptor per keyframe and an index that proposes revisits.
 
-Where it sits: :mod:`core.fleet_map` describes every keyframe and asks the index for a loop
+Where it sits: :mod:`randt.core.fleet_map` describes every keyframe and asks the index for a loop
 candidate (within a session, across sessions, or for a session without any prior against the
-shared map); the candidate is only a proposal, which :mod:`core.global_registration` verifies.
+shared map); the candidate is only a proposal, which :mod:`randt.core.global_registration` verifies.
 
 The pipeline in one screen::
 
@@ -23,7 +23,7 @@ the same grid with its columns rolled, so the distance is taken over all column 
 
 Yaw convention: a candidate's ``yaw_deg`` rotates the query's sensor frame onto the candidate's,
 ``R_candidate_query = Rz(yaw)``, as in ``p_candidate = T p_query`` (``p_i = T p_j`` for the
-KITTI revisit pairs of :mod:`core.shared_data`, with ``i`` the stored sweep and ``j`` the query).
+KITTI revisit pairs of :mod:`randt.core.shared_data`, with ``i`` the stored sweep and ``j`` the query).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 from scipy.spatial import cKDTree
 
-from core.errors import ConflictError, FormatError, InvalidCloudError, InvalidRequestError
+from randt.core.errors import ConflictError, FormatError, InvalidCloudError, InvalidRequestError
 
 __all__ = [
     "PlaceCandidate",

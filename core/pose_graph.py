@@ -17,7 +17,7 @@ Nodes are keyframe poses ``T_world_sensor`` (any hashable key, e.g. ``(session, 
 The graph is solved incrementally by gtsam's iSAM2 (Kaess et al., IJRR 2012): each
 :meth:`PoseGraph.optimize` adds what arrived since the last one and relinearizes only what moved.
 gtsam orders a Pose3's tangent (rotation, translation); every covariance here is ours, (t then r)
-like :class:`core.odometry.PosePrior`, and is reordered on the way in.
+like :class:`randt.core.odometry.PosePrior`, and is reordered on the way in.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field
 
-from core.errors import InvalidRequestError
+from randt.core.errors import InvalidRequestError
 
 __all__ = ["Edge", "PoseGraph", "PoseGraphSettings"]
 

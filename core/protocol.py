@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.transforms import make_transform, transform_points
+from randt.core.transforms import make_transform, transform_points
 
 __all__ = ["Trial", "make_trial", "synthetic_room"]
 

@@ -6,7 +6,7 @@ The whole pipeline in one screen (:func:`register`)::
     levels    -> NDT voxel sizes, coarse to fine (given, or derived from the target's scale)
     reference -> downsample; Algorithm 1: IQR outlier removal on Mahalanobis distances; Gaussians
     moving    -> downsample; Algorithm 1: keep only high-probability moving points
-    match     -> per level: Newton on the NDT cost (core.ndt) from the previous level's pose
+    match     -> per level: Newton on the NDT cost (randt.core.ndt) from the previous level's pose
     refine    -> Algorithm 3: SVD on high-probability correspondences, kept only if NDT agrees
     judge     -> fitness as Autoware reports it, inlier ratio, covariance from the Hessian,
                  degeneracy test; never the initial guess dressed up as a result
@@ -28,12 +28,12 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from core.config import Method, RegistrationSettings
-from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
-from core.grid import PointGrid
-from core.icp import icp_point_to_plane, icp_point_to_point
-from core.kernels import best_voxel, plane_information, projected_pair_moments
-from core.ndt import (
+from randt.core.config import Method, RegistrationSettings
+from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
+from randt.core.grid import PointGrid
+from randt.core.icp import icp_point_to_plane, icp_point_to_point
+from randt.core.kernels import best_voxel, plane_information, projected_pair_moments
+from randt.core.ndt import (
     NdtEvaluation,
     NeighborCache,
     about_origin,
@@ -43,8 +43,8 @@ from core.ndt import (
     ndt_newton,
     ndt_point_scores,
 )
-from core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
-from core.transforms import (
+from randt.core.outliers import iqr_inlier_mask, statistical_outlier_mask, tukey_fences
+from randt.core.transforms import (
     as_transform,
     invert,
     orthonormalize,
@@ -53,7 +53,7 @@ from core.transforms import (
     transform_points,
     umeyama,
 )
-from core.voxel import (
+from randt.core.voxel import (
     NEIGHBOR_OFFSETS,
     VoxelGaussianMap,
     pack_keys,
@@ -345,7 +345,7 @@ def prepare_reference(
     say nothing about their points (it would drop 9-24 % of a ModelNet40 object, thin parts first).
 
     ``downsampled_at_m``: the voxel size ``target_xyz`` was already downsampled at (by
-    :func:`~core.voxel.voxel_downsample`). When it equals this reference's downsampling voxel,
+    :func:`~randt.core.voxel.voxel_downsample`). When it equals this reference's downsampling voxel,
     downsampling again would return the same points (one centroid per voxel, first-seen order),
     so it is skipped: the incremental matcher's fused model is built that way.
     """
@@ -381,7 +381,7 @@ def reference_inlier_mask(
     Gaussians at the finest NDT voxel ``finest_m``), SOR, or none (all True). ``keep_unjudged``:
     Algorithm 1 keeps the points of voxels too sparse for a Gaussian instead of dropping them
     (a sparse cloud, :func:`is_sparse_cloud`). ``groups``: the points' finest voxels when the
-    caller has them (:func:`core.outliers.iqr_inlier_mask`)."""
+    caller has them (:func:`randt.core.outliers.iqr_inlier_mask`)."""
     if settings.outlier_removal == "iqr":
         return _algorithm1_mask(points_xyz, finest_m, settings, keep_unjudged=keep_unjudged, groups=groups)
     if settings.outlier_removal == "sor":
@@ -488,7 +488,7 @@ def _svd_refine(
     """Algorithm 3: iterate Kabsch on high-probability correspondences.
 
     The moving points are Algorithm 1's high-probability selection. One takes part when its
-    nearest reference point is within one finest voxel (a :class:`~core.grid.PointGrid` search)
+    nearest reference point is within one finest voxel (a :class:`~randt.core.grid.PointGrid` search)
     and that distance is inside the Tukey fence of all such distances. Its partner is the nearest
     reference point projected onto that point's local plane (normal from the
     ``svd_normal_neighbors`` nearest reference points, :meth:`PreparedReference.normals_at`): the
@@ -573,9 +573,9 @@ def _projected_kabsch(
     ``corr[1]``, normals ``corr[2]``), the moved points' centroid, and their point-to-plane RMSE
     at ``T``.
 
-    :func:`~core.transforms.umeyama` on the moved and the projected points, with the moving,
+    :func:`~randt.core.transforms.umeyama` on the moved and the projected points, with the moving,
     projecting and the sums fused into one compiled pass
-    (:func:`~core.kernels.projected_pair_moments`): the step solves this 12-15 times a
+    (:func:`~randt.core.kernels.projected_pair_moments`): the step solves this 12-15 times a
     registration, and its numpy temporaries cost 0.5-1 ms a solve on a KITTI pair's 7-14k points.
     """
     src, dst, nrm = corr
@@ -633,7 +633,7 @@ def _svd_refine_voxel(
     the chi-square(3) 99 % quantile and its point-to-plane distance inside the Tukey fence of all
     of them. The partner is the point projected onto that voxel's plane (mean and smallest-
     eigenvalue normal), so the SVD's fixed point is the point-to-plane optimum over the NDT
-    surface patches. One compiled pass per iteration (:func:`core.kernels.best_voxel`).
+    surface patches. One compiled pass per iteration (:func:`randt.core.kernels.best_voxel`).
 
     Returns the refined transform, iterations, and the trimmed point-to-plane RMSE before and after.
     """
@@ -681,7 +681,7 @@ def _svd_refine_voxel(
 def _plane_information(moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap) -> np.ndarray:
     """6x6 point-to-plane information of the matched points (those in a map voxel), rotation
     scaled by their RMS radius; zeros when fewer than 6 match (compiled:
-    :func:`core.kernels.plane_information`, 1.6 -> 0.2 ms on a reduced sweep's 7k points)."""
+    :func:`randt.core.kernels.plane_information`, 1.6 -> 0.2 ms on a reduced sweep's 7k points)."""
     table_key, table_idx = gmap.hash_table
     information, n_matched = plane_information(
         np.ascontiguousarray(moving, dtype=np.float64),
@@ -844,7 +844,7 @@ def _match_ndt(
     settings: RegistrationSettings,
     first_level: int = 0,
 ) -> _Match:
-    """Newton on the NDT cost (:func:`core.ndt.ndt_newton`), level by level from the previous
+    """Newton on the NDT cost (:func:`randt.core.ndt.ndt_newton`), level by level from the previous
     pose, from level ``first_level`` (0: the coarsest) on."""
     iterations = 0
     converged = True

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import NotFoundError
-from core.io import read_cloud
-from core.transforms import orthonormalize
+from randt.core.errors import NotFoundError
+from randt.core.io import read_cloud
+from randt.core.transforms import orthonormalize
 
 __all__ = [
     "DATA_DIR_ENV_VAR",

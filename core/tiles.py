@@ -38,7 +38,7 @@ one (N, 4) float32 x,y,z,intensity buffer in arrival order, with room to grow: a
 the points it admits, so it costs the new points, not the tile. Which points are admitted is
 decided against one hash table per grid of every occupied (tile, voxel) and its count (and, with
 a cap above 1, its points, for the duplicate test): one compiled pass over the new points in
-arrival order (:func:`core.kernels.voxel_table_admit`), a grouping of the admitted ones by tile,
+arrival order (:func:`randt.core.kernels.voxel_table_admit`), a grouping of the admitted ones by tile,
 and one append per touched tile. No Python loop over points or voxels, only over the tiles a scan
 touches. (Until 2026-11-26 each tile was a key-sorted buffer and an insert merged the new rows
 into fresh copies of every touched tile: 11 ms for a simulated sweep against about 1 ms now.)
@@ -60,7 +60,7 @@ nothing else may go into that file. The grid's own settings and tile versions go
 exactly (versions included, so tile updates stay monotonic across a service restart).
 :meth:`TileGrid.write_tiles` updates such a directory in place, rewriting only the tiles that changed
 (the service's store saves a growing map this way). The files themselves (names, formats, atomic
-writes) are :mod:`core.io.autoware`'s; this module decides what goes into them and in which order.
+writes) are :mod:`randt.core.io.autoware`'s; this module decides what goes into them and in which order.
 
 Thread safety
 -------------
@@ -84,9 +84,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import PointCloud, read_cloud, write_cloud
-from core.io.autoware import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import PointCloud, read_cloud, write_cloud
+from randt.core.io.autoware import (
     make_directory,
     read_metadata,
     read_sidecar,
@@ -96,7 +96,7 @@ from core.io.autoware import (
     write_sidecar,
     write_tile_table,
 )
-from core.kernels import (
+from randt.core.kernels import (
     first_per_voxel_pair,
     group_int_keys,
     group_min,
@@ -106,8 +106,8 @@ from core.kernels import (
     voxel_table_grow,
     voxel_table_near,
 )
-from core.metrics.cloud import pdu
-from core.voxel import pack_keys, voxel_coords
+from randt.core.metrics.cloud import pdu
+from randt.core.voxel import pack_keys, voxel_coords
 
 __all__ = [
     "COLUMN_M",
@@ -143,7 +143,7 @@ COLUMN_M = 2.0
 
 
 def _empty_voxel_table(cap: int, size: int = 1024) -> _VoxelTable:
-    """An empty :func:`core.kernels.voxel_table_admit` table: tile keys (-1 empty), voxel keys,
+    """An empty :func:`randt.core.kernels.voxel_table_admit` table: tile keys (-1 empty), voxel keys,
     counts, and the kept points when ``cap > 1`` (with one, a voxel is full at its first)."""
     return (
         np.full(size, -1, dtype=np.int64),
@@ -298,7 +298,7 @@ class Tile:
         return int(self.points.shape[0])
 
     def to_cloud(self) -> PointCloud:
-        """The tile's points as a :class:`~core.io.PointCloud` (xyz widened to float64)."""
+        """The tile's points as a :class:`~randt.core.io.PointCloud` (xyz widened to float64)."""
         return PointCloud(xyz=self.points, intensity=self.intensity)
 
 
@@ -410,7 +410,7 @@ class TileGrid:
         self._cap = int(max_points_per_voxel)
         self._lock = threading.Lock()
         self._tiles: dict[tuple[int, int], _TileState] = {}
-        #: Every occupied (tile, voxel) with its count (core.kernels.voxel_table_admit): the
+        #: Every occupied (tile, voxel) with its count (randt.core.kernels.voxel_table_admit): the
         #: equalization's memory, so an insert costs its own points, not the tiles' (O(new)).
         self._table = _empty_voxel_table(self._cap)
         self._used = 0
@@ -509,7 +509,7 @@ class TileGrid:
         return [tile_id(ix, iy) for ix, iy in sorted(changed)]
 
     def _keys(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Tile keys and tile-local voxel keys of float32 points (core.kernels.tile_voxel_keys)."""
+        """Tile keys and tile-local voxel keys of float32 points (randt.core.kernels.tile_voxel_keys)."""
         tkeys, vkeys, ok = tile_voxel_keys(
             np.ascontiguousarray(xyz, dtype=np.float32), float(self._tile_size), self._voxel, _TILE_OFFSET
         )
@@ -647,7 +647,7 @@ class TileGrid:
         return Agreement(int(seen.sum()), int(near.sum()))
 
     def near_numpy(self, points_xyz: np.ndarray, reach_xy: int, reach_z: int) -> np.ndarray:
-        """Numpy reference of :func:`core.kernels.voxel_table_near` against this map's voxels:
+        """Numpy reference of :func:`randt.core.kernels.voxel_table_near` against this map's voxels:
         for each point (float64, map frame), whether the map holds a point in a voxel within
         ``reach_xy`` voxel steps in x and y and ``reach_z`` in z (structured-row ``np.isin``)."""
         pair = [("t", "<i8"), ("v", "<i8")]
@@ -678,7 +678,7 @@ class TileGrid:
         more than the cap per voxel. Depends only on the grid's sizes and cap, not its content, so
         it can run elsewhere (the service's matcher processes do it, cutting the points the service
         process inserts about fourfold on a KITTI sweep with a cap of 1). One compiled hashed pass
-        (:func:`core.kernels.first_per_voxel_pair`); :meth:`candidate_mask_numpy` is the tested
+        (:func:`randt.core.kernels.first_per_voxel_pair`); :meth:`candidate_mask_numpy` is the tested
         reference.
         """
         mask = np.zeros(np.asarray(points_xyz).shape[0], dtype=bool)
@@ -693,7 +693,7 @@ class TileGrid:
         self, points_xyz: np.ndarray, *, compiled: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(finite row indices, their float32 positions, tile keys, tile-local voxel keys): exactly
-        :meth:`insert`'s keys, by :func:`core.kernels.tile_voxel_keys` or (``compiled=False``) by
+        :meth:`insert`'s keys, by :func:`randt.core.kernels.tile_voxel_keys` or (``compiled=False``) by
         insert's numpy formulation. None when no row is finite."""
         xyz = np.asarray(points_xyz, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -912,7 +912,7 @@ class TileGrid:
     def tile_pdu(self, voxel_size_m: float | None = None) -> dict[str, float]:
         """Point Density Uniformity of every tile: ``1 - std / mean`` of its voxel point counts.
 
-        :func:`core.metrics.cloud.pdu` of each tile's points: counts over the tile's occupied voxels,
+        :func:`randt.core.metrics.cloud.pdu` of each tile's points: counts over the tile's occupied voxels,
         population standard deviation. The points are shifted to the tile's corner first, so the
         voxels are aligned to it as the equalization voxels are. With the default voxel size
         and a cap of 1 every tile scores exactly 1; pass a coarser voxel to see how evenly the
@@ -941,7 +941,7 @@ class TileGrid:
     # ---------------------------------------------------------------------------- export
 
     def to_cloud(self) -> PointCloud:
-        """All points, tile by tile in ``(ix, iy)`` order, as one :class:`~core.io.PointCloud`."""
+        """All points, tile by tile in ``(ix, iy)`` order, as one :class:`~randt.core.io.PointCloud`."""
         tiles = self._snapshot()
         return PointCloud(
             xyz=np.concatenate([np.empty((0, 3), np.float32)] + [t.points for t in tiles]),
@@ -968,8 +968,8 @@ class TileGrid:
         """Write the map as an Autoware divided point-cloud map.
 
         Writes, each file atomically, ``<ix>_<iy>.pcd`` per non-empty tile (binary PCD, float32
-        ``x y z intensity``), then :data:`~core.io.autoware.GRID_SIDECAR_NAME`, then
-        :data:`~core.io.autoware.AUTOWARE_METADATA_NAME` last, so the metadata never names a
+        ``x y z intensity``), then :data:`~randt.core.io.autoware.GRID_SIDECAR_NAME`, then
+        :data:`~randt.core.io.autoware.AUTOWARE_METADATA_NAME` last, so the metadata never names a
         missing file. Stale ``<ix>_<iy>.pcd`` files of tiles no longer in the map are removed
         afterwards (Autoware globs every ``*.pcd`` of the directory); other ``.pcd`` files are
         left alone with a warning.
@@ -1013,10 +1013,10 @@ class TileGrid:
         The incremental counterpart of :meth:`export_autoware` for a directory that holds an
         earlier save of this map. From one snapshot of the map it writes, each file atomically:
 
-        1. :data:`~core.io.autoware.GRID_SIDECAR_NAME` (settings and the version of every tile);
+        1. :data:`~randt.core.io.autoware.GRID_SIDECAR_NAME` (settings and the version of every tile);
         2. ``<ix>_<iy>.pcd`` of every named tile, and of every tile whose file is missing (a first
            save, or a tile the caller forgot), so the directory always holds every tile;
-        3. :data:`~core.io.autoware.AUTOWARE_METADATA_NAME` last, listing every tile of the map.
+        3. :data:`~randt.core.io.autoware.AUTOWARE_METADATA_NAME` last, listing every tile of the map.
 
         Other tile files are neither rewritten nor removed. A reader (or a restart after a crash at
         any point) therefore sees whole files only, and a metadata file that names only existing
@@ -1076,7 +1076,7 @@ class TileGrid:
         return written
 
     def _write_sidecar(self, directory: Path, tiles: list[Tile]) -> None:
-        """Write :data:`~core.io.autoware.GRID_SIDECAR_NAME` for the snapshot ``tiles``."""
+        """Write :data:`~randt.core.io.autoware.GRID_SIDECAR_NAME` for the snapshot ``tiles``."""
         write_sidecar(
             directory,
             tile_size_m=self._tile_size,
@@ -1093,7 +1093,7 @@ class TileGrid:
 
 
 # --------------------------------------------------------------------------------------------
-# Autoware divided maps (the files: core.io.autoware)
+# Autoware divided maps (the files: randt.core.io.autoware)
 # --------------------------------------------------------------------------------------------
 
 
@@ -1166,7 +1166,7 @@ def load_autoware(
     """Restore a :class:`TileGrid` from an Autoware divided map (ours or another tool's).
 
     The tile size comes from the metadata's resolutions. Voxel size, cap and tile versions come
-    from :data:`~core.io.autoware.GRID_SIDECAR_NAME` when present, else from the arguments, else the
+    from :data:`~randt.core.io.autoware.GRID_SIDECAR_NAME` when present, else from the arguments, else the
     defaults of :class:`TileGrid`. A map exported by :meth:`TileGrid.export_autoware` and loaded with its own
     settings comes back identical: same points in the same order, same versions. Other settings
     re-equalize the points (and such tiles get ``version + 1`` so subscribers see the change).

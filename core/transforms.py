@@ -6,7 +6,7 @@ Conventions
 A 6-vector perturbation ``delta = (tx, ty, tz, rx, ry, rz)`` (translation first, as in ROS pose
 covariances) updates a transform on the left: ``T <- exp(delta) @ T`` with
 ``exp(delta) = [[R(r), t], [0, 1]]`` and ``R(r)`` the rotation vector ``r``'s rotation (the
-"decoupled" left update used by the NDT derivatives in :mod:`core.ndt`).
+"decoupled" left update used by the NDT derivatives in :mod:`randt.core.ndt`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from core.errors import InvalidCloudError
+from randt.core.errors import InvalidCloudError
 
 __all__ = [
     "apply_update",

@@ -2,8 +2,8 @@
 
 Voxel keys are the integer cell coordinates ``floor(p / voxel_size_m)`` packed into one int64
 (21 bits per axis, offset so negative cells pack too). Points are grouped by voxel in one hashed
-pass (:func:`core.kernels.group_voxels`, 4x faster than sorting the keys with ``np.unique``),
-per-voxel sums and 3x3 eigen-decompositions are compiled loops too (:mod:`core.kernels`); map
+pass (:func:`randt.core.kernels.group_voxels`, 4x faster than sorting the keys with ``np.unique``),
+per-voxel sums and 3x3 eigen-decompositions are compiled loops too (:mod:`randt.core.kernels`); map
 lookups are ``np.searchsorted`` on the sorted key array. There is no Python loop over points or
 voxels.
 """
@@ -15,8 +15,8 @@ from functools import cached_property
 
 import numpy as np
 
-from core.errors import InvalidCloudError
-from core.kernels import (
+from randt.core.errors import InvalidCloudError
+from randt.core.kernels import (
     cell_shift,
     conditioned_gaussians,
     eigh3,
@@ -92,7 +92,7 @@ def neighborhood_base(points_xyz: np.ndarray, voxel_size_m: float, n_neighbors: 
     lies near and one across. A flat ground on a boundary (the simulated town's z = 0) then pulls
     the matched height by the imbalance: 11.1 cm of vertical drift over a 600-sweep simulated
     drive (the two-vehicle fleet's first), 0.1 cm with these 8 (docs/benchmarks.md).
-    :func:`core.kernels.cell_shift` is the same rule for the compiled kernels. The 8 are weighted
+    :func:`randt.core.kernels.cell_shift` is the same rule for the compiled kernels. The 8 are weighted
     trilinearly (:func:`trilinear_weights`).
     """
     shift = cell_shift(n_neighbors)
@@ -229,7 +229,7 @@ class VoxelGaussianMap:
     @cached_property
     def hash_table(self) -> tuple[np.ndarray, np.ndarray]:
         """Open-addressing table over :attr:`keys` for the compiled kernels (built on first use)."""
-        from core.kernels import build_hash
+        from randt.core.kernels import build_hash
 
         return build_hash(self.keys)
 
@@ -409,7 +409,7 @@ class VoxelGaussianMap:
         scatter: np.ndarray, counts: np.ndarray, eigenvalue_ratio: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(cov, inv, whitening, normals)`` of voxels with these scatter matrices and counts,
-        vectorized: the reference of :func:`core.kernels.conditioned_gaussians` (the tests)."""
+        vectorized: the reference of :func:`randt.core.kernels.conditioned_gaussians` (the tests)."""
         cov = scatter / np.maximum(counts - 1.0, 1.0)[:, None, None]
         evals, evecs = eigh3(cov)
         floor = np.maximum(evals[:, 2:3] * eigenvalue_ratio, 1e-12)
@@ -498,7 +498,7 @@ def _parent_moments_numpy(
     keys: np.ndarray, counts: np.ndarray, mean: np.ndarray, scatter: np.ndarray, voxel_size_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_parent_moments` by ``np.bincount``: the reference of
-    :func:`core.kernels.parent_moments` (the tests)."""
+    :func:`randt.core.kernels.parent_moments` (the tests)."""
     parent_size = 2.0 * voxel_size_m
     centers = (unpack_keys(keys) + 0.5) * voxel_size_m
     inverse, parent_keys, _ = voxel_groups(centers, parent_size)

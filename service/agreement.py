@@ -7,8 +7,8 @@ saw along the same coordinates, a wrong prior, a drift the graph has not correct
 ``map_agreement_every`` sweeps (its first, every sweep the pose graph takes as a keyframe, and
 the first match after a fallback, which passed only the matcher's loose correction gate) the matcher
 also returns the sweep's thinned points, and the session thread measures, above the ground
-(:func:`core.tiles.above_ground`), the share of them within 0.5 m of the map's points where the
-map has content (:meth:`core.tiles.TileGrid.agreement`, a few milliseconds). The points of the
+(:func:`randt.core.tiles.above_ground`), the share of them within 0.5 m of the map's points where the
+map has content (:meth:`randt.core.tiles.TileGrid.agreement`, a few milliseconds). The points of the
 sweeps since the last check are *held* meanwhile, not folded:
 
 - the share reaches ``map_agreement_min`` (or the map has too little content there to have an
@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.tiles import Agreement, TileGrid, above_ground
-from core.transforms import transform_points
+from randt.core.tiles import Agreement, TileGrid, above_ground
+from randt.core.transforms import transform_points
 
 __all__ = ["AGREEING_CHECKS", "AgreementGate", "Held"]
 

@@ -1,13 +1,13 @@
 """FastAPI app factory: the service's HTTP face, its lifespan starting and stopping the Service.
 
 ``create_app`` builds the settings (from the environment unless given), the
-:class:`~service.runtime.Service` (store, session workers, Zenoh transport) and the app; the
+:class:`~randt.service.runtime.Service` (store, session workers, Zenoh transport) and the app; the
 lifespan starts the service before the first request and stops it (drain, flush, close Zenoh) on
 shutdown, so ``randt serve``'s SIGTERM and SIGINT stop everything cleanly. The routes live in
-:mod:`service.api`, one router per resource; ``docs/api.md`` documents them, ``/docs`` serves the
-OpenAPI UI (Swagger UI vendored: it works offline). The project's errors (:mod:`core.errors`)
+:mod:`randt.service.api`, one router per resource; ``docs/api.md`` documents them, ``/docs`` serves the
+OpenAPI UI (Swagger UI vendored: it works offline). The project's errors (:mod:`randt.core.errors`)
 become HTTP answers in one exception handler, registered here, with one table
-(:mod:`service.api.errors`).
+(:mod:`randt.service.api.errors`).
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from typing import Any
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import api
-from service.api.errors import HTTP_STATUS, error_response
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.service import api
+from randt.service.api.errors import HTTP_STATUS, error_response
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
 
 __all__ = ["HeadAsGet", "create_app"]
 

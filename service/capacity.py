@@ -6,7 +6,7 @@ measured here, never assumed from a count of sessions:
 - **rate**: the scans that *arrive* for the session (``arrived``, at intake: shed scans cost
   nothing but still say what the vehicle asks for), a moving average of the intervals;
 - **CPU per sweep**: what its matcher spent on each sweep where it runs (``matched``:
-  :attr:`service.matchers.Registered.cpu_s`, the thread's CPU time for decoding, matching and
+  :attr:`randt.service.matchers.Registered.cpu_s`, the thread's CPU time for decoding, matching and
   the keyframe model's rebuild after its previous sweep), a moving average;
 - **the service process's own CPU per sweep** (``service_sample``: this process's CPU time over
   the sweeps matched since the last sample, less what in-process matchers spent in it, plus the
@@ -156,7 +156,7 @@ class Capacity:
     def service_sample(self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0) -> None:
         """Sample the service's own CPU per sweep (the flusher, every flush): ``process_cpu_s`` is
         this process's CPU time so far (``time.process_time()``), ``graph_cpu_s`` the pose graph
-        process's (:meth:`service.graph.ServiceGraph.cpu_s`)."""
+        process's (:meth:`randt.service.graph.ServiceGraph.cpu_s`)."""
         cpu = (time.process_time() if process_cpu_s is None else process_cpu_s) + graph_cpu_s
         with self._lock:
             mark = (cpu, self._sweeps, self._local_cpu_s)

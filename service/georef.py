@@ -2,8 +2,8 @@
 
 A map's origin lives in its folder as Autoware's ``map_projector_info.yaml`` (``LocalCartesianUTM``,
 core/geo.py), beside its tiles, so the service's own data directory is a map Autoware and GIS
-tools can place. The first scan whose ``geo_prior`` (wire.messages.GeoPrior) reaches a map without
-an origin sets it: the fix's point on the map's tile grid (:meth:`core.geo.GeoOrigin.on_grid`),
+tools can place. The first scan whose ``geo_prior`` (randt.wire.messages.GeoPrior) reaches a map without
+an origin sets it: the fix's point on the map's tile grid (:meth:`randt.core.geo.GeoOrigin.on_grid`),
 written durably before that scan is matched (an answer in the map's frame is only as durable as
 the origin that defines it). A map that already holds points but has no origin was built in a
 local frame: a WGS84 prior cannot be placed in it, and the scan is refused ``invalid_prior`` with
@@ -19,13 +19,13 @@ from typing import Protocol
 
 import numpy as np
 
-from core.errors import BadMessageError, InvalidRequestError, RandtError
-from core.geo import GeoOrigin, LocalCartesianUTM, origin_of, read_map_projection
-from core.io.autoware import AUTOWARE_METADATA_NAME
-from core.odometry import PosePrior
-from core.tiles import TileGrid
-from wire.codes import ErrorCode
-from wire.messages import GeoPrior, GnssFix
+from randt.core.errors import BadMessageError, InvalidRequestError, RandtError
+from randt.core.geo import GeoOrigin, LocalCartesianUTM, origin_of, read_map_projection
+from randt.core.io.autoware import AUTOWARE_METADATA_NAME
+from randt.core.odometry import PosePrior
+from randt.core.tiles import TileGrid
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import GeoPrior, GnssFix
 
 __all__ = ["MapProjections", "check_map_origin", "origin_conflict"]
 
@@ -48,7 +48,7 @@ class MapProjections:
 
     def prior_in_map(self, map_name: str, grid: TileGrid, prior: GeoPrior) -> PosePrior:
         """``prior`` as a pose in ``map_name``'s frame (its origin set from it if the map has
-        none and no points). Raises :class:`~core.errors.BadMessageError` ``invalid_prior`` with
+        none and no points). Raises :class:`~randt.core.errors.BadMessageError` ``invalid_prior`` with
         the reason when it cannot be placed."""
         projection = self._projection(map_name, grid, prior)
         T, cov = projection.pose_to_map(
@@ -67,7 +67,7 @@ class MapProjections:
 
     def give(self, map_name: str, has_points: bool, origin: GeoOrigin) -> None:
         """Set ``map_name``'s origin as configured (``RANDT_MAP_ORIGIN``), writing its file if the
-        map has none; :class:`~core.errors.InvalidRequestError` when the map already has another
+        map has none; :class:`~randt.core.errors.InvalidRequestError` when the map already has another
         origin, or holds points in a local frame (moving it would move every pose answered)."""
         with self._lock:
             known = self._load(map_name)
@@ -83,7 +83,7 @@ class MapProjections:
 
     def projection(self, map_name: str) -> LocalCartesianUTM | None:
         """``map_name``'s projection, ``None`` when it has no geodetic origin (raises
-        :class:`~core.errors.FormatError` when its file cannot be read)."""
+        :class:`~randt.core.errors.FormatError` when its file cannot be read)."""
         with self._lock:
             return self._load(map_name)
 
@@ -169,8 +169,8 @@ def origin_conflict(map_name: str, known: GeoOrigin | None, has_points: bool, gi
 def check_map_origin(data_dir: Path, map_name: str, origin: tuple[float, float, float] | None) -> None:
     """The configured origin (``RANDT_MAP_ORIGIN``) against the map's folder, read only, before
     anything starts (``randt serve``): one clear error instead of a failed startup. Raises
-    :class:`~core.errors.InvalidRequestError` (a bad value or a conflict) or
-    :class:`~core.errors.FormatError` (no ``geo`` extra, an unreadable projection file)."""
+    :class:`~randt.core.errors.InvalidRequestError` (a bad value or a conflict) or
+    :class:`~randt.core.errors.FormatError` (no ``geo`` extra, an unreadable projection file)."""
     if origin is None:
         return
     given = GeoOrigin(*origin)

@@ -6,7 +6,7 @@ Flow of a keyframe::
         travel (and a session's first sweep), the sweep's points (sensor frame, float32), its
         live pose and its prior's position --> bounded queue (``graph_queue``, oldest dropped)
     sender thread --> the graph process (one, at SCHED_IDLE: the matchers come first) -->
-        one core.fleet_map.FleetMapper per map: placement, place recognition, global
+        one randt.core.fleet_map.FleetMapper per map: placement, place recognition, global
         registration, iSAM2 (docs/mapping.md)
     graph process --> after each keyframe: the keyframes that moved since last reported (more
         than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the keyframes it newly holds where they were
@@ -31,7 +31,7 @@ graph; once two registrations against it agree, FleetMapper places it there and 
 *joins* that map: it lives in that graph from then on, its points fold into that map, and
 ``on_join`` tells the session manager. The per-sweep answers are never
 rewritten: a client corrects the poses it holds with the newest keyframe poses
-(:class:`wire.messages.CorrectionMessage`).
+(:class:`randt.wire.messages.CorrectionMessage`).
 
 The process is supervised (:meth:`ServiceGraph._supervise`): one thread owns it for the service's
 life and starts it again when it dies. The graph is durable (service/graph_log.py): each keyframe
@@ -64,15 +64,15 @@ from typing import Any, cast
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from core.errors import RandtError
-from core.fleet_map import FleetMapper, FleetMapSettings
-from core.keyframe_cache import KeyframeCache
-from core.tiles import TileGrid, tile_id
-from core.transforms import rotation_angle_deg
-from service.graph_log import GraphLog
-from service.matchers import ignore_group_signals, single_threaded_blas, start_ignoring_group_signals
-from service.metrics import ServiceMetrics
-from wire.messages import CorrectionMessage, correction_from_arrays
+from randt.core.errors import RandtError
+from randt.core.fleet_map import FleetMapper, FleetMapSettings
+from randt.core.keyframe_cache import KeyframeCache
+from randt.core.tiles import TileGrid, tile_id
+from randt.core.transforms import rotation_angle_deg
+from randt.service.graph_log import GraphLog
+from randt.service.matchers import ignore_group_signals, single_threaded_blas, start_ignoring_group_signals
+from randt.service.metrics import ServiceMetrics
+from randt.wire.messages import CorrectionMessage, correction_from_arrays
 
 __all__ = [
     "GRAPH_NICE",
@@ -260,7 +260,7 @@ class _ProcessMap:
         self, name: str, settings: FleetMapSettings, geometry: MapGeometry, spill: Path | None = None
     ) -> None:
         """``spill``: where the keyframes' points are kept on disk, the :data:`HOT_KEYFRAMES` used
-        last in memory (:class:`~core.keyframe_cache.KeyframeCache`); ``None``: all in memory."""
+        last in memory (:class:`~randt.core.keyframe_cache.KeyframeCache`); ``None``: all in memory."""
         self.name = name
         where = None if spill is None else spill / hashlib.sha1(name.encode()).hexdigest()[:16]
         self.mapper = FleetMapper(

@@ -18,7 +18,7 @@ File: ``DATA/graph/keyframes.log``, records appended one by one::
 
     u32 length of the body | u32 CRC-32 of the body | body (msgpack)
 
-The body is ``(stamp_s, item)``: the keyframe as :meth:`service.graph.ServiceGraph.offer` queues
+The body is ``(stamp_s, item)``: the keyframe as :meth:`randt.service.graph.ServiceGraph.offer` queues
 it (``("keyframe", map, vehicle, session, seq, ...)``), with its arrays as ``[dtype, shape,
 bytes]``, or ``("drop", map, vehicle, session, seq)``. A torn or corrupt tail (a crash
 mid-append) ends the log: it is cut off when the log is opened, and the next append goes after the
@@ -44,8 +44,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from core.errors import FormatError
-from core.io.atomic import append_durably, atomic_open, atomic_write_bytes
+from randt.core.errors import FormatError
+from randt.core.io.atomic import append_durably, atomic_open, atomic_write_bytes
 
 __all__ = ["GRAPH_DIRNAME", "GRAPH_FLOORS_FILENAME", "GRAPH_LOG_FILENAME", "GraphLog"]
 

@@ -17,7 +17,7 @@ Flow of a scan payload::
     intake worker threads (intake_workers; a vehicle is on at most one of them at a time, so its
     scans stay in order)
       handle(vehicle, payload, received_ns)   = SessionManager.handle: decode with bounded cost
-        (wire.messages: structure check, msgpack limits), seq check, admission, then the session
+        (randt.wire.messages: structure check, msgpack limits), seq check, admission, then the session
         worker's queue, or the queue of a session being opened (service/sessions.py)
 
 **What a vehicle is promised.** Every payload that reaches the service on a scan key whose
@@ -43,7 +43,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from wire.ros2 import Ros2Scan
+from randt.wire.ros2 import Ros2Scan
 
 __all__ = ["ITEM_OVERHEAD_BYTES", "Intake"]
 

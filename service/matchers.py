@@ -14,7 +14,7 @@ time. Requests and results are pickled through a pipe (a 120k-point sweep and it
 few MB: about 5 ms against 100-300 ms of matching).
 
 An exception raised in a worker process reaches the session thread as the same class with the
-same attributes (a :class:`~core.errors.DegenerateProblemError` keeps its ``weak_directions``, a
+same attributes (a :class:`~randt.core.errors.DegenerateProblemError` keeps its ``weak_directions``, a
 ``ValueError`` stays a ``ValueError``), the worker's traceback attached as a note; one that cannot
 be pickled arrives as a :class:`MatcherProcessError` naming it. If a worker process dies, the calls
 on it raise :class:`MatcherProcessDiedError`; the session manager then drops the affected sessions
@@ -49,14 +49,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from core.config import RegistrationSettings
-from core.errors import FormatError, RandtError
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
-from core.tiles import SentVoxels, TileGrid
-from core.transforms import invert, transform_points
-from core.voxel import pack_keys, voxel_coords
-from wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
-from wire.ros2 import Ros2Scan, sweep_arrays
+from randt.core.config import RegistrationSettings
+from randt.core.errors import FormatError, RandtError
+from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior, ScanResult
+from randt.core.tiles import SentVoxels, TileGrid
+from randt.core.transforms import invert, transform_points
+from randt.core.voxel import pack_keys, voxel_coords
+from randt.wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan
+from randt.wire.ros2 import Ros2Scan, sweep_arrays
 
 __all__ = [
     "CpuLedger",
@@ -84,7 +84,7 @@ Key = tuple[str, str]
 class SessionMatcher(Protocol):
     """What a session worker asks of its matcher, wherever it runs: in the session thread
     (:class:`LocalMatcher`), in a worker process (:class:`RemoteMatcher`) or in a Ray actor
-    (:class:`service.ray_executor.RayMatcher`)."""
+    (:class:`randt.service.ray_executor.RayMatcher`)."""
 
     @property
     def poses(self) -> list[np.ndarray]: ...
@@ -128,7 +128,7 @@ TRAJECTORY_LENGTH_KEY = "n_poses"
 
 
 def without_trajectory(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """An :meth:`IncrementalMatcher.state_dict <core.odometry.IncrementalMatcher.state_dict>` for a
+    """An :meth:`IncrementalMatcher.state_dict <randt.core.odometry.IncrementalMatcher.state_dict>` for a
     snapshot: its ``poses`` (N, 4, 4), which grow with the session, replaced by N
     (:data:`TRAJECTORY_LENGTH_KEY`). The store holds the trajectory (every pose is logged before
     it is published); :func:`with_trajectory` undoes this."""
@@ -140,7 +140,7 @@ def without_trajectory(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def with_trajectory(state: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
     """The state :meth:`IncrementalMatcher.load_state_dict
-    <core.odometry.IncrementalMatcher.load_state_dict>` takes, from a snapshot's
+    <randt.core.odometry.IncrementalMatcher.load_state_dict>` takes, from a snapshot's
     (:func:`without_trajectory`) and the stored trajectory ``poses`` (N, 4, 4): its first
     ``n_poses`` poses go back in. A state that kept its poses (snapshots written before) is
     returned as it is.
@@ -163,7 +163,7 @@ def with_trajectory(state: dict[str, np.ndarray], poses: np.ndarray) -> dict[str
 
 class MatcherExecutor(Protocol):
     """Where the sessions' matchers run (``executor`` in the settings): local worker processes
-    (:class:`MatcherPool`) or Ray actors (:class:`service.ray_executor.RayMatcherPool`). Order,
+    (:class:`MatcherPool`) or Ray actors (:class:`randt.service.ray_executor.RayMatcherPool`). Order,
     back-pressure and drops stay the session layer's, the same for both."""
 
     @property
@@ -209,9 +209,9 @@ class MapFrame:
     Attributes
     ----------
     token:
-        The map's content and identity (its name and :attr:`core.tiles.TileGrid.content_token`):
+        The map's content and identity (its name and :attr:`randt.core.tiles.TileGrid.content_token`):
         a matcher that knows the map sends only the voxels it has not sent under the same token
-        (:class:`core.tiles.SentVoxels`) and starts over when it changes.
+        (:class:`randt.core.tiles.SentVoxels`) and starts over when it changes.
     correction:
         The pose graph's newest correction of the session (4x4), which moves the map points
         before they are folded (``None``: none yet). The matcher applies it with the pose, so
@@ -219,7 +219,7 @@ class MapFrame:
     seed_xyz:
         With a session's first sweep that carries a prior: the map's points around the prior
         (world frame, float32), which the matcher places the sweep against
-        (:meth:`core.odometry.IncrementalMatcher.register_scan`'s ``map_seed``); ``None`` else.
+        (:meth:`randt.core.odometry.IncrementalMatcher.register_scan`'s ``map_seed``); ``None`` else.
     prior:
         The scan's prior in the map frame when the session thread placed it there (a WGS84
         ``geo_prior``, through the map's geodetic origin: core/geo.py); it replaces the payload's
@@ -239,13 +239,13 @@ class Registered:
     Attributes
     ----------
     result:
-        The matcher's :class:`~core.odometry.ScanResult`. From a matcher process that knows the
+        The matcher's :class:`~randt.core.odometry.ScanResult`. From a matcher process that knows the
         session's map, its ``deskewed_xyz`` and ``map_index`` are empty: ``map_xyz`` and
         ``map_index`` below replace them (nothing is sent twice).
     map_xyz:
-        (M, 3) float32 points in the map frame, ready for :meth:`core.tiles.TileGrid.insert`
+        (M, 3) float32 points in the map frame, ready for :meth:`randt.core.tiles.TileGrid.insert`
         (which stores float32): the deskewed sweep moved by the pose, cut to the points the map
-        can keep (:meth:`~core.tiles.TileGrid.candidate_mask`) when the map is known; none for
+        can keep (:meth:`~randt.core.tiles.TileGrid.candidate_mask`) when the map is known; none for
         a ``fallback`` result (its points are not folded into the map).
     map_index:
         (M,) rows of the sweep as sent, for each point of ``map_xyz`` (its intensity).
@@ -292,11 +292,11 @@ class Registered:
 def decoded_sweep(
     payload: bytes | Ros2Scan, limits: WireLimits | None, frame: MapFrame | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, PosePrior | None, float]:
-    """A scan payload decoded for the matcher (:func:`wire.messages.decode_scan`: v2 bodies
-    decompressed here; a ROS 2 PointCloud2 by :func:`wire.ros2.sweep_arrays`): ``(xyz float32
+    """A scan payload decoded for the matcher (:func:`randt.wire.messages.decode_scan`: v2 bodies
+    decompressed here; a ROS 2 PointCloud2 by :func:`randt.wire.ros2.sweep_arrays`): ``(xyz float32
     view, time offsets float32 or None, intensity float32 or None, prior, stamp s)``; the prior is
     ``frame``'s when it has one (:attr:`MapFrame.prior`). Raises
-    :class:`~core.errors.BadMessageError` as the decoder does."""
+    :class:`~randt.core.errors.BadMessageError` as the decoder does."""
     if isinstance(payload, Ros2Scan):
         xyz, offsets, intensity, stamp_s = sweep_arrays(payload)
         return xyz, offsets, intensity, None if frame is None else frame.prior, stamp_s
@@ -368,7 +368,7 @@ def single_threaded_blas() -> None:
     The service runs one matcher process per core next to its own threads, so the cores are
     always busy: a multi-threaded BLAS call then has its threads spin-wait for a core (OpenBLAS
     does), and an ``(N, 3) @ (3, 3)`` product was measured at 17 ms instead of 4 ms on this 2-core
-    machine. The service process (:meth:`service.runtime.Service.start`) and every matcher process
+    machine. The service process (:meth:`randt.service.runtime.Service.start`) and every matcher process
     (:func:`_serve`) call this. It uses threadpoolctl, which sets the limit through each loaded
     library's own API, so it works after numpy is imported (environment variables such as
     ``OPENBLAS_NUM_THREADS`` are read only when the library loads).
@@ -385,8 +385,8 @@ def warm_up() -> None:
     selection and the SVD step, which a matcher configured so would use), so a vehicle's first scan
     does not pay for it. With a cold numba cache this compiles for about 10 s; from the cache it
     takes about 1 s."""
-    from core.protocol import synthetic_room
-    from core.registration import register
+    from randt.core.protocol import synthetic_room
+    from randt.core.registration import register
 
     room = synthetic_room(np.random.default_rng(0), 5000)
     register(room + [0.2, 0.1, 0.0], room)
@@ -890,8 +890,8 @@ class MatcherPool:
         """A matcher for session ``key`` (restored from ``state``) on the least busy process.
 
         With ``grid`` (the session's map), results carry only the points ``grid.insert`` could
-        keep (:meth:`~core.tiles.TileGrid.candidate_mask`, computed in the worker process).
-        ``settings`` and ``registration`` are the :class:`~core.odometry.IncrementalMatcher`'s
+        keep (:meth:`~randt.core.tiles.TileGrid.candidate_mask`, computed in the worker process).
+        ``settings`` and ``registration`` are the :class:`~randt.core.odometry.IncrementalMatcher`'s
         (None: its defaults).
         """
         with self._lock:
@@ -977,7 +977,7 @@ class ForwardingMatcher:
 
 
 class RemoteMatcher(ForwardingMatcher):
-    """The part of :class:`~core.odometry.IncrementalMatcher` a session worker uses, run remotely.
+    """The part of :class:`~randt.core.odometry.IncrementalMatcher` a session worker uses, run remotely.
 
     ``poses`` is kept here as well (appended from each result), so reading a trajectory needs no
     round trip; ``state_dict`` asks the process.
@@ -1040,7 +1040,7 @@ class RemoteMatcher(ForwardingMatcher):
         """:meth:`register` of a scan payload, sent as the bytes that came (a reduced sweep's
         120 kB instead of its 0.6 MB of arrays) and decoded in the session's process
         (:func:`decoded_sweep`), which also returns the map points' intensities. A payload whose
-        bodies do not decode raises the decoder's :class:`~core.errors.BadMessageError`."""
+        bodies do not decode raises the decoder's :class:`~randt.core.errors.BadMessageError`."""
         registered: Registered = self._proc.call(
             "register_payload", self._key, payload, limits, behind, keyframe_voxel_m, frame
         )

@@ -1,6 +1,6 @@
 """Prometheus metrics of one service instance (prometheus_client, one registry per instance).
 
-A registry per :class:`service.runtime.Service` (not the global default) keeps instances, and
+A registry per :class:`randt.service.runtime.Service` (not the global default) keeps instances, and
 tests, independent. ``GET /metrics`` renders :attr:`ServiceMetrics.registry` with
 prometheus_client's own exposition code (never a hand-written text format).
 

@@ -7,7 +7,7 @@ it to place and supervise the matchers. Zenoh stays the data plane between vehic
 service; each sweep goes from the service to its session's host and back over the host's socket
 (or, with transport ``"ray"``, in a Ray call).
 
-The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
+The shape, next to the local executor (:class:`randt.service.matchers.MatcherPool`)::
 
     hosts     -> RayMatcherPool(): one matcher host actor (``_MatcherHost``) per CPU of every live
                  node that has CPUs, 0 CPUs reserved, pinned to its node (node affinity), never
@@ -16,7 +16,7 @@ The shape, next to the local executor (:class:`service.matchers.MatcherPool`)::
                  the next session's open
     connect   -> (transport "socket", the default) each host listens on its node's address with a
                  secret the service gave it through Ray; the service connects at the host's first
-                 use and speaks the local executor's protocol (service.matchers.serve_requests)
+                 use and speaks the local executor's protocol (randt.service.matchers.serve_requests)
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): the session's
                  matcher on the host with fewest sessions, on the node with fewest per CPU
     register  -> RayMatcher.register: one request per sweep, waited for; unless the session is
@@ -56,11 +56,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-from core.config import RegistrationSettings
-from core.errors import RandtError
-from core.odometry import MatcherSettings, PosePrior
-from core.tiles import TileGrid
-from service.matchers import (
+from randt.core.config import RegistrationSettings
+from randt.core.errors import RandtError
+from randt.core.odometry import MatcherSettings, PosePrior
+from randt.core.tiles import TileGrid
+from randt.service.matchers import (
     _READY,
     ForwardingMatcher,
     MapFrame,
@@ -72,8 +72,8 @@ from service.matchers import (
     single_threaded_blas,
     warm_up,
 )
-from wire.messages import WireLimits
-from wire.ros2 import Ros2Scan
+from randt.wire.messages import WireLimits
+from randt.wire.ros2 import Ros2Scan
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
 
@@ -106,13 +106,13 @@ RAY_NAMESPACE = "randt"
 
 
 class _MatcherHost:
-    """Several sessions' :class:`~core.odometry.IncrementalMatcher` in one Ray worker process,
+    """Several sessions' :class:`~randt.core.odometry.IncrementalMatcher` in one Ray worker process,
     one request at a time (wrapped by ``ray.remote`` in :class:`RayMatcherPool`, so that importing
     this module needs no Ray): the actor counterpart of a local matcher process
-    (:func:`service.matchers._serve`), warmed up the same way when it starts.
+    (:func:`randt.service.matchers._serve`), warmed up the same way when it starts.
 
     Two ways in, one per pool (``transport``): the service's socket (:meth:`listen`: the local
-    executor's protocol, :func:`service.matchers.serve_requests`, on a connection of its own), or
+    executor's protocol, :func:`randt.service.matchers.serve_requests`, on a connection of its own), or
     a Ray call per request (:meth:`call`, the same requests)."""
 
     def __init__(self) -> None:
@@ -182,7 +182,7 @@ class _MatcherHost:
 
     # -- Ray calls ----------------------------------------------------------------------------------
     def call(self, op: str, key: Key, *args: Any) -> Any:
-        """One request of :func:`service.matchers.serve_requests`' protocol as a Ray call
+        """One request of :func:`randt.service.matchers.serve_requests`' protocol as a Ray call
         (transport "ray"): a keyframe's model is rebuilt on a thread beside the answer, and the
         session's next request waits for it, as in a matcher process. One remote call per sweep."""
         return self.sessions.handle(op, key, args)
@@ -265,7 +265,7 @@ Transport = Literal["socket", "ray"]
 
 class RayMatcherPool:
     """The Ray executor (module docstring): the same interface as
-    :class:`service.matchers.MatcherPool`.
+    :class:`randt.service.matchers.MatcherPool`.
 
     ``address``: a running cluster's (``ray://`` or ``host:port``); None starts a local Ray (or
     joins the one this process already initialized). A cluster that does not answer yet (its head
@@ -498,7 +498,7 @@ class RayMatcherPool:
 
 
 class RayMatcher(ForwardingMatcher):
-    """A session's matcher in a Ray actor: the interface of :class:`service.matchers.RemoteMatcher`."""
+    """A session's matcher in a Ray actor: the interface of :class:`randt.service.matchers.RemoteMatcher`."""
 
     def __init__(
         self, pool: RayMatcherPool, host: _Host, key: Key, state: dict[str, np.ndarray] | None
@@ -545,7 +545,7 @@ class RayMatcher(ForwardingMatcher):
         keyframe_voxel_m: float | None = None,
         frame: MapFrame | None = None,
     ) -> Registered:
-        """:meth:`service.matchers.RemoteMatcher.register`, on the session's host."""
+        """:meth:`randt.service.matchers.RemoteMatcher.register`, on the session's host."""
         registered: Registered = self._call(
             "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
         )
@@ -561,7 +561,7 @@ class RayMatcher(ForwardingMatcher):
         keyframe_voxel_m: float | None = None,
         frame: MapFrame | None = None,
     ) -> Registered:
-        """:meth:`service.matchers.RemoteMatcher.register_payload`, on the session's host: the
+        """:meth:`randt.service.matchers.RemoteMatcher.register_payload`, on the session's host: the
         payload's bytes travel, the host decodes them."""
         registered: Registered = self._call(
             "register_payload", payload, limits, behind, keyframe_voxel_m, frame
@@ -574,7 +574,7 @@ class RayMatcher(ForwardingMatcher):
         return state
 
     def snapshot_state(self) -> dict[str, np.ndarray]:
-        """:meth:`state_dict` without the trajectory (:func:`service.matchers.without_trajectory`)."""
+        """:meth:`state_dict` without the trajectory (:func:`randt.service.matchers.without_trajectory`)."""
         state: dict[str, np.ndarray] = self._call("snapshot")
         return state
 

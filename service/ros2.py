@@ -1,12 +1,12 @@
 """The ROS 2 bridge: robots on rmw_zenoh feed the service and hear its answers, with no code on
-the robot (docs/ros2.md). With :mod:`service.transport`, the only code of the service that talks
+the robot (docs/ros2.md). With :mod:`randt.service.transport`, the only code of the service that talks
 to Zenoh.
 
 In: one Zenoh session, a *client* of the robots' ``rmw_zenohd`` router (``ros2.connect``: the
 router forwards to clients, while its ``peers_failover_brokering`` is off for peers), subscribed
 to every PointCloud2 of the domain (``<domain>/**/sensor_msgs::msg::dds_::PointCloud2_/*``).
-The callback only reads the key and the attachment (:mod:`wire.rmw_zenoh`) and hands a
-:class:`wire.ros2.Ros2Scan` to the session manager's intake, as our own scans go:
+The callback only reads the key and the attachment (:mod:`randt.wire.rmw_zenoh`) and hands a
+:class:`randt.wire.ros2.Ros2Scan` to the session manager's intake, as our own scans go:
 
 * the topic must be one of ``ros2.topics`` (a relative name under any namespace, or an absolute
   one); the robot's namespace is its vehicle id (``/`` as ``.``), unless ``ros2.vehicles`` says;
@@ -49,14 +49,14 @@ from typing import Any, TypeVar
 import numpy as np
 import zenoh
 
-from core.errors import BadMessageError
-from core.transforms import invert
-from service.metrics import ServiceMetrics
-from service.settings import Ros2Settings
-from wire.codes import ErrorCode
-from wire.ids import is_valid_id
-from wire.messages import CorrectionMessage, ErrorMessage, GnssFix, PoseMessage, WireMessage
-from wire.rmw_zenoh import (
+from randt.core.errors import BadMessageError
+from randt.core.transforms import invert
+from randt.service.metrics import ServiceMetrics
+from randt.service.settings import Ros2Settings
+from randt.wire.codes import ErrorCode
+from randt.wire.ids import is_valid_id
+from randt.wire.messages import CorrectionMessage, ErrorMessage, GnssFix, PoseMessage, WireMessage
+from randt.wire.rmw_zenoh import (
     Attachment,
     Qos,
     dds_type_name,
@@ -66,7 +66,7 @@ from wire.rmw_zenoh import (
     parse_topic_key,
     topic_key,
 )
-from wire.ros2 import (
+from randt.wire.ros2 import (
     NAV_SAT_FIX,
     ODOMETRY,
     POINT_STAMPED,
@@ -82,7 +82,7 @@ from wire.ros2 import (
     transform_cdr,
     type_hash,
 )
-from wire.zenoh_config import zenoh_config
+from randt.wire.zenoh_config import zenoh_config
 
 __all__ = ["NODE_NAME", "Ros2Bridge", "vehicle_of_topic"]
 
@@ -104,7 +104,7 @@ MAX_GNSS_VEHICLES = 4096
 
 def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | None:
     """``(vehicle, namespace)`` of a PointCloud2 topic, or ``None`` when it is not one of
-    ``settings.topics``. :class:`~core.errors.BadMessageError` when it is one but names no vehicle
+    ``settings.topics``. :class:`~randt.core.errors.BadMessageError` when it is one but names no vehicle
     (no namespace and none given in ``settings.vehicles``, or a namespace that is not an id)."""
     for wanted in settings.topics:
         if wanted.startswith("/"):

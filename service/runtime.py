@@ -3,7 +3,7 @@
 ``Service.start()`` opens the store (restoring every map and session it holds), the session
 manager and the Zenoh transport; ``Service.stop()`` stops intake, drains the session queues,
 flushes tiles and session state to the store and closes Zenoh. The FastAPI app's lifespan
-(``service.app``) calls both, so ``randt serve`` stops cleanly on SIGTERM and SIGINT.
+(``randt.service.app``) calls both, so ``randt serve`` stops cleanly on SIGTERM and SIGINT.
 """
 
 from __future__ import annotations
@@ -14,15 +14,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.matchers import MatcherExecutor, single_threaded_blas
-from service.metrics import ServiceMetrics
-from service.ros2 import Ros2Bridge
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from service.transport import ZenohTransport
-from wire.messages import WireMessage, encode
-from wire.ros2 import Ros2Scan
+from randt.service.matchers import MatcherExecutor, single_threaded_blas
+from randt.service.metrics import ServiceMetrics
+from randt.service.ros2 import Ros2Bridge
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.service.transport import ZenohTransport
+from randt.wire.messages import WireMessage, encode
+from randt.wire.ros2 import Ros2Scan
 
 __all__ = ["Service"]
 

@@ -26,7 +26,7 @@ dropped from memory, to resume from the store with its next scan.
 
 **Snapshots, rarely**: the log is the trajectory's truth, so a running session's snapshot (its
 matcher state without the trajectory, :meth:`SessionMatcher.snapshot_state
-<service.matchers.SessionMatcher.snapshot_state>`, and its record) is written when the session
+<randt.service.matchers.SessionMatcher.snapshot_state>`, and its record) is written when the session
 opens, closes, expires, gives up its slot or the service stops, and in between only when one is
 due: ``snapshot_interval_s`` after the last (30 s), or once the vehicle is ``snapshot_distance_m``
 (20 m) from where the last was taken, so that a session resumed after a crash still matches
@@ -88,7 +88,7 @@ gaps from the stamps.
 **Frames**: a session whose first processed scan carries a prior pose (GNSS/INS) lives in the map
 frame and folds into the shared map (``default``). A session without priors has its own frame,
 starting at its first sweep, and its own map ``<vehicle>.<session>``
-(:func:`wire.ids.session_map_name`: the vehicle escaped so that no two sessions share a map) until
+(:func:`randt.wire.ids.session_map_name`: the vehicle escaped so that no two sessions share a map) until
 it can be placed;
 status reports which (``frame``: ``"map"`` or ``"session"``). The frame is fixed by the first scan
 the matcher *processes* (the first one received may be rejected), never by an earlier one.
@@ -108,9 +108,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import BadMessageError, ConflictError, NotFoundError, RandtError, UnavailableError
-from core.geo import GeoOrigin
-from core.odometry import (
+from randt.core.errors import BadMessageError, ConflictError, NotFoundError, RandtError, UnavailableError
+from randt.core.geo import GeoOrigin
+from randt.core.odometry import (
     MAP_SEED_MIN_POINTS,
     RELOCALIZED,
     PosePrior,
@@ -118,14 +118,14 @@ from core.odometry import (
     extend_state_dict,
     with_keyframe,
 )
-from core.tiles import Tile, TileGrid
-from service.agreement import AgreementGate, Held
-from service.capacity import Capacity, CapacityFigures
-from service.georef import MapProjections
-from service.graph import MapGeometry, ServiceGraph
-from service.graph_log import GRAPH_DIRNAME
-from service.intake import Intake
-from service.matchers import (
+from randt.core.tiles import Tile, TileGrid
+from randt.service.agreement import AgreementGate, Held
+from randt.service.capacity import Capacity, CapacityFigures
+from randt.service.georef import MapProjections
+from randt.service.graph import MapGeometry, ServiceGraph
+from randt.service.graph_log import GRAPH_DIRNAME
+from randt.service.intake import Intake
+from randt.service.matchers import (
     LocalMatcher,
     MapFrame,
     MatcherExecutor,
@@ -137,9 +137,9 @@ from service.matchers import (
     prior_of,
     with_trajectory,
 )
-from service.metrics import ServiceMetrics
-from service.settings import ServiceSettings
-from service.store import (
+from randt.service.metrics import ServiceMetrics
+from randt.service.settings import ServiceSettings
+from randt.service.store import (
     PoseLogRecord,
     ResumeSweep,
     SessionFrame,
@@ -148,10 +148,10 @@ from service.store import (
     load_counters,
     save_counters,
 )
-from service.store import SessionState as RecordState
-from wire.codes import ErrorCode
-from wire.ids import UNKNOWN_ID, session_map_name
-from wire.messages import (
+from randt.service.store import SessionState as RecordState
+from randt.wire.codes import ErrorCode
+from randt.wire.ids import UNKNOWN_ID, session_map_name
+from randt.wire.messages import (
     SCAN_V2,
     ErrorMessage,
     PoseMessage,
@@ -167,9 +167,9 @@ from wire.messages import (
     tile_update_from_arrays,
     tile_update_from_table,
 )
-from wire.ros2 import Ros2Scan
-from wire.ros2 import scan_header as ros2_scan_header
-from wire.ros2 import sweep_arrays as ros2_sweep_arrays
+from randt.wire.ros2 import Ros2Scan
+from randt.wire.ros2 import scan_header as ros2_scan_header
+from randt.wire.ros2 import sweep_arrays as ros2_sweep_arrays
 
 __all__ = [
     "DurableMap",
@@ -216,7 +216,7 @@ class MapInUseError(ConflictError):
 @dataclass
 class _Job:
     """A scan as the service process holds it: its header, and the payload's bytes, which only
-    the session's matcher decodes (wire.messages.decode_scan_header)."""
+    the session's matcher decodes (randt.wire.messages.decode_scan_header)."""
 
     scan: ScanHeader
     received_ns: int
@@ -605,7 +605,7 @@ class SessionWorker:
         return graph.fold_target(info.vehicle, info.session, info.map_name)
 
     def _map_frame(self, seed_xyz: np.ndarray | None = None, prior: PosePrior | None = None) -> MapFrame:
-        """Where this sweep's map points go (:class:`~service.matchers.MapFrame`): the matcher
+        """Where this sweep's map points go (:class:`~randt.service.matchers.MapFrame`): the matcher
         moves them by the correction and sends only voxels it has not sent to this map's content
         (``seed_xyz``: :meth:`_map_seed`; ``prior``: a WGS84 prior placed in the map)."""
         C, fold_map = self._fold_target()
@@ -925,7 +925,7 @@ class SessionManager:
         # (an executor given: e.g. bench/main_process.py's stand-in that answers at once)
         self.pool: MatcherExecutor | None = executor
         if executor is None and settings.executor == "ray":
-            from service.ray_executor import RayMatcherPool  # the ray extra
+            from randt.service.ray_executor import RayMatcherPool  # the ray extra
 
             self.pool = RayMatcherPool(settings.ray_address, settings.ray_transport)
         elif executor is None and n_procs > 0:
@@ -1291,7 +1291,7 @@ class SessionManager:
         *,
         count: bool = True,
     ) -> None:
-        """Answer one scan with an error (``code``: an :class:`~wire.codes.ErrorCode`; a refusal
+        """Answer one scan with an error (``code``: an :class:`~randt.wire.codes.ErrorCode`; a refusal
         that passes says when to send again, ``retry_after_s``) on its vehicle's error key and
         count it."""
         if count:
@@ -1384,7 +1384,7 @@ class SessionManager:
     def prior_in_map(self, scan: ScanHeader) -> PosePrior | None:
         """The scan's prior in the map frame: its ``prior``, or its ``geo_prior`` placed in the
         shared map through that map's geodetic origin (service/georef.py; raises
-        :class:`~core.errors.BadMessageError` ``invalid_prior`` when it cannot be)."""
+        :class:`~randt.core.errors.BadMessageError` ``invalid_prior`` when it cannot be)."""
         if scan.geo_prior is None:
             return prior_of(scan)
         name = self.settings.default_map
@@ -1641,7 +1641,7 @@ class SessionManager:
                 self.outbox(self.tile_message(map_name, tile))
 
     def tile_message(self, map_name: str, tile: Tile) -> TileUpdateMessage:
-        """The :class:`~wire.messages.TileUpdateMessage` of a saved tile, with its digest (which
+        """The :class:`~randt.wire.messages.TileUpdateMessage` of a saved tile, with its digest (which
         its ETag names too: computed once, cached). The grid checked its points when they were
         inserted, so the message is built from its table without checking them again."""
         message = tile_update_from_table(
@@ -1824,7 +1824,7 @@ class SessionManager:
 
     def saturated(self) -> bool:
         """Whether the node is past what admission may fill (the running sessions' measured load
-        above 1, :class:`~service.capacity.CapacityFigures`; always without capacity admission):
+        above 1, :class:`~randt.service.capacity.CapacityFigures`; always without capacity admission):
         only then does a session that is behind let its keyframe model lag (:data:`BEHIND_DEPTH`).
         Within capacity a backlog clears by itself, and a session whose model never lags gets the
         offline matcher's poses to the digit."""
@@ -1999,14 +1999,14 @@ def queue_label(vehicle: str, session: str) -> str:
 
 
 def tile_message(map_name: str, grid: TileGrid, tile_id: str) -> TileUpdateMessage:
-    """The current :class:`~wire.messages.TileUpdateMessage` of one tile of a grid (offline use;
+    """The current :class:`~randt.wire.messages.TileUpdateMessage` of one tile of a grid (offline use;
     the service publishes saved tiles only: :meth:`SessionManager.tile_message`)."""
     tile = grid.get(tile_id)
     return tile_update_from_arrays(map_name, tile.ix, tile.iy, tile.version, tile.points, tile.intensity)
 
 
 def tile_digest(tile: Tile) -> str:
-    """The digest of a tile's content: :func:`wire.messages.points_digest` of its float32
+    """The digest of a tile's content: :func:`randt.wire.messages.points_digest` of its float32
     ``x y z intensity`` table, as its tile update carries it and its ETag names it."""
     return points_digest(np.ascontiguousarray(tile.xyzi, dtype="<f4").tobytes())
 

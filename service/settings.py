@@ -3,16 +3,16 @@
 Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
 flags (``randt serve --help``) override the environment. ``RANDT_ZENOH_CONFIG`` names a native
 Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here.
-Settings are built in the app factory (``service.runtime.Service``), never at import time.
+Settings are built in the app factory (``randt.service.runtime.Service``), never at import time.
 
 Every session's matcher gets two nested groups, one environment variable per field with ``__``
 between group and field:
 
-* ``matcher`` (:class:`core.odometry.MatcherSettings`): ``RANDT_MATCHER__MAX_RANGE_M=80``,
+* ``matcher`` (:class:`randt.core.odometry.MatcherSettings`): ``RANDT_MATCHER__MAX_RANGE_M=80``,
   ``RANDT_MATCHER__VOXEL_SIZES_M='[8, 4, 2, 1]'`` (JSON for tuples);
-* ``registration`` (:class:`core.config.RegistrationSettings`, what the matcher's NDT uses):
+* ``registration`` (:class:`randt.core.config.RegistrationSettings`, what the matcher's NDT uses):
   ``RANDT_REGISTRATION__MAX_ITERATIONS=20``. Fields not given keep the *matcher's* defaults
-  (:data:`core.odometry.MATCHER_REGISTRATION`: Algorithm 1 and 3 off), not pairwise
+  (:data:`randt.core.odometry.MATCHER_REGISTRATION`: Algorithm 1 and 3 off), not pairwise
   registration's.
 
 A whole group can also be given as one JSON object (``RANDT_MATCHER='{"max_range_m": 80}'``).
@@ -27,11 +27,11 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from core.config import RegistrationSettings
-from core.fleet_map import FleetMapSettings
-from core.odometry import MATCHER_REGISTRATION, MatcherSettings
-from wire.ids import ID_REGEX
-from wire.zenoh_config import check_endpoints, check_protocols, load_config_file
+from randt.core.config import RegistrationSettings
+from randt.core.fleet_map import FleetMapSettings
+from randt.core.odometry import MATCHER_REGISTRATION, MatcherSettings
+from randt.wire.ids import ID_REGEX
+from randt.wire.zenoh_config import check_endpoints, check_protocols, load_config_file
 
 __all__ = ["Ros2Settings", "ServiceSettings"]
 
@@ -284,7 +284,7 @@ class ServiceSettings(BaseSettings):
         default="default",
         pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
         description="the shared map (sessions with prior poses); an id without a dot, since every "
-        "session's own map has one (wire.ids.session_map_name)",
+        "session's own map has one (randt.wire.ids.session_map_name)",
     )
     map_origin: tuple[float, float, float] | None = Field(
         default=None,
@@ -377,7 +377,7 @@ class ServiceSettings(BaseSettings):
         "None: on with the local executor, off with Ray (the matchers are elsewhere)",
     )
     fleet_map: FleetMapSettings = Field(
-        default_factory=FleetMapSettings, description="the pose graph's settings (core.fleet_map)"
+        default_factory=FleetMapSettings, description="the pose graph's settings (randt.core.fleet_map)"
     )
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)

@@ -5,7 +5,7 @@ Layout
 ::
 
     DATA/.randt-store.lock                       held (flock) while a Store has DATA open
-    DATA/maps/<map>/<ix>_<iy>.pcd                Autoware divided map, as core.tiles writes it
+    DATA/maps/<map>/<ix>_<iy>.pcd                Autoware divided map, as randt.core.tiles writes it
     DATA/maps/<map>/pointcloud_map_metadata.yaml
     DATA/maps/<map>/randt_tile_grid.yaml
     DATA/sessions/<vehicle>/<session>/matcher.npz      the last snapshot: matcher state + commit record
@@ -16,7 +16,7 @@ Layout
     DATA/sessions/<vehicle>/<session>/resume.npz       a recent sweep at its logged pose (resuming)
     DATA/map-versions/<map>                            version floor of a deleted map's name
 
-Map, vehicle and session names are ids (:mod:`wire.ids`: letters, digits, ``_ . -``, at most 64
+Map, vehicle and session names are ids (:mod:`randt.wire.ids`: letters, digits, ``_ . -``, at most 64
 characters, starting with a letter or digit); every path is built from checked names only.
 
 A session's trajectory
@@ -39,18 +39,18 @@ snapshot moves those poses into a segment (once).
 Crash safety
 ------------
 Every file but the pose log and ``trajectory.tum`` (both appended to) is replaced atomically
-(:mod:`core.io.atomic`: temporary file, fsync, rename, fsync of the directory), so a reader, or a
+(:mod:`randt.core.io.atomic`: temporary file, fsync, rename, fsync of the directory), so a reader, or a
 restart after a crash, sees each file whole: its old or its new content. What spans several files
 is ordered:
 
-* **maps** (:meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`): sidecar, changed
+* **maps** (:meth:`TileGrid.write_tiles <randt.core.tiles.TileGrid.write_tiles>`): sidecar, changed
   tiles, metadata last; the metadata never names a tile file that does not exist.
 * **sessions**: a pose is in the log before it is acknowledged. A snapshot writes (1) the
   commit's own poses into a segment (fsync'd, renamed into place), if it has any; (2) the log's
   rename into a segment, if due (after a conversion, the records a segment already holds are
   first dropped from the log by an atomic replace); (3) ``matcher.npz``, the *commit*: the matcher
   state (any arrays, whatever the matcher; the service leaves the trajectory out,
-  :func:`service.matchers.without_trajectory`) and, under keys starting with ``_store_``, the
+  :func:`randt.service.matchers.without_trajectory`) and, under keys starting with ``_store_``, the
   record; (4) the views for people and other tools: ``trajectory.tum`` (the commit's poses; the
   rows since the last snapshot are appended; it appears with the first scan) and
   ``session.json``. Steps 1 and 2 only move poses between files (a crash between leaves them in
@@ -115,10 +115,10 @@ from pydantic import (
 )
 from scipy.spatial.transform import Rotation
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
-from core.io import atomic_write_bytes, read_tum, write_tum
-from core.io.atomic import append_durably, atomic_open, fsync_directory
-from core.io.autoware import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
+from randt.core.io import atomic_write_bytes, read_tum, write_tum
+from randt.core.io.atomic import append_durably, atomic_open, fsync_directory
+from randt.core.io.autoware import (
     AUTOWARE_METADATA_NAME,
     GRID_SIDECAR_NAME,
     make_directory,
@@ -126,8 +126,8 @@ from core.io.autoware import (
     read_sidecar,
     write_projector_info,
 )
-from core.tiles import Tile, TileGrid, load_autoware
-from wire.ids import legacy_session_map_name, session_map_name, validate_id
+from randt.core.tiles import Tile, TileGrid, load_autoware
+from randt.wire.ids import legacy_session_map_name, session_map_name, validate_id
 
 try:  # POSIX; elsewhere the store runs without the single-process guard
     import fcntl
@@ -180,7 +180,7 @@ SessionFrame = Literal["map", "session"]
 PoseStatus = Literal["first", "ok", "fallback"]
 ProblemKind = Literal["map", "session", "entry"]
 
-# core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
+# randt.core.io.atomic names its temporary files tempfile.mkstemp(prefix=f".{target}.", suffix=".tmp"),
 # in the target's directory. No name the store writes starts with a dot (ids, fixed names).
 _TEMP_FILE_RE = re.compile(r"^\..+\.tmp$")
 _DELETED_PREFIX = ".deleted-"  # maps/.deleted-<name>-...: a delete_map that did not finish
@@ -208,7 +208,7 @@ class SessionRecord(BaseModel):
     Attributes
     ----------
     vehicle, session:
-        Names (ids, :mod:`wire.ids`); the session lives in ``sessions/<vehicle>/<session>/``.
+        Names (ids, :mod:`randt.wire.ids`); the session lives in ``sessions/<vehicle>/<session>/``.
     map:
         The map the session's scans go into, or ``None``.
     state:
@@ -281,7 +281,7 @@ class LoadedSession(NamedTuple):
         (N, 4, 4) float64 ``T_frame_sensor`` (``record.frame`` names the frame).
     state:
         The matcher state as saved (name -> array), for
-        :meth:`IncrementalMatcher.load_state_dict <core.odometry.IncrementalMatcher.load_state_dict>`.
+        :meth:`IncrementalMatcher.load_state_dict <randt.core.odometry.IncrementalMatcher.load_state_dict>`.
     """
 
     record: SessionRecord
@@ -862,7 +862,7 @@ class Store:
         Raises
         ------
         ValueError
-            ``map_name`` is not a valid name (:func:`wire.ids.validate_id`).
+            ``map_name`` is not a valid name (:func:`randt.wire.ids.validate_id`).
         """
         return self._maps / validate_id(map_name, "map")
 
@@ -872,7 +872,7 @@ class Store:
         Raises
         ------
         ValueError
-            ``vehicle`` or ``session`` is not a valid name (:func:`wire.ids.validate_id`).
+            ``vehicle`` or ``session`` is not a valid name (:func:`randt.wire.ids.validate_id`).
         """
         return self._sessions / validate_id(vehicle, "vehicle") / validate_id(session, "session")
 
@@ -883,14 +883,14 @@ class Store:
     ) -> list[str]:
         """Persist a map after an update, rewriting only the tiles that changed.
 
-        Uses :meth:`TileGrid.write_tiles <core.tiles.TileGrid.write_tiles>`: sidecar, the changed
+        Uses :meth:`TileGrid.write_tiles <randt.core.tiles.TileGrid.write_tiles>`: sidecar, the changed
         tiles (and any tile whose file is missing), metadata last, each file atomically. An empty
         grid writes nothing.
 
         Parameters
         ----------
         map_name:
-            The map's name (an id, :mod:`wire.ids`).
+            The map's name (an id, :mod:`randt.wire.ids`).
         grid:
             The map.
         changed_ids:
@@ -1075,7 +1075,7 @@ class Store:
         matcher_state:
             The matcher's state (any name -> numeric array; names must not start with
             ``_store_``), returned as saved by :meth:`load_session`. The service leaves the
-            trajectory out of it (:func:`service.matchers.without_trajectory`).
+            trajectory out of it (:func:`randt.service.matchers.without_trajectory`).
         first_index:
             Index of the first pose given: the store must hold the poses before it already
             (the service gives those since its last snapshot, all of them logged).
@@ -1475,7 +1475,7 @@ class Store:
         Before, a session's own map was ``<vehicle>.<session>``, which collided (vehicle ``col.a``
         + session ``b`` and vehicle ``col`` + session ``a.b`` shared ``col.a.b``). Each stored
         session in its own frame whose record names that legacy map
-        (:func:`wire.ids.legacy_session_map_name`) moves to :func:`wire.ids.session_map_name`:
+        (:func:`randt.wire.ids.legacy_session_map_name`) moves to :func:`randt.wire.ids.session_map_name`:
 
         1. the map directory is renamed (one atomic step) when this session is its only user,
            else copied (into a temporary directory, fsync'd, renamed): a map two sessions were
@@ -1874,7 +1874,7 @@ def _assemble(segments: _Poses, own: _Poses | None, log: _Poses, what: str) -> _
 
 
 def _tum_rows(stamps: np.ndarray, poses: np.ndarray) -> str:
-    """Rows of a TUM trajectory as :func:`core.io.write_tum` writes them (``%.9f`` stamps, 17
+    """Rows of a TUM trajectory as :func:`randt.core.io.write_tum` writes them (``%.9f`` stamps, 17
     significant digits, canonical quaternions), to append to one."""
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat(canonical=True)  # (x, y, z, w)
     buffer = io.StringIO()

@@ -11,8 +11,8 @@
 - a liveliness token ``randt/service/<instance>`` while the instance runs;
 - a queryable on ``randt/map/*/tile/*`` answering with the tile's current update message.
 
-The key expressions come from :mod:`wire.keys`, the session's configuration from
-:mod:`wire.zenoh_config`. Peer mode listening on 127.0.0.1 is the embedded default (no router).
+The key expressions come from :mod:`randt.wire.keys`, the session's configuration from
+:mod:`randt.wire.zenoh_config`. Peer mode listening on 127.0.0.1 is the embedded default (no router).
 Multicast scouting is off: peers and routers are reached through explicit endpoints only.
 ``settings.zenoh_config`` (``--zenoh-config``) adds a native Zenoh config file: TLS, user/password
 and access control (``docs/security.md``).
@@ -29,10 +29,10 @@ from collections.abc import Callable
 
 import zenoh
 
-from service.settings import ServiceSettings
-from wire.keys import ALL_SCANS, ALL_TILES, key_for, service_token_key, tile_of_key, vehicle_of_scan_key
-from wire.messages import ErrorMessage, PoseMessage, WireMessage, encode
-from wire.zenoh_config import zenoh_config
+from randt.service.settings import ServiceSettings
+from randt.wire.keys import ALL_SCANS, ALL_TILES, key_for, service_token_key, tile_of_key, vehicle_of_scan_key
+from randt.wire.messages import ErrorMessage, PoseMessage, WireMessage, encode
+from randt.wire.zenoh_config import zenoh_config
 
 __all__ = ["ZenohTransport"]
 

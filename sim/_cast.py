@@ -1,12 +1,12 @@
 """The ray caster's inner loop, compiled (numba): each (chunk of rays, candidate primitive) pair.
 
-:func:`sim.lidar.cast_rays` culls primitives per chunk of coherent rays with numpy; what is left is
+:func:`randt.sim.lidar.cast_rays` culls primitives per chunk of coherent rays with numpy; what is left is
 a few million (ray, primitive) pairs a sweep. Intersected with numpy, each pair went through
 about forty temporary arrays (gathers of the rays and the primitives' parameters, then the slab
 or quadratic arithmetic) and the casting was three quarters of the simulator's cost (75 of 93 ms
 a 64 x 1000 sweep); here each pair is a few dozen flops in registers and the nearest hit per ray
-is kept as it goes. The arithmetic is that of :func:`sim.lidar.intersect_boxes`,
-:func:`~sim.lidar.intersect_cylinders` and :func:`~sim.lidar.intersect_spheres`, operation for
+is kept as it goes. The arithmetic is that of :func:`randt.sim.lidar.intersect_boxes`,
+:func:`~randt.sim.lidar.intersect_cylinders` and :func:`~randt.sim.lidar.intersect_spheres`, operation for
 operation (``tests/sim/test_sim.py`` checks the two against each other), and among equally near
 hits the last visited wins, as it did.
 """
@@ -28,7 +28,7 @@ CYLINDER = 1
 #: spheres: centre x, y, z, radius.
 SPHERE = 2
 
-_EPS_T = 1e-9  # as sim.lidar's: hits closer than this along the ray are ignored
+_EPS_T = 1e-9  # as randt.sim.lidar's: hits closer than this along the ray are ignored
 
 
 @nb.njit(cache=True, inline="always")
@@ -148,7 +148,7 @@ def nearest_hits(
 def chunk_stats(
     origins: np.ndarray, dirs: np.ndarray, chunk_rays: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per block of ``chunk_rays`` consecutive rays (:class:`sim.lidar._ChunkStats`' fields, in
+    """Per block of ``chunk_rays`` consecutive rays (:class:`randt.sim.lidar._ChunkStats`' fields, in
     order): first and one-past-last ray, mean origin, the origins' largest distance from it, the
     unit mean horizontal direction, the largest angle of a ray's horizontal direction from it
     (pi for a block with a vertical ray or whose directions spread over more than a half turn),

@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
 
 __all__ = [
     "FleetVehicle",
@@ -693,7 +693,7 @@ class SimScan:
     ring:
         (N,) uint8 beam index, 0 = highest.
     label:
-        (N,) uint8 :class:`~sim.town.Material` of the surface each point lies on.
+        (N,) uint8 :class:`~randt.sim.town.Material` of the surface each point lies on.
     deskewed:
         Which frame ``points_xyz`` are in (above).
     route_s_m:
@@ -904,7 +904,7 @@ def plan_fleet(
     ``shared`` (closed routes): every vehicle drives the first vehicle's rectangle, the same way
     round, from the same start (a depot): each drives the streets the ones before it mapped
     (places shared between sessions; loops within a session after a lap). When each leaves is
-    the caller's (``clients.fleet``: one after another).
+    the caller's (``randt.clients.fleet``: one after another).
     """
     if n_vehicles < 1:
         raise ValueError("n_vehicles must be >= 1")

@@ -1,4 +1,4 @@
-"""Vectorized ray casting against a :class:`~sim.town.Town`, and an HDL-64E-like sensor.
+"""Vectorized ray casting against a :class:`~randt.sim.town.Town`, and an HDL-64E-like sensor.
 
 Ray-primitive intersections
 ---------------------------
@@ -22,7 +22,7 @@ computes the mean origin and the origins' spread, the mean horizontal direction 
 azimuth deviation, and the elevation range. A primitive is a candidate of a chunk only if its
 vertical bounding cylinder, inflated by the origin spread, overlaps the chunk's azimuth wedge and
 elevation band within the maximum range (a conservative test: no hit is lost). The surviving
-(chunk, primitive) pairs go to a compiled loop (:mod:`sim._cast`, numba) that intersects each of
+(chunk, primitive) pairs go to a compiled loop (:mod:`randt.sim._cast`, numba) that intersects each of
 the chunk's rays with the primitive and keeps the nearest hit per ray, with the arithmetic of the
 functions above; there is no Python loop over rays or points.
 
@@ -46,8 +46,8 @@ from functools import cached_property
 
 import numpy as np
 
-from sim._cast import BOX, CYLINDER, SPHERE, chunk_stats, nearest_hits
-from sim.town import Boxes, Cylinders, PrimitiveBounds, Spheres, Town
+from randt.sim._cast import BOX, CYLINDER, SPHERE, chunk_stats, nearest_hits
+from randt.sim.town import Boxes, Cylinders, PrimitiveBounds, Spheres, Town
 
 __all__ = [
     "NO_RETURN",
@@ -237,7 +237,7 @@ class RayHits:
         (M,) float64 distance along the ray (m); ``inf`` where there is no return (no surface within
         the maximum range, or the nearest one closer than the minimum range).
     material:
-        (M,) uint8 :class:`~sim.town.Material` of the surface hit; ``NO_RETURN`` for none.
+        (M,) uint8 :class:`~randt.sim.town.Material` of the surface hit; ``NO_RETURN`` for none.
     reflectivity:
         (M,) float64 in [0, 1] of the surface hit (0 for none).
     cos_incidence:
@@ -370,7 +370,7 @@ def cast_rays(
 
 
 def _kernel_params(prim: Boxes | Cylinders | Spheres) -> np.ndarray:
-    """``prim``'s parameters as :func:`sim._cast.nearest_hits` reads them, one row a primitive."""
+    """``prim``'s parameters as :func:`randt.sim._cast.nearest_hits` reads them, one row a primitive."""
     if isinstance(prim, Boxes):
         yaw = prim.yaw_rad
         return np.column_stack((prim.centre_xyz, prim.half_extents_xyz, np.cos(yaw), np.sin(yaw)))
@@ -401,7 +401,7 @@ class Sweep:
     ring:
         (N,) uint8 beam index, 0 = highest elevation.
     label:
-        (N,) uint8 :class:`~sim.town.Material` of the surface hit.
+        (N,) uint8 :class:`~randt.sim.town.Material` of the surface hit.
     range_m:
         (N,) float64 measured range (with noise), metres.
     """

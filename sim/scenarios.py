@@ -2,9 +2,9 @@
 
 :func:`run_mapping_fleet` drives a fleet through a town on overlapping closed routes (each
 vehicle more than one lap: loops within a session, and streets shared between sessions), runs one
-incremental matcher (core.odometry) per vehicle on its sweeps, feeds a keyframe every
-``keyframe_distance_m`` with a GNSS fix (sim.gnss; some vehicles have none) into
-:class:`core.fleet_map.FleetMapper`, and scores the result against the simulator's poses:
+incremental matcher (randt.core.odometry) per vehicle on its sweeps, feeds a keyframe every
+``keyframe_distance_m`` with a GNSS fix (randt.sim.gnss; some vehicles have none) into
+:class:`randt.core.fleet_map.FleetMapper`, and scores the result against the simulator's poses:
 
 - the shared map's ATE: the RMS keyframe position error after one rigid alignment of the whole
   map to the truth (the map's own consistency, as evo's ``--align``; a GNSS bias common to the
@@ -25,14 +25,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.fleet_map import FleetMapper, FleetMapSettings, Key, LoopRecord, level
-from core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
-from core.transforms import invert, transform_error, umeyama
-from core.voxel import voxel_downsample
-from sim.drive import Motion, plan_fleet, simulate_fleet
-from sim.gnss import GnssReceiver
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.core.fleet_map import FleetMapper, FleetMapSettings, Key, LoopRecord, level
+from randt.core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
+from randt.core.transforms import invert, transform_error, umeyama
+from randt.core.voxel import voxel_downsample
+from randt.sim.drive import Motion, plan_fleet, simulate_fleet
+from randt.sim.gnss import GnssReceiver
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
 
 __all__ = ["MappingRun", "run_mapping_fleet"]
 
@@ -120,7 +120,7 @@ def run_mapping_fleet(
     in ``without_gnss``; the others have ``gnss_noise_m`` white noise, a ``gnss_bias_m`` wandering
     bias, 1 % multipath jumps and one outage ``gnss_outage_s`` (seconds after their start).
     ``sim_workers``: processes per vehicle that ray cast its sweeps ahead, beside the odometry and
-    the mapping (:func:`sim.drive.simulate`'s ``workers``; 0: in this process, one at a time)."""
+    the mapping (:func:`randt.sim.drive.simulate`'s ``workers``; 0: in this process, one at a time)."""
     town = Town.generate(seed)
     fleet = plan_fleet(town, n_vehicles, seed=seed, route_length_m=route_length_m, rate_hz=rate_hz)
     n_scans = int(np.ceil(laps * min(Motion(v.route, speed_mps).lap_time_s for v in fleet) * rate_hz))

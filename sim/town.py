@@ -16,7 +16,7 @@ centre 1.75 m from the centreline), a parking lane along each kerb and a sidewal
 poles and trees stand on the sidewalk; parked cars in the parking lanes, never in intersections.
 
 Geometry is stored as numpy arrays per primitive type (:class:`Boxes`, :class:`Cylinders`,
-:class:`Spheres`), which is what the vectorized ray caster in :mod:`sim.lidar` consumes.
+:class:`Spheres`), which is what the vectorized ray caster in :mod:`randt.sim.lidar` consumes.
 Every primitive carries a :class:`Material` (the label of the points that hit it) and a
 reflectivity in [0, 1] (the base of the simulated intensity).
 """

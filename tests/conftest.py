@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from core.shared_data import DATA_DIR_ENV_VAR, data_root
+from randt.core.shared_data import DATA_DIR_ENV_VAR, data_root
 from tests.data import require_data
 
 __all__ = ["DATA_DIR_ENV_VAR", "data_dir", "data_root", "require_data"]

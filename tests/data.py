@@ -1,6 +1,6 @@
 """The shared real data set for tests: skip when it is absent, or fail under ``CI=true``.
 
-Where the data are and how to load them is :mod:`core.shared_data`'s (the benchmarks read them
+Where the data are and how to load them is :mod:`randt.core.shared_data`'s (the benchmarks read them
 without pytest); this module only turns a missing file into a skip or, in CI, a failure.
 """
 
@@ -14,8 +14,8 @@ from typing import NoReturn, ParamSpec, TypeVar
 
 import pytest
 
-from core.errors import NotFoundError
-from core.shared_data import require
+from randt.core.errors import NotFoundError
+from randt.core.shared_data import require
 
 __all__ = ["require_data", "skip_if_missing"]
 
@@ -54,7 +54,7 @@ def require_data(*relative_paths: str) -> Path:
 
 
 def skip_if_missing(loader: Callable[P, R]) -> Callable[P, R]:
-    """``loader`` (a :mod:`core.shared_data` loader), skipping (failing in CI) on missing data."""
+    """``loader`` (a :mod:`randt.core.shared_data` loader), skipping (failing in CI) on missing data."""
 
     @functools.wraps(loader)
     def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:

@@ -1,4 +1,4 @@
-"""The shared real scan pairs (:mod:`core.shared_data`) with the tests' accuracy bounds.
+"""The shared real scan pairs (:mod:`randt.core.shared_data`) with the tests' accuracy bounds.
 
 Each loader returns ``(source_xyz, target_xyz, T_target_source_reference)`` in the convention
 ``p_target = T @ p_source``; missing data skip the test (fail under ``CI=true``, :mod:`tests.data`).
@@ -6,7 +6,7 @@ Each loader returns ``(source_xyz, target_xyz, T_target_source_reference)`` in t
 
 from __future__ import annotations
 
-from core import shared_data
+from randt.core import shared_data
 from tests.data import skip_if_missing
 
 small_gicp = skip_if_missing(shared_data.small_gicp)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from core.io import read_cloud
+from randt.core.io import read_cloud
 
 KINDS = ("sqlite3", "mcap", "rosbag1")
 TOPIC = "/robot7/lidar/points"

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from bench.corpus import DEFAULT_OUT, generate, manifest_text, write
-from cli.errors import ExitCode
-from wire.codes import ErrorCode
+from randt.cli.errors import ExitCode
+from randt.wire.codes import ErrorCode
 
 CORPUS = DEFAULT_OUT
 

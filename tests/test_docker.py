@@ -27,14 +27,14 @@ import typer
 import yaml
 from typer.main import get_command
 
-from cli.main import app as randt_app
-from cli.serve import SETTINGS_OPTIONS, with_ros2
-from clients.publisher import PublisherSettings
-from service.app import create_app
-from service.settings import ServiceSettings
+from randt.cli.main import app as randt_app
+from randt.cli.serve import SETTINGS_OPTIONS, with_ros2
+from randt.clients.publisher import PublisherSettings
+from randt.service.app import create_app
+from randt.service.settings import ServiceSettings
+from randt.wire.zenoh_config import zenoh_config
 from tests.service.api_server import live_server
 from tests.service.conftest import free_port
-from wire.zenoh_config import zenoh_config
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = REPO / "docker" / "compose.yaml"
@@ -364,7 +364,7 @@ def test_the_cluster_profile_runs_a_ray_head_and_workers(monkeypatch: pytest.Mon
     """Profile ``cluster``: a head that schedules (0 CPUs: no matcher host lands on it), workers
     that join it (one host per CPU), both with the per-call settings of a local Ray (sweeps
     inline, no task events), and the service a Ray Client of the head once ``RANDT_EXECUTOR=ray``."""
-    from service.ray_executor import RAY_ENV
+    from randt.service.ray_executor import RAY_ENV
 
     compose = _compose()
     head, worker = compose["services"]["ray-head"], compose["services"]["ray-worker"]
@@ -404,7 +404,7 @@ def test_the_tls_override_mounts_what_randt_security_init_writes(
     writes into the directory both containers mount (at the same path, as the configs name their
     files by absolute path); the service dials the router by its compose name over TLS on the
     port the router listens on and publishes; the settings accept it all."""
-    from wire.zenoh_security import write_deployment
+    from randt.wire.zenoh_security import write_deployment
 
     override = yaml.safe_load((REPO / "docker" / "compose.tls.yaml").read_text())
     validator = jsonschema.Draft7Validator(_schema())
@@ -526,7 +526,17 @@ def test_dockerignore_sends_the_sources_and_nothing_else() -> None:
     _, stages = _dockerfile_stages()
     copied = [shlex.split(rest)[:-1] for stage in stages for word, rest in stage if word == "COPY"]
     sources = [src for args in copied if not any(a.startswith("--from") for a in args) for src in args]
-    assert {"pyproject.toml", "README.md", "core", "wire", "sim", "service", "clients", "cli"} <= set(sources)
+    assert {
+        "pyproject.toml",
+        "README.md",
+        "randt",
+        "core",
+        "wire",
+        "sim",
+        "service",
+        "clients",
+        "cli",
+    } <= set(sources)
     needed = []
     for src in sources:
         p = REPO / src

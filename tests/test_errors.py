@@ -9,14 +9,10 @@ import pickle
 import numpy as np
 import pytest
 
-import cli.errors
-import clients.rest
-import core.datasets
-import service.matchers
-import service.ray_executor
-import service.sessions
-import service.store
-from core.errors import (
+from randt.cli import errors as cli_errors
+from randt.clients import rest as clients_rest
+from randt.core import datasets as core_datasets
+from randt.core.errors import (
     AuthError,
     BadMessageError,
     ConflictError,
@@ -30,6 +26,10 @@ from core.errors import (
     RegistrationFailedError,
     UnavailableError,
 )
+from randt.service import matchers as service_matchers
+from randt.service import ray_executor as service_ray_executor
+from randt.service import sessions as service_sessions
+from randt.service import store as service_store
 
 
 def _subclasses(cls: type) -> set[type]:
@@ -55,19 +55,19 @@ def _examples() -> list[RandtError]:
         InvalidRequestError("bbox is inverted"),
         NotFoundError("tile '3_4' of map 'm' not found", resource="tile", ident="3_4"),
         ConflictError("busy"),
-        service.sessions.MapInUseError("map 'default' is in use by 1 running session(s)"),
+        service_sessions.MapInUseError("map 'default' is in use by 1 running session(s)"),
         AuthError("wrong bearer token", challenge='Bearer error="invalid_token"'),
         ForbiddenError("mutating endpoints are disabled"),
         UnavailableError("the service is not running"),
-        service.matchers.MatcherProcessError("in matcher process pid 7: Boom: x"),
-        service.matchers.MatcherProcessDiedError("matcher process 1 (pid 7) died"),
-        service.ray_executor.ConfigurationError('executor "ray" needs the ray package'),
-        service.store.DataDirInUseError("data directory d is already open in another process"),
-        core.datasets.NoScansError("d: no scan files (.bin .pcd .ply)"),
-        cli.errors.PortInUseError("HTTP port 8080 on 127.0.0.1 is in use"),
-        cli.errors.WrongInputError("d is a directory, a file is expected"),
-        clients.rest.ApiError(500, "Internal Server Error", "http://127.0.0.1:8080/maps"),
-        clients.rest.ApiNotFoundError(404, "map 'x' not found", "http://127.0.0.1:8080/maps/x"),
+        service_matchers.MatcherProcessError("in matcher process pid 7: Boom: x"),
+        service_matchers.MatcherProcessDiedError("matcher process 1 (pid 7) died"),
+        service_ray_executor.ConfigurationError('executor "ray" needs the ray package'),
+        service_store.DataDirInUseError("data directory d is already open in another process"),
+        core_datasets.NoScansError("d: no scan files (.bin .pcd .ply)"),
+        cli_errors.PortInUseError("HTTP port 8080 on 127.0.0.1 is in use"),
+        cli_errors.WrongInputError("d is a directory, a file is expected"),
+        clients_rest.ApiError(500, "Internal Server Error", "http://127.0.0.1:8080/maps"),
+        clients_rest.ApiNotFoundError(404, "map 'x' not found", "http://127.0.0.1:8080/maps/x"),
     ]
 
 
@@ -97,7 +97,7 @@ def test_every_error_survives_pickling_with_its_type_message_and_attributes(exc:
 def test_attributes_that_pickling_used_to_lose_come_back() -> None:
     """An __init__ whose arguments are not its ``args`` (ApiError formats three into one message)
     could not be rebuilt by the default pickling: ``cls(*args)`` raised TypeError."""
-    err = clients.rest.ApiNotFoundError(404, "map 'x' not found", "http://h/maps/x")
+    err = clients_rest.ApiNotFoundError(404, "map 'x' not found", "http://h/maps/x")
     back = pickle.loads(pickle.dumps(err))
     assert (back.status, back.detail, back.url) == (404, "map 'x' not found", "http://h/maps/x")
     assert isinstance(back, NotFoundError) and str(back) == "HTTP 404 from http://h/maps/x: map 'x' not found"

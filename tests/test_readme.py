@@ -22,7 +22,7 @@ def test_the_readme_starts_with_exactly_the_two_commands() -> None:
     ci = (ROOT / ".ci" / "run").read_text()
     assert "python -m pytest -q" in ci and 'pip install --quiet -e ".[test]"' in ci
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["scripts"]["randt"].startswith("cli")  # `randt demo` is this package's command
+    assert project["scripts"]["randt"].startswith("randt.cli")  # `randt demo` is this package's command
     assert "test" in project["optional-dependencies"]
 
 

@@ -6,7 +6,7 @@ and the vehicle library (``clients/``) both import it and neither redefines any 
 
 Contents
 --------
-:mod:`wire.messages`
+:mod:`randt.wire.messages`
     The messages (:class:`ScanMessage`, :class:`PoseMessage`, :class:`ErrorMessage`,
     :class:`TileUpdateMessage`, :class:`CorrectionMessage`), their schema version
     :data:`SCHEMA_VERSION`, the compact v2 scan (:class:`CompactScanMessage`,
@@ -14,37 +14,37 @@ Contents
     the decoder limits :class:`WireLimits`, :func:`encode`, the ``decode_*`` functions (``decode_scan``
     reads v1 and v2), :func:`peek_ids` / :func:`peek_seq`, and the senders' helpers
     (:func:`scan_from_arrays`, ...).
-:mod:`wire.packing`
+:mod:`randt.wire.packing`
     The bodies of a v2 scan: the ``delta-zigzag-planar`` layout of integer columns, zstd
     compression and bounded decompression.
-:mod:`wire.keys`
+:mod:`randt.wire.keys`
     Every key expression: :func:`scan_key`, :func:`pose_key`, :func:`error_key`, :func:`tile_key`,
     :func:`correction_key`, :func:`service_token_key`, the wildcards :data:`ALL_SCANS`,
     :data:`ALL_POSES`, :data:`ALL_ERRORS`, :data:`ALL_TILES`, :data:`ALL_CORRECTIONS`, and
     :func:`key_for` (the key of a message).
-:mod:`wire.ids`
+:mod:`randt.wire.ids`
     The id rule for vehicles, sessions, maps and service instances: :data:`ID_REGEX`,
     :func:`is_valid_id`, :func:`validate_id`.
-:mod:`wire.codes`
+:mod:`randt.wire.codes`
     The error codes: :class:`ErrorCode` (a ``StrEnum``: members are their strings on the wire),
     :data:`DECODE_CODES` and :data:`SERVICE_CODES` with their meanings.
-:mod:`wire.zenoh_config`
-    The Zenoh configuration helper (:func:`~wire.zenoh_config.zenoh_config`,
-    :func:`~wire.zenoh_config.check_endpoints`). The only module that imports Zenoh, so it is not
-    imported here: ``from wire.zenoh_config import zenoh_config``. It also reads a native Zenoh
+:mod:`randt.wire.zenoh_config`
+    The Zenoh configuration helper (:func:`~randt.wire.zenoh_config.zenoh_config`,
+    :func:`~randt.wire.zenoh_config.check_endpoints`). The only module that imports Zenoh, so it is not
+    imported here: ``from randt.wire.zenoh_config import zenoh_config``. It also reads a native Zenoh
     config file (``--zenoh-config``).
-:mod:`wire.zenoh_security`
+:mod:`randt.wire.zenoh_security`
     A secured deployment's files (``randt security init``, ``docs/security.md``): the access
-    control derived from the key expressions (:func:`~wire.zenoh_security.access_control`), the
+    control derived from the key expressions (:func:`~randt.wire.zenoh_security.access_control`), the
     service's, router's and vehicles' Zenoh configs, TLS certificates and passwords. Not imported
     here either (certificates need the ``cryptography`` package).
 """
 
 from __future__ import annotations
 
-from wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
-from wire.ids import ID_MAX_LENGTH, ID_PATTERN, ID_REGEX, UNKNOWN_ID, is_valid_id, validate_id
-from wire.keys import (
+from randt.wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
+from randt.wire.ids import ID_MAX_LENGTH, ID_PATTERN, ID_REGEX, UNKNOWN_ID, is_valid_id, validate_id
+from randt.wire.keys import (
     ALL_CORRECTIONS,
     ALL_ERRORS,
     ALL_POSES,
@@ -61,7 +61,7 @@ from wire.keys import (
     tile_of_key,
     vehicle_of_scan_key,
 )
-from wire.messages import (
+from randt.wire.messages import (
     SCAN_V2,
     SCAN_VERSIONS,
     SCHEMA_VERSION,

@@ -2,8 +2,8 @@
 
 Two families share the error message and the code pattern (:data:`CODE_REGEX`):
 
-* :data:`DECODE_CODES`: a ``decode_*`` function of :mod:`wire.messages` found the payload invalid
-  (it raises :class:`~core.errors.BadMessageError` with one of these as ``code``);
+* :data:`DECODE_CODES`: a ``decode_*`` function of :mod:`randt.wire.messages` found the payload invalid
+  (it raises :class:`~randt.core.errors.BadMessageError` with one of these as ``code``);
 * :data:`SERVICE_CODES`: the scan decoded but the service cannot take it (sequence, admission,
   session state, a failure while matching).
 
@@ -27,7 +27,7 @@ class ErrorCode(StrEnum):
     """Every error code this service and its decoders send (meanings in :data:`DECODE_CODES` and
     :data:`SERVICE_CODES`)."""
 
-    # decoding (wire.messages)
+    # decoding (randt.wire.messages)
     PAYLOAD_TOO_LARGE = "payload_too_large"
     MALFORMED = "malformed"
     UNSUPPORTED_VERSION = "unsupported_version"

@@ -4,7 +4,7 @@ One regular expression, :data:`ID_REGEX`: 1-64 letters, digits, ``_``, ``.`` and
 with a letter or digit. An id becomes a Zenoh key-expression chunk (``randt/fleet/<vehicle>/scan``)
 and a file or directory name (``maps/<map>/``), so it may hold none of ``/ * $ ? #``, no spaces, no
 leading dot or dash, and it is never ``.`` or ``..``. Every place that checks an id uses this module:
-the wire decoders (:class:`wire.messages.WireLimits`), the service's settings, its store and its
+the wire decoders (:class:`randt.wire.messages.WireLimits`), the service's settings, its store and its
 HTTP path parameters, and the vehicle publisher.
 """
 
@@ -40,7 +40,7 @@ ID_MAX_LENGTH: Final = 64
 UNKNOWN_ID: Final = "?"
 
 #: Strings that would break a key expression or a file path: no id rule may accept any of them
-#: (:class:`wire.messages.WireLimits` refuses a configured ``id_pattern`` that does).
+#: (:class:`randt.wire.messages.WireLimits` refuses a configured ``id_pattern`` that does).
 UNSAFE_ID_SAMPLES: Final = ("", "a/b", "*", "**", "$*", "a?b", "a#b", "a b", ".", "..", "a\nb")
 
 

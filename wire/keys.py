@@ -10,7 +10,7 @@
   on :data:`ALL_TILES`, :func:`tile_key` (:func:`map_tiles_key` for one map's tiles);
 - ``randt/service/<instance>``: the liveliness token of a running service, :func:`service_token_key`.
 
-``<vehicle>``, ``<map>`` and ``<instance>`` are ids (:mod:`wire.ids`), so they are single chunks
+``<vehicle>``, ``<map>`` and ``<instance>`` are ids (:mod:`randt.wire.ids`), so they are single chunks
 without wildcards; ``<ix>_<iy>`` is a tile id (``5_-3``). :func:`key_for` gives the key a message is
 published on; :func:`vehicle_of_scan_key` and :func:`tile_of_key` read a received key back.
 This module does not import Zenoh: key expressions are strings.
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from typing import Final
 
-from wire.messages import (
+from randt.wire.messages import (
     CorrectionMessage,
     ErrorMessage,
     PoseMessage,
@@ -79,7 +79,7 @@ def correction_key(vehicle: str) -> str:
 def tile_key(map_name: str, tile: str) -> str:
     """``randt/map/<map>/tile/<ix>_<iy>``: a tile's updates, and the key to get it by.
 
-    ``tile`` is the tile id ``f"{ix}_{iy}"`` (:attr:`~wire.messages.TileUpdateMessage.tile`).
+    ``tile`` is the tile id ``f"{ix}_{iy}"`` (:attr:`~randt.wire.messages.TileUpdateMessage.tile`).
     """
     return f"{_MAP}/{map_name}/tile/{tile}"
 

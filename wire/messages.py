@@ -26,8 +26,8 @@ with the same limits (``max_map_len``, ``max_array_len``, ``max_str_len``, ``max
 ``max_ext_len``) as a second line. So a hostile payload costs at most about a millisecond of
 Python, whatever it declares; the peeks are bounded the same way.
 
-Each step raises :class:`~core.errors.BadMessageError` with a stable ``code`` (one of
-:data:`wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else escapes
+Each step raises :class:`~randt.core.errors.BadMessageError` with a stable ``code`` (one of
+:data:`randt.wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else escapes
 a ``decode_*`` function, whatever the bytes. Point buffers are kept as the ``bytes`` msgpack produced
 and read through ``np.frombuffer`` (no further copy). :func:`peek_ids` and :func:`peek_seq` read the
 addressing fields of a message that failed to decode, so its error can still reach the right vehicle.
@@ -58,13 +58,13 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from core.errors import BadMessageError
-from wire.codes import CODE_REGEX, DECODE_CODES, ErrorCode
-from wire.ids import ID_REGEX, UNKNOWN_ID, UNSAFE_ID_SAMPLES
-from wire.packing import LAYOUT, Codec, compress, decompress, pack_int_columns, unpack_int_columns
+from randt.core.errors import BadMessageError
+from randt.wire.codes import CODE_REGEX, DECODE_CODES, ErrorCode
+from randt.wire.ids import ID_REGEX, UNKNOWN_ID, UNSAFE_ID_SAMPLES
+from randt.wire.packing import LAYOUT, Codec, compress, decompress, pack_int_columns, unpack_int_columns
 
 if TYPE_CHECKING:
-    from core.io.clouds import PointCloud
+    from randt.core.io.clouds import PointCloud
 
 __all__ = [
     "SCAN_V2",
@@ -151,8 +151,8 @@ class WireLimits(BaseModel):
         Largest payload accepted, checked before unpacking (``payload_too_large``).
     id_pattern:
         Regular expression a ``vehicle``, ``session`` or ``map`` id must match in full. The default
-        is the id rule, :data:`wire.ids.ID_REGEX`; a pattern accepting any of
-        :data:`wire.ids.UNSAFE_ID_SAMPLES` (which would break key expressions or file paths) is
+        is the id rule, :data:`randt.wire.ids.ID_REGEX`; a pattern accepting any of
+        :data:`randt.wire.ids.UNSAFE_ID_SAMPLES` (which would break key expressions or file paths) is
         refused.
     max_time_offset_s:
         Per-point time offsets must lie in ``[0, max_time_offset_s]`` seconds.
@@ -221,7 +221,7 @@ Count = Annotated[int, Field(ge=0, le=_INT64_MAX)]
 
 
 def _fail(code: ErrorCode, reason: str) -> PydanticCustomError:
-    """A validation error whose ``type`` is one of :data:`~wire.codes.DECODE_CODES`."""
+    """A validation error whose ``type`` is one of :data:`~randt.wire.codes.DECODE_CODES`."""
     return PydanticCustomError(code, "{reason}", {"reason": reason})
 
 
@@ -313,7 +313,7 @@ class Prior(BaseModel):
         16 floats, row-major 4x4 ``T_map_sensor`` (maps sensor points into the map frame; metres).
     covariance:
         36 floats, row-major 6x6 covariance of the left perturbation ``(tx, ty, tz, rx, ry, rz)``
-        (m², rad², as :mod:`core.transforms`), symmetric positive semi-definite.
+        (m², rad², as :mod:`randt.core.transforms`), symmetric positive semi-definite.
     """
 
     model_config = ConfigDict(strict=True, frozen=True, extra="ignore", allow_inf_nan=True)
@@ -518,8 +518,8 @@ class ScanMessage(_Message):
         return None if self.prior is None else np.asarray(self.prior.covariance).reshape(6, 6)
 
     def to_cloud(self) -> PointCloud:
-        """The sweep as a :class:`~core.io.PointCloud` (xyz, intensity, time offsets)."""
-        from core.io.clouds import PointCloud  # lazy: vehicle clients need not load the file formats
+        """The sweep as a :class:`~randt.core.io.PointCloud` (xyz, intensity, time offsets)."""
+        from randt.core.io.clouds import PointCloud  # lazy: vehicle clients need not load the file formats
 
         return PointCloud(xyz=self.xyz(), intensity=self.intensity(), time_offset_s=self.time_offset_s())
 
@@ -540,7 +540,7 @@ class ScanEncoding(BaseModel):
         ``intensity = intensity_offset + u * intensity_quantum`` for the uint8 ``u`` of the
         ``intensity`` body.
     layout:
-        ``"delta-zigzag-planar"`` (:mod:`wire.packing`), the only one.
+        ``"delta-zigzag-planar"`` (:mod:`randt.wire.packing`), the only one.
     codec:
         ``"zstd"`` (each body one zstd frame) or ``"none"``.
     """
@@ -665,7 +665,7 @@ def encode_scan_v2(
     Points keep their order. Coordinates become int32 multiples of ``xyz_quantum_m`` (error at most
     half a step, plus float32 rounding), time offsets multiples of ``time_quantum_s``, intensities
     uint8 on the sweep's own scale (exact for integers in [0, 255]). Reducing the sweep is the
-    sender's business (:func:`clients.publisher.encode_sweep`); ``voxel_m`` only declares it.
+    sender's business (:func:`randt.clients.publisher.encode_sweep`); ``voxel_m`` only declares it.
 
     Parameters
     ----------
@@ -798,13 +798,14 @@ class ErrorMessage(_Message):
     Attributes
     ----------
     vehicle, session:
-        Ids of the rejected scan, or :data:`~wire.ids.UNKNOWN_ID` (``"?"``) when it could not be read.
+        Ids of the rejected scan, or :data:`~randt.wire.ids.UNKNOWN_ID` (``"?"``) when it could not be read.
     seq:
         The rejected scan's ``seq``, or ``None`` when unknown.
     code:
-        Stable machine-readable code (:class:`~wire.codes.ErrorCode`): one of
-        :data:`~wire.codes.DECODE_CODES` for decoding failures, of :data:`~wire.codes.SERVICE_CODES`
-        for the service's own refusals (:data:`~wire.codes.CODE_REGEX`).
+        Stable machine-readable code (:class:`~randt.wire.codes.ErrorCode`): one of
+        :data:`~randt.wire.codes.DECODE_CODES` for decoding failures, of
+        :data:`~randt.wire.codes.SERVICE_CODES`
+        for the service's own refusals (:data:`~randt.wire.codes.CODE_REGEX`).
     reason:
         Human-readable: what was wrong and where.
     retry_after_s:
@@ -1297,7 +1298,7 @@ def decode_scan(payload: bytes, limits: WireLimits | None = None) -> ScanMessage
     Raises
     ------
     BadMessageError
-        For any payload that is not a valid scan; ``code`` is one of :data:`~wire.codes.DECODE_CODES`.
+        For any payload that is not a valid scan; ``code`` is one of :data:`~randt.wire.codes.DECODE_CODES`.
     TypeError
         ``payload`` does not support the buffer protocol (a programming error, not bad input).
     """
@@ -1339,7 +1340,7 @@ class ScanHeader:
     n_points: int
     prior: Prior | None = None
     geo_prior: GeoPrior | None = None
-    #: a ROS 2 robot's NavSatFix at the scan (wire.ros2; our own scans carry none)
+    #: a ROS 2 robot's NavSatFix at the scan (randt.wire.ros2; our own scans carry none)
     gnss_fix: GnssFix | None = None
 
     def prior_pose(self) -> np.ndarray | None:
@@ -1597,7 +1598,7 @@ def geo_prior(
 ) -> GeoPrior:
     """A validated :class:`GeoPrior` from a WGS84 position, the sensor's rotation into the local
     East-North-Up frame (3x3) and the 6x6 covariance in East-North-Up axes (raises
-    :class:`~core.errors.BadMessageError` ``invalid_prior`` as the service would)."""
+    :class:`~randt.core.errors.BadMessageError` ``invalid_prior`` as the service would)."""
     from scipy.spatial.transform import Rotation
 
     R = np.asarray(R_enu_sensor, dtype=np.float64)

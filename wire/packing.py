@@ -25,8 +25,8 @@ from typing import Final, Literal
 
 import numpy as np
 
-from core.errors import BadMessageError
-from wire.codes import ErrorCode
+from randt.core.errors import BadMessageError
+from randt.wire.codes import ErrorCode
 
 if sys.version_info >= (3, 14):
     from compression import zstd

@@ -22,8 +22,8 @@ import struct
 from dataclasses import dataclass
 from typing import Literal
 
-from core.errors import BadMessageError
-from wire.codes import ErrorCode
+from randt.core.errors import BadMessageError
+from randt.wire.codes import ErrorCode
 
 __all__ = [
     "ADMIN_SPACE",
@@ -96,7 +96,7 @@ def topic_key(domain: int, topic: str, ros_type: str, type_hash: str) -> str:
 
 
 def parse_topic_key(key: str) -> TopicKey:
-    """The parts of a data key expression (:class:`~core.errors.BadMessageError` ``invalid_field``
+    """The parts of a data key expression (:class:`~randt.core.errors.BadMessageError` ``invalid_field``
     when ``key`` is not one: the service logs and counts such samples)."""
     chunks = str(key).split("/")
     if len(chunks) < 4 or not chunks[0].isdigit():
@@ -133,7 +133,7 @@ def encode_attachment(attachment: Attachment) -> bytes:
 
 def decode_attachment(data: bytes | None) -> Attachment:
     """A sample's attachment, in the current 33-byte layout or the 77-byte one of Jazzy 0.2.0-0.2.3
-    (keys, then values); :class:`~core.errors.BadMessageError` ``missing_field`` without one, as a
+    (keys, then values); :class:`~randt.core.errors.BadMessageError` ``missing_field`` without one, as a
     ROS 2 subscriber drops it, ``invalid_field`` for any other bytes."""
     if data is None:
         raise BadMessageError("attachment: none (rmw_zenoh samples carry one)", code=ErrorCode.MISSING_FIELD)

@@ -2,17 +2,17 @@
 and the answers as ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/TransformStamped`` and
 ``std_msgs/msg/String`` (docs/ros2.md).
 
-A robot running rmw_zenoh puts its LiDAR topic on Zenoh as CDR (:mod:`wire.rmw_zenoh` has the
+A robot running rmw_zenoh puts its LiDAR topic on Zenoh as CDR (:mod:`randt.wire.rmw_zenoh` has the
 keys and the attachment). The service's ROS 2 bridge (service/ros2.py) turns each sample into a
 :class:`Ros2Scan`: the CDR bytes as they came, the vehicle (the robot's namespace), the session
 (the publisher's GID, so a restarted driver is a new session) and the sequence number of the
 attachment. From there it follows our own scans' path: :func:`scan_header` is what the intake
-reads of it (the layout checked, no point read: ``wire.messages.decode_scan_header`` for ours),
-:func:`sweep_arrays` what the matcher process decodes (``service.matchers.decoded_sweep``).
+reads of it (the layout checked, no point read: ``randt.wire.messages.decode_scan_header`` for ours),
+:func:`sweep_arrays` what the matcher process decodes (``randt.service.matchers.decoded_sweep``).
 
 CDR is ``rosbags``' (pure Python, Apache-2.0; the ``ros2`` extra), with its Jazzy type store:
 the five message types used here have the same definition in Humble, Jazzy, Kilted and Rolling
-(their RIHS01 hashes are equal in rosbags' stores; Humble sends no hash). ``import wire.ros2``
+(their RIHS01 hashes are equal in rosbags' stores; Humble sends no hash). ``import randt.wire.ros2``
 needs neither rosbags nor Zenoh; the first decode or encode loads rosbags.
 """
 
@@ -26,11 +26,11 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import BadMessageError, FormatError
-from core.io.pointcloud2 import check_pointcloud2, pointcloud2_arrays
-from wire.codes import ErrorCode
-from wire.messages import SCHEMA_VERSION, GnssFix, PoseMessage, ScanHeader, WireLimits
-from wire.rmw_zenoh import HUMBLE_TYPE_HASH
+from randt.core.errors import BadMessageError, FormatError
+from randt.core.io.pointcloud2 import check_pointcloud2, pointcloud2_arrays
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import SCHEMA_VERSION, GnssFix, PoseMessage, ScanHeader, WireLimits
+from randt.wire.rmw_zenoh import HUMBLE_TYPE_HASH
 
 __all__ = [
     "NAV_SAT_FIX",
@@ -63,7 +63,7 @@ POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 
 @functools.cache
 def typestore() -> Any:
-    """rosbags' ROS 2 Jazzy type store (:class:`~core.errors.FormatError` naming the extra when
+    """rosbags' ROS 2 Jazzy type store (:class:`~randt.core.errors.FormatError` naming the extra when
     rosbags is not installed)."""
     try:
         from rosbags.typesys import Stores, get_typestore
@@ -101,7 +101,7 @@ class Ros2Scan:
 
 
 def read_pointcloud2(cdr: bytes) -> Any:
-    """The PointCloud2 message of CDR bytes (:class:`~core.errors.BadMessageError` ``malformed``
+    """The PointCloud2 message of CDR bytes (:class:`~randt.core.errors.BadMessageError` ``malformed``
     when they are not one)."""
     typestore()  # (without rosbags: the error naming the extra comes first)
     if len(cdr) < 4 or cdr[0] != 0 or cdr[1] not in (0, 1):
@@ -113,7 +113,7 @@ def read_pointcloud2(cdr: bytes) -> Any:
 
 
 def _deserialize(cdr: bytes, ros_type: str) -> Any:
-    """rosbags' message of CDR bytes, :class:`~core.errors.BadMessageError` ``malformed`` when
+    """rosbags' message of CDR bytes, :class:`~randt.core.errors.BadMessageError` ``malformed`` when
     they do not decode (rosbags raises plain exceptions on short or bad bytes). From a memoryview
     an array field (a cloud's ``data``) is a view of the bytes: 0.01 ms, not a 0.25 ms copy of a
     2.5 MB sweep."""
@@ -139,7 +139,7 @@ def _stamp_ns(msg: Any) -> int:
 def scan_header(scan: Ros2Scan, limits: WireLimits) -> ScanHeader:
     """What the intake reads of a ROS 2 scan: ids, seq, stamp and point count, with the cloud's
     layout checked (fields, datatypes, bytes) but no point read. Raises
-    :class:`~core.errors.BadMessageError`: ``malformed`` (not a PointCloud2), ``invalid_points``
+    :class:`~randt.core.errors.BadMessageError`: ``malformed`` (not a PointCloud2), ``invalid_points``
     (a layout that cannot be read), ``empty_scan``, ``too_many_points``, ``invalid_field`` (the stamp)."""
     msg = read_pointcloud2(scan.cdr)
     try:
@@ -160,7 +160,7 @@ def scan_header(scan: Ros2Scan, limits: WireLimits) -> ScanHeader:
 
 def sweep_arrays(scan: Ros2Scan) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, float]:
     """What the matcher takes of a ROS 2 scan: ``(xyz float32, time offsets float32 s or None,
-    intensity float32 or None, stamp s)`` (:func:`core.io.pointcloud2.pointcloud2_arrays`)."""
+    intensity float32 or None, stamp s)`` (:func:`randt.core.io.pointcloud2.pointcloud2_arrays`)."""
     msg = read_pointcloud2(scan.cdr)
     try:
         xyz, offsets, intensity = pointcloud2_arrays(msg)
@@ -173,7 +173,7 @@ def read_navsatfix(cdr: bytes) -> tuple[int, GnssFix | None]:
     """``(stamp ns, fix)`` of a ``sensor_msgs/msg/NavSatFix``; the fix is ``None`` when the
     receiver has none (``status.status`` < 0, STATUS_NO_FIX) or gives no covariance
     (``position_covariance_type`` 0, COVARIANCE_TYPE_UNKNOWN: the graph weighs a fix by it).
-    :class:`~core.errors.BadMessageError` ``malformed`` or ``invalid_field`` for what cannot be one."""
+    :class:`~randt.core.errors.BadMessageError` ``malformed`` or ``invalid_field`` for what cannot be one."""
     msg = _deserialize(cdr, NAV_SAT_FIX)
     stamp_ns = _stamp_ns(msg)
     if int(msg.status.status) < 0 or int(msg.position_covariance_type) == 0:
@@ -194,7 +194,7 @@ def read_navsatfix(cdr: bytes) -> tuple[int, GnssFix | None]:
 
 def read_point_stamped(cdr: bytes) -> tuple[int, str, np.ndarray]:
     """``(stamp ns, frame_id, point (3,))`` of a ``geometry_msgs/msg/PointStamped``
-    (:class:`~core.errors.BadMessageError` for what cannot be one)."""
+    (:class:`~randt.core.errors.BadMessageError` for what cannot be one)."""
     msg = _deserialize(cdr, POINT_STAMPED)
     point = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=np.float64)
     if not np.all(np.isfinite(point)):

@@ -1,9 +1,10 @@
 """The Zenoh configuration every session of ours uses: explicit endpoints, multicast scouting off.
 
-The service (:mod:`service.transport`), the vehicle publisher (:mod:`clients.publisher`), the tests
+The service (:mod:`randt.service.transport`), the vehicle publisher (:mod:`randt.clients.publisher`), the
+tests
 and the benchmarks open their Zenoh sessions with :func:`zenoh_config`; settings check their
 endpoints with :func:`check_endpoints`. This is the only module of :mod:`wire` that imports Zenoh,
-and :mod:`wire` does not import it on its own: ``from wire.zenoh_config import zenoh_config``.
+and :mod:`wire` does not import it on its own: ``from randt.wire.zenoh_config import zenoh_config``.
 
 A native Zenoh JSON5 config file (``randt serve --zenoh-config FILE``, ``RANDT_ZENOH_CONFIG``;
 ``RANDT_VEHICLE_ZENOH_CONFIG`` for vehicles) is the base of the config when given: TLS, mTLS,
@@ -12,7 +13,7 @@ always come from randt's own settings and replace the file's values (a warning i
 file said otherwise): ``mode``, ``listen/endpoints`` and ``connect/endpoints`` (one place says
 where a service listens, and ``randt serve`` checks those ports before it starts), and multicast
 scouting stays **off** (a randt session reaches only the endpoints it is given; gossip scouting
-is left to the file). ``docs/security.md`` has the recipe, :mod:`wire.zenoh_security` writes the
+is left to the file). ``docs/security.md`` has the recipe, :mod:`randt.wire.zenoh_security` writes the
 files.
 """
 

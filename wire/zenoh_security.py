@@ -13,7 +13,7 @@ init DIR``; the recipe is ``docs/security.md``)::
     vehicle-<vehicle>.json5     each vehicle's config: its certificate, user and password
 
 The access control (:func:`access_control`) is the heart: default **deny**, and per vehicle an allow
-list derived from :mod:`wire.keys`: a vehicle may put only on its own ``randt/fleet/<vehicle>/scan``,
+list derived from :mod:`randt.wire.keys`: a vehicle may put only on its own ``randt/fleet/<vehicle>/scan``,
 read only its own poses, errors and corrections, the tiles and the service's liveliness token; only
 the service's user may put poses, errors, corrections and tile updates, answer tile queries and hold
 ``randt/service/*``.
@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from wire.ids import validate_id
-from wire.keys import ALL_SCANS, ROOT, correction_key, error_key, pose_key, scan_key
+from randt.wire.ids import validate_id
+from randt.wire.keys import ALL_SCANS, ROOT, correction_key, error_key, pose_key, scan_key
 
 __all__ = [
     "EXAMPLE_DIRECTORY",
@@ -96,7 +96,7 @@ def access_control(
     Parameters
     ----------
     vehicles:
-        Vehicle ids (:mod:`wire.ids`); each is also the vehicle's user name and certificate CN.
+        Vehicle ids (:mod:`randt.wire.ids`); each is also the vehicle's user name and certificate CN.
     mtls:
         Bind each subject to its certificate's common name as well as to its user name.
     service_subject:
@@ -432,7 +432,7 @@ def example_configs() -> dict[str, dict[str, Any]]:
     :data:`EXAMPLE_VEHICLES` in :data:`EXAMPLE_DIRECTORY`, passwords shown as placeholders.
 
     ``tests/wire/test_zenoh_security.py`` checks the committed files against this;
-    ``python -m wire.zenoh_security docs/security`` rewrites them.
+    ``python -m randt.wire.zenoh_security docs/security`` rewrites them.
     """
     d, vehicles = EXAMPLE_DIRECTORY, EXAMPLE_VEHICLES
     configs = {

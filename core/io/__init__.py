@@ -1,12 +1,12 @@
 """File input/output: point clouds, meshes, trajectories, and the atomic writer they share.
 
-Readers raise :class:`~core.errors.FormatError` (with the path) for files they cannot use and
-:class:`~core.errors.NotFoundError` for paths that do not exist; every writer replaces its target
+Readers raise :class:`~randt.core.errors.FormatError` (with the path) for files they cannot use and
+:class:`~randt.core.errors.NotFoundError` for paths that do not exist; every writer replaces its target
 atomically (:func:`atomic_open`).
 """
 
-from core.io.atomic import atomic_open, atomic_write_bytes
-from core.io.clouds import (
+from randt.core.io.atomic import atomic_open, atomic_write_bytes
+from randt.core.io.clouds import (
     SUPPORTED_READ_SUFFIXES,
     SUPPORTED_WRITE_SUFFIXES,
     PointCloud,
@@ -15,8 +15,8 @@ from core.io.clouds import (
     write_pcd,
     write_ply,
 )
-from core.io.mesh import read_off, sample_surface
-from core.io.trajectory import (
+from randt.core.io.mesh import read_off, sample_surface
+from randt.core.io.trajectory import (
     kitti_velodyne_poses,
     read_kitti_calib,
     read_kitti_poses,

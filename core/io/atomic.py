@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from core.errors import FormatError
+from randt.core.errors import FormatError
 
 __all__ = ["append_durably", "atomic_open", "atomic_write_bytes", "fsync_directory"]
 

@@ -12,7 +12,8 @@ tile, ``<ix>_<iy>.pcd``, and a metadata file::
 The loader skips the two resolution keys and parses every other value as a list of two integers,
 so nothing else may go into that file. The grid's own settings and tile versions go into the
 sidecar (:data:`GRID_SIDECAR_NAME`), which Autoware ignores. Every file is written atomically
-(:func:`core.io.atomic_open`). :class:`core.tiles.TileGrid` decides what to write and in which order;
+(:func:`randt.core.io.atomic_open`).
+:class:`randt.core.tiles.TileGrid` decides what to write and in which order;
 this module only knows the files.
 """
 
@@ -29,9 +30,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from core.errors import FormatError, NotFoundError
-from core.io.atomic import atomic_open
-from core.io.clouds import PointCloud, write_pcd, write_pcd_xyzi
+from randt.core.errors import FormatError, NotFoundError
+from randt.core.io.atomic import atomic_open
+from randt.core.io.clouds import PointCloud, write_pcd, write_pcd_xyzi
 
 __all__ = [
     "AUTOWARE_METADATA_NAME",
@@ -100,7 +101,7 @@ def write_tile_file(directory: Path, tid: str, cloud: PointCloud) -> Path:
 
 def write_tile_table(directory: Path, tid: str, xyzi: np.ndarray) -> Path:
     """:func:`write_tile_file` from an (N, 4) float32 ``x y z intensity`` table, the same bytes
-    without a copy or a check (``core.io.clouds.write_pcd_xyzi``); returns its path."""
+    without a copy or a check (``randt.core.io.clouds.write_pcd_xyzi``); returns its path."""
     path = directory / tile_file_name(tid)
     write_pcd_xyzi(path, xyzi)
     return path
@@ -212,7 +213,7 @@ def read_sidecar(directory: Path, tile_size_m: int) -> tuple[dict[str, Any], dic
 
 
 def write_projector_info(directory: Path, info: Mapping[str, Any]) -> Path:
-    """Write :data:`PROJECTOR_INFO_NAME` (``info``: :meth:`core.geo.LocalCartesianUTM.projector_info`),
+    """Write :data:`PROJECTOR_INFO_NAME` (``info``: :meth:`randt.core.geo.LocalCartesianUTM.projector_info`),
     atomically; returns its path. Checked as :func:`read_projector_info` reads it."""
     document = _checked_projector_info(dict(info), "projector info")
     path = directory / PROJECTOR_INFO_NAME

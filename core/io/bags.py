@@ -3,7 +3,7 @@
 Reading is ``rosbags``' (pure Python, Apache-2.0; the optional extra ``randt-fleet[ros2]``):
 :class:`~rosbags.highlevel.AnyReader` opens either kind, deserializes CDR or ROS 1 messages with
 the type store the bag carries, and we decode each ``sensor_msgs/PointCloud2`` with
-:func:`core.io.pointcloud2.decode_pointcloud2` (points, intensity, per-point times).
+:func:`randt.core.io.pointcloud2.decode_pointcloud2` (points, intensity, per-point times).
 
 A bag is given as its rosbag2 folder (the one with ``metadata.yaml``), a file inside it, or a
 ROS 1 ``.bag`` file. The topic is ``topic`` or, when ``None``, the bag's only PointCloud2 topic.
@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import FormatError, NotFoundError
-from core.io.clouds import PointCloud
-from core.io.pointcloud2 import decode_pointcloud2
+from randt.core.errors import FormatError, NotFoundError
+from randt.core.io.clouds import PointCloud
+from randt.core.io.pointcloud2 import decode_pointcloud2
 
 __all__ = ["POINTCLOUD2", "BagSequence", "is_bag", "open_bag"]
 
@@ -45,7 +45,7 @@ def is_bag(path: str | Path) -> bool:
 @dataclass(frozen=True)
 class BagSequence:
     """One PointCloud2 topic of a bag, as a sequence of sweeps (like
-    :class:`core.datasets.ScanSequence`: ``len``, :meth:`read`, iteration, ``stamps_s``)."""
+    :class:`randt.core.datasets.ScanSequence`: ``len``, :meth:`read`, iteration, ``stamps_s``)."""
 
     root: Path
     layout: str  # "rosbag2" or "rosbag1"

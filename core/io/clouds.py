@@ -7,16 +7,16 @@ suffix                     handled by
 =========================  ==========================================================
 ``.bin``                   :func:`numpy.fromfile` (raw little-endian float32 records)
 ``.pcd``                   pypcd4 (ascii, binary, binary_compressed/LZF; BSD-3)
-``.ply``                   :mod:`core.io.ply` (numpy; ascii, binary little/big-endian)
+``.ply``                   :mod:`randt.core.io.ply` (numpy; ascii, binary little/big-endian)
 ``.csv`` ``.txt`` ``.xyz``  :func:`numpy.loadtxt` after sniffing delimiter and header
 ``.npy``                   :func:`numpy.load` (``allow_pickle=False``)
-``.off``                   :mod:`core.io.mesh` (read, then area-weighted sampling)
+``.off``                   :mod:`randt.core.io.mesh` (read, then area-weighted sampling)
 =========================  ==========================================================
 
 Readers do not drop non-finite points (registration drops and counts them); they raise
-:class:`~core.errors.FormatError` naming the path and the problem for empty files, files without
-points, wrong shapes and malformed headers, and :class:`~core.errors.NotFoundError` for a path
-that does not exist. Writers go through :func:`core.io.atomic.atomic_open`.
+:class:`~randt.core.errors.FormatError` naming the path and the problem for empty files, files without
+points, wrong shapes and malformed headers, and :class:`~randt.core.errors.NotFoundError` for a path
+that does not exist. Writers go through :func:`randt.core.io.atomic.atomic_open`.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 import pypcd4
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io.atomic import atomic_open
-from core.io.mesh import read_off, sample_surface
-from core.io.ply import read_ply_vertices, write_ply_binary
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io.atomic import atomic_open
+from randt.core.io.mesh import read_off, sample_surface
+from randt.core.io.ply import read_ply_vertices, write_ply_binary
 
 __all__ = [
     "SUPPORTED_READ_SUFFIXES",

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
 
 __all__ = ["read_off", "sample_surface"]
 

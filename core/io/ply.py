@@ -24,14 +24,14 @@ How the vertices are found without parsing every row in Python:
 * **binary** — the vertex rows start at the end of the header plus the sizes of the elements
   before ``vertex`` (usually none). That sum is known only when those elements have scalar
   properties only; a list element before ``vertex`` (rare) raises
-  :class:`~core.errors.FormatError`. The rows are read in one call into a numpy structured array.
+  :class:`~randt.core.errors.FormatError`. The rows are read in one call into a numpy structured array.
 * **ascii** — the lines of the elements before ``vertex`` are skipped by count (lists included,
   one line a row), then exactly the vertex rows are parsed by :func:`numpy.loadtxt`; elements
   after ``vertex`` (the Stanford scans' 204,800-row ``range_grid``) are never read.
 
 Every problem with a file — malformed or unknown header lines, unknown types, a missing
-``vertex`` element, truncated or non-numeric data — raises :class:`~core.errors.FormatError`
-naming the path and what is wrong. The writer goes through :func:`core.io.atomic.atomic_open`.
+``vertex`` element, truncated or non-numeric data — raises :class:`~randt.core.errors.FormatError`
+naming the path and what is wrong. The writer goes through :func:`randt.core.io.atomic.atomic_open`.
 """
 
 from __future__ import annotations
@@ -48,8 +48,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-from core.errors import FormatError, NotFoundError
-from core.io.atomic import atomic_open
+from randt.core.errors import FormatError, NotFoundError
+from randt.core.io.atomic import atomic_open
 
 __all__ = [
     "PlyElement",

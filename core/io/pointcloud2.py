@@ -1,4 +1,4 @@
-"""ROS ``sensor_msgs/PointCloud2`` messages to :class:`~core.io.PointCloud`, vectorized.
+"""ROS ``sensor_msgs/PointCloud2`` messages to :class:`~randt.core.io.PointCloud`, vectorized.
 
 A PointCloud2 is a table of points: ``fields`` name each column's byte offset, datatype and
 count within a point of ``point_step`` bytes; rows of ``width`` points are ``row_step`` bytes apart
@@ -23,8 +23,8 @@ from typing import Protocol
 
 import numpy as np
 
-from core.errors import FormatError
-from core.io.clouds import PointCloud
+from randt.core.errors import FormatError
+from randt.core.io.clouds import PointCloud
 
 __all__ = [
     "DATATYPES",
@@ -111,7 +111,7 @@ def decode_pointcloud2(msg: _Cloud) -> PointCloud:
 
 def pointcloud2_arrays(msg: _Cloud) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(xyz, time offsets, intensity)`` of every point, float32, as the service's matcher takes a
-    scan (``service.matchers.decoded_sweep``): non-finite rows kept (the matcher drops and counts
+    scan (``randt.service.matchers.decoded_sweep``): non-finite rows kept (the matcher drops and counts
     them), ``xyz`` a view of the message's bytes when x, y, z are consecutive little-endian
     float32 (every driver's layout), the time offsets in seconds from the earliest point.
 

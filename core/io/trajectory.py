@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io.atomic import atomic_open
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io.atomic import atomic_open
 
 __all__ = [
     "kitti_velodyne_poses",

@@ -1,14 +1,8 @@
-"""Quality metrics: point-cloud agreement (:mod:`core.metrics.cloud`, the RANDT paper's) and
-trajectory error (:mod:`core.metrics.trajectory`)."""
+"""Quality metrics: point-cloud agreement (:mod:`randt.core.metrics.cloud`, the RANDT paper's) and
+trajectory error (:mod:`randt.core.metrics.trajectory`)."""
 
 from __future__ import annotations
 
-import math
+from randt.core.metrics.values import json_float
 
 __all__ = ["json_float"]
-
-
-def json_float(value: float) -> float | None:
-    """A float for JSON: ``None`` for NaN/inf (JSON has no such numbers)."""
-    value = float(value)
-    return value if math.isfinite(value) else None

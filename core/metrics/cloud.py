@@ -2,7 +2,7 @@
 overlap, voxel-count spread and the PDU (point distribution uniformity).
 
 They take (N,3) float64 points in metres and use scipy ``cKDTree`` nearest neighbours
-(``nn_B(p) = min_{q in B} |p - q|``); voxel metrics reuse :mod:`core.voxel`'s keys. Every result
+(``nn_B(p) = min_{q in B} |p - q|``); voxel metrics reuse :mod:`randt.core.voxel`'s keys. Every result
 is a frozen dataclass with an ``as_dict()`` giving plain floats, ints and lists.
 """
 
@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.errors import InvalidCloudError
-from core.metrics import json_float
-from core.transforms import as_transform, transform_points
-from core.voxel import pack_keys, voxel_coords
+from randt.core.errors import InvalidCloudError
+from randt.core.metrics.values import json_float
+from randt.core.transforms import as_transform, transform_points
+from randt.core.voxel import pack_keys, voxel_coords
 
 __all__ = [
     "CorrespondenceRmse",

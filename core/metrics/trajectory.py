@@ -24,9 +24,9 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import InvalidCloudError
-from core.metrics import json_float
-from core.transforms import invert, transform_points, umeyama
+from randt.core.errors import InvalidCloudError
+from randt.core.metrics.values import json_float
+from randt.core.transforms import invert, transform_points, umeyama
 
 __all__ = [
     "KITTI_LENGTHS_M",
@@ -155,7 +155,7 @@ def ate(reference: np.ndarray, estimate: np.ndarray, *, align: AlignMode = "se3"
     .. math::  e_i = | q_i - (c R p_i + t) |
 
     where ``(c, R, t)`` minimises ``sum_i e_i^2``: ``"se3"`` a rigid fit (``c = 1``, Kabsch,
-    :func:`core.transforms.umeyama`), ``"sim3"`` a similarity (the same with scale, for monocular
+    :func:`randt.core.transforms.umeyama`), ``"sim3"`` a similarity (the same with scale, for monocular
     or scale-drifting estimates), ``"none"`` the identity. This is evo's ``APE`` with
     ``PoseRelation.translation_part`` after ``align(correct_scale=...)``.
 

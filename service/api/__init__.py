@@ -15,8 +15,9 @@ module             paths                                                        
 
 ``deps`` holds what they share (service, auth, validated names), ``models`` the response
 models, ``views`` the builders of those models, ``encoding`` the point-cloud file bodies.
-Errors: routes raise the project's errors (:mod:`core.errors`: a missing resource is a
-:class:`~core.errors.NotFoundError` naming its ``resource`` and ``ident``); :mod:`service.api.errors`
+Errors: routes raise the project's errors (:mod:`randt.core.errors`: a missing resource is a
+:class:`~randt.core.errors.NotFoundError` naming its ``resource`` and ``ident``);
+:mod:`randt.service.api.errors`
 maps them to status codes in one table, registered by the app factory. A 404 answers
 ``{"detail", "resource", "id"}``, every other error ``{"detail": ...}`` (FastAPI's own 422 for
 invalid names, coordinates and parameters).
@@ -26,8 +27,8 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from service.api import docs, health, maps, metrics, sessions, viewer
-from service.api.maps import PduCache
+from randt.service.api import docs, health, maps, metrics, sessions, viewer
+from randt.service.api.maps import PduCache
 
 __all__ = ["install"]
 

@@ -5,8 +5,8 @@ Auth
 ``RANDT_API_TOKEN`` is a bearer token (``Authorization: Bearer <token>``).
 
 * mutating endpoints depend on :func:`require_writer`: no token configured -> **403**
-  (:class:`~core.errors.ForbiddenError`: they are refused, never open); missing or wrong token ->
-  **401** with ``WWW-Authenticate: Bearer`` (:class:`~core.errors.AuthError`);
+  (:class:`~randt.core.errors.ForbiddenError`: they are refused, never open); missing or wrong token ->
+  **401** with ``WWW-Authenticate: Bearer`` (:class:`~randt.core.errors.AuthError`);
 * read endpoints depend on :func:`require_reader`: open unless ``RANDT_PROTECT_READS=true``, then
   the same check (the settings refuse ``protect_reads`` without a token).
 * ``/healthz`` and ``/readyz`` stay open (probes carry no secrets), as do the viewer's static files
@@ -15,11 +15,11 @@ Auth
 Ids
 ---
 Map, vehicle and session names are checked against the id rule
-(:data:`wire.ids.ID_REGEX`) by FastAPI before a handler runs (**422** otherwise), and tile
+(:data:`randt.wire.ids.ID_REGEX`) by FastAPI before a handler runs (**422** otherwise), and tile
 indices are bounded integers. Handlers look names up in the live maps and sessions; no file is ever
 opened from a client-supplied string.
 
-Errors are the project's (:mod:`core.errors`), answered by :mod:`service.api.errors`.
+Errors are the project's (:mod:`randt.core.errors`), answered by :mod:`randt.service.api.errors`.
 """
 
 from __future__ import annotations
@@ -32,12 +32,12 @@ from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BeforeValidator
 
-from core.errors import AuthError, ForbiddenError, NotFoundError, UnavailableError
-from core.tiles import TileGrid
-from service.api.models import ErrorBody
-from service.runtime import Service
-from service.sessions import SessionManager
-from wire.ids import ID_MAX_LENGTH, ID_REGEX
+from randt.core.errors import AuthError, ForbiddenError, NotFoundError, UnavailableError
+from randt.core.tiles import TileGrid
+from randt.service.api.models import ErrorBody
+from randt.service.runtime import Service
+from randt.service.sessions import SessionManager
+from randt.wire.ids import ID_MAX_LENGTH, ID_REGEX
 
 __all__ = [
     "MAX_TILE_INDEX",
@@ -82,7 +82,7 @@ TileIx = Annotated[
 
 
 def get_service(request: Request) -> Service:
-    """The :class:`~service.runtime.Service` the app factory attached to the app."""
+    """The :class:`~randt.service.runtime.Service` the app factory attached to the app."""
     return request.app.state.service
 
 

@@ -2,7 +2,7 @@
 
 Every format carries float32 ``x y z intensity`` in the map frame, as the store's tiles do:
 
-* **PCD** v0.7 binary, the same bytes :func:`core.io.write_pcd` writes for the store's tiles
+* **PCD** v0.7 binary, the same bytes :func:`randt.core.io.write_pcd` writes for the store's tiles
   (PCL, Open3D, Autoware, CloudCompare);
 * **PLY** binary little-endian with ``float x, y, z, intensity`` (Open3D, CloudCompare, MeshLab);
 * **LAS** 1.4, point format 6 (QGIS, PDAL, CloudCompare, LAStools), written by laspy. LAS stores
@@ -52,7 +52,7 @@ Chunk = tuple[np.ndarray, np.ndarray]  # (N, 3) float32 xyz, (N,) float32 intens
 
 
 def _pcd_header(n_points: int) -> bytes:
-    # Byte for byte the header pypcd4 writes for the store's tiles (core.io.write_pcd), so a
+    # Byte for byte the header pypcd4 writes for the store's tiles (randt.core.io.write_pcd), so a
     # downloaded tile equals the store's file.
     return (
         "VERSION 0.7\n"

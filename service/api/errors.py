@@ -1,25 +1,25 @@
-"""The one map from the project's exception tree (:mod:`core.errors`) to HTTP answers.
+"""The one map from the project's exception tree (:mod:`randt.core.errors`) to HTTP answers.
 
 Routes and dependencies raise the tree's errors; :func:`error_response`, registered by the app
-factory (:func:`service.app.create_app`) for every class of :data:`HTTP_STATUS`, turns them into
-status codes and the :class:`~service.api.models.ErrorBody` JSON:
+factory (:func:`randt.service.app.create_app`) for every class of :data:`HTTP_STATUS`, turns them into
+status codes and the :class:`~randt.service.api.models.ErrorBody` JSON:
 
 ======================================================  ======  ===================================
 error (and its subclasses)                              status  body
 ======================================================  ======  ===================================
-:class:`~core.errors.InvalidRequestError`,              422     ``{"detail"}``
-:class:`~core.errors.BadMessageError`,
-:class:`~core.errors.InvalidCloudError`,
-:class:`~core.errors.FormatError`
-:class:`~core.errors.AuthError`                         401     ``{"detail"}``, ``WWW-Authenticate``
-:class:`~core.errors.ForbiddenError`                    403     ``{"detail"}``
-:class:`~core.errors.NotFoundError`                     404     ``{"detail", "resource", "id"}``
-:class:`~core.errors.ConflictError`                     409     ``{"detail"}``
-:class:`~core.errors.UnavailableError`                  503     ``{"detail"}``
+:class:`~randt.core.errors.InvalidRequestError`,              422     ``{"detail"}``
+:class:`~randt.core.errors.BadMessageError`,
+:class:`~randt.core.errors.InvalidCloudError`,
+:class:`~randt.core.errors.FormatError`
+:class:`~randt.core.errors.AuthError`                         401     ``{"detail"}``, ``WWW-Authenticate``
+:class:`~randt.core.errors.ForbiddenError`                    403     ``{"detail"}``
+:class:`~randt.core.errors.NotFoundError`                     404     ``{"detail", "resource", "id"}``
+:class:`~randt.core.errors.ConflictError`                     409     ``{"detail"}``
+:class:`~randt.core.errors.UnavailableError`                  503     ``{"detail"}``
 ======================================================  ======  ===================================
 
-The most specific class wins (a :class:`~core.errors.ForbiddenError` is an
-:class:`~core.errors.AuthError` answered 403). Errors outside the table (a failed registration,
+The most specific class wins (a :class:`~randt.core.errors.ForbiddenError` is an
+:class:`~randt.core.errors.AuthError` answered 403). Errors outside the table (a failed registration,
 a broken store) stay server errors: 500, logged by the server. FastAPI's own request validation
 answers 422 ``{"detail": [...]}`` before a handler runs.
 """
@@ -29,7 +29,7 @@ from __future__ import annotations
 from fastapi import Request
 from fastapi.responses import JSONResponse
 
-from core.errors import (
+from randt.core.errors import (
     AuthError,
     BadMessageError,
     ConflictError,

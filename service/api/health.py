@@ -8,11 +8,11 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 from prometheus_client import Metric
 
-from service.api.deps import ServiceDep, require_reader
-from service.api.models import CapacityStatus, GraphStatus, Health, MapSummary, Ready, Status
-from service.api.views import map_summary, session_summary
-from service.runtime import Service
-from service.sessions import SessionManager
+from randt.service.api.deps import ServiceDep, require_reader
+from randt.service.api.models import CapacityStatus, GraphStatus, Health, MapSummary, Ready, Status
+from randt.service.api.views import map_summary, session_summary
+from randt.service.runtime import Service
+from randt.service.sessions import SessionManager
 
 __all__ = ["router"]
 

@@ -1,7 +1,7 @@
 """``/maps``: the tiled maps, their tile index, tile downloads, Autoware metadata and merged exports.
 
 Everything is served from the tiles *as last saved* (:meth:`SessionManager.durable_map
-<service.sessions.SessionManager.durable_map>`, immutable tile snapshots kept in memory), never
+<randt.service.sessions.SessionManager.durable_map>`, immutable tile snapshots kept in memory), never
 from the live grid that runs up to ``flush_interval_s`` ahead of the store: a version seen here
 is on disk, so after a crash it neither goes back nor comes again with other content.
 
@@ -23,11 +23,11 @@ import yaml
 from fastapi import APIRouter, Depends, Header, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 
-from core.errors import InvalidRequestError, NotFoundError
-from core.io.autoware import AUTOWARE_METADATA_NAME, PROJECTOR_INFO_NAME
-from core.metrics.cloud import pdu
-from core.tiles import Tile, TileGrid, tile_id
-from service.api.deps import (
+from randt.core.errors import InvalidRequestError, NotFoundError
+from randt.core.io.autoware import AUTOWARE_METADATA_NAME, PROJECTOR_INFO_NAME
+from randt.core.metrics.cloud import pdu
+from randt.core.tiles import Tile, TileGrid, tile_id
+from randt.service.api.deps import (
     WRITER_RESPONSES,
     MapName,
     TileIx,
@@ -35,8 +35,8 @@ from service.api.deps import (
     require_reader,
     require_writer,
 )
-from service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, stream_cloud
-from service.api.models import (
+from randt.service.api.encoding import CLOUD_MEDIA_TYPES, CloudFormat, cloud_bytes, stream_cloud
+from randt.service.api.models import (
     DeletedMap,
     ErrorBody,
     GraphEdge,
@@ -48,8 +48,8 @@ from service.api.models import (
     TileIndex,
     TileInfo,
 )
-from service.api.views import map_summary
-from service.sessions import DurableMap, SessionManager
+from randt.service.api.views import map_summary
+from randt.service.sessions import DurableMap, SessionManager
 
 __all__ = ["PduCache", "parse_bbox", "router"]
 

@@ -1,7 +1,7 @@
 """``/metrics``: the instance's Prometheus registry in the text exposition format.
 
 Rendered by prometheus_client (``generate_latest``), never by hand; the series are described in
-:mod:`service.metrics`. Scrape it like any exporter::
+:mod:`randt.service.metrics`. Scrape it like any exporter::
 
     scrape_configs:
       - job_name: randt
@@ -14,7 +14,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from service.api.deps import ServiceDep, require_reader
+from randt.service.api.deps import ServiceDep, require_reader
 
 __all__ = ["router"]
 

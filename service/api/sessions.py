@@ -16,9 +16,9 @@ import numpy as np
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import PlainTextResponse
 
-from core.errors import NotFoundError
-from core.io import write_kitti_poses, write_tum
-from service.api.deps import (
+from randt.core.errors import NotFoundError
+from randt.core.io import write_kitti_poses, write_tum
+from randt.service.api.deps import (
     WRITER_RESPONSES,
     SessionName,
     VehicleName,
@@ -26,7 +26,7 @@ from service.api.deps import (
     require_reader,
     require_writer,
 )
-from service.api.models import (
+from randt.service.api.models import (
     ClosedSession,
     ErrorBody,
     SessionDetail,
@@ -34,8 +34,8 @@ from service.api.models import (
     TrajectoryJson,
     TrajectoryPose,
 )
-from service.api.views import find_session, load_trajectory, session_detail, session_summary
-from service.sessions import SessionManager
+from randt.service.api.views import find_session, load_trajectory, session_detail, session_summary
+from randt.service.sessions import SessionManager
 
 __all__ = ["router"]
 
@@ -93,7 +93,7 @@ def get_trajectory(
 ) -> TrajectoryJson | PlainTextResponse:
     """The session's poses (``T_frame_sensor``) in scan order, as JSON, KITTI or TUM text.
 
-    KITTI and TUM are written by the same writers as ``randt map`` (``core.io``); KITTI has no
+    KITTI and TUM are written by the same writers as ``randt map`` (``randt.core.io``); KITTI has no
     stamps, TUM has ``stamp tx ty tz qx qy qz qw`` per line. With ``corrected=true``, each pose is
     moved with the correction of the graph keyframes around it (interpolated); the JSON says
     whether it was (``corrected``: false while the session is not placed in a graph), and for each

@@ -1,7 +1,7 @@
 """Builders of the response models from the service's live state and the store's records.
 
-A session is either **running** (a worker holds its matcher: :class:`service.sessions.SessionState`)
-or only **stored** (:class:`service.store.SessionRecord`: closed, expired, or active but not resumed
+A session is either **running** (a worker holds its matcher: :class:`randt.service.sessions.SessionState`)
+or only **stored** (:class:`randt.service.store.SessionRecord`: closed, expired, or active but not resumed
 since a restart). The routers ask :func:`find_session` for both and build one model from either.
 """
 
@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import NotFoundError
-from core.tiles import TileGrid
-from service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
-from service.sessions import DurableMap, SessionManager, SessionState
-from service.store import SessionRecord
+from randt.core.errors import NotFoundError
+from randt.core.tiles import TileGrid
+from randt.service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
+from randt.service.sessions import DurableMap, SessionManager, SessionState
+from randt.service.store import SessionRecord
 
 __all__ = [
     "FoundSession",
@@ -96,7 +96,8 @@ class FoundSession:
 
 
 def find_session(mgr: SessionManager, vehicle: str, session: str) -> FoundSession:
-    """The running or stored session ``vehicle/session``; :class:`~core.errors.NotFoundError` if neither."""
+    """The running or stored session ``vehicle/session``; :class:`~randt.core.errors.NotFoundError` if
+    neither."""
     worker = mgr.worker(vehicle, session)
     record = mgr.records().get((vehicle, session))
     if worker is None and record is None:

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cli.errors import ExitCode
-from clients.rest import MapClient
-from core.io import read_cloud
+from randt.cli.errors import ExitCode
+from randt.clients.rest import MapClient
+from randt.core.io import read_cloud
 from tests.service.conftest import free_port
 
 VEHICLES = 3
@@ -60,7 +60,7 @@ def demo(tmp_path_factory):
     hport, zport = free_port(), free_port()
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "cli", "demo",
+            sys.executable, "-m", "randt.cli", "demo",
             "--vehicles", str(VEHICLES), "--duration", str(DURATION_S),
             "--data-dir", str(data), "--http-port", str(hport), "--zenoh-port", str(zport), "--no-progress",
         ],
@@ -191,7 +191,7 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 
     def tiles(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [sys.executable, "-m", "cli", "tiles", *args, "--url", base],
+            [sys.executable, "-m", "randt.cli", "tiles", *args, "--url", base],
             capture_output=True,
             text=True,
             timeout=120,
@@ -237,8 +237,8 @@ def test_randt_tiles_download_and_export_against_the_demo(demo, tmp_path) -> Non
 def test_randt_tiles_listings_against_the_demo(demo, tmp_path) -> None:
     from typer.testing import CliRunner
 
-    from cli.main import app
-    from core.io import read_kitti_poses
+    from randt.cli.main import app
+    from randt.core.io import read_kitti_poses
 
     _, _, data, base = demo
     run = CliRunner().invoke
@@ -280,7 +280,7 @@ def test_demo_shows_the_viewer_first_and_removes_its_temporary_data(tmp_path: Pa
     tmp.mkdir()
     proc = subprocess.run(
         [
-            sys.executable, "-m", "cli", "demo", "--vehicles", "1", "--duration", "0.5", "--exit",
+            sys.executable, "-m", "randt.cli", "demo", "--vehicles", "1", "--duration", "0.5", "--exit",
             "--http-port", str(hport), "--zenoh-port", str(zport), "--no-progress",
         ],
         capture_output=True, text=True, timeout=300, env={**os.environ, "TMPDIR": str(tmp)},

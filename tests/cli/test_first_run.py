@@ -1,7 +1,7 @@
 """A new user's first run: Ctrl-C, busy ports and data directories, wrong paths, ``--help``, ``config``.
 
 Each test runs ``randt`` as a user does (a subprocess) and checks the one line and the exit code
-the README's table documents (``cli.errors.ExitCode``).
+the README's table documents (``randt.cli.errors.ExitCode``).
 """
 
 from __future__ import annotations
@@ -20,10 +20,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from cli.errors import ExitCode
+from randt.cli.errors import ExitCode
 from tests.service.conftest import free_port
 
-RANDT = [sys.executable, "-m", "cli"]
+RANDT = [sys.executable, "-m", "randt.cli"]
 
 
 def _randt(*args: str, timeout: float = 120, **kwargs: object) -> subprocess.CompletedProcess[str]:
@@ -149,7 +149,7 @@ def test_busy_zenoh_port_is_one_line_before_anything_starts(tmp_path: Path, busy
 
 
 def test_data_directory_in_use_is_one_line(tmp_path: Path) -> None:
-    from service.store import Store
+    from randt.service.store import Store
 
     data = tmp_path / "data"
     store = Store(data)  # this test process holds the directory, as a running service would
@@ -209,7 +209,7 @@ def test_a_folder_without_scans_says_so(tmp_path: Path) -> None:
 def _all_commands() -> list[list[str]]:
     from typer.main import get_command
 
-    from cli.main import app
+    from randt.cli.main import app
 
     group = get_command(app)
     found: list[list[str]] = [[]]
@@ -224,7 +224,7 @@ def _all_commands() -> list[list[str]]:
 
 
 def test_every_help_shows_real_defaults_and_no_placeholders() -> None:
-    from service.settings import ServiceSettings
+    from randt.service.settings import ServiceSettings
 
     commands = _all_commands()
     assert ["serve"] in commands and ["tiles", "export"] in commands and len(commands) >= 16
@@ -266,11 +266,11 @@ def test_every_help_shows_real_defaults_and_no_placeholders() -> None:
 
 
 def test_config_prints_every_settings_group_with_defaults_and_env_vars() -> None:
-    from clients.fleet import FleetSettings
-    from clients.publisher import PublisherSettings
-    from core.config import RegistrationSettings
-    from core.odometry import MATCHER_REGISTRATION, MatcherSettings
-    from service.settings import ServiceSettings
+    from randt.clients.fleet import FleetSettings
+    from randt.clients.publisher import PublisherSettings
+    from randt.core.config import RegistrationSettings
+    from randt.core.odometry import MATCHER_REGISTRATION, MatcherSettings
+    from randt.service.settings import ServiceSettings
 
     proc = _randt("config", "--json")
     assert proc.returncode == 0, proc.stderr
@@ -304,7 +304,7 @@ def test_config_groups_follow_the_models() -> None:
     from pydantic import BaseModel, Field
     from pydantic_settings import BaseSettings, SettingsConfigDict
 
-    from cli.config import SettingRow, settings_groups
+    from randt.cli.config import SettingRow, settings_groups
 
     class Inner(BaseModel):
         depth_m: float = Field(default=2.5, description="how deep")
@@ -322,7 +322,7 @@ def test_config_groups_follow_the_models() -> None:
 
 
 def test_the_readme_documents_every_exit_code() -> None:
-    from cli.errors import DESCRIPTIONS
+    from randt.cli.errors import DESCRIPTIONS
 
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     rows = dict(re.findall(r"^\| (\d+) \| (.+?) \|$", readme, flags=re.M))

@@ -1,5 +1,5 @@
 """A Ctrl-C that lands in a weakref callback (where the import system's module locks are dropped)
-is swallowed by the interpreter ("Exception ignored in ..."): ``cli.interrupt`` notes it first, so
+is swallowed by the interpreter ("Exception ignored in ..."): ``randt.cli.interrupt`` notes it first, so
 the command's next wait still raises it (a ``randt demo`` interrupted during its imports served on
 until killed, bench/ctrl_c.py)."""
 
@@ -14,7 +14,7 @@ import pytest
 SCRIPT = textwrap.dedent(
     """
     import os, signal, sys, time, weakref
-    from cli import interrupt
+    from randt.cli import interrupt
 
     # (Python's handler even when started with SIGINT ignored, as a background job of a script is)
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -66,7 +66,7 @@ def test_other_unraisable_exceptions_are_still_printed() -> None:
     script = textwrap.dedent(
         """
         import weakref
-        from cli import interrupt
+        from randt.cli import interrupt
 
         interrupt.install()
 
@@ -88,7 +88,7 @@ def test_other_unraisable_exceptions_are_still_printed() -> None:
 WRAPPED = textwrap.dedent(
     """
     import os, signal, sys, time
-    from cli import interrupt
+    from randt.cli import interrupt
 
     interrupt.install()
     try:
@@ -110,7 +110,7 @@ def test_an_error_raised_in_place_of_a_ctrl_c_is_the_ctrl_c() -> None:
     run = subprocess.run([sys.executable, "-c", WRAPPED], capture_output=True, text=True, timeout=60)
     assert run.stdout.split() == ["interrupt", "noted"], (run.stdout, run.stderr)
     clean = subprocess.run(
-        [sys.executable, "-c", "from cli import interrupt; print(interrupt.explains(ValueError()))"],
+        [sys.executable, "-c", "from randt.cli import interrupt; print(interrupt.explains(ValueError()))"],
         capture_output=True,
         text=True,
         timeout=60,

@@ -10,14 +10,16 @@ import sys
 import numpy as np
 import pytest
 
-from core.io import read_cloud
-from core.transforms import transform_error
+from randt.core.io import read_cloud
+from randt.core.transforms import transform_error
 from tests.data import require_data
 from tests.pairs import bunny, car
 
 
 def _randt(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "randt.cli", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_register_json_on_the_car_pair(tmp_path) -> None:
@@ -100,7 +102,7 @@ def test_demo_register_reports_small_errors(tmp_path) -> None:
 def test_map_on_kitti00_writes_poses_tiles_and_summary(tmp_path) -> None:
     import yaml
 
-    from core.io import read_kitti_poses, read_tum
+    from randt.core.io import read_kitti_poses, read_tum
 
     root = require_data("kitti00/velodyne/000010.bin")
     out = tmp_path / "out"
@@ -131,8 +133,8 @@ def test_map_on_kitti00_writes_poses_tiles_and_summary(tmp_path) -> None:
 
 
 def test_eval_reports_known_errors(tmp_path) -> None:
-    from core.io import write_kitti_poses
-    from core.transforms import make_transform
+    from randt.core.io import write_kitti_poses
+    from randt.core.transforms import make_transform
 
     ref = np.array([make_transform(translation=(i * 1.0, 0.0, 0.0)) for i in range(200)])
     est = np.array([make_transform(translation=(i * 1.01, 0.0, 0.0)) for i in range(200)])
@@ -217,8 +219,8 @@ def test_register_svd_steps_place_a_noisy_protocol_trial(tmp_path) -> None:
     within 1 cm by the placement RMSE (measured: default 0.08 cm, --fast-svd 0.22 cm);
     ``--dense-svd``, the default since 2026-11-26, still runs and gives the default's pose; either
     with another method, or both together, is a usage error."""
-    from core.protocol import make_trial
-    from core.transforms import transform_points
+    from randt.core.protocol import make_trial
+    from randt.core.transforms import transform_points
     from tests.pairs import kitti00_velodyne
 
     trial = make_trial(kitti00_velodyne(3), np.random.default_rng(1))
@@ -251,8 +253,8 @@ def test_register_centroid_start_places_an_object_posed_far_away(tmp_path) -> No
     tests/core/test_registration.py), is placed within 2 cm and 0.5 deg (measured 1.3 cm: the SVD
     step's RMSE rises on this 193-point source and NDT's pose is kept; --fast-svd 0.58 cm); with
     ``--init`` as well it is a usage error."""
-    from core.shared_data import data_root
-    from core.transforms import make_transform, transform_points
+    from randt.core.shared_data import data_root
+    from randt.core.transforms import make_transform, transform_points
 
     require_data("objects/modelnet40")
     xyz = read_cloud(data_root() / "objects/modelnet40/airplane_0003.off", n_mesh_samples=1024, seed=7).xyz

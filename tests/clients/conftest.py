@@ -2,7 +2,7 @@
 
 The fake service answers every scan like the real one (a pose, or an error for the seqs it is told
 to reject) without running the matcher, so publisher tests take seconds. Tests that need the real
-matcher start :class:`service.runtime.Service` instead.
+matcher start :class:`randt.service.runtime.Service` instead.
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from core.errors import BadMessageError
+from randt.core.errors import BadMessageError
+from randt.wire.codes import ErrorCode
+from randt.wire.keys import ALL_SCANS, key_for
+from randt.wire.messages import ErrorMessage, PoseMessage, decode_scan, encode
+from randt.wire.zenoh_config import zenoh_config
 from tests.service.conftest import free_port
-from wire.codes import ErrorCode
-from wire.keys import ALL_SCANS, key_for
-from wire.messages import ErrorMessage, PoseMessage, decode_scan, encode
-from wire.zenoh_config import zenoh_config
 
 
 class Router:

@@ -9,8 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
 from tests.clients.conftest import Router
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "clients.md"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clients.fleet import TABLE_HEADER, FleetSettings, evaluate, summary_table
+from randt.clients.fleet import TABLE_HEADER, FleetSettings, evaluate, summary_table
 
 
 def _line(n: int = 11, step_m: float = 1.0) -> dict[int, np.ndarray]:

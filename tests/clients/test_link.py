@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clients.publisher import PublisherSettings, encode_sweep, first_per_voxel
-from core.datasets import open_sequence
-from core.errors import BadMessageError
+from randt.clients.publisher import PublisherSettings, encode_sweep, first_per_voxel
+from randt.core.datasets import open_sequence
+from randt.core.errors import BadMessageError
+from randt.wire.messages import decode_scan
 from tests.data import require_data
-from wire.messages import decode_scan
 
 #: 12 Mbit/s at 10 Hz: bytes per sweep at most.
 BUDGET_BYTES = 12e6 / 8 / 10

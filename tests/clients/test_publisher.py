@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from clients.publisher import PublisherSettings, VehiclePublisher
-from core.errors import BadMessageError
+from randt.clients.publisher import PublisherSettings, VehiclePublisher
+from randt.core.errors import BadMessageError
+from randt.wire.messages import ErrorMessage, PoseMessage
 from tests.clients.conftest import FakeService, Router
-from wire.messages import ErrorMessage, PoseMessage
 
 
 def _cloud(n: int = 500, seed: int = 0) -> np.ndarray:

@@ -9,13 +9,13 @@ import sys
 import numpy as np
 from typer.testing import CliRunner
 
-from cli.main import app
-from clients.publisher import PublisherSettings
-from clients.replay import replay
-from core.io import PointCloud, read_cloud, read_kitti_poses, read_tum, write_cloud
-from core.transforms import transform_error
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.cli.main import app
+from randt.clients.publisher import PublisherSettings
+from randt.clients.replay import replay
+from randt.core.io import PointCloud, read_cloud, read_kitti_poses, read_tum, write_cloud
+from randt.core.transforms import transform_error
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
 from tests.clients.conftest import FakeService, Router
 from tests.data import require_data
 
@@ -60,7 +60,7 @@ def test_replay_kitti00_through_a_router_matches_the_offline_map(
         for name, source in sources.items():
             runs[name] = subprocess.run(
                 [
-                    sys.executable, "-m", "cli", "replay", str(source),
+                    sys.executable, "-m", "randt.cli", "replay", str(source),
                     "--vehicle", "kitti", "--session", name, "--rate", "0",
                     "--connect", restartable_router.endpoint, "--mode", "client",
                     "--out", str(tmp_path / f"replay-{name}"), "--no-progress", "--raw",

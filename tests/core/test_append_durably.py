@@ -1,4 +1,4 @@
-"""core.io.atomic.append_durably: the fsync'd append of the pose and graph logs."""
+"""randt.core.io.atomic.append_durably: the fsync'd append of the pose and graph logs."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import os
 
 import pytest
 
-import core.io.atomic as atomic
-from core.errors import FormatError
-from core.io.atomic import append_durably
+import randt.core.io.atomic as atomic
+from randt.core.errors import FormatError
+from randt.core.io.atomic import append_durably
 
 
 def test_appends_in_order_and_creates_the_file_and_its_directories(

@@ -1,4 +1,4 @@
-"""ROS bags (core.io.bags) and PointCloud2 decoding (core.io.pointcloud2), against bags that
+"""ROS bags (randt.core.io.bags) and PointCloud2 decoding (randt.core.io.pointcloud2), against bags that
 ``rosbags`` wrote from the real KITTI 00 sweeps (tests/ros_bags.py)."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.datasets import open_scans
-from core.errors import FormatError
-from core.io import read_cloud
-from core.io.bags import open_bag
-from core.io.pointcloud2 import PointCloud2Fields, PointField, decode_pointcloud2
+from randt.core.datasets import open_scans
+from randt.core.errors import FormatError
+from randt.core.io import read_cloud
+from randt.core.io.bags import open_bag
+from randt.core.io.pointcloud2 import PointCloud2Fields, PointField, decode_pointcloud2
 from tests.data import require_data
 from tests.ros_bags import KINDS, TOPIC, azimuth_offsets, kitti_frames, write_bag
 
@@ -174,7 +174,7 @@ def test_the_services_arrays_are_float32_views_with_every_row() -> None:
     float32, x/y/z a view of the message's bytes in the drivers' packed layout (no copy of a
     120k-point sweep), non-finite rows kept for the matcher to drop and count, time offsets from
     the earliest point; any other layout is read as well, as a copy."""
-    from core.io.pointcloud2 import pointcloud2_arrays
+    from randt.core.io.pointcloud2 import pointcloud2_arrays
 
     n = 10
     packed = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("t", "<u4")])
@@ -232,7 +232,7 @@ def test_randt_map_of_a_bag_equals_randt_map_of_the_kitti_folder(kitti, tmp_path
     """The same 11 sweeps (float32 both), the same matcher: the same poses to the bit, and the same map."""
     from typer.testing import CliRunner
 
-    from cli.main import app
+    from randt.cli.main import app
 
     root, xyz, intensity, times = kitti
     bag = write_bag(tmp_path / "drive", "mcap", xyz, intensity, times)

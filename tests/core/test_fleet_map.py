@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import InvalidCloudError, InvalidRequestError
-from core.fleet_map import FleetMapper, FleetMapSettings, placement_vote
+from randt.core.errors import InvalidCloudError, InvalidRequestError
+from randt.core.fleet_map import FleetMapper, FleetMapSettings, placement_vote
 from tests import pairs
 
 
@@ -69,13 +69,13 @@ def test_a_session_placed_where_its_frame_is_known_enters_the_graph_at_once() ->
 
 
 def test_every_kitti_revisit_at_keyframe_resolution_is_a_placement_vote() -> None:
-    """The placement's own bar (core.fleet_map.placement_vote: refined, 30 consistent
+    """The placement's own bar (randt.core.fleet_map.placement_vote: refined, 30 consistent
     correspondences, overlap 0.6) refuses no true registration of the 21 KITTI 00 revisits at the
     graph's keyframe resolution (measured: all refined, 35-305 correspondences, overlap
     0.64-0.97), each within 7 cm of the ICP reference."""
-    from core.global_registration import register_global
-    from core.transforms import transform_error
-    from core.voxel import voxel_downsample
+    from randt.core.global_registration import register_global
+    from randt.core.transforms import transform_error
+    from randt.core.voxel import voxel_downsample
 
     s = FleetMapSettings()
     votes = []
@@ -96,7 +96,7 @@ def test_a_placement_vote_names_the_bar_it_missed() -> None:
     refinement in the settings only the counts decide."""
     from dataclasses import replace
 
-    from core.global_registration import register_global
+    from randt.core.global_registration import register_global
 
     s = FleetMapSettings()
     points = pairs.kitti00_loops_velodyne(120)

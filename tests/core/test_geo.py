@@ -12,8 +12,8 @@ import pytest
 pyproj = pytest.importorskip("pyproj")
 mgrs = pytest.importorskip("mgrs")
 
-from core.errors import InvalidRequestError  # noqa: E402
-from core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
+from randt.core.errors import InvalidRequestError  # noqa: E402
+from randt.core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
 
 #: Places in both hemispheres, both sides of a central meridian, and in Norway's zone exception.
 PLACES = [(35.6762, 139.6503), (-33.8688, 151.2093), (48.137, 11.575), (60.39, 5.32), (0.5, -78.5)]
@@ -89,8 +89,8 @@ def test_bad_origins_are_refused_with_the_reason() -> None:
 
 
 def test_the_projector_info_file_is_autowares_and_reads_back(tmp_path) -> None:
-    from core.errors import FormatError
-    from core.io.autoware import PROJECTOR_INFO_NAME, read_projector_info, write_projector_info
+    from randt.core.errors import FormatError
+    from randt.core.io.autoware import PROJECTOR_INFO_NAME, read_projector_info, write_projector_info
 
     proj = LocalCartesianUTM(GeoOrigin.on_grid(35.6762, 139.6503, 40.7, grid_m=20.0))
     assert read_projector_info(tmp_path) is None  # a map in a local frame has none

@@ -1,7 +1,7 @@
 """Global (prior-free) registration on the real pairs, from the identity with no initial guess.
 
 Bounds are each pair's local-registration accuracy:
-tests/pairs.py's for the shared pairs; for the others what :func:`core.registration.register`
+tests/pairs.py's for the shared pairs; for the others what :func:`randt.core.registration.register`
 reaches when started near the reference (measured 2026-11-24):
 
 - 3DMatch: from the ground truth itself the local registration ends 12 cm / 1.8 deg away (the
@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core import kernels
-from core.errors import DegenerateProblemError, InvalidCloudError
-from core.global_registration import FPFH_BINS, GlobalSettings, register_global, spfh_reference
-from core.registration import register
-from core.transforms import make_transform, transform_error
+from randt.core import kernels
+from randt.core.errors import DegenerateProblemError, InvalidCloudError
+from randt.core.global_registration import FPFH_BINS, GlobalSettings, register_global, spfh_reference
+from randt.core.registration import register
+from randt.core.transforms import make_transform, transform_error
 from tests import pairs
 
 #: name -> (loader, translation bound m, rotation bound deg)
@@ -128,7 +128,7 @@ def test_a_degenerate_refinement_is_a_reason_not_an_exception(monkeypatch: pytes
     """The NDT refinement of a corridor may not constrain every axis (DegenerateProblemError,
     seen on simulated street sweeps): the result is not confident and says why; it used to
     propagate and refuse the fleet map's keyframe that asked for the verification."""
-    import core.global_registration as gr
+    import randt.core.global_registration as gr
 
     def degenerate(*args: object, **kwargs: object) -> None:
         raise DegenerateProblemError("the geometry does not constrain 1 degree(s) of freedom (mostly tx)")

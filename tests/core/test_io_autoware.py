@@ -1,4 +1,4 @@
-"""Autoware's divided-map files (core.io.autoware) on their own, without a TileGrid."""
+"""Autoware's divided-map files (randt.core.io.autoware) on their own, without a TileGrid."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import PointCloud, read_cloud
-from core.io.autoware import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import PointCloud, read_cloud
+from randt.core.io.autoware import (
     AUTOWARE_METADATA_NAME,
     GRID_SIDECAR_NAME,
     read_metadata,

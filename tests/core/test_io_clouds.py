@@ -1,4 +1,4 @@
-"""Tests for core.io.clouds and core.io.atomic: real files of every kind, round trips, errors."""
+"""Tests for randt.core.io.clouds and randt.core.io.atomic: real files of every kind, round trips, errors."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pypcd4
 import pytest
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import (
     SUPPORTED_READ_SUFFIXES,
     PointCloud,
     atomic_open,

@@ -1,4 +1,4 @@
-"""Tests for core.io.mesh: the OFF reader (ModelNet quirks) and area-weighted surface sampling."""
+"""Tests for randt.core.io.mesh: the OFF reader (ModelNet quirks) and area-weighted surface sampling."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import read_cloud, read_off, sample_surface
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import read_cloud, read_off, sample_surface
 from tests.data import require_data
 
 # A unit cube [0, 1]^3 as six quads (outward normals), to exercise fan triangulation.

@@ -1,4 +1,4 @@
-"""Tests for core.io.ply: hand-written ASCII and big-endian files, round trips, files written by
+"""Tests for randt.core.io.ply: hand-written ASCII and big-endian files, round trips, files written by
 Open3D, the shared real PLYs against reference values, and malformed input."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import FormatError, NotFoundError
-from core.io import read_cloud
-from core.io.ply import read_ply_header, read_ply_vertices, write_ply_binary
+from randt.core.errors import FormatError, NotFoundError
+from randt.core.io import read_cloud
+from randt.core.io.ply import read_ply_header, read_ply_vertices, write_ply_binary
 from tests.data import require_data
 
 # (PLY type name, numpy dtype) for both spellings of every PLY scalar type.

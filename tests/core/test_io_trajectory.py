@@ -1,4 +1,4 @@
-"""Tests for core.io.trajectory: KITTI poses and calibration, TUM trajectories."""
+"""Tests for randt.core.io.trajectory: KITTI poses and calibration, TUM trajectories."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import (
     kitti_velodyne_poses,
     read_kitti_calib,
     read_kitti_poses,

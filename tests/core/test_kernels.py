@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core import kernels
-from core.io import read_cloud
-from core.ndt import (
+from randt.core import kernels
+from randt.core.io import read_cloud
+from randt.core.ndt import (
     apply_update_about,
     ndt_constants,
     ndt_cost,
@@ -19,9 +19,9 @@ from core.ndt import (
     ndt_point_scores,
     ndt_point_scores_numpy,
 )
-from core.registration import register
-from core.transforms import invert, make_transform, transform_error, transform_points
-from core.voxel import (
+from randt.core.registration import register
+from randt.core.transforms import invert, make_transform, transform_error, transform_points
+from randt.core.voxel import (
     NEIGHBOR_OFFSETS,
     VoxelGaussianMap,
     pack_keys,
@@ -124,8 +124,8 @@ def test_registration_far_from_the_origin_recovers_yaw() -> None:
     degrees off in yaw. With rotations about the origin the Newton solver stalled 1.2-1.9 m and
     4.2-4.4 degrees off (inlier ratio 0.4); at the origin the same pair converged to 1 mm.
     """
-    from sim.drive import Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -232,7 +232,7 @@ def test_eigh3_matches_lapack() -> None:
 def test_conditioned_gaussians_match_the_numpy_fit(kitti_clouds) -> None:
     """The fused fit (conditioning, covariance, inverse, whitening, normal) is the vectorized
     one to round-off, on a real sweep's 1 m voxels and on flat (rank-deficient) scatters."""
-    from core.kernels import group_moments
+    from randt.core.kernels import group_moments
 
     pts = np.ascontiguousarray(kitti_clouds[0], dtype=np.float64)
     inverse, keys, _ = voxel_groups(pts, 1.0)
@@ -258,8 +258,8 @@ def test_conditioned_gaussians_match_the_numpy_fit(kitti_clouds) -> None:
 
 def test_parent_moments_match_bincount(kitti_clouds) -> None:
     """Moments one level up from the children's, compiled and by ``np.bincount``, on a real sweep."""
-    from core.kernels import group_moments
-    from core.voxel import _parent_moments, _parent_moments_numpy
+    from randt.core.kernels import group_moments
+    from randt.core.voxel import _parent_moments, _parent_moments_numpy
 
     pts = np.ascontiguousarray(kitti_clouds[0], dtype=np.float64)
     inverse, keys, _ = voxel_groups(pts, 0.5)
@@ -292,7 +292,7 @@ def test_in_marked_cells_matches_isin() -> None:
 def test_point_grid_nearest_matches_kdtree(kitti_clouds) -> None:
     from scipy.spatial import cKDTree
 
-    from core.grid import PointGrid
+    from randt.core.grid import PointGrid
 
     ref = voxel_downsample(kitti_clouds[0], 0.2)
     queries = voxel_downsample(kitti_clouds[1], 0.4)
@@ -316,7 +316,7 @@ def test_point_grid_normals_match_hybrid_knn(kitti_clouds, cell: float) -> None:
     cannot hold a nearer point)."""
     from scipy.spatial import cKDTree
 
-    from core.grid import PointGrid
+    from randt.core.grid import PointGrid
 
     ref = voxel_downsample(kitti_clouds[0], 0.2)
     which = np.arange(0, ref.shape[0], 7)
@@ -339,8 +339,8 @@ def test_point_grid_normals_match_hybrid_knn(kitti_clouds, cell: float) -> None:
 def test_projected_pair_moments_match_umeyama(kitti_clouds) -> None:
     """The SVD step's fused Kabsch sums give umeyama's fit of the moved points onto their
     projections on the partners' planes, and the point-to-plane residuals' sum of squares."""
-    from core.registration import _projected_kabsch
-    from core.transforms import umeyama
+    from randt.core.registration import _projected_kabsch
+    from randt.core.transforms import umeyama
 
     rng = np.random.default_rng(5)
     src = voxel_downsample(kitti_clouds[1], 0.3) + np.array([250.0, -40.0, 3.0])  # far from the origin
@@ -360,7 +360,7 @@ def test_projected_pair_moments_match_umeyama(kitti_clouds) -> None:
 
 @pytest.mark.parametrize("voxel", [0.5, 1.0, 3.0])
 def test_algorithm1_kernel_matches_the_lexsort_formulation(kitti_clouds, voxel: float) -> None:
-    from core.outliers import iqr_inlier_mask, iqr_inlier_mask_numpy
+    from randt.core.outliers import iqr_inlier_mask, iqr_inlier_mask_numpy
 
     points = voxel_downsample(kitti_clouds[0], 0.2)
     fast = iqr_inlier_mask(points, voxel)
@@ -371,7 +371,7 @@ def test_algorithm1_kernel_matches_the_lexsort_formulation(kitti_clouds, voxel: 
 
 @pytest.mark.parametrize("voxel", [0.25, 0.5, 1.0])
 def test_isolated_point_kernel_matches_numpy(kitti_clouds, voxel: float) -> None:
-    from core.features import _isolated, _isolated_numpy
+    from randt.core.features import _isolated, _isolated_numpy
 
     for cloud in kitti_clouds:
         fast = _isolated(cloud, voxel)
@@ -388,7 +388,7 @@ def test_group_min_skips_flagged_entries() -> None:
 
 def test_neighbor_cache_gives_the_uncached_derivatives(kitti_problem) -> None:
     """A cache warmed at one pose serves the next poses exactly, also where points change cells."""
-    from core.ndt import NeighborCache
+    from randt.core.ndt import NeighborCache
 
     source, gmap, consts, T = kitti_problem
     cache = NeighborCache.empty(source.shape[0], 7)
@@ -434,7 +434,7 @@ def test_group_centroids_match_bincount(kitti_clouds) -> None:
 
 def test_group_weighted_moments_match_bincount(kitti_clouds) -> None:
     """Weighted count, sums and scatter about each voxel's centre against weighted np.bincount
-    passes over the same grouping (the form core.model used before the kernel)."""
+    passes over the same grouping (the form randt.core.model used before the kernel)."""
     points = kitti_clouds[0]
     inverse, keys, *_ = kernels.group_voxels(points, 1.0)
     n = keys.size
@@ -464,7 +464,7 @@ def test_group_min_matches_minimum_at() -> None:
 
 
 def _kernel_docstrings() -> dict[str, str]:
-    """Every public compiled kernel of core.kernels (a numba dispatcher) and its docstring."""
+    """Every public compiled kernel of randt.core.kernels (a numba dispatcher) and its docstring."""
     from numba.core.registry import CPUDispatcher
 
     found = {
@@ -539,7 +539,7 @@ def test_the_8_voxel_neighbourhood_encloses_the_point() -> None:
     """The 8 voxels a point is scored against are those whose centres enclose it: a point just
     above a cell boundary (z = 0.02 of a 1 m voxel) sees the layers below and above the boundary
     alike, where the 7-voxel neighbourhood sees its own layer 5 times and the one below once."""
-    from core.voxel import NEIGHBOR_OFFSETS, neighborhood_base
+    from randt.core.voxel import NEIGHBOR_OFFSETS, neighborhood_base
 
     p = np.array([[0.3, 0.8, 0.02]])
     cells8 = neighborhood_base(p, 1.0, 8)[0] + NEIGHBOR_OFFSETS[8]
@@ -571,7 +571,7 @@ def test_the_8_voxel_cost_is_continuous_where_the_voxels_change(kitti_problem) -
 
 
 def test_trilinear_weights_sum_to_8_and_favour_the_nearest_centre() -> None:
-    from core.voxel import trilinear_weights
+    from randt.core.voxel import trilinear_weights
 
     rng = np.random.default_rng(4)
     p = rng.uniform(-50, 50, (1000, 3))
@@ -583,12 +583,12 @@ def test_trilinear_weights_sum_to_8_and_favour_the_nearest_centre() -> None:
 
 
 def test_deskew_kernel_matches_the_screw_motion() -> None:
-    """core.kernels.deskew_points against each point's own SE(3) power of the period's motion
-    (core.transforms.scale_motion, itself tested against scipy's fractional matrix power), on a
+    """randt.core.kernels.deskew_points against each point's own SE(3) power of the period's motion
+    (randt.core.transforms.scale_motion, itself tested against scipy's fractional matrix power), on a
     sweep-like cloud with a car's motion over one period, a spin of 0.5 rad, and no rotation."""
     from scipy.spatial.transform import Rotation
 
-    from core.odometry import deskew, deskew_reference
+    from randt.core.odometry import deskew, deskew_reference
 
     rng = np.random.default_rng(3)
     xyz = rng.uniform(-80, 80, (2000, 3))
@@ -614,7 +614,7 @@ def test_deskew_follows_the_arc_not_the_chord() -> None:
     """Turning 3.3 deg a period at 10 m/s (33 deg/s, a simulated corner), the sensor half a
     period from the middle is on the arc: 7.2 mm inside the period's chord, and a point seen then
     is moved by that, not by half the chord (which put it 14 mm across before 2026-11-28)."""
-    from core.odometry import deskew
+    from randt.core.odometry import deskew
 
     turn = np.radians(3.3)
     radius = 1.0 / turn  # a 1 m arc
@@ -633,8 +633,8 @@ def test_deskew_follows_the_arc_not_the_chord() -> None:
 
 
 def test_group_int_keys_matches_a_stable_sort() -> None:
-    """core.kernels.group_int_keys: groups in first-seen order, rows in input order within each."""
-    from core.kernels import group_int_keys
+    """randt.core.kernels.group_int_keys: groups in first-seen order, rows in input order within each."""
+    from randt.core.kernels import group_int_keys
 
     rng = np.random.default_rng(8)
     keys = rng.integers(0, 40, 5000) * 1_000_003 + (1 << 40)

@@ -7,10 +7,10 @@ import functools
 import numpy as np
 import pytest
 
-from core.fleet_map import FleetMapper
-from core.keyframe_cache import KeyframeCache
-from core.transforms import make_transform
-from sim.drive import SimScan
+from randt.core.fleet_map import FleetMapper
+from randt.core.keyframe_cache import KeyframeCache
+from randt.core.transforms import make_transform
+from randt.sim.drive import SimScan
 
 
 def test_the_cache_keeps_capacity_keyframes_in_memory_and_every_one_on_disk(tmp_path) -> None:
@@ -39,8 +39,8 @@ def test_the_cache_keeps_capacity_keyframes_in_memory_and_every_one_on_disk(tmp_
 
 @functools.cache
 def _sweeps() -> tuple[SimScan, ...]:
-    from sim.drive import Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     return tuple(simulate(town, Route.loop(town, 3, length_m=1000.0), n_scans=26, speed_mps=12.0, seed=1))

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.datasets import open_sequence
-from core.mapping import MapBuilder
-from core.metrics.cloud import pdu
-from core.metrics.trajectory import kitti_relative_errors, rpe
-from core.transforms import invert, transform_points
-from sim.drive import Motion, Route, simulate
-from sim.town import Town
+from randt.core.datasets import open_sequence
+from randt.core.mapping import MapBuilder
+from randt.core.metrics.cloud import pdu
+from randt.core.metrics.trajectory import kitti_relative_errors, rpe
+from randt.core.transforms import invert, transform_points
+from randt.sim.drive import Motion, Route, simulate
+from randt.sim.town import Town
 from tests.data import require_data
 
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.config import RegistrationSettings
-from core.errors import InvalidCloudError
-from core.io import read_cloud
-from core.kernels import within_xy_radius
-from core.model import KeyframeModel, VoxelMoments
-from core.odometry import IncrementalMatcher
-from core.registration import prepare_reference, register
-from core.transforms import transform_error
-from core.voxel import VoxelGaussianMap, voxel_downsample
+from randt.core.config import RegistrationSettings
+from randt.core.errors import InvalidCloudError
+from randt.core.io import read_cloud
+from randt.core.kernels import within_xy_radius
+from randt.core.model import KeyframeModel, VoxelMoments
+from randt.core.odometry import IncrementalMatcher
+from randt.core.registration import prepare_reference, register
+from randt.core.transforms import transform_error
+from randt.core.voxel import VoxelGaussianMap, voxel_downsample
 from tests.data import require_data
 
 
@@ -161,7 +161,7 @@ def test_the_compiled_update_is_the_numpy_one(kitti_scans) -> None:
     numpy form's model bit for bit over a window that fills, evicts and crops (radius 30 m on
     KITTI sweeps 2-4 m apart, a window of 4)."""
     settings = RegistrationSettings()
-    from core.transforms import transform_points
+    from randt.core.transforms import transform_points
 
     matcher = IncrementalMatcher()
     for s in kitti_scans:

@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from core.errors import InvalidCloudError
-from core.features import extract_features
-from core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
-from core.odometry import (
+from randt.core.errors import InvalidCloudError
+from randt.core.features import extract_features
+from randt.core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
+from randt.core.odometry import (
     MATCHED_TO_MAP,
     RELOCALIZE_EVERY,
     IncrementalMatcher,
@@ -20,9 +20,9 @@ from core.odometry import (
     PosePrior,
     deskew,
 )
-from core.protocol import synthetic_room
-from core.transforms import invert, make_transform, scale_motion, transform_error, transform_points
-from sim.drive import Motion, Route, SimScan
+from randt.core.protocol import synthetic_room
+from randt.core.transforms import invert, make_transform, scale_motion, transform_error, transform_points
+from randt.sim.drive import Motion, Route, SimScan
 from tests.data import require_data
 
 
@@ -101,7 +101,7 @@ def test_a_lost_session_stops_retrying(monkeypatch) -> None:
     """Each failing sweep tries the prediction and its yaw retries (5 registrations here); after
     3 fallbacks in a row the session counts as lost and tries the prediction only, so a lost
     vehicle cannot take the CPU of the others; one good match ends it."""
-    import core.odometry as odometry
+    import randt.core.odometry as odometry
 
     calls = []
     real = odometry.register
@@ -225,8 +225,8 @@ def _raw_corner_run(redeskew: bool) -> tuple[int, float, float]:
     (``transition_m=0``, no braking: the yaw rate jumps from 0 to 76 deg/s inside one sweep, a
     stress test no car drives), deskewed by the matcher from the per-point times; returns
     (fallbacks, final translation error m, rotation error deg)."""
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Motion, Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0, transition_m=0.0)
@@ -264,8 +264,8 @@ def _car_corner_drive() -> tuple[Motion, tuple[SimScan, ...]]:
     """40 distorted simulated sweeps (per-point times) through the first corner of the loop of
     :func:`_raw_corner_run`, driven as a car drives it (clothoid entry and exit, braking to 3 m/s^2
     lateral, 12 m/s on the straights), and the motion that took them."""
-    from sim.drive import simulate
-    from sim.town import Town
+    from randt.sim.drive import simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -322,8 +322,8 @@ def test_a_corner_driven_as_a_car_drives_it_is_predicted_with_its_acceleration(m
 def _two_raw_sweeps(start_s_m: float) -> tuple[list[SimScan], list[np.ndarray]]:
     """The first two distorted sweeps on town 1's loop from ``start_s_m`` at 10 m/s and the true
     sensor poses at their middles."""
-    from sim.drive import Motion, Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Motion, Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -406,8 +406,8 @@ def _tarp() -> np.ndarray:
 def _loop_sweeps() -> tuple[SimScan, ...]:
     """The first 50 sweeps (deskewed) of town 1's 1000 m loop at 12 m/s, simulated once for the
     tests that drive it (read-only: they copy the points they change)."""
-    from sim.drive import Route, simulate
-    from sim.town import Town
+    from randt.sim.drive import Route, simulate
+    from randt.sim.town import Town
 
     town = Town.generate(1)
     route = Route.loop(town, 3, length_m=1000.0)
@@ -417,8 +417,8 @@ def _loop_sweeps() -> tuple[SimScan, ...]:
 @functools.cache
 def _fleet_sweeps() -> dict[int, SimScan]:
     """The 60 sweeps of town 1's one-vehicle fleet at 10 m/s (seed 3), by index, simulated once."""
-    from sim.drive import simulate_fleet
-    from sim.town import Town
+    from randt.sim.drive import simulate_fleet
+    from randt.sim.town import Town
 
     return {
         s.index: s
@@ -625,7 +625,7 @@ def test_a_long_gap_through_a_corner_is_bridged() -> None:
     for good (inlier ratio 0.20), found by bench/service.py with 4 vehicles; that was on the
     simulator's old corners, whose yaw rate jumped to 64 deg/s at once (on the car-like ones an
     8-sweep gap misses by 15 degrees at most)."""
-    from core.transforms import rotation_angle_deg, scale_motion
+    from randt.core.transforms import rotation_angle_deg, scale_motion
 
     keep = [0, 1, 2, 3, 17, 18, 19, 33, 34, 47, 48, 59]
     scans = _fleet_sweeps()
@@ -654,7 +654,7 @@ def test_a_caller_behind_still_bridges_a_long_gap() -> None:
     turns reach 100 degrees either way; with 60, as first built, this drive lost its track on the
     simulator's old corners, where that gap was missed by 73 degrees (found by replaying
     bench/service.py's drop patterns at 8 vehicles)."""
-    from core.transforms import rotation_angle_deg, scale_motion
+    from randt.core.transforms import rotation_angle_deg, scale_motion
 
     keep = [*range(13), 17, 25, 39, 44, 54, 58]
     scans = _fleet_sweeps()  # (its first 59 were simulated for it before they were shared)
@@ -709,8 +709,8 @@ def test_a_sweep_failing_after_its_pose_was_appended_leaves_the_state_equal(monk
 
 def _levels_per_sweep(matcher: IncrementalMatcher, scans, monkeypatch, stamps=None) -> list[list[float]]:
     """The NDT levels each sweep's registrations ran (a spy on the solver), by sweep."""
-    import core.odometry as odometry
-    import core.registration as registration
+    import randt.core.odometry as odometry
+    import randt.core.registration as registration
 
     runs: list[list[float]] = []
     solver, register = registration.ndt_newton, odometry.register
@@ -737,7 +737,7 @@ def test_adaptive_levels_skip_the_coarse_levels_a_good_prediction_does_not_need(
     """KITTI 00: after three matches from the prediction (corrections of centimetres), a sweep
     runs only the levels within LEVEL_MARGIN x its largest recent correction (here the two finest,
     1.6 and 0.8 m) instead of all five, and the poses stay those of every level to 2 mm."""
-    from core.odometry import LEVEL_MARGIN
+    from randt.core.odometry import LEVEL_MARGIN
 
     scans, P_gt = kitti00
     every = IncrementalMatcher(MatcherSettings(adaptive_levels=False))

@@ -1,4 +1,4 @@
-"""core.place: Scan Context place recognition on the 26 real KITTI 00 revisit sweeps, its invariances,
+"""randt.core.place: Scan Context place recognition on the 26 real KITTI 00 revisit sweeps, its invariances,
 its index (KD-tree + tail against a brute-force reference, saving) and its errors.
 
 Measured 2026-11-24 with the defaults (20 x 60 bins, 80 m, query shifts of -4 and +4 m, 10 ring-key
@@ -32,8 +32,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from core.errors import ConflictError, FormatError, InvalidCloudError, InvalidRequestError
-from core.place import (
+from randt.core.errors import ConflictError, FormatError, InvalidCloudError, InvalidRequestError
+from randt.core.place import (
     PlaceIndex,
     PlaceSettings,
     query_descriptors,

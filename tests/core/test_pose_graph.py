@@ -8,9 +8,9 @@ import itertools
 import numpy as np
 import pytest
 
-from core.errors import InvalidRequestError
-from core.pose_graph import PoseGraph
-from core.transforms import invert, make_transform
+from randt.core.errors import InvalidRequestError
+from randt.core.pose_graph import PoseGraph
+from randt.core.transforms import invert, make_transform
 
 
 def _square(n_side: int = 25, step_m: float = 4.0) -> list[np.ndarray]:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.config import RegistrationSettings
-from core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
-from core.protocol import synthetic_room as _box_room
-from core.registration import register, sanitize_points
-from core.transforms import make_transform, transform_error, transform_points
+from randt.core.config import RegistrationSettings
+from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
+from randt.core.protocol import synthetic_room as _box_room
+from randt.core.registration import register, sanitize_points
+from randt.core.transforms import make_transform, transform_error, transform_points
 from tests.pairs import PAIRS
 
 _cache: dict[str, tuple] = {}
@@ -134,8 +134,8 @@ def test_sparse_object_clouds_get_levels_their_voxels_can_fill() -> None:
     hold 8 by the mean, and each object is placed (a 10.6 deg, 12 cm offset, the same points)
     within 2.5 deg and 3 cm, or its result says it failed: degenerate, or an inlier ratio below
     0.5 (a chair, 1024 points on thin legs and a seat: 0.04 where the placed ones have 0.96-0.99)."""
-    from core.io import read_cloud
-    from core.registration import auto_voxel_sizes
+    from randt.core.io import read_cloud
+    from randt.core.registration import auto_voxel_sizes
     from tests.data import require_data
 
     meshes = sorted((require_data("objects/modelnet40") / "objects" / "modelnet40").glob("*.off"))
@@ -168,9 +168,9 @@ def test_a_sparse_clouds_points_without_a_gaussian_are_kept_not_outliers() -> No
     (rotation up to 45 deg, translation up to 0.5) most of its successes: RMSE 0.064, 11 of 24
     placed within 1 deg / 0.01. A sparse cloud (:func:`is_sparse_cloud`) now keeps them, in the
     reference and in the moving selection; measured 0.0587, 19 of 24 (bench/paper.py's trials)."""
-    from core.io import read_cloud
-    from core.registration import auto_voxel_sizes, is_sparse_cloud, prepare_reference
-    from core.shared_data import car
+    from randt.core.io import read_cloud
+    from randt.core.registration import auto_voxel_sizes, is_sparse_cloud, prepare_reference
+    from randt.core.shared_data import car
     from tests.data import require_data
 
     meshes = sorted((require_data("objects/modelnet40") / "objects" / "modelnet40").glob("*.off"))[:12]
@@ -219,10 +219,10 @@ def test_a_wrong_basin_at_the_coarsest_level_is_retried_from_the_next(monkeypatc
     scale) RANDT fell into a wrong basin, 2.3 and 4.0 m off with an inlier ratio of 0.04-0.05;
     run once more from the next level (RETRY_BELOW_INLIER_RATIO) it is placed within 1 cm, and
     the result with more inliers is kept."""
-    import core.registration as registration
-    from core.io import read_cloud
-    from core.protocol import make_trial
-    from core.voxel import pack_keys, voxel_coords
+    import randt.core.registration as registration
+    from randt.core.io import read_cloud
+    from randt.core.protocol import make_trial
+    from randt.core.voxel import pack_keys, voxel_coords
     from tests.data import require_data
 
     root = require_data("randt_velodyne/velodyne")
@@ -250,9 +250,9 @@ def test_the_svd_residual_fence_and_the_dense_step_help_on_the_papers_protocol()
     the NDT solver's points). On the paper's protocol (noise, 10 % outliers, 50 % overlap) each
     lowers the placement error (bench/paper.py). Measured here on five trials of one KITTI 00
     sweep: before 4.8 mm mean (one trial 10 mm), fast 2.1 mm, default 1.5 mm."""
-    from core.config import FAST_SVD_STEP
-    from core.protocol import make_trial
-    from core.shared_data import kitti00_velodyne
+    from randt.core.config import FAST_SVD_STEP
+    from randt.core.protocol import make_trial
+    from randt.core.shared_data import kitti00_velodyne
     from tests.data import require_data
 
     require_data("kitti00/velodyne/000000.bin")
@@ -301,9 +301,9 @@ def test_the_unfiltered_reference_is_kept_only_for_the_svd_step_that_uses_it() -
     """A prepared reference keeps its downsampled points before the IQR filter only when an SVD
     step on unfiltered points will ask for them: the incremental matcher's references (no SVD
     step) hold one copy of their points, as before."""
-    from core.odometry import MATCHER_REGISTRATION
-    from core.registration import auto_voxel_sizes, prepare_reference
-    from core.shared_data import kitti00_velodyne
+    from randt.core.odometry import MATCHER_REGISTRATION
+    from randt.core.registration import auto_voxel_sizes, prepare_reference
+    from randt.core.shared_data import kitti00_velodyne
     from tests.data import require_data
 
     require_data("kitti00/velodyne/000000.bin")
@@ -324,7 +324,7 @@ def test_the_svd_step_is_kept_unless_its_rmse_clearly_rises() -> None:
     moves 0.01-0.1 cm either way; a strict "must lower it" test kept it at 2 and 2.5 and rejected
     it at 2.25, 2.75 and 3 (NDT's pose, 4.6 cm). With the 2 % tolerance (``svd_max_rmse_rise``)
     every one is kept."""
-    from core.config import FAST_SVD_STEP
+    from randt.core.config import FAST_SVD_STEP
     from tests.pairs import car
 
     source, target, T_ref = car()
@@ -346,9 +346,9 @@ def test_a_moving_cloud_equalized_coarser_than_the_finest_voxel_still_registers(
     selection is now skipped when it would keep less than a quarter (real scans keep 43-89 %),
     and five protocol trials are placed within its success bounds (5 cm, 0.5 deg; measured
     0.4-3.2 cm, 0.02-0.11 deg)."""
-    from core.protocol import make_trial
-    from core.shared_data import kitti00_velodyne
-    from core.voxel import pack_keys, voxel_coords
+    from randt.core.protocol import make_trial
+    from randt.core.shared_data import kitti00_velodyne
+    from randt.core.voxel import pack_keys, voxel_coords
     from tests.data import require_data
 
     require_data("kitti00/velodyne/000000.bin")
@@ -368,9 +368,9 @@ def test_the_centroid_start_places_objects_the_identity_cannot() -> None:
     the centroids within 2 cm and 0.5 deg (measured 0.18 cm / 0.08 deg and 1.3 cm / 0.43 deg: on
     the airplane's 193 moving points the SVD step's trimmed RMSE rises 4 % and NDT's pose is kept;
     ``FAST_SVD_STEP`` places it within 0.58 cm)."""
-    from core.io import read_cloud
-    from core.registration import centroid_start
-    from core.shared_data import data_root
+    from randt.core.io import read_cloud
+    from randt.core.registration import centroid_start
+    from randt.core.shared_data import data_root
     from tests.data import require_data
 
     a = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [np.nan, 1.0, 1.0]])
@@ -394,9 +394,9 @@ def test_the_centroid_start_places_objects_the_identity_cannot() -> None:
 
 
 def test_stratified_subsample_keeps_each_cells_share_in_input_order() -> None:
-    """core.voxel.stratified_subsample: exactly the asked count, every cell's share within one
+    """randt.core.voxel.stratified_subsample: exactly the asked count, every cell's share within one
     point of its proportion, rows in input order, the same rows every call."""
-    from core.voxel import stratified_subsample, voxel_groups
+    from randt.core.voxel import stratified_subsample, voxel_groups
 
     rng = np.random.default_rng(5)
     dense = rng.normal(0.0, 0.5, (6000, 3))  # a few cells near the origin hold most points
@@ -434,8 +434,8 @@ def test_real_pair_with_a_subsample_driving_newton(name: str) -> None:
 def test_plane_information_kernel_matches_numpy(name: str) -> None:
     """The degeneracy test's point-to-plane information, compiled and vectorized, on real pairs
     at their reference pose, on 0.5 m and 1.5 m voxels (a size whose reciprocal is not exact)."""
-    from core.registration import _plane_information, _plane_information_numpy
-    from core.voxel import VoxelGaussianMap, voxel_downsample
+    from randt.core.registration import _plane_information, _plane_information_numpy
+    from randt.core.voxel import VoxelGaussianMap, voxel_downsample
 
     source, target, T = _pair(name)
     moving = voxel_downsample(source, 0.25)

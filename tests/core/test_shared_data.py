@@ -1,4 +1,4 @@
-"""core.shared_data: where the real data set is, without pytest in the way."""
+"""randt.core.shared_data: where the real data set is, without pytest in the way."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core import shared_data
-from core.errors import NotFoundError
+from randt.core import shared_data
+from randt.core.errors import NotFoundError
 from tests import pairs
 from tests.data import require_data
 

@@ -1,4 +1,4 @@
-"""Tests for core.tiles: tile ownership, the per-voxel cap, versions, queries, PDU, Autoware files."""
+"""Tests for randt.core.tiles: tile ownership, the per-voxel cap, versions, queries, PDU, Autoware files."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError
-from core.io import PointCloud, read_cloud, write_pcd
-from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
-from core.kernels import voxel_table_near
-from core.tiles import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError
+from randt.core.io import PointCloud, read_cloud, write_pcd
+from randt.core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
+from randt.core.kernels import voxel_table_near
+from randt.core.tiles import (
     _TILE_OFFSET,
     COLUMN_M,
     SentVoxels,
@@ -23,7 +23,7 @@ from core.tiles import (
     parse_tile_id,
     tile_id,
 )
-from core.transforms import transform_points
+from randt.core.transforms import transform_points
 from tests.pairs import kitti00_loop_pairs, kitti00_loops_velodyne, kitti00_velodyne
 
 
@@ -597,7 +597,7 @@ def test_candidate_mask_keeps_exactly_what_insert_would(cap: int) -> None:
 
 @pytest.mark.parametrize("cap", [1, 3, 10])
 def test_compiled_candidate_mask_equals_the_numpy_reference(cap: int) -> None:
-    """The hashed pass (core.kernels.first_per_voxel_pair, tile_voxel_keys) picks exactly the
+    """The hashed pass (randt.core.kernels.first_per_voxel_pair, tile_voxel_keys) picks exactly the
     points of the two-lexsort reference, and computes exactly its keys, on a real KITTI sweep moved
     across tile borders, with exact duplicates and a non-finite row shuffled in."""
     kitti00_scan = kitti00_velodyne(0)
@@ -713,7 +713,7 @@ def test_refold_replaces_only_the_listed_tiles_and_advances_their_versions() -> 
 @pytest.mark.parametrize("cap", [1, 2])
 def test_refold_replaces_the_tiles_equalized_as_new(cap: int) -> None:
     """A re-fold empties the listed tiles' voxels in the grid's table (backward-shift deletion,
-    core.kernels.voxel_table_forget) and equalizes the given points into them as into new tiles;
+    randt.core.kernels.voxel_table_forget) and equalizes the given points into them as into new tiles;
     later inserts then see exactly what the tiles hold. Enough points to grow the table several
     times, and every other tile re-folded, so deletions run through long probe runs."""
     rng = np.random.default_rng(10 + cap)
@@ -766,7 +766,7 @@ def test_snapshots_stay_unchanged_while_the_tile_grows() -> None:
 
 
 def test_near_map_kernel_equals_the_numpy_reference() -> None:
-    """core.kernels.voxel_table_near (hashed probes, steps crossing tile borders) finds exactly
+    """randt.core.kernels.voxel_table_near (hashed probes, steps crossing tile borders) finds exactly
     the points the structured-row np.isin reference finds, on a real KITTI sweep as the map and
     the next sweep, moved off by half a metre, as the query."""
     grid = TileGrid(20, 0.2, 1)

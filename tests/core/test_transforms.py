@@ -7,8 +7,8 @@ import pytest
 from scipy.linalg import fractional_matrix_power
 from scipy.spatial.transform import Rotation
 
-from core.errors import InvalidCloudError
-from core.transforms import (
+from randt.core.errors import InvalidCloudError
+from randt.core.transforms import (
     invert,
     make_transform,
     rotation_angle_deg,

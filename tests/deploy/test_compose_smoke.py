@@ -399,7 +399,8 @@ def _host_vehicle(stack: Stack, tmp_path: Path, session: str = "host") -> dict[s
     summary = tmp_path / f"{session}.json"
     done = subprocess.run(
         [
-            sys.executable, "-m", "cli", "simulate", "--vehicles", "1", "--duration", "3", "--seed", "1",
+            sys.executable, "-m", "randt.cli",
+            "simulate", "--vehicles", "1", "--duration", "3", "--seed", "1",
             "--connect", f"tcp/127.0.0.1:{stack.zenoh_port}", "--session", session, "--window", "1",
             "--azimuth", "1000",
             "--json-out", str(summary), "--no-progress", "--connect-timeout", "60",

@@ -18,14 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from bench.harness import start_server, stop_server
-from service.app import create_app
-from service.runtime import Service
-from service.settings import ServiceSettings
-from sim.drive import Route, SimScan, simulate, simulate_fleet
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.service.app import create_app
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.sim.drive import Route, SimScan, simulate, simulate_fleet
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from tests.service.conftest import free_port
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 TOKEN = "test-token-0123456789abcdef"
 PRIOR_COV = np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from wire.zenoh_config import zenoh_config
+from randt.wire.zenoh_config import zenoh_config
 
 
 def free_port() -> int:

@@ -33,18 +33,18 @@ def main() -> None:
     import ray
     from ray.cluster_utils import Cluster
 
-    from core.odometry import IncrementalMatcher, MatcherSettings
-    from core.tiles import TileGrid
-    from core.transforms import invert
-    from service.metrics import ServiceMetrics
-    from service.ray_executor import RAY_ENV, RayMatcherPool
-    from service.sessions import SessionManager
-    from service.settings import ServiceSettings
-    from service.store import Store
-    from sim.drive import plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
-    from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+    from randt.core.odometry import IncrementalMatcher, MatcherSettings
+    from randt.core.tiles import TileGrid
+    from randt.core.transforms import invert
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.ray_executor import RAY_ENV, RayMatcherPool
+    from randt.service.sessions import SessionManager
+    from randt.service.settings import ServiceSettings
+    from randt.service.store import Store
+    from randt.sim.drive import plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
+    from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
     n_scans = 24
     town = Town.generate(0)

@@ -1,4 +1,4 @@
-"""Helpers of the Zenoh security tests: a deployment written by ``wire.zenoh_security`` (the same
+"""Helpers of the Zenoh security tests: a deployment written by ``randt.wire.zenoh_security`` (the same
 generator ``randt security init`` runs), config files, sessions on loopback TLS endpoints."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from typing import Any
 
 import zenoh
 
+from randt.wire.zenoh_config import zenoh_config
 from tests.service.conftest import free_port
-from wire.zenoh_config import zenoh_config
 
 
 def tls_endpoint() -> str:

@@ -15,15 +15,15 @@ import time
 import numpy as np
 import pytest
 
-from core.protocol import synthetic_room
-from service.capacity import Capacity
-from service.matchers import MatcherPool
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from wire.codes import ErrorCode
-from wire.messages import ErrorMessage, PoseMessage, decode_scan, encode, scan_from_arrays
+from randt.core.protocol import synthetic_room
+from randt.service.capacity import Capacity
+from randt.service.matchers import MatcherPool
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import ErrorMessage, PoseMessage, decode_scan, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
 
@@ -184,9 +184,9 @@ def test_a_vehicle_the_node_cannot_carry_is_refused_with_retry_after_then_admitt
 def _drive_payloads(n: int) -> list[bytes]:
     """``n`` sweeps of a simulated car (town 0's first route, 10 m/s: a keyframe every 2 m, every
     second sweep), encoded as a vehicle sends them."""
-    from sim.drive import plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    from randt.sim.drive import plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(0)
     route = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0].route
@@ -207,7 +207,7 @@ def test_a_session_behind_lets_its_model_lag_only_on_a_node_past_its_capacity(
     admission (``capacity_target=0``: the node's load unknown, taken as past it) the model lags
     and they differ."""
     from bench.offline import matcher_process
-    from service.sessions import BEHIND_DEPTH, SessionWorker
+    from randt.service.sessions import BEHIND_DEPTH, SessionWorker
 
     payloads = _drive_payloads(10)
     monkeypatch.setattr(SessionWorker, "depth", lambda self: BEHIND_DEPTH)

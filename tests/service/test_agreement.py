@@ -17,18 +17,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.odometry import MatcherSettings
-from core.tiles import TileGrid
-from service.agreement import AGREEING_CHECKS, AgreementGate
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from sim.drive import SimScan, plan_fleet, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
-from wire.codes import ErrorCode
-from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
+from randt.core.odometry import MatcherSettings
+from randt.core.tiles import TileGrid
+from randt.service.agreement import AGREEING_CHECKS, AgreementGate
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.sim.drive import SimScan, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 MAPPED, NEVER_MAPPED = 0, 5
 OFF_M = 0.3  # a map point farther than this from town 0's true surfaces is off them

@@ -23,12 +23,12 @@ import yaml
 from prometheus_client.parser import text_string_to_metric_families
 from pydantic import ValidationError
 
-from core.io import read_cloud
-from core.protocol import synthetic_room
-from core.transforms import transform_error
-from service.settings import ServiceSettings
+from randt.core.io import read_cloud
+from randt.core.protocol import synthetic_room
+from randt.core.transforms import transform_error
+from randt.service.settings import ServiceSettings
+from randt.wire.messages import ErrorMessage, encode, scan_from_arrays
 from tests.service.api_server import TOKEN, Fleet, LiveServer, answers, drive_fleet, live_server, wait_answers
-from wire.messages import ErrorMessage, encode, scan_from_arrays
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 

@@ -8,7 +8,7 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from core.errors import (
+from randt.core.errors import (
     AuthError,
     BadMessageError,
     ConflictError,
@@ -22,14 +22,14 @@ from core.errors import (
     RegistrationFailedError,
     UnavailableError,
 )
-from service.api.errors import HTTP_STATUS, status_of
-from service.app import create_app
-from service.matchers import MatcherProcessDiedError
-from service.sessions import MapInUseError
-from service.settings import ServiceSettings
-from service.store import MATCHER_FILENAME
+from randt.service.api.errors import HTTP_STATUS, status_of
+from randt.service.app import create_app
+from randt.service.matchers import MatcherProcessDiedError
+from randt.service.sessions import MapInUseError
+from randt.service.settings import ServiceSettings
+from randt.service.store import MATCHER_FILENAME
+from randt.wire.messages import encode, scan_from_arrays
 from tests.service.test_matchers import _sweeps
-from wire.messages import encode, scan_from_arrays
 
 #: (error, status, body, WWW-Authenticate) as the API has answered them since before the table.
 CASES: list[tuple[RandtError, int, dict[str, str], str | None]] = [

@@ -10,13 +10,13 @@ import msgpack
 import numpy as np
 import pytest
 
-from core.protocol import synthetic_room
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from wire.keys import key_for
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+from randt.core.protocol import synthetic_room
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.wire.keys import key_for
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
 
@@ -253,8 +253,8 @@ def test_overload_keeps_a_young_sessions_first_scans() -> None:
     waiting scan instead: its first scan anchors it, its first sweeps give the velocity."""
     from collections import deque
 
-    from service.sessions import _Job, drop_index
-    from wire.messages import decode_scan
+    from randt.service.sessions import _Job, drop_index
+    from randt.wire.messages import decode_scan
 
     def job(seq: int) -> _Job:
         return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM))), 0)
@@ -271,7 +271,7 @@ def _taken_gaps(policy: str, *, stall: tuple[float, float], seconds: float = 12.
     from collections import deque
     from types import SimpleNamespace
 
-    from service.sessions import drop_index
+    from randt.service.sessions import drop_index
 
     queue: deque = deque()
     taken: list[int] = []
@@ -341,7 +341,7 @@ def test_a_running_sessions_bad_v2_bodies_are_answered_by_its_matcher(manager_wi
     process reads the header only): a body that does not decompress to its declared size is
     answered there with the decoder's code, and the session goes on with its next scan. A first
     scan with such a body is refused before it opens a session, as before."""
-    from wire.messages import encode_scan_v2
+    from randt.wire.messages import encode_scan_v2
 
     mgr, out = manager_with_process
 

@@ -9,14 +9,13 @@ import os
 import numpy as np
 from threadpoolctl import threadpool_info
 
-from core.protocol import synthetic_room
-from core.transforms import invert, make_transform, transform_points
-from service.runtime import Service
-from service.settings import ServiceSettings
-from service.transport import ZenohTransport
-from tests.service.api_server import wait_answers
-from wire.codes import ErrorCode
-from wire.messages import (
+from randt.core.protocol import synthetic_room
+from randt.core.transforms import invert, make_transform, transform_points
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.service.transport import ZenohTransport
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import (
     ErrorMessage,
     PoseMessage,
     decode_error,
@@ -25,6 +24,7 @@ from wire.messages import (
     scan_from_arrays,
     tile_update_from_arrays,
 )
+from tests.service.api_server import wait_answers
 
 ROOM = synthetic_room(np.random.default_rng(0), 4000)
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api.docs import SWAGGER_UI_VERSION
-from service.app import create_app
-from service.settings import ServiceSettings
+from randt.service.api.docs import SWAGGER_UI_VERSION
+from randt.service.app import create_app
+from randt.service.settings import ServiceSettings
 
 ROOT = Path(__file__).resolve().parents[2]
 CONTENT_TYPES = {".js": "text/javascript", ".css": "text/css", ".png": "image/png"}

@@ -21,14 +21,14 @@ import time
 import numpy as np
 
 from bench.crash import run_kill_cycles
-from core.errors import FormatError
-from core.protocol import synthetic_room
-from core.transforms import make_transform, transform_points
-from service.runtime import Service
-from service.settings import ServiceSettings
+from randt.core.errors import FormatError
+from randt.core.protocol import synthetic_room
+from randt.core.transforms import make_transform, transform_points
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import ErrorMessage, PoseMessage, decode_tile_update, encode, scan_from_arrays
 from tests.service.api_server import wait_answers
-from wire.codes import ErrorCode
-from wire.messages import ErrorMessage, PoseMessage, decode_tile_update, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 2500)
 
@@ -104,7 +104,7 @@ def test_a_pose_that_cannot_be_made_durable_is_answered_storage_error(tmp_path, 
 
 
 def test_pose_log_torn_tail_is_cut_and_a_snapshot_rewrites_no_logged_pose(tmp_path) -> None:
-    from service.store import (
+    from randt.service.store import (
         POSE_LOG_FILENAME,
         POSE_LOG_RECORD_SIZE,
         PoseLogRecord,
@@ -146,7 +146,7 @@ def test_pose_log_torn_tail_is_cut_and_a_snapshot_rewrites_no_logged_pose(tmp_pa
 
 
 def test_served_tile_versions_are_durable_never_reused_and_etags_name_the_content(tmp_path) -> None:
-    from service.api.maps import get_tile
+    from randt.service.api.maps import get_tile
 
     def payload(svc: Service, tid: str) -> tuple[int, str] | None:
         raw = svc.tile_payload("default", tid)
@@ -217,8 +217,8 @@ def test_kill9_cycles_lose_no_acknowledged_pose_and_reuse_no_version(tmp_path) -
 
 def test_extend_state_dict_brings_the_snapshot_to_the_last_logged_pose() -> None:
     """The velocity and stamp it computes from the logged poses are the matcher's own."""
-    from core.odometry import IncrementalMatcher, extend_state_dict
-    from core.transforms import scale_motion
+    from randt.core.odometry import IncrementalMatcher, extend_state_dict
+    from randt.core.transforms import scale_motion
 
     matcher = IncrementalMatcher()
     snapshot = None

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from core.transforms import transform_error
-from service.runtime import Service
-from service.settings import ServiceSettings
-from sim.drive import simulate_fleet
-from sim.town import Town
-from wire.messages import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
-from wire.zenoh_config import zenoh_config
+from randt.core.transforms import transform_error
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.sim.drive import simulate_fleet
+from randt.sim.town import Town
+from randt.wire.messages import decode_error, decode_pose, decode_tile_update, encode, scan_from_arrays
+from randt.wire.zenoh_config import zenoh_config
 
 N_VEHICLES = 3
 N_SCANS = 10

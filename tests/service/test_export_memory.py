@@ -20,9 +20,9 @@ import httpx
 import laspy
 import numpy as np
 
-from core.tiles import TileGrid
-from service.api.encoding import stream_cloud
-from service.store import Store
+from randt.core.tiles import TileGrid
+from randt.service.api.encoding import stream_cloud
+from randt.service.store import Store
 from tests.service.conftest import free_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,8 +31,8 @@ LAS_RECORD_BYTES = 34  # point format 6 (30) + the float32 intensity_raw extra d
 SERVE = """
 import sys, uvicorn
 sys.path.insert(0, sys.argv[1])
-from service.app import create_app
-from service.settings import ServiceSettings
+from randt.service.app import create_app
+from randt.service.settings import ServiceSettings
 app = create_app(ServiceSettings(data_dir=sys.argv[2], matcher_processes=1), with_zenoh=False)
 uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[3]), log_level="warning")
 """
@@ -132,7 +132,7 @@ def test_streamed_las_is_the_file_laspys_writer_writes() -> None:
         (rng.uniform(-50, 50, (n, 3)).astype(np.float32), rng.uniform(0, 1, n).astype(np.float32))
         for n in (70_000, 0, 5, 140_001)
     ]
-    from service.api.encoding import _las_header, _las_points
+    from randt.service.api.encoding import _las_header, _las_points
 
     for used in (chunks, chunks[1:2]):
         n_points = sum(c[0].shape[0] for c in used)

@@ -20,20 +20,20 @@ import yaml
 pyproj = pytest.importorskip("pyproj")
 mgrs = pytest.importorskip("mgrs")
 
-from clients.rest import MapClient  # noqa: E402
-from core.errors import BadMessageError  # noqa: E402
-from core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
-from core.io import read_cloud  # noqa: E402
-from service.metrics import ServiceMetrics  # noqa: E402
-from service.sessions import SessionManager  # noqa: E402
-from service.settings import ServiceSettings  # noqa: E402
-from service.store import Store  # noqa: E402
-from sim.drive import plan_fleet, simulate  # noqa: E402
-from sim.lidar import Lidar64  # noqa: E402
-from sim.town import Town  # noqa: E402
+from randt.clients.rest import MapClient  # noqa: E402
+from randt.core.errors import BadMessageError  # noqa: E402
+from randt.core.geo import GeoOrigin, LocalCartesianUTM  # noqa: E402
+from randt.core.io import read_cloud  # noqa: E402
+from randt.service.metrics import ServiceMetrics  # noqa: E402
+from randt.service.sessions import SessionManager  # noqa: E402
+from randt.service.settings import ServiceSettings  # noqa: E402
+from randt.service.store import Store  # noqa: E402
+from randt.sim.drive import plan_fleet, simulate  # noqa: E402
+from randt.sim.lidar import Lidar64  # noqa: E402
+from randt.sim.town import Town  # noqa: E402
+from randt.wire.codes import ErrorCode  # noqa: E402
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, geo_prior, scan_from_arrays  # noqa: E402
 from tests.service.api_server import live_server  # noqa: E402
-from wire.codes import ErrorCode  # noqa: E402
-from wire.messages import ErrorMessage, PoseMessage, encode, geo_prior, scan_from_arrays  # noqa: E402
 
 #: Where the simulated town is on Earth (its frame's origin), WGS84.
 MUNICH = GeoOrigin(48.137, 11.575, 520.0)
@@ -100,7 +100,7 @@ def test_a_map_built_with_wgs84_priors_is_where_the_fixes_say(tmp_path: Path) ->
         # and as `randt tiles export` writes one file: the projection beside it, as Autoware's map folder
         from typer.testing import CliRunner
 
-        from cli.main import app
+        from randt.cli.main import app
 
         exported = CliRunner().invoke(
             app, ["tiles", "export", "default", str(tmp_path / "export/map.pcd"), "--url", server.url]
@@ -193,7 +193,7 @@ def test_a_given_origin_is_the_maps_and_a_conflicting_one_stops_the_service(tmp_
     """``RANDT_MAP_ORIGIN``: written as the shared map's origin at start (the first WGS84 prior
     then lands in that frame); a restart with another origin, or one given to a map that holds
     points in a local frame, is refused before anything starts, saying why."""
-    from core.errors import InvalidRequestError
+    from randt.core.errors import InvalidRequestError
 
     def manager(data: Path, origin: tuple[float, float, float] | None) -> SessionManager:
         settings = ServiceSettings(data_dir=data, capacity_target=0, graph=False, map_origin=origin)
@@ -250,7 +250,7 @@ def test_a_given_origin_is_the_maps_and_a_conflicting_one_stops_the_service(tmp_
     with pytest.raises(InvalidRequestError, match="local frame"):
         manager(tmp_path / "b", given)
     # randt serve checks the same from the files before anything starts (one line, exit code 8)
-    from service.georef import check_map_origin
+    from randt.service.georef import check_map_origin
 
     check_map_origin(tmp_path / "a", "default", given)
     check_map_origin(tmp_path / "new", "default", given)
@@ -269,8 +269,8 @@ def test_a_ros2_robot_with_navsatfix_joins_the_shared_map_where_its_fixes_say(tm
     becomes the GNSS prior"); then its corrected trajectory, taken to WGS84 with pyproj from the
     map's yaml, lies on the fixes, and its points are folded into the shared map."""
     rosbags = pytest.importorskip("rosbags")  # noqa: F841
-    from wire.messages import GnssFix
-    from wire.ros2 import Ros2Scan, typestore
+    from randt.wire.messages import GnssFix
+    from randt.wire.ros2 import Ros2Scan, typestore
 
     n = 75
     town, scans = _drive(n)

@@ -20,9 +20,9 @@ import pytest
 import zenoh
 from scipy.spatial import cKDTree
 
-from core.fleet_map import FleetMapSettings
-from core.transforms import invert, transform_error, umeyama
-from service.graph import (
+from randt.core.fleet_map import FleetMapSettings
+from randt.core.transforms import invert, transform_error, umeyama
+from randt.service.graph import (
     MAX_TILE_SPAN,
     GraphState,
     MapGeometry,
@@ -30,16 +30,13 @@ from service.graph import (
     _ProcessMap,
     correct_trajectory,
 )
-from service.metrics import ServiceMetrics
-from service.transport import ZenohTransport
-from sim.drive import Motion, SimScan, plan_fleet, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
-from tests.service.api_server import LiveServer, live_server
-from tests.service.browser import chromium_page, require_chromium
-from tests.service.security import open_session, tls_endpoint, wait_for
-from wire.keys import correction_key, error_key, pose_key
-from wire.messages import (
+from randt.service.metrics import ServiceMetrics
+from randt.service.transport import ZenohTransport
+from randt.sim.drive import Motion, SimScan, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.keys import correction_key, error_key, pose_key
+from randt.wire.messages import (
     CorrectionMessage,
     ErrorMessage,
     PoseMessage,
@@ -51,7 +48,10 @@ from wire.messages import (
     encode,
     scan_from_arrays,
 )
-from wire.zenoh_security import Deployment, write_deployment
+from randt.wire.zenoh_security import Deployment, write_deployment
+from tests.service.api_server import LiveServer, live_server
+from tests.service.browser import chromium_page, require_chromium
+from tests.service.security import open_session, tls_endpoint, wait_for
 
 
 def _pose(yaw_deg: float, xyz: tuple[float, float, float]) -> np.ndarray:
@@ -83,8 +83,8 @@ def test_correct_trajectory_moves_keyframes_exactly_and_interpolates_between() -
 def test_the_tiles_a_keyframe_touches_are_counted_exactly() -> None:
     """The re-fold's tile sets (counted over the bounding box) equal those of sorting the points'
     tile cells, across negative coordinates, tile edges and far-flung points (the sorting path)."""
-    from core.fleet_map import FleetMapSettings
-    from core.transforms import make_transform
+    from randt.core.fleet_map import FleetMapSettings
+    from randt.core.transforms import make_transform
 
     pm = _ProcessMap(
         "m", FleetMapSettings(), MapGeometry(tile_size_m=20, voxel_size_m=0.5, max_points_per_voxel=1)
@@ -125,7 +125,7 @@ def test_poses_beyond_the_keyframes_the_graph_holds_are_served_live_and_marked()
     """Issue 32: a trajectory is corrected only from keyframes the graph holds. Sweeps before the
     first or after the newest one (the graph dropped them under load, or has not taken them yet)
     are served live, moved only by the frame change given (a join's T_map_session), and marked."""
-    from service.graph import corrected_mask
+    from randt.service.graph import corrected_mask
 
     poses = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
     indices = np.array([5, 15])
@@ -152,7 +152,7 @@ def _joining(sent: list[CorrectionMessage]) -> tuple[ServiceGraph, tuple[str, st
     """A service's graph view before a join: ``gnss/d1`` placed in ``default``, ``nognss/d1`` in its
     own map with keyframes 0, 10 and 20 of a 30-sweep drive (``live``), to be placed in
     ``default`` at ``T_map_session``; ``(graph, key, T_map_session, live)``."""
-    from service.graph import _Keyframe
+    from randt.service.graph import _Keyframe
 
     graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
     key = ("nognss", "d1")
@@ -175,7 +175,7 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     other vehicle's). Its corrected trajectory must come from the keyframes the graph holds, in
     the shared map's frame: it used to take such a keyframe's live pose (its own frame) as
     optimized, and the corrected trajectory was 31 m off on average, 106 m at worst."""
-    from service.graph import _Keyframe
+    from randt.service.graph import _Keyframe
 
     sent: list[CorrectionMessage] = []
     graph, key, T_map_session, live = _joining(sent)
@@ -770,7 +770,7 @@ def _state(pid: int, settle_s: float = 1.0) -> str:
 def test_the_yield_gate_holds_the_process_while_sweeps_are_matched() -> None:
     import subprocess
 
-    from service.graph import YieldGate
+    from randt.service.graph import YieldGate
 
     proc = subprocess.Popen(["sleep", "60"])
     try:
@@ -808,7 +808,7 @@ def test_the_yield_gate_never_signals_a_process_that_is_gone() -> None:
     neither failed nor counted as a hold."""
     import subprocess
 
-    from service.graph import YieldGate
+    from randt.service.graph import YieldGate
 
     proc = subprocess.Popen(["sleep", "60"])
     gate = YieldGate()
@@ -831,7 +831,7 @@ def test_a_held_graph_process_dies_with_the_service() -> None:
 
     program = (
         "import multiprocessing as mp, sys, time\n"
-        "from service.graph import _die_with_parent\n"
+        "from randt.service.graph import _die_with_parent\n"
         "def child():\n"
         "    _die_with_parent()\n"
         "    time.sleep(60)\n"

@@ -9,11 +9,11 @@ import time
 
 import numpy as np
 
-from service.graph import GraphState, ServiceGraph
-from service.graph_log import GRAPH_DIRNAME, GraphLog
+from randt.service.graph import GraphState, ServiceGraph
+from randt.service.graph_log import GRAPH_DIRNAME, GraphLog
+from randt.wire.messages import CorrectionMessage
 from tests.service.api_server import live_server
 from tests.service.test_graph_supervision import N_SCANS, _drives, _send
-from wire.messages import CorrectionMessage
 
 
 def _graph(server) -> ServiceGraph:
@@ -98,8 +98,8 @@ def test_an_offered_keyframe_is_durable_before_the_graph_takes_it(tmp_path) -> N
     import os
     import signal
 
-    from core.fleet_map import FleetMapSettings
-    from service.metrics import ServiceMetrics
+    from randt.core.fleet_map import FleetMapSettings
+    from randt.service.metrics import ServiceMetrics
     from tests.pairs import kitti00_velodyne
 
     log_dir = tmp_path / GRAPH_DIRNAME

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.graph_log import GRAPH_LOG_FILENAME, GraphLog
+from randt.service.graph_log import GRAPH_LOG_FILENAME, GraphLog
 from tests.pairs import kitti00_velodyne
 
 

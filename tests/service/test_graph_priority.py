@@ -13,10 +13,10 @@ import time
 import numpy as np
 import pytest
 
-import service.graph as graph_module
-from core.fleet_map import FleetMapSettings
-from service.graph import ServiceGraph
-from service.metrics import ServiceMetrics
+import randt.service.graph as graph_module
+from randt.core.fleet_map import FleetMapSettings
+from randt.service.graph import ServiceGraph
+from randt.service.metrics import ServiceMetrics
 from tests.pairs import kitti00_velodyne
 
 

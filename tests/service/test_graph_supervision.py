@@ -21,15 +21,15 @@ import httpx
 import numpy as np
 import pytest
 
-from core.fleet_map import FleetMapSettings
-from service.graph import ServiceGraph
-from service.metrics import ServiceMetrics
-from sim.drive import SimScan, plan_fleet, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.core.fleet_map import FleetMapSettings
+from randt.service.graph import ServiceGraph
+from randt.service.metrics import ServiceMetrics
+from randt.sim.drive import SimScan, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
 from tests.service.api_server import PRIOR_COV, LiveServer, answers, live_server, wait_answers
-from wire.codes import ErrorCode
-from wire.messages import CorrectionMessage, ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 N_SCANS = 24  # 24 m at 10 m/s: three keyframes a session
 
@@ -189,7 +189,7 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     """A session without priors that joined the shared map lives in that map's graph at its
     ``T_map_session``: the new process is told so before any keyframe, and the map's revision
     and loop records go on from where the service had them."""
-    from service.graph import GraphLoop, GraphState
+    from randt.service.graph import GraphLoop, GraphState
 
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     T = np.eye(4)
@@ -221,9 +221,9 @@ def test_a_graph_process_held_while_starting_dies_with_a_killed_service() -> Non
     process is still starting: the process must be gone within 20 s, whatever the timing."""
     program = (
         "import sys, threading, time\n"
-        "from core.fleet_map import FleetMapSettings\n"
-        "from service.graph import ServiceGraph\n"
-        "from service.metrics import ServiceMetrics\n"
+        "from randt.core.fleet_map import FleetMapSettings\n"
+        "from randt.service.graph import ServiceGraph\n"
+        "from randt.service.metrics import ServiceMetrics\n"
         "graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics())\n"
         "def sweeps():\n"
         "    while True:\n"

@@ -1,6 +1,6 @@
 """Defect 4 of issue 13: any Zenoh peer could act as any vehicle.
 
-The real service (``service.runtime.Service``) runs with the Zenoh config ``randt security init``
+The real service (``randt.service.runtime.Service``) runs with the Zenoh config ``randt security init``
 writes (TLS, mTLS, user/password, access control). Another vehicle, with valid credentials of its
 own, publishes a scan as vehicle ``victim``, session ``v1``, seq 2^62 (before, accepted: the
 victim's trajectory gained a pose and every later real scan was refused as out of order), a pose
@@ -18,16 +18,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from clients.publisher import PublisherSettings, VehiclePublisher
-from core.errors import BadMessageError
-from service.runtime import Service
-from service.settings import ServiceSettings
-from sim.drive import simulate_fleet
-from sim.town import Town
-from tests.service.security import open_session, tls_endpoint, wait_for, write_config
-from wire.codes import ErrorCode
-from wire.keys import error_key, pose_key, scan_key, service_token_key, tile_key
-from wire.messages import (
+from randt.clients.publisher import PublisherSettings, VehiclePublisher
+from randt.core.errors import BadMessageError
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.sim.drive import simulate_fleet
+from randt.sim.town import Town
+from randt.wire.codes import ErrorCode
+from randt.wire.keys import error_key, pose_key, scan_key, service_token_key, tile_key
+from randt.wire.messages import (
     ErrorMessage,
     PoseMessage,
     decode_error,
@@ -35,7 +34,8 @@ from wire.messages import (
     encode,
     scan_from_arrays,
 )
-from wire.zenoh_security import Deployment, service_config, write_deployment
+from randt.wire.zenoh_security import Deployment, service_config, write_deployment
+from tests.service.security import open_session, tls_endpoint, wait_for, write_config
 
 FORGED_SEQ = 2**62
 

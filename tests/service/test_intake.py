@@ -19,16 +19,16 @@ import numpy as np
 import zenoh
 from fastapi.testclient import TestClient
 
-from core.protocol import synthetic_room
-from service.app import create_app
-from service.intake import Intake
-from service.metrics import ServiceMetrics
-from service.runtime import Service
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from wire.messages import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
-from wire.zenoh_config import zenoh_config
+from randt.core.protocol import synthetic_room
+from randt.service.app import create_app
+from randt.service.intake import Intake
+from randt.service.metrics import ServiceMetrics
+from randt.service.runtime import Service
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.wire.messages import ErrorMessage, PoseMessage, decode_error, decode_pose, encode, scan_from_arrays
+from randt.wire.zenoh_config import zenoh_config
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000).astype(np.float32)
 

@@ -1,6 +1,6 @@
 """kill -9 of the service in the middle of ingest, 10 times: no torn file, tiles intact, sessions resume.
 
-The worker (``python -m tests.service.test_kill9 DATA``) is a real :class:`service.runtime.Service`
+The worker (``python -m tests.service.test_kill9 DATA``) is a real :class:`randt.service.runtime.Service`
 (without Zenoh: the kill is about the store) ingesting a moving synthetic room; it resumes its
 session from the store at every start, so each run continues the previous one's sequence numbers.
 """
@@ -18,18 +18,18 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from core.io import read_cloud, read_tum
-from service.store import Store
+from randt.core.io import read_cloud, read_tum
+from randt.service.store import Store
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def _worker(data_dir: str) -> None:
-    from core.protocol import synthetic_room
-    from core.transforms import make_transform, transform_points
-    from service.runtime import Service
-    from service.settings import ServiceSettings
-    from wire.messages import encode, scan_from_arrays
+    from randt.core.protocol import synthetic_room
+    from randt.core.transforms import make_transform, transform_points
+    from randt.service.runtime import Service
+    from randt.service.settings import ServiceSettings
+    from randt.wire.messages import encode, scan_from_arrays
 
     service = Service(ServiceSettings(data_dir=data_dir, flush_interval_s=0.05), with_zenoh=False)
     service.start()

@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.transforms import invert, transform_error
-from service.runtime import Service
-from service.settings import ServiceSettings
-from sim.drive import Route, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.core.transforms import invert, transform_error
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.sim.drive import Route, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from tests.service.api_server import answers, wait_answers
-from wire.codes import ErrorCode
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 GOOD, BLOCKED, AFTER = 20, 15, 15
 

@@ -2,20 +2,20 @@
 
 Issue 13, defect 3: vehicle ``col.a`` session ``b`` and vehicle ``col`` session ``a.b`` both folded
 into map ``col.a.b`` (two unrelated frames fused). Names now come from
-:func:`wire.ids.session_map_name`; a store written with the old names is migrated when it opens.
+:func:`randt.wire.ids.session_map_name`; a store written with the old names is migrated when it opens.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.protocol import synthetic_room
-from core.tiles import TileGrid
-from service.runtime import Service
-from service.settings import ServiceSettings
-from service.store import SessionRecord, Store
+from randt.core.protocol import synthetic_room
+from randt.core.tiles import TileGrid
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.service.store import SessionRecord, Store
+from randt.wire.messages import PoseMessage, encode, scan_from_arrays
 from tests.service.api_server import wait_answers
-from wire.messages import PoseMessage, encode, scan_from_arrays
 
 
 def test_col_a_b_and_col_a_dot_b_keep_separate_maps(tmp_path) -> None:

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.errors import DegenerateProblemError, InvalidCloudError, RandtError
-from core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
-from core.protocol import synthetic_room
-from core.tiles import TileGrid
-from core.transforms import invert, make_transform, transform_points
-from service.matchers import (
+from randt.core.errors import DegenerateProblemError, InvalidCloudError, RandtError
+from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
+from randt.core.protocol import synthetic_room
+from randt.core.tiles import TileGrid
+from randt.core.transforms import invert, make_transform, transform_points
+from randt.service.matchers import (
     LocalMatcher,
     MapFrame,
     MatcherPool,
@@ -27,11 +27,11 @@ from service.matchers import (
     _portable,
     _Sessions,
 )
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000)
 STEP = make_transform(euler_deg=(0.0, 0.0, 2.0), translation=(0.3, 0.05, 0.0))
@@ -313,8 +313,8 @@ def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
     from multiprocessing import AuthenticationError
     from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 
-    from service.matchers import _Channel
-    from service.ray_executor import _MatcherHost
+    from randt.service.matchers import _Channel
+    from randt.service.ray_executor import _MatcherHost
 
     host = _MatcherHost()  # warms up here, as in its Ray worker
     key = os.urandom(32)
@@ -362,11 +362,11 @@ def test_the_first_match_tries_every_hypothesis_and_keeps_the_best() -> None:
     tries every hypothesis and keeps the one with the most inliers (the true pose has about 50 %)."""
     from scipy.spatial.transform import Rotation
 
-    from clients.publisher import encode_sweep
-    from service.matchers import decoded_sweep
-    from sim.drive import plan_fleet, simulate
-    from sim.lidar import Lidar64
-    from sim.town import Town
+    from randt.clients.publisher import encode_sweep
+    from randt.service.matchers import decoded_sweep
+    from randt.sim.drive import plan_fleet, simulate
+    from randt.sim.lidar import Lidar64
+    from randt.sim.town import Town
 
     town = Town.generate(2)
     plan = plan_fleet(town, 3, seed=0, route_length_m=600.0, rate_hz=10.0, shared=True)[1]

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from bench.offline import matcher_process
-from clients.publisher import PublisherSettings, encode_sweep
-from core import fleet_map
-from core.fleet_map import FleetMapper
-from sim.drive import Motion, plan_fleet, simulate
-from sim.lidar import Lidar64
-from sim.town import Town
+from randt.clients.publisher import PublisherSettings, encode_sweep
+from randt.core import fleet_map
+from randt.core.fleet_map import FleetMapper
+from randt.sim.drive import Motion, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
 
 SIM000_SCANS = 120
 SIM002_SCANS = (304, 420)

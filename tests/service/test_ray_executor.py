@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.transforms import invert, transform_error
+from randt.core.transforms import invert, transform_error
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -113,7 +113,7 @@ def test_a_node_whose_host_died_gets_no_session_while_another_can_take_it(monkey
     pytest.importorskip("ray")
     import threading
 
-    from service import ray_executor as rx
+    from randt.service import ray_executor as rx
 
     class Call:
         def remote(self) -> str:

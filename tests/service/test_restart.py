@@ -6,12 +6,12 @@ import time
 
 import numpy as np
 
-from core.transforms import transform_error
-from service.runtime import Service
-from service.settings import ServiceSettings
-from sim.drive import Route, simulate
-from sim.town import Town
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+from randt.core.transforms import transform_error
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.sim.drive import Route, simulate
+from randt.sim.town import Town
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 
 def _wait(out: list[object], n: int, timeout: float = 120.0) -> None:

@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import RESUME_FILENAME, ResumeSweep, Store
-from sim.town import Town
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import RESUME_FILENAME, ResumeSweep, Store
+from randt.sim.town import Town
+from randt.wire.codes import ErrorCode
+from randt.wire.messages import ErrorMessage, PoseMessage
 from tests.service.test_agreement import MAPPED, _drive, _send
-from wire.codes import ErrorCode
-from wire.messages import ErrorMessage, PoseMessage
 
 CUT, AFTER = 40, 5  # sweeps before the crash (about 40 m), and after it
 

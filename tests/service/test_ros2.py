@@ -19,11 +19,14 @@ import pytest
 import zenoh
 from scipy.spatial.transform import Rotation
 
-from clients.publisher import PublisherSettings, VehiclePublisher
-from core.errors import BadMessageError
-from service.ros2 import vehicle_of_topic
-from service.runtime import Service
-from service.settings import Ros2Settings, ServiceSettings
+from randt.clients.publisher import PublisherSettings, VehiclePublisher
+from randt.core.errors import BadMessageError
+from randt.service.ros2 import vehicle_of_topic
+from randt.service.runtime import Service
+from randt.service.settings import Ros2Settings, ServiceSettings
+from randt.wire.messages import PoseMessage
+from randt.wire.rmw_zenoh import decode_attachment, parse_topic_key
+from randt.wire.zenoh_config import zenoh_config
 from tests.data import require_data
 from tests.ros2_sdk import cloud_fields as _cloud
 from tests.ros2_sdk import header as _header
@@ -31,9 +34,6 @@ from tests.ros2_sdk import load_sdk
 from tests.ros_bags import azimuth_offsets, kitti_frames
 from tests.service.api_server import live_server
 from tests.service.conftest import free_port
-from wire.messages import PoseMessage
-from wire.rmw_zenoh import decode_attachment, parse_topic_key
-from wire.zenoh_config import zenoh_config
 
 N_FRAMES = 8
 STAMP0_NS = 1_700_000_000 * 10**9
@@ -82,7 +82,7 @@ def ros2_drive(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros2Drive]:
     lock = threading.Lock()
 
     def on_pose(sample: zenoh.Sample) -> None:
-        from wire.messages import decode_pose
+        from randt.wire.messages import decode_pose
 
         with lock:
             drive.ros_poses.append(decode_pose(sample.payload.to_bytes()))
@@ -289,7 +289,7 @@ def test_the_map_around_a_point_comes_as_a_pointcloud2_on_request(ros2_drive: Ro
     ``map_radius_m`` (30 m here, RANDT_ROS2__MAP_RADIUS_M) of its point as one PointCloud2 on
     ``<ns>/randt/map``: the same tiles and points the HTTP radius query lists, in the robot's
     session frame (its own map: no priors), readable by any PointCloud2 consumer."""
-    from core.io.pointcloud2 import decode_pointcloud2
+    from randt.core.io.pointcloud2 import decode_pointcloud2
 
     d = ros2_drive
     (cloud,) = d.map_clouds
@@ -349,10 +349,10 @@ def test_a_scan_takes_its_robots_navsatfix_nearest_in_time() -> None:
 
     from rosbags.typesys import Stores, get_typestore
 
-    from service.metrics import ServiceMetrics
-    from service.ros2 import Ros2Bridge
-    from wire.rmw_zenoh import Attachment, encode_attachment, topic_key
-    from wire.ros2 import NAV_SAT_FIX, POINTCLOUD2, Ros2Scan
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.ros2 import Ros2Bridge
+    from randt.wire.rmw_zenoh import Attachment, encode_attachment, topic_key
+    from randt.wire.ros2 import NAV_SAT_FIX, POINTCLOUD2, Ros2Scan
 
     store = get_typestore(Stores.ROS2_JAZZY)
     types = store.types

@@ -1,9 +1,9 @@
 """Zenoh security on loopback with real sessions: TLS, mTLS, user/password, access control.
 
-Every certificate, password and config comes from ``wire.zenoh_security`` (what ``randt security
+Every certificate, password and config comes from ``randt.wire.zenoh_security`` (what ``randt security
 init`` writes and ``docs/security.md`` recommends), so the recipe itself is what is tested. The
 service side is a Zenoh session configured as the service configures its own
-(``wire.zenoh_config.zenoh_config`` with ``config_file``); ``test_impersonation.py`` runs the real
+(``randt.wire.zenoh_config.zenoh_config`` with ``config_file``); ``test_impersonation.py`` runs the real
 service. Each access-control case runs with the ACL on and, as a control, off: the control shows
 the forged messages do arrive without it, so the checks can fail.
 """
@@ -19,6 +19,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from randt.wire.keys import ALL_SCANS, correction_key, pose_key, scan_key, service_token_key, tile_key
+from randt.wire.zenoh_security import (
+    Deployment,
+    make_certificates,
+    router_config,
+    service_config,
+    vehicle_config,
+    write_deployment,
+)
 from tests.service.security import (
     linked_identities,
     open_session,
@@ -26,15 +35,6 @@ from tests.service.security import (
     tls_endpoint,
     wait_for,
     write_config,
-)
-from wire.keys import ALL_SCANS, correction_key, pose_key, scan_key, service_token_key, tile_key
-from wire.zenoh_security import (
-    Deployment,
-    make_certificates,
-    router_config,
-    service_config,
-    vehicle_config,
-    write_deployment,
 )
 
 VEHICLES = ("victim", "evil")

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from core.protocol import synthetic_room
+from randt.core.protocol import synthetic_room
+from randt.wire.messages import decode_pose, encode, scan_from_arrays
+from randt.wire.zenoh_config import zenoh_config
 from tests.service.conftest import free_port
-from wire.messages import decode_pose, encode, scan_from_arrays
-from wire.zenoh_config import zenoh_config
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])

@@ -9,14 +9,14 @@ import time
 import numpy as np
 import pytest
 
-from core.config import RegistrationSettings
-from core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
-from service.metrics import ServiceMetrics
-from service.sessions import SessionManager
-from service.settings import ServiceSettings
-from service.store import Store
+from randt.core.config import RegistrationSettings
+from randt.core.odometry import MATCHER_REGISTRATION, IncrementalMatcher, MatcherSettings
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 from tests.service.test_matchers import _sweeps
-from wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
 
 
 def test_the_defaults_are_the_matchers_own() -> None:

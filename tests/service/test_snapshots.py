@@ -18,13 +18,13 @@ from typing import Any, Literal
 import numpy as np
 import pytest
 
-import service.store as store_module
-from core.protocol import synthetic_room
-from core.transforms import make_transform, transform_points
-from service.matchers import LocalMatcher, MatcherPool, with_trajectory, without_trajectory
-from service.runtime import Service
-from service.settings import ServiceSettings
-from service.store import (
+import randt.service.store as store_module
+from randt.core.protocol import synthetic_room
+from randt.core.transforms import make_transform, transform_points
+from randt.service.matchers import LocalMatcher, MatcherPool, with_trajectory, without_trajectory
+from randt.service.runtime import Service
+from randt.service.settings import ServiceSettings
+from randt.service.store import (
     MATCHER_FILENAME,
     POSE_LOG_FILENAME,
     TRAJECTORY_FILENAME,
@@ -33,8 +33,8 @@ from service.store import (
     Store,
     segment_name,
 )
+from randt.wire.messages import PoseMessage, encode, scan_from_arrays
 from tests.service.api_server import wait_answers
-from wire.messages import PoseMessage, encode, scan_from_arrays
 
 V, S = "car", "drive"
 

@@ -1,4 +1,4 @@
-"""Tests for service.store: round trips, safe names, temp-file clean-up, damaged files, and SIGKILL.
+"""Tests for randt.service.store: round trips, safe names, temp-file clean-up, damaged files, and SIGKILL.
 
 Run as a script (``python -m tests.service.test_store --crash-worker DATA SEED``) this module is
 the crash test's worker: it loops saving a growing map and two growing sessions into ``DATA``,
@@ -23,14 +23,14 @@ import pytest
 import yaml
 from pydantic import ValidationError
 
-from core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
-from core.io import read_cloud, read_tum
-from core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
-from core.odometry import IncrementalMatcher, MatcherSettings
-from core.protocol import synthetic_room
-from core.tiles import Tile, TileGrid
-from core.transforms import invert, make_transform, transform_error, transform_points
-from service.store import (
+from randt.core.errors import FormatError, InvalidCloudError, NotFoundError, RandtError
+from randt.core.io import read_cloud, read_tum
+from randt.core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
+from randt.core.odometry import IncrementalMatcher, MatcherSettings
+from randt.core.protocol import synthetic_room
+from randt.core.tiles import Tile, TileGrid
+from randt.core.transforms import invert, make_transform, transform_error, transform_points
+from randt.service.store import (
     LOCK_FILENAME,
     MATCHER_FILENAME,
     POSE_LOG_FILENAME,
@@ -41,7 +41,7 @@ from service.store import (
     SessionRecord,
     Store,
 )
-from wire.ids import validate_id
+from randt.wire.ids import validate_id
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -333,7 +333,7 @@ def test_leftover_temp_files_are_removed_on_open(tmp_path: Path, caplog: pytest.
         store.save_tiles("town", grid, grid.tile_ids())
         store.save_session(session_record(n=2), random_poses(rng, 2), np.arange(2.0), {})
         map_dir, session_dir = store.map_dir("town"), store.session_dir("car-01", "2024.06.11_a")
-    # What core.io.atomic leaves behind when a process dies mid-write: mkstemp(prefix=".<name>.",
+    # What randt.core.io.atomic leaves behind when a process dies mid-write: mkstemp(prefix=".<name>.",
     # suffix=".tmp") next to the target.
     leftovers = [
         tempfile.mkstemp(prefix=".0_0.pcd.", suffix=".tmp", dir=map_dir),
@@ -348,7 +348,7 @@ def test_leftover_temp_files_are_removed_on_open(tmp_path: Path, caplog: pytest.
     for path in keep:
         path.write_text("not ours to delete")
 
-    with caplog.at_level(logging.INFO, logger="service.store"), Store(tmp_path) as store:
+    with caplog.at_level(logging.INFO, logger="randt.service.store"), Store(tmp_path) as store:
         assert store.removed_temp_files == 4
         assert "removed 4 temporary files" in caplog.text
         assert not any(Path(name).exists() for _, name in leftovers)
@@ -364,7 +364,7 @@ def open_in_another_process(data_dir: Path) -> subprocess.CompletedProcess[str]:
         [
             sys.executable,
             "-c",
-            "import sys; from service.store import Store; Store(sys.argv[1]).close()",
+            "import sys; from randt.service.store import Store; Store(sys.argv[1]).close()",
             data_dir,
         ],
         cwd=REPO_ROOT,
@@ -740,7 +740,7 @@ def test_a_finalizer_inside_the_lock_guard_does_not_deadlock(tmp_path: Path) -> 
     """A Store's finalizer can run from the garbage collector while this thread is inside the
     lock guard (opening another Store): a CI run hung there. The release is queued and done at
     the next entry into the guard: the flock is free afterwards."""
-    from service import store as store_module
+    from randt.service import store as store_module
 
     first = Store(tmp_path / "a")
     key = (tmp_path / "a").resolve()

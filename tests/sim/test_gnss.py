@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.gnss import GnssReceiver
+from randt.sim.gnss import GnssReceiver
 
 
 def _errors(rx: GnssReceiver, seconds: float, rate_hz: float = 1.0) -> np.ndarray:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from sim.lidar import Lidar64
-from sim.scenarios import MappingRun, run_mapping_fleet
+from randt.sim.lidar import Lidar64
+from randt.sim.scenarios import MappingRun, run_mapping_fleet
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim import (
+from randt.sim import (
     GROUND_MATERIALS,
     Boxes,
     Cylinders,
@@ -20,7 +20,7 @@ from sim import (
     simulate,
     simulate_fleet,
 )
-from sim.lidar import (
+from randt.sim.lidar import (
     NO_RETURN,
     hdl64e_elevations_deg,
     intersect_boxes,

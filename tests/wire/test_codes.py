@@ -1,4 +1,4 @@
-"""Tests for wire.codes: the error codes of docs/wire-format.md are exactly the ErrorCode members."""
+"""Tests for randt.wire.codes: the error codes of docs/wire-format.md are exactly the ErrorCode members."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import msgpack
 
-from wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
-from wire.messages import SCHEMA_VERSION, ErrorMessage, decode_error, encode
+from randt.wire.codes import CODE_REGEX, DECODE_CODES, SERVICE_CODES, ErrorCode
+from randt.wire.messages import SCHEMA_VERSION, ErrorMessage, decode_error, encode
 
 REPO = Path(__file__).resolve().parents[2]
 DOC = REPO / "docs" / "wire-format.md"
@@ -84,4 +84,4 @@ def test_no_code_is_spelled_as_a_literal_outside_wire_codes() -> None:
         if path != REPO / "wire" / "codes.py"
         for line, value in _code_literals(path)
     ]
-    assert not found, "use wire.codes.ErrorCode: " + ", ".join(found)
+    assert not found, "use randt.wire.codes.ErrorCode: " + ", ".join(found)

@@ -1,4 +1,4 @@
-"""Tests for wire.ids: the one id rule accepts and rejects exactly what the four old copies did."""
+"""Tests for randt.wire.ids: the one id rule accepts and rejects exactly what the four old copies did."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Annotated
 import pytest
 from pydantic import Field, TypeAdapter, ValidationError
 
-from wire.ids import (
+from randt.wire.ids import (
     ID_MAX_LENGTH,
     ID_PATTERN,
     ID_REGEX,
@@ -17,7 +17,7 @@ from wire.ids import (
     is_valid_id,
     validate_id,
 )
-from wire.messages import WireLimits
+from randt.wire.messages import WireLimits
 
 #: The regular expression spelled, before the wire package, in core/wire.py (WireLimits.id_pattern),
 #: service/store.py (NAME_PATTERN, plus a check against "." and ".."), service/settings.py (instance,
@@ -136,7 +136,7 @@ def _ids_over(alphabet: str, max_len: int) -> list[str]:
 
 
 def test_session_map_names_are_injective_over_every_short_id_of_the_risky_characters() -> None:
-    from wire.ids import session_map_name, session_of_map_name
+    from randt.wire.ids import session_map_name, session_of_map_name
 
     ids = _ids_over("a_.-", 4)  # every valid id of up to 4 chars from the characters that escape
     assert len(ids) == 85
@@ -152,7 +152,7 @@ def test_session_map_names_are_injective_over_every_short_id_of_the_risky_charac
 
 
 def test_the_collision_of_the_issue_is_gone_and_plain_ids_keep_their_names() -> None:
-    from wire.ids import legacy_session_map_name, session_map_name
+    from randt.wire.ids import legacy_session_map_name, session_map_name
 
     assert legacy_session_map_name("col.a", "b") == legacy_session_map_name("col", "a.b") == "col.a.b"
     assert session_map_name("col.a", "b") == "col_-a.b"
@@ -162,7 +162,7 @@ def test_the_collision_of_the_issue_is_gone_and_plain_ids_keep_their_names() -> 
 
 
 def test_long_ids_get_a_hashed_name_that_no_unhashed_name_can_equal() -> None:
-    from wire.ids import session_map_name, session_of_map_name
+    from randt.wire.ids import session_map_name, session_of_map_name
 
     long_pairs = [
         ("x" * 64, "y" * 64),
@@ -188,7 +188,7 @@ def test_long_ids_get_a_hashed_name_that_no_unhashed_name_can_equal() -> None:
 
 
 def test_session_map_name_refuses_invalid_ids() -> None:
-    from wire.ids import session_map_name
+    from randt.wire.ids import session_map_name
 
     for bad in ("", "a/b", "..", "*"):
         with pytest.raises(ValueError, match="invalid"):

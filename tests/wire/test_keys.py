@@ -1,4 +1,4 @@
-"""Tests for wire.keys: every helper gives the exact key expressions of docs/wire-format.md."""
+"""Tests for randt.wire.keys: every helper gives the exact key expressions of docs/wire-format.md."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wire.codes import ErrorCode
-from wire.keys import (
+from randt.wire.codes import ErrorCode
+from randt.wire.keys import (
     ALL_CORRECTIONS,
     ALL_ERRORS,
     ALL_POSES,
@@ -26,7 +26,7 @@ from wire.keys import (
     tile_of_key,
     vehicle_of_scan_key,
 )
-from wire.messages import (
+from randt.wire.messages import (
     ErrorMessage,
     PoseMessage,
     correction_from_arrays,

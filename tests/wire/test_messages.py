@@ -1,4 +1,4 @@
-"""Tests for wire.messages: round trips, one crafted payload per error code, fuzzing, peeking."""
+"""Tests for randt.wire.messages: round trips, one crafted payload per error code, fuzzing, peeking."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from core.errors import BadMessageError
-from core.transforms import make_transform
-from wire.codes import DECODE_CODES
-from wire.messages import (
+from randt.core.errors import BadMessageError
+from randt.core.transforms import make_transform
+from randt.wire.codes import DECODE_CODES
+from randt.wire.messages import (
     SCHEMA_VERSION,
     ErrorMessage,
     PoseMessage,
@@ -782,7 +782,7 @@ def _only_bad_message_errors(payload: bytes) -> None:
 
 def assert_no_decoder_bug(caplog: pytest.LogCaptureFixture) -> None:
     """The decoders' safety net (unexpected exceptions reported as malformed) must never fire."""
-    bugs = [r for r in caplog.records if r.name == "wire.messages" and r.levelno >= logging.ERROR]
+    bugs = [r for r in caplog.records if r.name == "randt.wire.messages" and r.levelno >= logging.ERROR]
     assert not bugs, bugs[0].getMessage()
 
 
@@ -998,7 +998,7 @@ def test_v2_wrapping_differences_decode_exactly() -> None:
 
 
 def test_invalid_compression_bomb_stops_at_the_declared_size() -> None:
-    from wire.packing import zstd
+    from randt.wire.packing import zstd
 
     bomb = zstd.compress(b"\x00" * (64 * 1024 * 1024), level=3)  # 64 MiB in about 2 KiB
     assert len(bomb) < 10_000
@@ -1013,7 +1013,7 @@ def test_invalid_compression_bomb_stops_at_the_declared_size() -> None:
 
 
 def test_invalid_compression_other_failures() -> None:
-    from wire.packing import zstd
+    from randt.wire.packing import zstd
 
     good = v2_dict()
     cases = [
@@ -1072,7 +1072,7 @@ def test_v2_decoded_values_are_range_checked() -> None:
     """Quantized time offsets decode to [0, max_time_offset_s] or the scan is refused."""
     obj = v2_dict()
     n = obj["n_points"]
-    from wire.packing import compress, pack_int_columns
+    from randt.wire.packing import compress, pack_int_columns
 
     qt = np.full((1, n), 20_000, np.int32)  # 0.2 s
     qt[0, 7] = -3
@@ -1104,7 +1104,7 @@ def test_v2_fuzz_truncations_and_bit_flips(caplog: pytest.LogCaptureFixture) -> 
     payload = v2_payload(300)
     rng = np.random.default_rng(11)
     codes = set()
-    with caplog.at_level(logging.ERROR, logger="wire.messages"):
+    with caplog.at_level(logging.ERROR, logger="randt.wire.messages"):
         for cut in range(0, len(payload), max(1, len(payload) // 150)):
             with pytest.raises(BadMessageError) as info:
                 decode_scan(payload[:cut])
@@ -1123,8 +1123,8 @@ def test_v2_fuzz_truncations_and_bit_flips(caplog: pytest.LogCaptureFixture) -> 
 
 
 def test_correction_round_trip_and_its_checks() -> None:
-    from wire.keys import correction_key, key_for
-    from wire.messages import correction_from_arrays, decode_correction
+    from randt.wire.keys import correction_key, key_for
+    from randt.wire.messages import correction_from_arrays, decode_correction
 
     poses = np.stack(
         [make_transform(np.array([0.0, 0.0, 0.1 * k]), np.array([k, 2.0, 0.0])) for k in range(3)]
@@ -1158,7 +1158,7 @@ def test_a_geo_prior_travels_in_v1_and_v2_and_in_the_header() -> None:
     """A WGS84 prior (issue 34): the same values back from a v1 and a v2 payload and from the
     header alone; a scan without one is the same bytes as before (no ``geo_prior`` key); with a
     map-frame prior too, or a quaternion that is not a rotation, it is refused ``invalid_prior``."""
-    from wire.messages import decode_scan_header, encode_scan_v2, geo_prior
+    from randt.wire.messages import decode_scan_header, encode_scan_v2, geo_prior
 
     R = make_transform([0.0, 0.0, 0.3], [0.0, 0.0, 0.0])[:3, :3]
     cov = np.diag([0.25, 0.25, 1.0, 1e-4, 1e-4, 1e-3])

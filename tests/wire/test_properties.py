@@ -15,9 +15,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core.errors import BadMessageError
-from wire.codes import DECODE_CODES, ErrorCode
-from wire.messages import (
+from randt.core.errors import BadMessageError
+from randt.wire.codes import DECODE_CODES, ErrorCode
+from randt.wire.messages import (
     WireLimits,
     decode_error,
     decode_pose,

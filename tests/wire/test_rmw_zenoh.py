@@ -9,8 +9,8 @@ import struct
 import pytest
 import zenoh.ext as zext
 
-from core.errors import BadMessageError
-from wire.rmw_zenoh import (
+from randt.core.errors import BadMessageError
+from randt.wire.rmw_zenoh import (
     HUMBLE_TYPE_HASH,
     Attachment,
     Qos,

@@ -1,4 +1,4 @@
-"""wire.ros2: a PointCloud2 sample as a scan, and the answers as ROS 2 messages, checked with
+"""randt.wire.ros2: a PointCloud2 sample as a scan, and the answers as ROS 2 messages, checked with
 rosbags (the CDR) and against our own v1 scan of the same sweep (the points the matcher gets)."""
 
 from __future__ import annotations
@@ -8,12 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from core.errors import BadMessageError
-from service.matchers import decoded_sweep
-from tests.ros2_sdk import cloud_fields, header
-from wire.messages import PoseMessage, WireLimits, encode, matrix_to_pose, scan_from_arrays
-from wire.rmw_zenoh import HUMBLE_TYPE_HASH
-from wire.ros2 import (
+from randt.core.errors import BadMessageError
+from randt.service.matchers import decoded_sweep
+from randt.wire.messages import PoseMessage, WireLimits, encode, matrix_to_pose, scan_from_arrays
+from randt.wire.rmw_zenoh import HUMBLE_TYPE_HASH
+from randt.wire.ros2 import (
     NAV_SAT_FIX,
     ODOMETRY,
     POINTCLOUD2,
@@ -26,6 +25,7 @@ from wire.ros2 import (
     type_hash,
     typestore,
 )
+from tests.ros2_sdk import cloud_fields, header
 
 pytest.importorskip("rosbags")  # (the test extra has it: CI fails on a skip there)
 

@@ -1,4 +1,4 @@
-"""Tests for wire.zenoh_config: the one Zenoh configuration of the service, vehicles and tests."""
+"""Tests for randt.wire.zenoh_config: the one Zenoh configuration of the service, vehicles and tests."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from wire.zenoh_config import check_endpoints, load_config_file, zenoh_config
+from randt.wire.zenoh_config import check_endpoints, load_config_file, zenoh_config
 
 
 def test_config_has_explicit_endpoints_and_no_multicast_scouting() -> None:
@@ -36,7 +36,10 @@ def test_bad_modes_and_endpoints_are_refused() -> None:
 
 def test_only_the_zenoh_helper_imports_zenoh() -> None:
     """``import wire`` (messages, keys, ids, codes) must not load Zenoh."""
-    code = "import sys, wire, wire.keys, wire.ids, wire.codes, wire.messages; print('zenoh' in sys.modules)"
+    code = (
+        "import sys, randt.wire, randt.wire.keys, randt.wire.ids, randt.wire.codes, randt.wire.messages; "
+        "print('zenoh' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
@@ -52,7 +55,7 @@ def test_a_config_file_is_the_base_and_randt_sets_mode_endpoints_and_scouting(tm
           transport: { unicast: { max_sessions: 17 }, auth: { usrpwd: { user: "car-01", password: "pw" } } },
         }"""
     )
-    with caplog.at_level("WARNING", logger="wire.zenoh_config"):
+    with caplog.at_level("WARNING", logger="randt.wire.zenoh_config"):
         cfg = zenoh_config("client", connect=("tls/10.0.0.5:7447",), config_file=path)
     assert json.loads(cfg.get_json("transport/unicast/max_sessions")) == 17  # the file's
     assert json.loads(cfg.get_json("transport/auth/usrpwd/user")) == "car-01"
@@ -65,7 +68,7 @@ def test_a_config_file_is_the_base_and_randt_sets_mode_endpoints_and_scouting(tm
     # a file that agrees with the settings is not warned about
     caplog.clear()
     path.write_text('{mode: "peer", listen: {endpoints: ["tcp/127.0.0.1:7447"]}}')
-    with caplog.at_level("WARNING", logger="wire.zenoh_config"):
+    with caplog.at_level("WARNING", logger="randt.wire.zenoh_config"):
         zenoh_config("peer", listen=("tcp/127.0.0.1:7447",), config_file=path)
     assert caplog.records == []
 

@@ -1,4 +1,4 @@
-"""wire.zenoh_security: the access control derived from the key expressions, the configs and the
+"""randt.wire.zenoh_security: the access control derived from the key expressions, the configs and the
 files of a deployment (the sessions themselves are tested in tests/service/test_security.py)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
-from wire.zenoh_security import (
+from randt.wire.zenoh_security import (
     EXAMPLE_DIRECTORY,
     SERVICE_USER,
     access_control,
@@ -80,10 +80,10 @@ def test_bad_vehicle_lists_are_refused(vehicles: list[str], match: str) -> None:
 
 
 def test_the_committed_examples_are_the_generators() -> None:
-    """docs/security/*.json5 are the generator's (``python -m wire.zenoh_security docs/security``)."""
+    """docs/security/*.json5 are the generator's (``python -m randt.wire.zenoh_security docs/security``)."""
     examples = example_configs()
     committed = {p.name: json.loads(p.read_text()) for p in (REPO / "docs" / "security").glob("*.json5")}
-    assert committed == examples, "regenerate: python -m wire.zenoh_security docs/security"
+    assert committed == examples, "regenerate: python -m randt.wire.zenoh_security docs/security"
     for name in examples:  # each is a valid Zenoh config
         zenoh.Config.from_json5((REPO / "docs" / "security" / name).read_text())
     assert str(EXAMPLE_DIRECTORY) in (REPO / "docs" / "security.md").read_text()

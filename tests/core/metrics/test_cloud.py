@@ -1,4 +1,4 @@
-"""Tests for core.metrics.cloud: hand-computed cloud metrics."""
+"""Tests for randt.core.metrics.cloud: hand-computed cloud metrics."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from core.errors import InvalidCloudError
-from core.metrics.cloud import (
+from randt.core.errors import InvalidCloudError
+from randt.core.metrics.cloud import (
     chamfer_distance,
     correspondence_rmse,
     overlap_ratio,
@@ -17,7 +17,7 @@ from core.metrics.cloud import (
     pdu_per_group,
     voxel_count_std,
 )
-from core.transforms import make_transform
+from randt.core.transforms import make_transform
 
 
 def grid(nx: int, ny: int, nz: int, spacing: float = 1.0) -> np.ndarray:

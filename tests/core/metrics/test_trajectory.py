@@ -1,4 +1,4 @@
-"""Tests for core.metrics.trajectory: trajectory errors against analytic values, against evo,
+"""Tests for randt.core.metrics.trajectory: trajectory errors against analytic values, against evo,
 and the KITTI devkit errors on the real sequence-00 ground truth."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.errors import InvalidCloudError
-from core.io import read_kitti_poses
-from core.metrics.trajectory import (
+from randt.core.errors import InvalidCloudError
+from randt.core.io import read_kitti_poses
+from randt.core.metrics.trajectory import (
     KITTI_LENGTHS_M,
     KittiResult,
     ate,
@@ -21,7 +21,7 @@ from core.metrics.trajectory import (
     kitti_relative_errors,
     rpe,
 )
-from core.transforms import make_transform
+from randt.core.transforms import make_transform
 from tests.data import require_data
 
 
