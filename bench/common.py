@@ -121,8 +121,8 @@ def warm_up() -> float:
     import time
 
     from randt.core.odometry import IncrementalMatcher
-    from randt.core.protocol import synthetic_room
     from randt.core.registration import register
+    from randt.core.scenes import synthetic_room
     from randt.core.transforms import make_transform, transform_points
 
     t0 = time.perf_counter()

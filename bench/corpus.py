@@ -68,8 +68,8 @@ _COV = np.diag([0.01] * 3 + [0.001] * 3).ravel().tolist()
 
 
 def room_points(n: int, seed: int = 0) -> np.ndarray:
-    """(n, 3) float32: floor, walls and a pillar (``randt.core.protocol.synthetic_room``), first n points."""
-    from randt.core.protocol import synthetic_room
+    """(n, 3) float32: floor, walls and a pillar (``randt.core.scenes.synthetic_room``), first n points."""
+    from randt.core.scenes import synthetic_room
 
     pts = synthetic_room(np.random.default_rng(seed), max(n // 3, 8)).astype("<f4")
     return np.ascontiguousarray(pts[np.random.default_rng(seed + 1).permutation(len(pts))[:n]])

@@ -84,7 +84,7 @@ def _digest(points: bytes) -> str:
 
 def _worker(data_dir: str, sessions: int, seed: int, matcher_processes: int, flush_s: float) -> None:
     """The crashing side: a Service whose outbox is stdout (one JSON line per message)."""
-    from randt.core.protocol import synthetic_room
+    from randt.core.scenes import synthetic_room
     from randt.core.transforms import make_transform, transform_points
     from randt.service.runtime import Service
     from randt.service.settings import ServiceSettings

@@ -14,7 +14,7 @@ What it runs, one process, one thread (``common`` limits BLAS first), every timi
 small_gicp VGICP in the same run:
 
 1. **Table 1/3 analogue** (KITTI-style real scans: the paper's own Velodyne scans and KITTI 00
-   frames, ``../shared/data``): the paper's protocol (:func:`randt.core.protocol.make_trial`: a known
+   frames, ``../shared/data``): the paper's protocol (:func:`randt.core.trials.make_trial`: a known
    rigid transform up to 2 m / 10 deg, Gaussian noise of 1-5 cm, 10 % outliers, 50 % partial
    overlap). Per method: RMSE of the source's placement against the true transform, RMSE of the
    nearest-neighbour residuals (1 m cap), Chamfer distance, time, points after registration (the
@@ -70,10 +70,10 @@ from randt.core.mapping import MapBuilder
 from randt.core.metrics.cloud import chamfer_distance, pdu, voxel_count_std
 from randt.core.metrics.trajectory import ate
 from randt.core.odometry import MatcherSettings
-from randt.core.protocol import make_trial
 from randt.core.registration import centroid_start
 from randt.core.shared_data import bunny, data_root
 from randt.core.transforms import make_transform, transform_error, transform_points
+from randt.core.trials import make_trial
 from randt.core.voxel import pack_keys, voxel_coords
 
 del common
@@ -942,7 +942,7 @@ def report(res: Results, figures: list[Path], figure_link: Callable[[Path], str]
     md += ["#### Table 1/3 analogue: KITTI-style real scans, the paper's protocol", ""]
     md.append(
         "Known rigid transform up to 2 m / 10 deg, Gaussian noise 1-5 cm, 10 % outliers, 50 % partial "
-        "overlap (`randt.core.protocol.make_trial`); success: 5 cm and 0.5 deg; RMSE true: the source's "
+        "overlap (`randt.core.trials.make_trial`); success: 5 cm and 0.5 deg; RMSE true: the source's "
         "points "
         "placed by the estimate against the truth; RMSE nn: nearest-neighbour residuals after "
         "registration (1 m cap; noise and outliers included); points after: the registered pair merged "

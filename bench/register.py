@@ -15,7 +15,7 @@ Three experiments, one process, one thread (the thread limits are set before num
    ``(i, i+g, i+2g)``, ``g`` = 1 and 2, the pose ``i <- i+2g`` registered directly against the
    product of ``i <- i+g`` and ``i+g <- i+2g``. It measures each method's precision on real
    sweeps (a bias shared by all three poses does not show).
-3. **Robustness protocol** (:func:`randt.core.protocol.make_trial`): seeded trials on the RANDT
+3. **Robustness protocol** (:func:`randt.core.trials.make_trial`): seeded trials on the RANDT
    paper's Velodyne scans (random rigid transform up to 2 m / 10 deg, 50 % overlap, noise,
    10 % outliers); RANDT, RANDT --fast-svd, its two ablations, classic NDT and small_gicp VGICP.
 
@@ -45,10 +45,10 @@ from common import git_line, heading, machine_line, progress, table, version, wa
 from randt.core.config import FAST_SVD_STEP, Method, RegistrationSettings
 from randt.core.errors import DegenerateProblemError, RegistrationFailedError
 from randt.core.io import kitti_velodyne_poses, read_cloud, read_kitti_calib, read_kitti_poses
-from randt.core.protocol import make_trial
 from randt.core.registration import auto_voxel_sizes, register
 from randt.core.shared_data import PAIRS, data_root, kitti00_velodyne
 from randt.core.transforms import transform_error
+from randt.core.trials import make_trial
 
 KITTI_FRAMES = (0, 4, 9)  # pairs k -> k+1
 PROTOCOL_SEED = 20261122

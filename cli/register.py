@@ -198,8 +198,8 @@ def demo_register(
     import numpy as np
 
     from randt.core.config import RegistrationSettings
-    from randt.core.protocol import synthetic_room
     from randt.core.registration import register as do_register
+    from randt.core.scenes import synthetic_room
     from randt.core.transforms import make_transform, transform_error, transform_points
 
     rng = np.random.default_rng(0)

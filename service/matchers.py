@@ -385,8 +385,8 @@ def warm_up() -> None:
     selection and the SVD step, which a matcher configured so would use), so a vehicle's first scan
     does not pay for it. With a cold numba cache this compiles for about 10 s; from the cache it
     takes about 1 s."""
-    from randt.core.protocol import synthetic_room
     from randt.core.registration import register
+    from randt.core.scenes import synthetic_room
 
     room = synthetic_room(np.random.default_rng(0), 5000)
     register(room + [0.2, 0.1, 0.0], room)

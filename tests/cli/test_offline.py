@@ -219,8 +219,8 @@ def test_register_svd_steps_place_a_noisy_protocol_trial(tmp_path) -> None:
     within 1 cm by the placement RMSE (measured: default 0.08 cm, --fast-svd 0.22 cm);
     ``--dense-svd``, the default since 2026-11-26, still runs and gives the default's pose; either
     with another method, or both together, is a usage error."""
-    from randt.core.protocol import make_trial
     from randt.core.transforms import transform_points
+    from randt.core.trials import make_trial
     from tests.pairs import kitti00_velodyne
 
     trial = make_trial(kitti00_velodyne(3), np.random.default_rng(1))

@@ -7,7 +7,7 @@ import pytest
 
 from randt.core.ndt import about_origin, ndt_constants, ndt_cost, ndt_derivatives, ndt_newton
 from randt.core.outliers import iqr_inlier_mask, tukey_fences
-from randt.core.protocol import synthetic_room as _box_room
+from randt.core.scenes import synthetic_room as _box_room
 from randt.core.transforms import apply_update, make_transform, transform_points
 from randt.core.voxel import VoxelGaussianMap, voxel_downsample
 

@@ -20,7 +20,7 @@ from randt.core.odometry import (
     PosePrior,
     deskew,
 )
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.transforms import invert, make_transform, scale_motion, transform_error, transform_points
 from randt.sim.drive import Motion, Route, SimScan
 from tests.data import require_data

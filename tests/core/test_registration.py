@@ -7,8 +7,8 @@ import pytest
 
 from randt.core.config import RegistrationSettings
 from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
-from randt.core.protocol import synthetic_room as _box_room
 from randt.core.registration import register, sanitize_points
+from randt.core.scenes import synthetic_room as _box_room
 from randt.core.transforms import make_transform, transform_error, transform_points
 from tests.pairs import PAIRS
 
@@ -221,7 +221,7 @@ def test_a_wrong_basin_at_the_coarsest_level_is_retried_from_the_next(monkeypatc
     the result with more inliers is kept."""
     import randt.core.registration as registration
     from randt.core.io import read_cloud
-    from randt.core.protocol import make_trial
+    from randt.core.trials import make_trial
     from randt.core.voxel import pack_keys, voxel_coords
     from tests.data import require_data
 
@@ -251,8 +251,8 @@ def test_the_svd_residual_fence_and_the_dense_step_help_on_the_papers_protocol()
     lowers the placement error (bench/paper.py). Measured here on five trials of one KITTI 00
     sweep: before 4.8 mm mean (one trial 10 mm), fast 2.1 mm, default 1.5 mm."""
     from randt.core.config import FAST_SVD_STEP
-    from randt.core.protocol import make_trial
     from randt.core.shared_data import kitti00_velodyne
+    from randt.core.trials import make_trial
     from tests.data import require_data
 
     require_data("kitti00/velodyne/000000.bin")
@@ -346,8 +346,8 @@ def test_a_moving_cloud_equalized_coarser_than_the_finest_voxel_still_registers(
     selection is now skipped when it would keep less than a quarter (real scans keep 43-89 %),
     and five protocol trials are placed within its success bounds (5 cm, 0.5 deg; measured
     0.4-3.2 cm, 0.02-0.11 deg)."""
-    from randt.core.protocol import make_trial
     from randt.core.shared_data import kitti00_velodyne
+    from randt.core.trials import make_trial
     from randt.core.voxel import pack_keys, voxel_coords
     from tests.data import require_data
 

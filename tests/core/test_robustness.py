@@ -1,13 +1,13 @@
-"""The paper's robustness protocol on its own scans (``randt_velodyne/``), see :mod:`randt.core.protocol`."""
+"""The paper's robustness protocol on its own scans (``randt_velodyne/``), see :mod:`randt.core.trials`."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from randt.core.io import read_cloud
-from randt.core.protocol import make_trial
 from randt.core.registration import register
 from randt.core.transforms import transform_error
+from randt.core.trials import make_trial
 from tests.data import require_data
 
 N_TRIALS = 20

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.service.capacity import Capacity
 from randt.service.matchers import MatcherPool
 from randt.service.metrics import ServiceMetrics

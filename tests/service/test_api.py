@@ -24,7 +24,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from pydantic import ValidationError
 
 from randt.core.io import read_cloud
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.transforms import transform_error
 from randt.service.settings import ServiceSettings
 from randt.wire.messages import ErrorMessage, encode, scan_from_arrays

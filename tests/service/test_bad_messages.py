@@ -10,7 +10,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.service.metrics import ServiceMetrics
 from randt.service.sessions import SessionManager
 from randt.service.settings import ServiceSettings

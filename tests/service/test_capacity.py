@@ -9,7 +9,7 @@ import os
 import numpy as np
 from threadpoolctl import threadpool_info
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.transforms import invert, make_transform, transform_points
 from randt.service.runtime import Service
 from randt.service.settings import ServiceSettings

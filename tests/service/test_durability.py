@@ -22,7 +22,7 @@ import numpy as np
 
 from bench.crash import run_kill_cycles
 from randt.core.errors import FormatError
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.transforms import make_transform, transform_points
 from randt.service.runtime import Service
 from randt.service.settings import ServiceSettings

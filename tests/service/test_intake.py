@@ -19,7 +19,7 @@ import numpy as np
 import zenoh
 from fastapi.testclient import TestClient
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.service.app import create_app
 from randt.service.intake import Intake
 from randt.service.metrics import ServiceMetrics

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _worker(data_dir: str) -> None:
-    from randt.core.protocol import synthetic_room
+    from randt.core.scenes import synthetic_room
     from randt.core.transforms import make_transform, transform_points
     from randt.service.runtime import Service
     from randt.service.settings import ServiceSettings

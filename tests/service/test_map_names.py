@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.tiles import TileGrid
 from randt.service.runtime import Service
 from randt.service.settings import ServiceSettings

@@ -15,7 +15,7 @@ import pytest
 
 from randt.core.errors import DegenerateProblemError, InvalidCloudError, RandtError
 from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.tiles import TileGrid
 from randt.core.transforms import invert, make_transform, transform_points
 from randt.service.matchers import (

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.wire.messages import decode_pose, encode, scan_from_arrays
 from randt.wire.zenoh_config import zenoh_config
 from tests.service.conftest import free_port

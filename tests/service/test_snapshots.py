@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import randt.service.store as store_module
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.transforms import make_transform, transform_points
 from randt.service.matchers import LocalMatcher, MatcherPool, with_trajectory, without_trajectory
 from randt.service.runtime import Service

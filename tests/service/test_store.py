@@ -27,7 +27,7 @@ from randt.core.errors import FormatError, InvalidCloudError, NotFoundError, Ran
 from randt.core.io import read_cloud, read_tum
 from randt.core.io.autoware import AUTOWARE_METADATA_NAME, GRID_SIDECAR_NAME
 from randt.core.odometry import IncrementalMatcher, MatcherSettings
-from randt.core.protocol import synthetic_room
+from randt.core.scenes import synthetic_room
 from randt.core.tiles import Tile, TileGrid
 from randt.core.transforms import invert, make_transform, transform_error, transform_points
 from randt.service.store import (

@@ -1,4 +1,4 @@
-"""The paper's robustness protocol: a real scan, a known rigid transform, noise, outliers, cropping.
+"""The RANDT paper's robustness trials: a real scan, a known rigid transform, noise, outliers, cropping.
 
 One trial (:func:`make_trial`) takes a scan as the reference and builds a moving cloud from it:
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from randt.core.transforms import make_transform, transform_points
 
-__all__ = ["Trial", "make_trial", "synthetic_room"]
+__all__ = ["Trial", "make_trial"]
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ def make_trial(
     sector_deg: float = 270.0,
     overlap_deg: float = 135.0,
 ) -> Trial:
-    """One seeded trial of the protocol (module docstring)."""
+    """One seeded trial (module docstring)."""
     az = np.degrees(np.arctan2(scan_xyz[:, 1], scan_xyz[:, 0])) % 360.0
     start = rng.uniform(0.0, 360.0)
     rel_t = (az - start) % 360.0
@@ -69,16 +69,3 @@ def make_trial(
         T_true=T_true,
         noise_sigma_m=sigma,
     )
-
-
-def synthetic_room(rng: np.random.Generator, n: int = 6000) -> np.ndarray:
-    """Floor, two walls and a pillar (about 3.5 n points): a scene that constrains all 6 DoF.
-
-    Used where no real data may be assumed (``randt demo-register`` on a bare machine, unit tests).
-    """
-    floor = np.c_[rng.uniform(-10, 10, (n, 2)), np.zeros(n)]
-    wall_x = np.c_[np.full(n, 10.0), rng.uniform(-10, 10, n), rng.uniform(0, 3, n)]
-    wall_y = np.c_[rng.uniform(-10, 10, n), np.full(n, 10.0), rng.uniform(0, 3, n)]
-    ang = rng.uniform(0, 2 * np.pi, n // 4)
-    pillar = np.c_[2 + 0.3 * np.cos(ang), -3 + 0.3 * np.sin(ang), rng.uniform(0, 3, n // 4)]
-    return np.vstack([floor, wall_x, wall_y, pillar])
