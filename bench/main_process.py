@@ -117,8 +117,8 @@ service = Service(settings, executor=stand_in)
 service.start()
 print(json.dumps({"pid": os.getpid()}), flush=True)
 sys.stdin.read()
-if randt.service.sessions.graph is not None:
-    randt.service.sessions.graph.wait_idle(300)
+if service.sessions.graph is not None:
+    service.sessions.graph.wait_idle(300)
 service.stop()
 print(json.dumps({"missing_keyframes": stand_in.missing_keyframes}), flush=True)
 """

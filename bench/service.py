@@ -223,15 +223,15 @@ from randt.service.runtime import Service
 from randt.service.settings import ServiceSettings
 service = Service(ServiceSettings(data_dir=Path(sys.argv[3]), listen=(sys.argv[2],), http_port=0))
 service.start()
-if not randt.service.sessions.wait_matchers(600):
+if not service.sessions.wait_matchers(600):
     raise SystemExit("matcher processes not warm after 600 s")
-pool = randt.service.sessions.pool
+pool = service.sessions.pool
 pids = [p for p in pool.pids() if p] if hasattr(pool, "pids") else []  # (Ray: its actors' processes)
 print(json.dumps({"pid": os.getpid(), "matchers": pids}), flush=True)
 sys.stdin.read()
-value = randt.service.metrics.registry.get_sample_value
+value = service.metrics.registry.get_sample_value
 received = value("randt_scans_received_total") or 0
-graph = randt.service.sessions.graph
+graph = service.sessions.graph
 stats = {}
 if graph is not None:
     graph.wait_idle(300)
