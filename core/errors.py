@@ -16,9 +16,12 @@
     ├── AuthError                   missing or wrong credentials (service)
     │   └── ForbiddenError          refused whatever the credentials (mutations disabled)
     ├── UnavailableError            the service is starting or stopping (service)
+    ├── ConfigurationError          the Ray executor cannot start as configured (randt.service.ray_executor)
     ├── MatcherProcessError         a matcher worker process failed (randt.service.matchers)
     │   └── MatcherProcessDiedError     ... and is gone: its sessions resume from the store
     ├── DataDirInUseError           another process holds the data directory (randt.service.store)
+    ├── ApiError                    the service answered with an HTTP error (randt.clients.rest)
+    │   └── ApiNotFoundError        ... 404; also a NotFoundError
     ├── PortInUseError              a port a command would listen on is taken (randt.cli.errors)
     └── WrongInputError             a directory where a file is expected, or the reverse (randt.cli.errors)
 

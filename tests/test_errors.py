@@ -1,10 +1,16 @@
-"""The exception tree (core/errors.py and its subclasses elsewhere): every class survives pickling
-with its type, message and attributes, as the matcher processes need (tests/service/test_matchers.py
-sends errors through a real one)."""
+"""The exception tree (core/errors.py and its subclasses elsewhere): the drawing in core/errors.py's
+docstring holds every class under its parent, and every class survives pickling with its type,
+message and attributes, as the matcher processes need (tests/service/test_matchers.py sends errors
+through a real one)."""
 
 from __future__ import annotations
 
+import importlib
 import pickle
+import pkgutil
+import re
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +18,7 @@ import pytest
 from randt.cli import errors as cli_errors
 from randt.clients import rest as clients_rest
 from randt.core import datasets as core_datasets
+from randt.core import errors as core_errors
 from randt.core.errors import (
     AuthError,
     BadMessageError,
@@ -37,6 +44,69 @@ def _subclasses(cls: type) -> set[type]:
     for sub in cls.__subclasses__():
         out |= {sub} | _subclasses(sub)
     return out
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _import_every_module() -> list[str]:
+    """Import every module of the distribution (the subpackages ``pyproject.toml`` maps, walked),
+    so that every subclass of RandtError is defined; return their names."""
+    package_dir = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    names = []
+    for top in sorted(package_dir):
+        package = importlib.import_module(top)
+        names.append(top)
+        for info in pkgutil.walk_packages(package.__path__, f"{top}."):
+            if info.name.rpartition(".")[2] != "__main__":  # runs the CLI when imported
+                importlib.import_module(info.name)
+                names.append(info.name)
+    return names
+
+
+#: One class of the drawing: the tree's branches (``│``, ``├──``, ``└──``) before its name, four
+#: characters a level.
+_DRAWN = re.compile(r"^    (?P<branches>(?:[│ ]   )*(?:[├└]── )?)(?P<name>[A-Z]\w*Error)\b")
+
+
+def _drawing(docstring: str) -> dict[str, str | None]:
+    """The classes drawn in the ``::`` block of ``docstring``, each with the class drawn as its parent."""
+    block = docstring.split("::\n\n", 1)[1].split("\n\n", 1)[0]
+    drawn: dict[str, str | None] = {}
+    parents: list[str] = []
+    for line in block.splitlines():
+        match = _DRAWN.match(line)
+        assert match, f"not a line of the tree: {line!r}"
+        depth = len(match["branches"]) // 4
+        del parents[depth:]
+        drawn[match["name"]] = parents[-1] if parents else None
+        parents.append(match["name"])
+    return drawn
+
+
+def test_the_drawing_in_core_errors_holds_every_class_under_its_parent() -> None:
+    assert len(_import_every_module()) > 50  # the walk found the modules, not only the packages
+    assert core_errors.__doc__ is not None
+    drawn = _drawing(core_errors.__doc__)
+    classes = {RandtError} | _subclasses(RandtError)
+    real = {cls.__name__ for cls in classes}
+    assert len(real) == len(classes), "two error classes share a name"
+    assert sorted(real - drawn.keys()) == [], "missing from the drawing in core/errors.py's docstring"
+    assert sorted(drawn.keys() - real) == [], "drawn in core/errors.py but not a RandtError"
+    for cls in classes - {RandtError}:
+        parent = drawn[cls.__name__]
+        assert parent in {base.__name__ for base in cls.__bases__}, f"{cls.__name__} drawn under {parent}"
+    assert drawn["RandtError"] is None
+
+
+def test_the_drawing_check_sees_a_missing_class_and_a_wrong_parent() -> None:
+    assert core_errors.__doc__ is not None
+    doc = core_errors.__doc__
+    without = "\n".join(line for line in doc.splitlines() if "ApiNotFoundError" not in line)
+    assert "ApiNotFoundError" not in _drawing(without)
+    moved = doc.replace("│   └── ApiNotFoundError", "├── ApiNotFoundError    ")
+    assert _drawing(doc)["ApiNotFoundError"] == "ApiError"
+    assert _drawing(moved)["ApiNotFoundError"] == "RandtError"
 
 
 def _examples() -> list[RandtError]:
