@@ -49,7 +49,8 @@ Pair = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def data_root() -> Path:
-    """Return where the shared data should be: ``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``."""
+    """Return where the shared data should be: ``$RANDT_SHARED_DATA`` or ``<repo>/../shared/data``,
+    resolved (symbolic links followed, so a symlinked ``../shared`` gives its target)."""
     override = os.environ.get(DATA_DIR_ENV_VAR)
     if override:
         return Path(override).expanduser().resolve()

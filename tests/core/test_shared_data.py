@@ -17,7 +17,32 @@ def test_data_root_follows_the_environment_variable(tmp_path: Path, monkeypatch:
     monkeypatch.setenv(shared_data.DATA_DIR_ENV_VAR, str(tmp_path))
     assert shared_data.data_root() == tmp_path.resolve()
     monkeypatch.delenv(shared_data.DATA_DIR_ENV_VAR)
-    assert shared_data.data_root() == (Path(shared_data.__file__).resolve().parents[2] / "shared" / "data")
+    # resolved as data_root resolves it: a clone whose ../shared is a symbolic link gets its target
+    repo = Path(shared_data.__file__).resolve().parents[1]
+    assert shared_data.data_root() == (repo.parent / "shared" / "data").resolve()
+
+
+def test_data_root_resolves_a_symlinked_shared_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``../shared`` (or the environment variable) as a symbolic link: the root is its target, and
+    require() finds the files through it."""
+    target = tmp_path / "elsewhere" / "shared"
+    (target / "data" / "kitti00").mkdir(parents=True)
+    (target / "data" / "kitti00" / "poses.txt").write_text("x")
+    (tmp_path / "repo").mkdir()
+    (tmp_path / "shared").symlink_to(target, target_is_directory=True)
+    expected = (target / "data").resolve()
+    assert (tmp_path / "shared").is_symlink() and expected != tmp_path / "shared" / "data"
+
+    monkeypatch.delenv(shared_data.DATA_DIR_ENV_VAR, raising=False)
+    monkeypatch.setattr(shared_data, "_REPO_ROOT", tmp_path / "repo")
+    assert shared_data.data_root() == expected
+    assert shared_data.require("kitti00/poses.txt") == expected
+
+    monkeypatch.setenv(shared_data.DATA_DIR_ENV_VAR, str(tmp_path / "shared" / "data"))
+    assert shared_data.data_root() == expected
+    assert shared_data.require("kitti00/poses.txt") == expected
 
 
 def test_require_raises_not_found_naming_the_first_missing_path(
