@@ -1,28 +1,21 @@
 """The paper's Algorithm 2: incremental scan-to-keyframe-model matching with density equalization.
 
-One :class:`IncrementalMatcher` per driving session, fed one sweep at a time. The whole step
-(:meth:`IncrementalMatcher.register_scan`) in one screen::
+One :class:`IncrementalMatcher` per driving session, fed one sweep at a time
+(:meth:`IncrementalMatcher.register_scan`)::
 
-    sanitize  -> finite points only (counted)
-    predict   -> constant acceleration: T_pred = T_last @ v, v = delta_last extrapolated by its
-                 change since the sweep before (constant velocity after a gap or a fallback;
-                 the prior pose, if given, for the first sweep)
-    deskew    -> per-point time offsets: each point moved to the sweep's start pose
-    features  -> density-based split (randt.core.features): noise out, ground thinned, objects kept
-    get model -> the fused keyframe model (the paper's Get), prepared once per keyframe change
-    match     -> randt.core.registration.register(features, model, T_pred) with Algorithm 1 and 3
-    guard     -> failed, low-fitness or prior-inconsistent results fall back to the prediction,
-                 flagged on the scan's result, never silently accepted
-    relocalize-> a lost session (3 fallbacks in a row, no prior) is searched for with no
-                 prediction, every 5th sweep: its keyframes nearest by Scan Context (randt.core.place),
-                 global registration against their points (randt.core.global_registration), the match
-    set model -> a new keyframe when the sensor moved or turned enough (the paper's Set): its
-                 points join the fused model, which is density-equalized and bounded in size
+    sanitize   -> finite points in range (counted)
+    predict    -> constant acceleration from the last two velocities (the prior for the first sweep)
+    deskew     -> with per-point times: each point moved to the pose at the sweep's middle
+    features   -> density-based split (randt.core.features): noise out, ground, objects
+    get model  -> the fused keyframe model (the paper's Get)
+    match      -> randt.core.registration.register(features, model, T_pred)
+    guard      -> a failed or implausible match falls back to the prediction, flagged, never accepted
+    relocalize -> a lost session: Scan Context (randt.core.place), then global registration
+    set model  -> a new keyframe when the sensor moved or turned enough (the paper's Set)
 
 Poses are ``T_world_sensor`` (4x4), the world being the first sweep's sensor frame unless a prior
-pose places the session in a map frame. A sweep given per-point time offsets is deskewed to its
-middle, and its pose is the sensor's pose at that moment (stamp + period / 2); without time
-offsets the sweep is taken as one rigid snapshot.
+pose places the session in a map frame; a deskewed sweep's pose is the sensor's at stamp +
+period / 2. Each step and why: docs/mapping.md, "Algorithm 2, as implemented".
 """
 
 from __future__ import annotations
@@ -84,8 +77,8 @@ log = logging.getLogger(__name__)
 
 #: With per-point times, sweeps are deskewed to their middle and poses refer to it. Deskewing to
 #: the start lets an error in the velocity warp the sweep one-sidedly, which biases the next
-#: velocity the same way: on simulated 12 m/s drives the rotation error then grew about 20 % per
-#: sweep, while the symmetric mid-sweep warp stays bounded (KISS-ICP deskews the same way).
+#: velocity the same way; the symmetric mid-sweep warp stays bounded (KISS-ICP deskews the same
+#: way; docs/mapping.md, step 4).
 MID_SWEEP = 0.5
 
 #: A gated match: (hypothesis index, result, the deskewed sweep, its features, the initial guess).
@@ -107,8 +100,7 @@ class _Gating(NamedTuple):
 #: LEVEL_MARGIN times the largest correction of the last RECENT_CORRECTIONS matches (and at least
 #: the two finest), once MIN_CORRECTIONS are known (the second sweep's, whose prediction knew no
 #: velocity, is not one); a rotation counts as the displacement it gives a point
-#: CORRECTION_REACH_M away. On KITTI 00 frames 0-10 the poses move by at most
-#: 1.4 mm against every level run.
+#: CORRECTION_REACH_M away (docs/mapping.md, step 6, "Adaptive levels").
 LEVEL_MARGIN = 8.0
 RECENT_CORRECTIONS = 5
 MIN_CORRECTIONS = 3
@@ -125,8 +117,8 @@ RELOCALIZED = "relocalized"
 LOST_AFTER_FALLBACKS = 3
 
 #: A lost session tries to relocalize (global registration against its model, no prediction) on
-#: its LOST_AFTER_FALLBACKS-th fallback and then on every RELOCALIZE_EVERY-th: one costs about
-#: 0.1-0.2 s, several sweeps' matching, so it is not tried on every sweep of a long blockage.
+#: its LOST_AFTER_FALLBACKS-th fallback and then on every RELOCALIZE_EVERY-th: one costs several
+#: sweeps' matching, so it is not tried on every sweep of a long blockage.
 RELOCALIZE_EVERY = 5
 #: Keyframes (the nearest by Scan Context) a relocalization tries, and the range of the points
 #: its global registration uses.
@@ -143,7 +135,7 @@ ONE_PERIOD_TOLERANCE = 0.25
 
 #: A match's object points are judged on their own (``IncrementalMatcher._objects_refusal``) when
 #: the sweep has at least MIN_OBJECT_POINTS, on every k-th of them up to OBJECT_CHECK_POINTS (a
-#: ratio's standard error about 1 %; about 0.3 ms).
+#: ratio's standard error about 1 %, at a fraction of a match's cost).
 MIN_OBJECT_POINTS = 100
 OBJECT_CHECK_POINTS = 2000
 
@@ -160,19 +152,15 @@ GAP_TURN_CANDIDATES = 3
 
 #: A sweep with point times is deskewed again when its matched motion differs from the one it was
 #: deskewed with by more than this (degrees over one sweep period, metres over one period), and
-#: matched again on the two finest levels. The pose follows the deskew closely: at a corner's exit
-#: (yaw rate falling 2-3 deg/s a sweep, the car accelerating) the motion found differs from the
-#: prediction by 0.1-0.4 deg a period, and deskewing again moves the pose 3-8 cm. At 0.25 deg and
-#: 5 cm (before 2026-11-28) most such sweeps kept the prediction's deskew: on bench/service.py's
-#: first drive the horizontal error reached 8.0 cm at corner exits, 5.6 cm at these values, with
-#: about a third of the sweeps matched twice (docs/benchmarks.md).
+#: matched again on the two finest levels: the pose follows the deskew closely, and at a corner's
+#: exit the motion found differs from the prediction by more than coarser thresholds would catch
+#: (docs/mapping.md, step 4).
 REDESKEW_DEG = 0.05
 REDESKEW_M = 0.01
 #: The second sweep is matched again with the first keyframe deskewed anew until its velocity
 #: changes by less than this (``IncrementalMatcher._second_sweep_again``), at most
 #: ``SECOND_SWEEP_PASSES`` times. Finer than the redeskew's: it happens once a session, and a
-#: first keyframe warped by 0.05 deg a period turns every later pose by a few mdeg (4 cm sideways
-#: after 500 m at 5 mdeg).
+#: warp left in the first keyframe turns every later pose.
 SECOND_SWEEP_DEG = 0.002
 SECOND_SWEEP_M = 0.001
 SECOND_SWEEP_PASSES = 3
@@ -181,21 +169,14 @@ SECOND_SWEEP_PASSES = 3
 #: The registration settings a matcher uses unless given others (voxel sizes from the first sweep).
 #: The density-based feature extraction already removes the sweep's noise, and features are too
 #: sparse for Algorithm 1's own-voxel Gaussians: the moving-point selection is off here. Algorithm 3
-#: (the SVD step) is off too, measured (docs/mapping.md): on 120 simulated sweeps it raised the
-#: frame-to-frame error (0.11 against 0.09 cm) and the time per sweep by 45 %; on a synthetic room
-#: it moved converged NDT poses 3-7 cm off (its gate, a lower point-to-plane RMSE, passed); on
-#: KITTI 00 the two are within the ground truth's error. Pass
+#: (the SVD step) is off too: it measured worse in the matcher (docs/mapping.md, step 6). Pass
 #: ``registration=RegistrationSettings(...)`` to turn it back on. Newton stops on the finest
-#: level below a 0.5 mm / 5e-5 rad step (pairwise registration: 0.1 mm / 1e-5 rad): from a
-#: good prediction it takes about one evaluation fewer per sweep, and on KITTI 00 frames 0-10 the
-#: poses are the same to 0.01 mm travel and 1e-4 deg frame-to-frame error. Each point is scored
-#: against the 8 voxels whose centres enclose it, weighted trilinearly (``n_neighbors=8``,
-#: :func:`randt.core.voxel.neighborhood_base`, :func:`randt.core.voxel.trilinear_weights`), not its own and
-#: the 6 across its faces: the cost is then continuous and symmetric about every cell boundary.
-#: On bench/service.py's one-vehicle drive (600 sweeps) the max error went 11.69 -> 8.31 cm
-#: (vertical 6.72 -> 0.85); on a drive whose flat ground lies on a voxel boundary the 7 let the
-#: height drift 11 cm; on KITTI 00 frames 0-10 the poses are the same to 0.3 mm and 1e-3 deg frame
-#: to frame (docs/benchmarks.md).
+#: level at a coarser step than pairwise registration's: from a good prediction the finer stop
+#: only costs evaluations. Each point is scored against the 8 voxels whose centres enclose it,
+#: weighted trilinearly (``n_neighbors=8``, :func:`randt.core.voxel.neighborhood_base`,
+#: :func:`randt.core.voxel.trilinear_weights`), not its own and the 6 across its faces: the cost is
+#: then continuous and symmetric about every cell boundary, and a flat ground on a voxel boundary
+#: cannot drift (docs/registration.md, "NDT").
 MATCHER_REGISTRATION = RegistrationSettings(
     select_moving_points=False,
     svd_refinement=False,
@@ -221,8 +202,8 @@ class MatcherSettings(BaseModel):
         default=1.0,
         ge=1,
         description="ground is downsampled this many times coarser than objects (randt.core.features); 1 "
-        "(as dense as objects) keeps pitch and height from drifting on long drives: 8.4 cm max "
-        "error over 600 m where 2 gave 17.4 cm (docs/benchmarks.md)",
+        "(as dense as objects) keeps pitch and height from drifting on long drives (docs/mapping.md, "
+        "step 5; docs/benchmarks.md)",
     )
     keyframe_distance_m: float = Field(default=2.0, gt=0, description="new keyframe after this travel")
     keyframe_rotation_deg: float = Field(default=10.0, gt=0, description="or after this rotation")
@@ -277,8 +258,8 @@ class MatcherSettings(BaseModel):
         le=1,
         description="how much of the change in velocity between the last two matched sweeps the "
         "motion prediction (and the first deskew) carries on: 1 = constant acceleration (a corner's "
-        "growing yaw rate, braking), 0 = constant velocity. On the simulated car-like drives 1 "
-        "halved the sweeps deskewed a second time (docs/benchmarks.md)",
+        "growing yaw rate, braking), 0 = constant velocity: fewer sweeps need a second deskew "
+        "(docs/mapping.md, step 3)",
     )
     max_angular_acceleration_dps2: float = Field(
         default=100.0,
@@ -479,11 +460,9 @@ def deskew(
     ``tau`` seconds after the start was seen from ``exp(s * log(delta))`` relative to the start,
     ``s = tau / period_s``, the screw motion (:func:`randt.core.transforms.scale_motion`: turning at
     constant speed, the sensor moves along an arc); it is re-expressed in the frame at ``s =
-    reference_fraction`` (0: the sweep's start, 0.5: its middle). Until 2026-11-28 the
-    translation was scaled linearly, ``s * delta[:3, 3]``: the chord of the whole period, whose
-    direction is half the period's turn off the heading at any moment, so in a corner at 33
-    deg/s every sweep was sheared by 1.4 cm across at its ends (the pose error it made was small
-    on simulated drives: docs/benchmarks.md).
+    reference_fraction`` (0: the sweep's start, 0.5: its middle). The translation is not scaled
+    linearly (``s * delta[:3, 3]``, the chord of the whole period): the chord's direction is half
+    the period's turn off the heading, which shears a sweep in a corner (docs/mapping.md, step 4).
     """
     s = np.clip(np.asarray(time_offset_s, dtype=np.float64) / period_s, 0.0, 1.5) - reference_fraction
     rotvec, screw = se3_log(delta)
@@ -541,9 +520,9 @@ class IncrementalMatcher:
         if levels is None and self._registration_given is not None:
             levels = self._registration_given.voxel_sizes_m
         if levels is None:
-            # One level coarser than pairwise registration uses: at a corner's onset the yaw rate
-            # can jump by 7 degrees per sweep (a 9 m arc at 12 m/s), a step (8r, ..., r) could not
-            # recover on simulated drives; a 16r level does, for about one more cheap level.
+            # One level coarser than pairwise registration uses: the yaw rate's jump at a corner's
+            # onset is more than (8r, ..., r) recovers from, and a 16r level is cheap
+            # (docs/mapping.md, step 2).
             auto = auto_voxel_sizes(first_xyz)
             levels = (2.0 * auto[0], *auto)
         r = levels[-1]
@@ -738,7 +717,7 @@ class IncrementalMatcher:
         self._advance(T, index, periods, stamp_s, fell_back if matched else 0, matched)
         self._keep_prior_offset(T, prior_T, outcome.status)
         keep_map = ~outcome.feats.noise_mask
-        mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # 8x faster than xyz[keep_map]
+        mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # not xyz[keep_map]: see _sanitize
         is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
         return ScanResult(
             index=index,
@@ -782,8 +761,8 @@ class IncrementalMatcher:
         x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         rng2 = x * x + y * y + z * z
         keep = (rng2 >= s.min_range_m**2) & (rng2 <= s.max_range_m**2)
-        # np.compress, not xyz[keep]: a boolean index of an (N,3) array takes numpy's generic
-        # path, 8x slower on a 120k-point sweep (6.6 against 0.8 ms).
+        # np.compress, not xyz[keep]: a boolean index of an (N,3) array takes numpy's generic,
+        # much slower path.
         xyz = np.compress(keep, xyz, axis=0)
         source_index = source_index[keep]
         if time_offset_s is not None:
@@ -954,12 +933,10 @@ class IncrementalMatcher:
         # only: the retries (up to 8 registrations) cannot find it and would starve others.
         lost = self._state.fallback_run >= LOST_AFTER_FALLBACKS
         # The first match (the second sweep) has no velocity to predict from and no recent inlier
-        # ratio to judge by. From the first pose, a sweep 0.8 m ahead once matched 1 cm from it
-        # with 33 % inliers where the true pose has 50 %, and passed (randt demo's noisy-GNSS
-        # vehicle, with ground_voxel_factor 1). So a first match that stays where it started
-        # (a vehicle standing still, or one stuck there) tries every hypothesis and keeps the
-        # best; one that moved found the motion (the hypotheses cost 6 registrations: at 10 Hz
-        # they queued a session's first sweeps behind it).
+        # ratio to judge by, and may stop where it started with enough inliers to pass. So a first
+        # match that stays where it started (a vehicle standing still, or one stuck there) tries
+        # every hypothesis and keeps the best; one that moved found the motion, and is spared the
+        # hypotheses' registrations (docs/mapping.md, step 6, "The first match").
         first_match = len(self._state.poses) < 2
         for attempt, init in enumerate(self._hypotheses(T_pred, periods, feats.matching_xyz)):
             if lost and attempt > 0:
@@ -1015,11 +992,9 @@ class IncrementalMatcher:
         nearest are tried in turn: global registration (:func:`randt.core.global_registration.
         register_global`) of the sweep against the keyframe's points, then the usual NDT match
         against the model from there. A keyframe, not the fused model, is the target: global
-        registration wants two clouds of like extent and density (in the simulated town a sweep
-        1.7 s and a 90 degree turn past the last keyframe registers to it within 1 cm, and not to
-        the model). Accepted only when the global registration is confident and the match keeps
-        ``min_inlier_ratio``; attempt -1 marks it. None when no candidate passes: the session stays
-        lost."""
+        registration wants two clouds of like extent and density. Accepted only when the global
+        registration is confident and the match keeps ``min_inlier_ratio``; attempt -1 marks it.
+        None when no candidate passes: the session stays lost."""
         st = self._state
         keyframes = list(st.keyframes)
         try:
@@ -1093,17 +1068,14 @@ class IncrementalMatcher:
         settles.
 
         Until the second sweep is matched no velocity is known: the model is the first sweep as it
-        came, warped by the motion during it (a metre at 10 m/s), and the second sweep's pose is
-        measured against that warp (5-11 cm off on simulated drives). With the velocity the match
-        found, the first keyframe is deskewed and the second sweep, deskewed with the same
-        velocity, matched again from its pose; kept only if it passes the same gate. That first
-        velocity is itself measured against the warp (on a simulated drive, the two-vehicle
-        fleet's second, 0.886 m a period for 1.000): both sweeps deskewed with it align (the
-        second sweep's pose 0.4 mm off) but the first keyframe stays warped, and the third sweep,
-        deskewed with the right velocity, was matched 19 mdeg off in yaw, a heading error the
-        session kept. So it goes round again with the velocity of the new match, until that
-        changes by less than :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most
-        :data:`SECOND_SWEEP_PASSES` times).
+        came, warped by the motion during it, and the second sweep's pose is measured against that
+        warp. With the velocity the match found, the first keyframe is deskewed and the second
+        sweep, deskewed with the same velocity, matched again from its pose; kept only if it passes
+        the same gate. That first velocity is itself measured against the warp, and a first
+        keyframe left warped gives the session a heading error it keeps. So it goes round again
+        with the velocity of the new match, until that changes by less than
+        :data:`SECOND_SWEEP_DEG` and :data:`SECOND_SWEEP_M` (at most :data:`SECOND_SWEEP_PASSES`
+        times; docs/mapping.md, step 4).
         """
         for _ in range(SECOND_SWEEP_PASSES):
             velocity = self._per_period(invert(self._state.poses[-1]) @ outcome.T, gating.periods)
@@ -1249,7 +1221,7 @@ class IncrementalMatcher:
 
     def _weak(self, inlier_ratio: float) -> bool:
         """A match whose inlier ratio is below 70 % of the session's recent median is suspect: at a
-        corner's onset a wrong match can pass the absolute gate (0.32 where this drive sees 0.8)."""
+        corner's onset a wrong match can pass the absolute gate."""
         if len(self._state.recent_inliers) < 3:
             return False
         return inlier_ratio < 0.7 * float(np.median(self._state.recent_inliers))
@@ -1314,9 +1286,7 @@ class IncrementalMatcher:
         nothing is computed for them when the prediction's match passes).
 
         After a gap (``periods`` > 1.5: sweeps dropped upstream) the turn rate may have changed
-        within it: a corner's end extrapolated at the corner's yaw rate over 8 periods overshoots
-        by 46 degrees on the simulated drives, a corner's onset is missed as much, and a whole
-        corner inside a 14-sweep gap by 73 degrees. So first the
+        within it, by tens of degrees over a corner (docs/mapping.md, step 7). So first the
         :data:`GAP_TURN_CANDIDATES` best turns over the gap, at the session's speed, by their NDT
         cost on the model's coarsest level (:meth:`_turns_over_gap`). Then the prediction yawed by
         each of ``retry_yaw_deg`` both ways (a corner's onset changes the yaw rate faster than a
@@ -1365,18 +1335,14 @@ class IncrementalMatcher:
         sweep that fell back since the last match (``fallback_run``): the prediction's error grows
         with the time it extrapolates over, and a fallback's pose is a prediction. So a session
         whose sensor was blocked while the vehicle stood still finds its track again once the
-        sweeps are good (the match that moved the prediction 20 m after 20 blocked sweeps was
-        refused at the old 2 m limit forever, with 83 % inliers).
+        sweeps are good, where a fixed limit would refuse it forever.
 
         While the session tracks (its last sweep matched from the prediction, so the velocity the
         prediction extrapolates was measured between two matches: ``recent_corrections`` holds the
         last one's), the prediction is off by what the vehicle's acceleration moved it since,
         ``max_acceleration_mps2 * t**2 / 2`` (5 cm at 1 g over 0.1 s), plus the matches' own error
-        (``max_tracking_correction_m``): measured, 0.3 m at most in a session's first sweeps and
-        below 0.1 m after, on real KITTI 00 and simulated drives. A match farther than that is
-        somewhere a vehicle cannot be: with 2 m per period, a sweep of a town the map never saw
-        was matched 1.0-1.3 m off its prediction and answered ``ok`` (tests/service/
-        test_agreement.py), and every later sweep followed it.
+        (``max_tracking_correction_m``). A match farther than that is somewhere a vehicle cannot
+        be, however many inliers it keeps (docs/mapping.md, step 7, "While the session tracks").
         """
         s = self.settings
         limit = s.max_correction_m * (max(1.0, periods) + self._state.fallback_run)
@@ -1397,14 +1363,11 @@ class IncrementalMatcher:
     ) -> str | None:
         """Why a match at ``T`` is refused on its objects alone, or None.
 
-        On a flat street the ground matches at any offset along it: a sweep of the street driven
-        back after a U-turn, matched from a prediction 25 m and 180 degrees off, kept 54 % of its
-        ground points and 2 % of its objects, 30 % in all, and passed (its keyframe then anchored
-        every later sweep there, 96 m off at the end). The objects' own inlier ratio must reach
-        ``min_object_inlier_ratio`` (10 %): matched sweeps keep 35-85 % (KITTI 00, the simulated
-        drive), 18 % at the onset of a corner entered with no clothoid (test_odometry's stress
-        test, deskewed with the velocity the match found), a wrong place 1-2 %. A sweep with too
-        few object points to judge is not refused for it.
+        On a flat street the ground matches at any offset along it, so a wrong match can keep
+        enough inliers in all on the ground alone. The objects' own inlier ratio must reach
+        ``min_object_inlier_ratio``: matched sweeps keep far more than a wrong place
+        (docs/mapping.md, step 7). A sweep with too few object points to judge is not refused
+        for it.
         """
         objects = feats.object_matching_xyz
         if reference is None or len(objects) < MIN_OBJECT_POINTS:
@@ -1544,9 +1507,8 @@ def with_keyframe(
     model's voxel as the matcher's own keyframes are.
 
     A resumed session's snapshot may end tens of metres before its last published pose
-    (:func:`extend_state_dict`); a sweep it sent since, at its logged pose, brings the model up to
-    where the vehicle is (a sweep 34 m past the snapshot's only keyframe matched with 12 %
-    inliers, below the gate; with a sweep from 9 m back added it matched as usual).
+    (:func:`extend_state_dict`), too far for the next sweep to match its model; a sweep it sent
+    since, at its logged pose, brings the model up to where the vehicle is.
     """
     T = np.asarray(T_world_sensor, dtype=np.float64).reshape(4, 4)
     points = np.asarray(points_sensor, dtype=np.float64)

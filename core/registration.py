@@ -12,7 +12,8 @@ The whole pipeline in one screen (:func:`register`)::
                  degeneracy test; never the initial guess dressed up as a result
 
 Baselines share every stage they can: ``ndt`` is the same solver without outlier removal, moving
-point selection or the SVD step; ``icp-point`` and ``icp-plane`` replace the NDT solver.
+point selection or the SVD step; ``icp-point`` and ``icp-plane`` replace the NDT solver. Each
+stage and why: docs/registration.md.
 """
 
 from __future__ import annotations
@@ -182,10 +183,10 @@ def centroid_start(source_xyz: npt.ArrayLike, target_xyz: npt.ArrayLike) -> np.n
     moves the source's centroid onto the target's (no rotation).
 
     For object scans and CAD samples posed far apart (the ModelNet40 protocol: up to 0.5 of the
-    object's radius per axis), NDT from the identity can start outside its basin: on the paper
-    bench's clean objects RANDT's placement RMSE is 0.060 from the identity and 0.018 from this
-    start. Not for LiDAR sweeps: a sweep's centroid moves with what it sees, while the sensor's
-    origin is a far better guess. Non-finite rows are ignored.
+    object's radius per axis), NDT from the identity can start outside its basin
+    (docs/registration.md, "Inputs and errors"). Not for LiDAR sweeps: a sweep's centroid moves
+    with what it sees, while the sensor's origin is a far better guess. Non-finite rows are
+    ignored.
     """
     src, _ = sanitize_points(source_xyz, name="source", min_points=1)
     tgt, _ = sanitize_points(target_xyz, name="target", min_points=1)
@@ -204,14 +205,14 @@ def auto_voxel_sizes(points_xyz: np.ndarray) -> tuple[float, ...]:
     ``r`` is the median distance of the points from their median point divided by 12, rounded to
     one significant digit: about 1 m for a KITTI sweep, 0.5 m indoors, 4 mm for a bunny scan.
     Clouds of more than :data:`_SCALE_SAMPLE` points are measured on that many points drawn with
-    a fixed seed (0.1 % off on KITTI sweeps, a sixth of the time; a stride would be biased on
-    organized clouds).
+    a fixed seed (close to the whole cloud's scale at a fraction of the time; a stride would be
+    biased on organized clouds).
 
     A sparse cloud (fewer than :data:`_SPARSE_POINTS_PER_VOXEL` points per occupied voxel of
     ``r`` by the mean, such as 1024 points sampled on a ModelNet40 object) gets ``r`` doubled
     until its voxels hold :data:`_DENSE_POINTS_PER_VOXEL` by the mean: otherwise too few voxels
-    hold the points a Gaussian needs. Every real scan of the shared data holds 2.9 (the sparse
-    car pair) to 21 at its ``r`` and is left as it was.
+    hold the points a Gaussian needs. Real scans are left as they are (docs/registration.md,
+    "Levels").
     """
     r, spread = _scale_r(points_xyz)
     if is_sparse_cloud(points_xyz, r):
@@ -263,8 +264,8 @@ def _points_per_voxel(points_xyz: np.ndarray, voxel_m: float) -> float:
 
 
 #: Local planes of the SVD step come from neighbours at most this many finest voxels away. One
-#: voxel leaves sparse scans (the car pair) short of neighbours: its SVD step then fails the
-#: acceptance test (4.6 cm instead of 1.8 cm); two voxels match the unbounded k-NN normals.
+#: voxel leaves sparse scans (the car pair) short of neighbours, so that the SVD step fails its
+#: acceptance test; two voxels match the unbounded k-NN normals (docs/registration.md, "Algorithm 3").
 NORMAL_RADIUS_VOXELS = 2.0
 
 
@@ -342,7 +343,7 @@ def prepare_reference(
 
     ``keep_unjudged``: Algorithm 1 keeps the points of voxels too sparse for a Gaussian, for a
     sparse cloud (:func:`is_sparse_cloud`; :func:`register` decides it once per call): there they
-    say nothing about their points (it would drop 9-24 % of a ModelNet40 object, thin parts first).
+    say nothing about their points (it would drop the thin parts of a ModelNet40 object first).
 
     ``downsampled_at_m``: the voxel size ``target_xyz`` was already downsampled at (by
     :func:`~randt.core.voxel.voxel_downsample`). When it equals this reference's downsampling voxel,
@@ -419,8 +420,7 @@ def _moving_survivors(
     A moving cloud too sparse for Gaussians at the finest voxel (one already equalized at a
     coarser voxel, say) keeps everything: Algorithm 1 would keep less than
     :data:`MIN_SELECTED_SHARE` of it, not because those points are improbable but because their
-    voxels hold too few to judge (a KITTI sweep equalized at 0.5 m kept 0.1 % and the problem
-    became degenerate; real scans keep 43-89 %).
+    voxels hold too few to judge (the problem would become degenerate).
 
     Returns the downsampled cloud and its survivors (the same array when nothing was dropped)."""
     pre = voxel_downsample(source_xyz, finest * settings.target_voxel_fraction)
@@ -497,8 +497,7 @@ def _svd_refine(
     The iteration converges linearly; :func:`_extrapolate` (Besl & McKay's acceleration) cuts the
     number of iterations by about a third, and correspondences are searched again only every
     :data:`_SVD_SEARCH_EVERY` Kabsch solves (between searches only the projections onto the same
-    planes change), so a KITTI pair needs 6 searches instead of 8 and the car pair 9 instead of
-    17, with the same result to 0.02 mm / 0.002 deg. It stops only on a small step taken right
+    planes change; docs/registration.md, "Algorithm 3"). It stops only on a small step taken right
     after a search, so its fixed point is that of searching every time; that search's pairs give
     the final RMSE (the pose moved less than the tolerance since).
 
@@ -575,8 +574,8 @@ def _projected_kabsch(
 
     :func:`~randt.core.transforms.umeyama` on the moved and the projected points, with the moving,
     projecting and the sums fused into one compiled pass
-    (:func:`~randt.core.kernels.projected_pair_moments`): the step solves this 12-15 times a
-    registration, and its numpy temporaries cost 0.5-1 ms a solve on a KITTI pair's 7-14k points.
+    (:func:`~randt.core.kernels.projected_pair_moments`): the step solves this many times a
+    registration, and numpy's temporaries would dominate it.
     """
     src, dst, nrm = corr
     mu_q, mu_y, cross = np.empty(3), np.empty(3), np.empty((3, 3))
@@ -681,7 +680,7 @@ def _svd_refine_voxel(
 def _plane_information(moving: np.ndarray, T: np.ndarray, gmap: VoxelGaussianMap) -> np.ndarray:
     """6x6 point-to-plane information of the matched points (those in a map voxel), rotation
     scaled by their RMS radius; zeros when fewer than 6 match (compiled:
-    :func:`randt.core.kernels.plane_information`, 1.6 -> 0.2 ms on a reduced sweep's 7k points)."""
+    :func:`randt.core.kernels.plane_information`)."""
     table_key, table_idx = gmap.hash_table
     information, n_matched = plane_information(
         np.ascontiguousarray(moving, dtype=np.float64),
@@ -909,11 +908,9 @@ def _refine(
     ``svd_max_rmse_rise`` and the step stays within one finest voxel).
 
     The tolerance: the RMSE before and after is taken over each pose's own fenced
-    correspondences, and on real pairs a step of 2-3 cm changes it by 0.01-0.1 cm either way. A
-    strict "must lower it" test turned on that jitter: on the car pair the fenced step reached
-    1.0-2.6 cm from the reference at every fence from 2 to 4, and was kept at 2.0, 2.5 and 4 and
-    rejected at 2.25, 2.75 and 3 (NDT's pose, 4.6 cm, kept instead). A 2 % rise is far below what
-    a step into a wrong basin does (the guard's purpose)."""
+    correspondences, and on real pairs a good step moves it a little either way, so a strict
+    "must lower it" test turns on that jitter. The allowed rise is far below what a step into a
+    wrong basin does (the guard's purpose; docs/registration.md, "Algorithm 3")."""
     if settings.svd_correspondences == "voxel":
         T_svd, n_svd, rmse_before, rmse_after = _svd_refine_voxel(moving, ref, T, settings)
     else:
