@@ -1,28 +1,20 @@
-"""Compiled kernels for the hot loops the numpy formulation cannot make cheap (numba).
+"""Compiled kernels (numba) for the hot loops the numpy formulation cannot make cheap.
 
-Why a compiled kernel here (the standards allow one when justified): the NDT score, gradient and
-Hessian are sums over (point, neighbour voxel) pairs. In numpy every pair becomes a row of several
-(P,3), (P,3,3) and (P,6) temporaries: about 15 ms per evaluation for a KITTI sweep's 7k points and
-7 neighbours, 20-40 evaluations per registration, which made RANDT 3-5x slower than small_gicp.
-Fused into one pass over the points with no temporaries, the same sums take 1-3 ms. Grouping
-points by voxel (downsampling, Gaussian fits, Algorithm 1) is a hashed pass too: ``np.unique``
-sorts the keys, 8-14 ms for a KITTI sweep against 2-3 ms here. The SVD step's fixed-radius
-searches run on a hashed grid (:mod:`randt.core.grid`), and thousands of 3x3 symmetric eigenproblems
-(voxel covariances, local planes) go through a Jacobi loop instead of LAPACK's per-matrix calls.
+The NDT score, gradient and Hessian are sums over (point, neighbour voxel) pairs; in numpy every
+pair becomes rows of large temporaries, here one pass over the points with none. Grouping points
+by voxel (downsampling, Gaussian fits, Algorithm 1) is a hashed pass instead of ``np.unique``'s
+sort, and batches of 3x3 symmetric eigenproblems go through a Jacobi loop instead of LAPACK's
+per-matrix calls. Why, and what it saves: docs/registration.md, "NDT".
 
 Every public kernel's docstring ends with ``Reference: module:function`` (the numpy formulation, or
 the numpy/scipy function, it is tested against) and ``Test: tests/...::test_name`` (the test that
-compares them); ``tests/core/test_kernels.py`` checks that both exist. The NDT kernels have numpy
-twins that stay the reference: ``randt.core.ndt`` keeps the vectorized
-formulation (``ndt_derivatives_numpy`` and friends) and ``tests/core/test_kernels.py`` checks the
-kernels against it to round-off on real scans. The kernels release the GIL (``nogil``), so the
-service's per-session worker threads run them on several cores at once. Kernels are compiled on
-first use and cached on disk (numba ``cache=True``), so a process pays the compile time (a few
-seconds) once per machine.
+compares them); ``tests/core/test_kernels.py`` checks that both exist. The kernels release the GIL
+(``nogil``), so the service's worker threads run them on several cores at once, and are compiled on
+first use and cached on disk (numba ``cache=True``).
 
-Voxel keys are packed exactly as :func:`randt.core.voxel.pack_keys` packs them (21 bits per axis); a map's
-keys go into an open-addressing hash table (:func:`build_hash`, built once per map), so a lookup
-is one or two probes instead of the binary search ``np.searchsorted`` does.
+Voxel keys are packed exactly as :func:`randt.core.voxel.pack_keys` packs them (21 bits per axis); a
+map's keys go into an open-addressing hash table (:func:`build_hash`, built once per map), so a
+lookup is a probe or two instead of the binary search ``np.searchsorted`` does.
 """
 
 # ruff: noqa: RUF046  (int(math.floor(x)) keeps the cell index an explicit int64 inside numba)
@@ -224,14 +216,14 @@ def ndt_accumulate(
     trilinear NDT does), so the cost is continuous where a point's 8 voxels change.
 
     The 48 sums live in scalar locals, not arrays: LLVM keeps them in registers, where sums into
-    heap arrays (which might alias the inputs) cost a load and a store per pair and term; that
-    made this loop twice as slow. The per-pair code is written out term by term for that reason.
+    heap arrays (which might alias the inputs) cost a load and a store per pair and term. The
+    per-pair code is written out term by term for that reason.
 
     ``cache_cell`` (N,3) and ``cache_vox`` (N, neighbours) memoize each point's cell and its
     neighbour voxels across calls on the same points and map (pass (0,3) and (0,0) arrays for
     none; fill ``cache_cell`` with ``CACHE_EMPTY`` to start): Newton steps move points by
-    millimetres, so after the first evaluation almost no point changes cell, and the hash lookups,
-    half of this loop's time, are skipped.
+    millimetres, so after the first evaluation almost no point changes cell, and the hash lookups
+    are skipped.
 
     Reference: randt.core.ndt:ndt_derivatives_numpy
     Test: tests/core/test_kernels.py::test_derivatives_kernel_matches_numpy
@@ -651,7 +643,7 @@ def group_voxels(
     outside the 21-bit key range (the outputs are then meaningless). The table starts small and
     doubles at half full, so it stays in cache; a point in the same voxel as the one before it (the
     common case in a scan's ring order) skips the probe. (Growing happens outside the hot loop:
-    numba reference-counts arrays reassigned inside a loop, which made that loop 4x slower.)
+    numba reference-counts arrays reassigned inside a loop.)
 
     Reference: numpy:unique
     Test: tests/core/test_kernels.py::test_group_voxels_matches_np_unique
@@ -1084,8 +1076,8 @@ def grid_knn_normals(
 @nb.njit(cache=True, nogil=True)
 def eigh3(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigen-decomposition of symmetric 3x3 matrices (Jacobi), like ``np.linalg.eigh``: eigenvalues
-    ascending (m,3) and eigenvectors as columns (m,3,3). About 5x faster than LAPACK's per-matrix
-    calls for thousands of 3x3 voxel covariances.
+    ascending (m,3) and eigenvectors as columns (m,3,3). Faster than LAPACK's per-matrix calls for
+    thousands of 3x3 voxel covariances.
 
     Reference: numpy.linalg:eigh
     Test: tests/core/test_kernels.py::test_eigh3_matches_lapack
@@ -1347,10 +1339,10 @@ def first_per_voxel_pair(
     tile_keys: np.ndarray, voxel_keys: np.ndarray, xyz32: np.ndarray, cap: int
 ) -> np.ndarray:
     """True for the first ``cap`` distinct points of each (tile key, voxel key) pair, in arrival
-    order: what :meth:`randt.core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass (its numpy
-    twin, two ``np.lexsort`` calls, took 14-30 ms on a KITTI sweep with a cap of 1). A point
-    equal (float32 x, y, z) to one already kept in its voxel is not distinct and is skipped, as
-    the map's insert drops it: the map's policy (:func:`voxel_table_admit`) against an empty map.
+    order: what :meth:`randt.core.tiles.TileGrid.candidate_mask` keeps, in one hashed pass where its
+    numpy twin sorts twice (``np.lexsort``). A point equal (float32 x, y, z) to one already kept in
+    its voxel is not distinct and is skipped, as the map's insert drops it: the map's policy
+    (:func:`voxel_table_admit`) against an empty map.
 
     Reference: randt.core.tiles:TileGrid.candidate_mask_numpy
     Test: tests/core/test_tiles.py::test_compiled_candidate_mask_equals_the_numpy_reference
@@ -1406,9 +1398,8 @@ def within_xy_radius(points: np.ndarray, cx: float, cy: float, radius2: float) -
     """The rows of ``points`` (N,3) within ``sqrt(radius2)`` of ``(cx, cy)`` in XY, in order.
 
     A counting pass, then one writing the survivors into an array of exactly their size (no
-    oversized buffer to fill and copy: at 13 MB a rebuild, fresh pages cost more than the loop):
-    the numpy form (a boolean mask from two column differences, then fancy indexing) took 13 ms
-    on the 535k fused keyframe points of a full window, this 1-2 ms.
+    oversized buffer to fill and copy: for a full window's fused keyframe points, fresh pages cost
+    more than the loop), instead of numpy's boolean mask and fancy indexing.
 
     Reference: numpy:sum
     Test: tests/core/test_kernels.py::test_within_xy_radius_matches_the_numpy_crop
@@ -1606,9 +1597,9 @@ def deskew_points(points: np.ndarray, s: np.ndarray, rotvec: np.ndarray, screw: 
     velocity ``exp([rotvec, screw])`` (an SE(3) twist: a car turning at constant speed moves
     along its arc): ``exp(s_i [rotvec, screw]) p_i = R(s_i w) p_i + V(s_i w) s_i u``, with
     Rodrigues' formula and the closed form of ``V`` per point in one pass (scipy's
-    ``Rotation.from_rotvec(...).apply`` builds N rotation objects and quaternions: 2.8 ms for a
-    reduced 32k-point sweep against 0.3 ms). ``V(s w) s u = s u + s^2 c (w x u) + s^3 e
-    (w x (w x u))`` with ``c = (1 - cos t) / t^2``, ``e = (t - sin t) / t^3``, ``t = |s w|``.
+    ``Rotation.from_rotvec(...).apply`` builds N rotation objects and quaternions).
+    ``V(s w) s u = s u + s^2 c (w x u) + s^3 e (w x (w x u))`` with ``c = (1 - cos t) / t^2``,
+    ``e = (t - sin t) / t^3``, ``t = |s w|``.
 
     Reference: randt.core.odometry:deskew_reference
     Test: tests/core/test_kernels.py::test_deskew_kernel_matches_the_screw_motion
@@ -2023,9 +2014,8 @@ def in_marked_cells(cells: np.ndarray, marked: np.ndarray) -> np.ndarray:
 def group_int_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows grouped by key, in one hashed pass and a counting sort: ``(order, unique keys,
     starts)`` with group ``g``'s rows ``order[starts[g]:starts[g + 1]]`` in their input order and
-    groups in first-seen order. Keys must be >= 0 (the tile keys of :mod:`randt.core.tiles`). A
-    few thousand rows over tens of groups take microseconds (a stable ``np.argsort`` of a
-    sweep's 27k tile keys took about 1.5 ms).
+    groups in first-seen order. Keys must be >= 0 (the tile keys of :mod:`randt.core.tiles`): no
+    sort, where a stable ``np.argsort`` of a sweep's tile keys would be one.
 
     Reference: numpy:unique
     Test: tests/core/test_kernels.py::test_group_int_keys_matches_a_stable_sort
