@@ -1,73 +1,10 @@
 """The tiled, density-equalized global map, updated incrementally from registered scans.
 
-Layout
-------
-An axis-aligned XY grid with integer-metre origins and one square cell size per map (Autoware's
-divided maps use 20 m). Tile ``(ix, iy)`` owns the half-open cell
-``[ix * tile, (ix + 1) * tile) x [iy * tile, (iy + 1) * tile)`` and every ``z``; its id is
-``f"{ix}_{iy}"``, the suffix of its wire key ``randt/map/<map>/tile/<ix>_<iy>``. Tiles never
-overlap, so a point belongs to exactly one tile (``x = 20.0`` with 20 m tiles is in tile 1).
-
-Density equalization
---------------------
-The RANDT paper's density equalization is a cap on points per voxel. Each tile is cut into cubic
-voxels of ``voxel_size_m`` aligned to the tile's corner (so no voxel straddles two tiles) and holds
-at most ``max_points_per_voxel`` points per voxel. The policy is **keep the first arrivals**:
-
-* a new point is stored only while its voxel holds fewer than the cap; once the voxel is full, later
-  points in it are dropped;
-* a point identical (after float32 rounding) to one already stored, or to an earlier point of the
-  same batch, is dropped, so re-inserting the same data never changes the map;
-* stored points are never moved, replaced or deleted by an insert; only :meth:`TileGrid.refold`
-  (the pose graph moved the keyframes behind a tile) replaces a tile's whole content.
-
-Why this policy: it is *stable* — a tile's content only changes where the map gains coverage, so
-revisiting a mapped street does not rewrite its tiles, bump their versions and republish them
-(replacing points, e.g. to track a voxel centroid, would touch every revisited voxel on every scan);
-it is *bounded* — a tile holds at most ``ceil(tile / voxel)^2 * n_z_voxels * cap`` points, however
-many scans a fleet drives through it; and every stored point is a real measurement, not an average
-smeared across surfaces. The price is that the first pass through a voxel decides what it keeps.
-
-Storage and precision
----------------------
-Points are stored as float32 (what the exported PCD files hold) and every tile and voxel assignment
-is computed from the float32-rounded coordinates, so an exported map loads back into exactly the
-same tiles, voxels and points. float32 resolves better than 1 cm up to about 1e5 m from the map
-origin; keep map frames local (as Autoware's MGRS grid squares are). A tile keeps its points as
-one (N, 4) float32 x,y,z,intensity buffer in arrival order, with room to grow: an insert appends
-the points it admits, so it costs the new points, not the tile. Which points are admitted is
-decided against one hash table per grid of every occupied (tile, voxel) and its count (and, with
-a cap above 1, its points, for the duplicate test): one compiled pass over the new points in
-arrival order (:func:`randt.core.kernels.voxel_table_admit`), a grouping of the admitted ones by tile,
-and one append per touched tile. No Python loop over points or voxels, only over the tiles a scan
-touches. (Until 2026-11-26 each tile was a key-sorted buffer and an insert merged the new rows
-into fresh copies of every touched tile: 11 ms for a simulated sweep against about 1 ms now.)
-
-Autoware format
----------------
-:meth:`TileGrid.export_autoware` writes one binary PCD (``x y z intensity``, float32) per non-empty
-tile, named ``<ix>_<iy>.pcd``, and ``pointcloud_map_metadata.yaml`` as Autoware's
-``pointcloud_map_loader`` reads it (and ``pointcloud_divider`` writes it)::
-
-    x_resolution: 20.0
-    y_resolution: 20.0
-    -1_0.pcd: [-20, 0]      # file name -> integer [x_min, y_min] of its cell, metres
-    0_0.pcd: [0, 0]
-
-The loader skips the two resolution keys and parses every other value as a list of two integers, so
-nothing else may go into that file. The grid's own settings and tile versions go into a sidecar,
-``randt_tile_grid.yaml``, which Autoware ignores and :func:`load_autoware` uses to restore the map
-exactly (versions included, so tile updates stay monotonic across a service restart).
-:meth:`TileGrid.write_tiles` updates such a directory in place, rewriting only the tiles that changed
-(the service's store saves a growing map this way). The files themselves (names, formats, atomic
-writes) are :mod:`randt.core.io.autoware`'s; this module decides what goes into them and in which order.
-
-Thread safety
--------------
-Inserts are serialized by an internal lock. Readers get immutable :class:`Tile` snapshots: read-only
-views of the first ``n`` rows of a tile's buffer. An insert writes only rows past every snapshot's
-``n`` (or into a new, larger buffer), and a re-fold gives the tile a new buffer, so a snapshot stays
-valid (and unchanged) while the map keeps growing.
+:class:`TileGrid`: XY tiles with integer-metre origins, each a cap of points per voxel aligned to
+its corner, filled by the policy *keep the first arrivals* (stable under revisits, bounded, real
+measurements only); versioned tiles, immutable :class:`Tile` snapshots for readers while inserts
+go on, Autoware divided-map export and in-place updates. Layout, the policy and why, precision,
+the files and thread safety: docs/mapping.md, "The tiled map".
 """
 
 from __future__ import annotations
