@@ -9,37 +9,15 @@
             pub.publish(xyz, stamp_ns)               # never blocks: queued, sent by a thread
         pub.flush(timeout=30)                        # optional: wait for the last answers
 
-How it works
-------------
-- **One Zenoh session per publisher** (client of a router by default, or a peer), endpoints from
-  the arguments or the environment (:class:`PublisherSettings`, prefix ``RANDT_VEHICLE_``).
-- **Reduced on the vehicle** by default (:func:`encode_sweep`): the first point of each
-  ``voxel_m`` voxel (0.2 m, the service's default map voxel) in the sweep's own order, with its own
-  time offset and intensity, sent as a compact v2 scan (1 cm coordinates, 10 us time offsets, uint8
-  intensities, zstd): about 100 kB per KITTI sweep instead of 1.9 MB, 8 Mbit/s per vehicle at 10 Hz
-  instead of 150 (``docs/clients.md``). ``raw=True`` (``RANDT_VEHICLE_RAW=1``) sends every point
-  as float32 in a v1 scan, as before.
-- **publish() never blocks** longer than building the message (10-30 ms for 120k points). The
-  message is validated with the wire format's own checks (:mod:`randt.wire.messages`: a bad array raises
-  ``BadMessageError`` at once, with the code the service would answer), then put into a bounded
-  send queue. A full queue drops its **oldest** scan and counts it (``stats.dropped``): the newest
-  data matter most to a mapping service.
-- **A sender thread** publishes the queue in order, only while a service is subscribed to the
-  vehicle's scan key (Zenoh's matching status). While nobody listens (router down, service not yet
-  started) scans wait in the queue, so a short outage costs only the scans that overflow it.
-- **Reconnection** is Zenoh's: a client session re-dials its router every few seconds and
-  re-declares its publisher and subscribers; if opening the session fails at the start, the sender
-  thread retries with back-off. No exception reaches the caller for any of this.
-- **Answers.** Every scan the service receives is answered by exactly one pose or one error
-  (``docs/wire-format.md``). A dispatcher thread matches them to the scans in flight, updates the
-  counters and calls ``on_pose`` / ``on_error`` (never on a Zenoh thread, so callbacks may block).
-  A scan that was sent but not answered within ``answer_timeout_s`` (lost on a dying connection)
-  is counted in ``stats.lost``.
-
-Counting: every published scan ends in exactly one of ``acknowledged`` (pose), ``rejected`` (error,
-by code in ``rejected_codes``; the service's own overload drop is the code ``dropped``), ``dropped``
-(local queue overflow) or ``lost`` (no answer in time); until then it is ``queued`` or
-``in_flight``.
+One Zenoh session per publisher (:class:`PublisherSettings`, prefix ``RANDT_VEHICLE_``). Each sweep
+is validated with the wire format's own checks, reduced on the vehicle (:func:`encode_sweep`: the
+first point of each voxel, sent as a compact v2 scan; ``raw`` sends every point as a v1 scan) and
+queued; a full queue drops its oldest scan. A sender thread publishes the queue only while a
+service listens, and a dispatcher thread matches the answers to the scans and calls ``on_pose`` /
+``on_error`` (never on a Zenoh thread). Every published scan ends in exactly one of
+``acknowledged`` (pose), ``rejected`` (error), ``dropped`` (local queue overflow) or ``lost`` (no
+answer in time); until then it is ``queued`` or ``in_flight``. What it guarantees and what goes on
+the link: docs/clients.md, "Integrating a vehicle".
 """
 
 from __future__ import annotations
@@ -113,8 +91,8 @@ class PublisherSettings(BaseSettings):
     # what goes on the link (docs/clients.md, "What goes on the link")
     raw: bool = Field(
         default=False,
-        description="send every point as float32 in a v1 scan, as before v2 (for a service older than "
-        "v2, or to compare); the reduction settings below are then unused",
+        description="send every point as float32 in a v1 scan (for a service older than v2, or to "
+        "compare); the reduction settings below are then unused",
     )
     voxel_m: float = Field(
         default=0.2,
@@ -126,7 +104,7 @@ class PublisherSettings(BaseSettings):
     xyz_quantum_m: float = Field(default=0.01, gt=0.0, le=1.0, description="coordinate step (metres)")
     time_quantum_s: float = Field(default=1e-5, gt=0.0, le=0.01, description="time-offset step (seconds)")
     codec: Literal["zstd", "none"] = Field(default="zstd", description="compression of the scan's bodies")
-    zstd_level: int = Field(default=3, ge=1, le=22, description="zstd level (3: measured, docs/clients.md)")
+    zstd_level: int = Field(default=3, ge=1, le=22, description="zstd level (docs/clients.md)")
 
     @field_validator("connect", "listen")
     @classmethod
@@ -185,8 +163,8 @@ def first_per_voxel(points_xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     """Indices of the first point of each voxel, ascending (so the sweep's own order is kept).
 
     One sort of int64 values that hold each point's cell (as few bits per axis as the sweep's
-    extent needs) above its index: the smallest value of each cell is its first point. About 4x
-    cheaper than ``np.unique(..., return_index=True)`` on a 120k-point sweep.
+    extent needs) above its index: the smallest value of each cell is its first point (cheaper than
+    ``np.unique(..., return_index=True)``).
 
     Parameters
     ----------

@@ -1,35 +1,19 @@
 """The messages of the wire format: versioned msgpack maps, their models, encode, decode and peek.
 
-Every message is one msgpack map (packed with ``use_bin_type=True``, so raw bytes travel as msgpack
-``bin`` and text as ``str``) whose ``v`` key is the schema version, :data:`SCHEMA_VERSION`.
-``docs/wire-format.md`` is the reference for key expressions, fields, units, frames, error codes and
-versioning; this module implements the messages and is shared by the service and the vehicle clients
-(it does not import Zenoh).
+Every message is one msgpack map (packed with ``use_bin_type=True``) whose ``v`` key is the schema
+version, :data:`SCHEMA_VERSION`; this module is shared by the service and the vehicle clients (it
+does not import Zenoh). ``docs/wire-format.md`` is the reference for key expressions, fields,
+units, frames, error codes, limits, the order of the checks and versioning.
 
-Decoding in one screen::
-
-    payload --size check--> structure check --> msgpack.unpackb (with limits) --top-level map?-->
-        v == SCHEMA_VERSION? --pydantic (strict)--> ids match the id pattern -->
-        points: stride, count, limits, finite --> prior: rigid, PSD
-
-    a scan with v == SCAN_V2 (compact): --pydantic (strict)--> ids, encoding, n_points (limits) -->
-        each body decompressed to exactly the size n_points implies (never more) and decoded -->
-        the v1 checks above on the expanded float32 buffers --> a ScanMessage with ``encoding`` set
-
-**Bounded cost.** A payload of the maximum size can still declare millions of tiny map entries
-(16 MiB of 3-byte entries: about 3 s of CPU to unpack and peek in Python). Before anything is
-unpacked, :func:`check_structure` walks the msgpack headers (never the bodies of ``bin``/``str``
-values) with a budget: at most :data:`MAX_OBJECTS` objects, :data:`MAX_DEPTH` levels of nesting,
-:data:`MAX_CONTAINER_LEN` entries per map or array, :data:`MAX_STR_BYTES` per string and no ``ext``
-types; a message of this format needs about 80 objects and 3 levels. ``msgpack.unpackb`` then runs
-with the same limits (``max_map_len``, ``max_array_len``, ``max_str_len``, ``max_bin_len``,
-``max_ext_len``) as a second line. So a hostile payload costs at most about a millisecond of
-Python, whatever it declares; the peeks are bounded the same way.
+**Bounded cost.** Before anything is unpacked, :func:`check_structure` walks the msgpack headers
+(never the bodies of ``bin``/``str`` values) within fixed limits: :data:`MAX_OBJECTS`,
+:data:`MAX_DEPTH`, :data:`MAX_CONTAINER_LEN`, :data:`MAX_STR_BYTES` and no ``ext`` types.
+``msgpack.unpackb`` then runs with the same limits as a second line, so a hostile payload costs
+little whatever it declares; the peeks are bounded the same way.
 
 Each step raises :class:`~randt.core.errors.BadMessageError` with a stable ``code`` (one of
-:data:`randt.wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else escapes
-a ``decode_*`` function, whatever the bytes. Point buffers are kept as the ``bytes`` msgpack produced
-and read through ``np.frombuffer`` (no further copy). :func:`peek_ids` and :func:`peek_seq` read the
+:data:`randt.wire.codes.DECODE_CODES`) and a reason naming the field and the problem; nothing else
+escapes a ``decode_*`` function, whatever the bytes. :func:`peek_ids` and :func:`peek_seq` read the
 addressing fields of a message that failed to decode, so its error can still reach the right vehicle.
 """
 
@@ -674,7 +658,7 @@ def encode_scan_v2(
     voxel_m, xyz_quantum_m, time_quantum_s, codec:
         As :class:`ScanEncoding`.
     level:
-        zstd compression level (3: the measured trade-off, docs/clients.md).
+        zstd compression level (docs/clients.md, "What goes on the link").
 
     Raises
     ------
