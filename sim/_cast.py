@@ -1,14 +1,12 @@
 """The ray caster's inner loop, compiled (numba): each (chunk of rays, candidate primitive) pair.
 
 :func:`randt.sim.lidar.cast_rays` culls primitives per chunk of coherent rays with numpy; what is left is
-a few million (ray, primitive) pairs a sweep. Intersected with numpy, each pair went through
-about forty temporary arrays (gathers of the rays and the primitives' parameters, then the slab
-or quadratic arithmetic) and the casting was three quarters of the simulator's cost (75 of 93 ms
-a 64 x 1000 sweep); here each pair is a few dozen flops in registers and the nearest hit per ray
-is kept as it goes. The arithmetic is that of :func:`randt.sim.lidar.intersect_boxes`,
+a few million (ray, primitive) pairs a sweep. Intersected with numpy, each pair would go through
+dozens of temporary arrays; here each pair is a few dozen flops in registers and the nearest hit
+per ray is kept as it goes. The arithmetic is that of :func:`randt.sim.lidar.intersect_boxes`,
 :func:`~randt.sim.lidar.intersect_cylinders` and :func:`~randt.sim.lidar.intersect_spheres`, operation for
 operation (``tests/sim/test_sim.py`` checks the two against each other), and among equally near
-hits the last visited wins, as it did.
+hits the last visited wins, as there.
 """
 
 from __future__ import annotations

@@ -1,34 +1,9 @@
 """Routes through a town's street grid, vehicle motion, and the simulated scan stream.
 
-Frames, units and time
-----------------------
-- World frame: the town's (metres, z up). Vehicle frame: x forward, y left, z up, origin on the
-  ground below the sensor; on a sloped town the vehicle's z axis is the ground normal.
-- Sensor frame: the vehicle frame raised by ``Lidar64.mount_height_m`` (1.73 m as KITTI's
-  HDL-64E): ``T_world_sensor = T_world_vehicle @ T_vehicle_sensor``.
-- A route is a planar curve of pieces whose curvature is linear in arc length (straight lines,
-  circular arcs and clothoids) in the world xy plane, parametrised by its horizontal arc length
-  ``s`` (m). Vehicles keep to the right lane, ``lane_offset_m`` right of the street centreline,
-  and round corners as a car does: a clothoid of ``transition_m`` into an arc of ``turn_radius_m``
-  and a clothoid out, so the curvature (the steering) changes continuously.
-- A vehicle drives a route at ``speed_mps`` on the straights and slows for corners as a driver
-  would (:class:`Motion`): at most ``max_lateral_mps2`` of lateral acceleration, braking and
-  accelerating within ``max_decel_mps2`` and ``max_accel_mps2``. Before 2026-11-26 routes switched
-  from a line to a 9 m arc at once and vehicles kept 10 m/s through it: a yaw rate jumping from 0
-  to 64 deg/s inside one sweep (11 m/s^2 lateral), which no car drives and no constant-velocity
-  deskew follows (issue 32).
-- A sweep's reference time is its **start**: ``SimScan.stamp_ns`` is the time of the first firing,
-  ``SimScan.T_world_sensor`` the exact sensor pose then, and ``time_offset_s`` in
-  ``[0, 1/rate_hz)`` the firing time of each point after it.
-
-Motion distortion
------------------
-Every ray is cast from the sensor pose at its own firing time (the vehicle moves up to
-``speed / rate`` metres during a sweep). With ``deskewed=True`` (default) each point is then mapped
-exactly into the reference (sweep-start) sensor frame, so ``T_world_sensor @ p`` lies on the
-surface it hit: an ideally motion-compensated sweep. With ``deskewed=False`` each point stays in
-the sensor frame at its firing time, as a real sensor reports it: the sweep is distorted when read
-in one frame, and :meth:`Motion.sensor_poses_at` gives the exact per-point poses to undo it.
+:class:`Route` (lines, arcs and clothoids along the streets), :class:`Motion` (the speed a driver
+keeps: slower in corners) and :func:`simulate`, the lazy stream of :class:`SimScan` sweeps with
+their exact sensor poses (at each sweep's start) and per-point times, deskewed or as a real sensor
+reports them. Frames, units, time and motion distortion: docs/clients.md, "The simulator".
 """
 
 from __future__ import annotations
@@ -555,7 +530,7 @@ class Motion:
     of the first sweep, at arc length ``start_s_m``. Arc length follows from the profile's travel
     time ``tau(s) = integral ds / v(s)``, tabulated every :data:`PROFILE_STEP_M` and inverted by
     interpolation: poses are exact to about 0.01 mm. ``max_lateral_mps2=inf`` drives the whole
-    route at ``speed_mps``, as every vehicle did before 2026-11-26.
+    route at ``speed_mps``, corners included.
     """
 
     route: Route
@@ -764,9 +739,7 @@ def simulate(
         0: each sweep is computed when it is asked for. ``N > 0``: ``N`` worker processes compute
         the sweeps ahead of the consumer (at most :data:`AHEAD_PER_WORKER` each), so ray casting
         runs beside the consumer's work, or on several cores for a ``list(...)``. The scans are
-        the same either way (sweep ``k`` depends only on ``k``); a simulated sweep takes about
-        23 ms of CPU (64 beams x 1000 columns to 70 m; 44 ms before the ray casting's numba
-        kernels, docs/benchmarks.md).
+        the same either way (sweep ``k`` depends only on ``k``).
     max_lateral_mps2:
         The driver's limit in corners (:class:`Motion`); ``inf``: the whole route at
         ``speed_mps``, corners included (with ``Route.loop(transition_m=0)``, the yaw rate jumps

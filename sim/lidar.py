@@ -1,41 +1,11 @@
 """Vectorized ray casting against a :class:`~randt.sim.town.Town`, and an HDL-64E-like sensor.
 
-Ray-primitive intersections
----------------------------
-All functions take rays as ``origins`` (..., 3) and unit ``dirs`` (..., 3) and primitive parameters
-that broadcast against them (pass ``origins[:, None]`` and ``centre[None]`` for all pairs), and
-return ``(t, cos_incidence)``: the distance along the ray to the first surface hit in front of the
-origin (``inf`` for a miss) and ``|cos|`` of the angle between the ray and the surface normal.
-
-- ground plane ``z = g·xy``: one division;
-- boxes (slab method): the ray is rotated into the box frame by ``-yaw`` and clipped against the
-  three slabs; the entering slab gives the face normal;
-- vertical capped cylinders: the 2-D quadratic in xy, accepted where the hit's z lies in the
-  z range, plus the two cap discs;
-- spheres: the 3-D quadratic.
-
-Casting a sweep
----------------
-:func:`cast_rays` takes the rays in a *coherent* order (neighbouring rays point in similar
-directions from similar origins) and splits them into chunks of ``chunk_rays``. For each chunk it
-computes the mean origin and the origins' spread, the mean horizontal direction with the largest
-azimuth deviation, and the elevation range. A primitive is a candidate of a chunk only if its
-vertical bounding cylinder, inflated by the origin spread, overlaps the chunk's azimuth wedge and
-elevation band within the maximum range (a conservative test: no hit is lost). The surviving
-(chunk, primitive) pairs go to a compiled loop (:mod:`randt.sim._cast`, numba) that intersects each of
-the chunk's rays with the primitive and keeps the nearest hit per ray, with the arithmetic of the
-functions above; there is no Python loop over rays or points.
-
-The sensor
-----------
-:class:`Lidar64` models a Velodyne HDL-64E as in KITTI: 64 beams, an upper block of 32 from +2.0 to
--8.33 deg and a lower block of 32 from -8.83 to -24.8 deg (evenly spaced in each block; the lower
-block's end is KITTI's quoted -24.8 deg field of view), ``n_azimuth`` firings per revolution
-(2000: 0.18 deg), all 64 lasers of a firing sharing its time and azimuth. The head turns clockwise
-seen from above, starting pointing backwards (-x), so the seam of a sweep lies behind the vehicle.
-Ring 0 is the highest beam. Returns get Gaussian range noise, random dropouts, a
-minimum and maximum range, and an intensity ``reflectivity * (0.25 + 0.75 |cos incidence|)`` plus
-noise, clipped to [0, 1].
+Ray-primitive intersections (ground plane, yawed boxes, capped vertical cylinders, spheres), each
+returning the distance to the first hit and the cosine of incidence; :func:`cast_rays`, which culls
+primitives per chunk of coherent rays and intersects the rest in a compiled loop
+(:mod:`randt.sim._cast`); and :class:`Lidar64`, a Velodyne HDL-64E as in KITTI (64 beams, range
+noise, dropouts, intensity from reflectivity and incidence). How the culling works and the
+sensor's geometry: docs/clients.md, "The simulator".
 """
 
 from __future__ import annotations

@@ -1,24 +1,9 @@
 """A procedural town for the LiDAR simulator: ground, a street grid, buildings, poles, trees, parked cars.
 
-Frames and units
-----------------
-Everything is in the **world frame**, metres, z up. The ground is the plane ``z = g · (x, y)`` with
-``g = Town.ground_gradient`` (zero by default: the plane ``z = 0``). The town is centred on the
-origin and covers ``[-extent/2, extent/2]²`` with ``extent = Town.extent_m``.
-
-Layout
-------
-Square blocks of side ``block_m`` alternate with streets of width ``street_width_m`` along both
-axes, so street centrelines sit at the same coordinates ``Town.street_coords_m`` in x and in y (a
-street "along y" has constant x). Each street has a right-hand driving lane per direction (lane
-centre 1.75 m from the centreline), a parking lane along each kerb and a sidewalk of
-``sidewalk_m`` inside the block. Buildings stand on lots inside the sidewalks, set back a few metres;
-poles and trees stand on the sidewalk; parked cars in the parking lanes, never in intersections.
-
-Geometry is stored as numpy arrays per primitive type (:class:`Boxes`, :class:`Cylinders`,
-:class:`Spheres`), which is what the vectorized ray caster in :mod:`randt.sim.lidar` consumes.
-Every primitive carries a :class:`Material` (the label of the points that hit it) and a
-reflectivity in [0, 1] (the base of the simulated intensity).
+:class:`Town` (generated deterministically from a seed) in the world frame, metres, z up, its
+geometry as numpy arrays per primitive type (:class:`Boxes`, :class:`Cylinders`,
+:class:`Spheres`), each primitive with a :class:`Material` and a reflectivity, as the ray caster
+(:mod:`randt.sim.lidar`) consumes them. Frames and layout: docs/clients.md, "The simulator".
 """
 
 from __future__ import annotations
