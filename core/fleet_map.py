@@ -2,26 +2,11 @@
 
 :class:`FleetMapper` takes each session's keyframes as its odometry produces them (a pose in the
 session's own frame, the sweep's points, an optional GNSS fix) and keeps every session of a fleet
-in one world frame:
-
-    placement -> a session enters the shared graph once placed: by its GNSS fixes (a rigid fit
-                 of its odometry positions to its first fixes over ``gnss_alignment_m``), or, with
-                 no GNSS, by two verified registrations against placed keyframes that agree on
-                 where its frame is (a single match of a repetitive street could be wrong), each
-                 refined, with ``placement_min_inliers`` and ``placement_min_overlap`` (two weak
-                 matches of a street that looks like another for 70 m agreed: placement_vote)
-    factors   -> odometry between consecutive keyframes (sigma growing with the distance), GNSS
-                 fixes (Huber), verified loops (Cauchy): randt.core.pose_graph, solved by iSAM2
-    loops     -> candidates from place recognition (randt.core.place, Scan Context) and from the graph's
-                 own estimate (keyframes within ``proximity_m``), at most one verification per
-                 keyframe; verification is global registration (randt.core.global_registration), prior-
-                 free, and a loop is accepted only when it is confident and, between placed
-                 keyframes, agrees with the graph within ``loop_gate_m``
-    estimate  -> :meth:`FleetMapper.poses` (every placed keyframe, optimized), :attr:`loops`
-                 (every verification, accepted or not, for precision / recall)
-
-The per-sweep odometry is not touched: a correction reaches a client as new keyframe poses, never
-as a rewritten answer.
+in one world frame: placement (by GNSS, or by two agreeing strong registrations), loop candidates
+(:mod:`randt.core.place`) verified by global registration (:mod:`randt.core.global_registration`),
+and the pose graph (:mod:`randt.core.pose_graph`). The per-sweep odometry is not touched: a
+correction reaches a client as new keyframe poses, never as a rewritten answer. Each step and why:
+docs/mapping.md, "One map from many sessions".
 """
 
 from __future__ import annotations
@@ -72,7 +57,7 @@ class FleetMapSettings(BaseModel):
         default=12.0,
         gt=0,
         description="graph-estimate loop candidates: the nearest keyframe within this (registrations "
-        "of sweeps farther apart are less accurate: 1.3 m off at 16.6 m in the simulated town)",
+        "of sweeps farther apart are less accurate)",
     )
     loop_spacing_m: float = Field(
         default=15.0,
@@ -98,11 +83,9 @@ class FleetMapSettings(BaseModel):
     )
     placement_agreement_deg: float = Field(default=3.0, gt=0)
     # A placement has no estimate to gate it, and a street can look like another one for 70 m:
-    # in bench/service.py's town two agreeing votes placed a session 103 m off (a parallel street,
-    # 1.7 deg) and folded it into the shared map. Measured at keyframe resolution: 29 true
-    # registrations (21 KITTI 00 revisits, 8 of the town) all refined, 35-305 consistent
-    # correspondences, overlap 0.64-0.97; 31 confident wrong ones 12-43 and 0.38-0.75, 5 refined,
-    # none of them past all three of these:
+    # a vote must be a strong registration, refined and past both of these, where the true
+    # registrations measured are and the confident wrong ones are not (docs/mapping.md, "A session
+    # without priors joins the shared map"):
     placement_min_inliers: int = Field(
         default=30, ge=3, description="a placement vote needs this many consistent correspondences"
     )

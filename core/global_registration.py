@@ -1,26 +1,11 @@
 """Global (prior-free) registration: align two clouds with no initial guess.
 
-The pipeline in one screen (:func:`register_global`)::
-
-    scale     -> one voxel size v for both clouds, from the target's scale (the finest NDT level
-                 of randt.core.registration.auto_voxel_sizes) unless given
-    downsample-> voxel centroids at v, farther points first dropped beyond max_range_m
-    normals   -> PCA of each point's neighbours within 2v, oriented towards the sensor (origin)
-    features  -> FPFH (Rusu et al., ICRA 2009): a 33-bin histogram of Darboux-frame angles to the
-                 neighbours within 5v, each point's own plus its neighbours' weighted by 1/distance
-    match     -> mutual nearest neighbours in feature space (plus each source point's best match
-                 when too few are mutual)
-    prune     -> pairwise consistency: two correspondences agree when they keep their distance
-                 (|d_source - d_target| <= 2 noise bound); the maximum k-core of that graph, then a
-                 greedy clique in it (ROBIN / TEASER++ idea: rigid motion preserves distances)
-    solve     -> GNC-TLS (Yang et al., RA-L 2020): graduated non-convexity on a truncated least-
-                 squares cost, each step a weighted Kabsch fit (randt.core.transforms.umeyama)
-    refine    -> our NDT registration (randt.core.registration.register) from the coarse pose
-    judge     -> confident only when enough mutually consistent correspondences agree, the NDT
-                 refinement stays near the coarse pose, and the refined overlap is high enough
-
-Every stage is vectorized over points (scipy's cKDTree for neighbours, numpy for the histograms
-and the consistency matrix); the only Python loops are over GNC iterations and k-core levels.
+:func:`register_global`: scale -> downsample -> normals -> FPFH features (Rusu et al., ICRA
+2009) -> mutual nearest neighbours -> pairwise-consistency pruning (maximum k-core, then a greedy
+clique: the ROBIN / TEASER++ idea) -> GNC-TLS (Yang et al., RA-L 2020) -> NDT refinement
+(:func:`randt.core.registration.register`) -> judge (confident or not, with the reason). Every stage
+is vectorized over points; the only Python loops are over GNC iterations and k-core levels. Each
+stage and why: docs/registration.md, "Global registration".
 """
 
 from __future__ import annotations
@@ -73,7 +58,7 @@ class GlobalSettings(BaseModel):
         default=3000,
         ge=100,
         description="with voxel_m None: v grows until neither cloud keeps many more voxels than "
-        "this (two KITTI sweeps: 0.35 s instead of 0.45 s at 5-6k, every real pair still placed)",
+        "this (bounded time, every real pair still placed)",
     )
     max_range_m: float | None = Field(
         default=None, gt=0, description="points farther from the sensor are ignored; None keeps all"
@@ -183,7 +168,7 @@ def _normals(points: np.ndarray, tree: cKDTree, radius: float, k: int) -> np.nda
 
 def spfh_reference(points: np.ndarray, normals: np.ndarray, neighbors: np.ndarray, bins: int) -> np.ndarray:
     """The numpy form of :func:`randt.core.kernels.spfh_histograms` (same arguments and result), kept as
-    its reference: 5-10x slower, the cross products and histograms over every pair at once."""
+    its reference (slower: the cross products and histograms over every pair at once)."""
     n = points.shape[0]
     valid = (neighbors < n) & (neighbors != np.arange(n)[:, None])
     rows = np.nonzero(valid)[0]
@@ -250,8 +235,8 @@ def _nearest_both_ways(
 
     Returns ``(nn_st, d2_st, nn_ts)``: for each row of ``fs`` its nearest row of ``ft`` and the
     squared distance, and for each row of ``ft`` its nearest row of ``fs``. Squared distances are
-    ``|f|^2 - 2 f.g + |g|^2`` in float32 blocks of ``block`` rows (BLAS; a 33-dimensional KD-tree
-    is 3-4x slower on 5k x 5k features).
+    ``|f|^2 - 2 f.g + |g|^2`` in float32 blocks of ``block`` rows (BLAS: faster than a
+    33-dimensional KD-tree, docs/registration.md, "Global registration").
     """
     a, b = fs.astype(np.float32), ft.astype(np.float32)
     na, nb_ = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
@@ -431,8 +416,8 @@ def register_global(
                     f"(limits {s.max_refine_shift_voxels * v:.3g} m / {s.max_refine_rotation_deg:g} deg)"
                 )
             else:
-                # NDT can slide along a partial overlap (the 3DMatch pair: 0.38 m away from a
-                # 4 cm coarse pose): keep it only when it keeps the verified correspondences.
+                # NDT can slide along a partial overlap (docs/registration.md, "Global
+                # registration"): keep it only when it keeps the verified correspondences.
                 r2 = np.sum((transform_points(T_ref, a[inliers]) - b[inliers]) ** 2, axis=1)
                 if np.count_nonzero(r2 <= noise**2) >= KEPT_INLIER_FRACTION * inliers.size:
                     T, overlap, refined_kept = T_ref, refined_overlap, True

@@ -1,25 +1,11 @@
 """Place recognition: a Scan Context descriptor per keyframe and an index that proposes revisits.
 
-Where it sits: :mod:`randt.core.fleet_map` describes every keyframe and asks the index for a loop
-candidate (within a session, across sessions, or for a session without any prior against the
-shared map); the candidate is only a proposal, which :mod:`randt.core.global_registration` verifies.
-
-The pipeline in one screen::
-
-    describe -> scan_context: a polar grid of ``rings`` x ``sectors`` bins around the sensor out
-                to ``max_range_m``; each bin holds its highest point, measured from
-                ``ground_offset_m`` below the sensor (so bins are >= 0; an empty bin is 0)
-    query    -> query_descriptors: the same grid from the sweep as seen ``query_shifts_m`` ahead
-                of and behind the sensor (a revisit is rarely at the same spot on the road)
-    search   -> PlaceIndex.query: the ``ring_candidates`` nearest ring keys (mean height per ring,
-                which no yaw changes) in a KD-tree, then the exact distance of those
-    compare  -> scan_context_distance: at every column shift, 1 - the mean cosine of the column
-                pairs non-empty in both; the best shift is the yaw between the two sensors
-    accept   -> candidates with a distance up to ``max_distance``, nearest first
-
-The descriptor follows Kim & Kim, "Scan Context: Egocentric Spatial Descriptor for Place
-Recognition within 3D Point Cloud Map" (IROS 2018): a place seen again from another heading gives
-the same grid with its columns rolled, so the distance is taken over all column shifts.
+:func:`scan_context` (Kim & Kim, IROS 2018: a polar grid of each bin's highest point around the
+sensor), :func:`query_descriptors` (the sweep also as seen ahead and behind), :class:`PlaceIndex`
+(ring keys in a KD-tree, then the exact distance over every column shift) and
+:func:`scan_context_distance`. A candidate is only a proposal, which
+:mod:`randt.core.global_registration` verifies (:mod:`randt.core.fleet_map`). How it works and how
+well: docs/mapping.md, "One map from many sessions", step 2.
 
 Yaw convention: a candidate's ``yaw_deg`` rotates the query's sensor frame onto the candidate's,
 ``R_candidate_query = Rz(yaw)``, as in ``p_candidate = T p_query`` (``p_i = T p_j`` for the
@@ -105,9 +91,8 @@ class PlaceCandidate:
         non-empty in both.
     yaw_deg:
         The yaw rotating the query's sensor frame onto the candidate's (``R_candidate_query =
-        Rz(yaw)``), in (-180, 180]: within 1 deg on a turned copy of a sweep and 2 deg on 20 of
-        the 21 KITTI 00 revisits, but a straight street can match its own mirror 180 deg off. An
-        initial guess for verification, no more.
+        Rz(yaw)``), in (-180, 180], to about a degree; a straight street can match its own mirror
+        180 deg off. An initial guess for verification, no more.
     """
 
     key: Hashable
@@ -237,9 +222,9 @@ class PlaceIndex:
 
     The ring keys live in a KD-tree (``scipy.spatial.cKDTree``) over the first rows and in a
     brute-force tail for rows added since; the tree is rebuilt, at a query, once the tail exceeds
-    256 rows or a quarter of the tree. A rebuild costs O(N log N) (about 5 ms at N = 10,000), so an
-    add costs O(log N) amortized and a query O(log N + tail) for the ring keys, plus the exact
-    distance of ``ring_candidates`` descriptors per query descriptor.
+    256 rows or a quarter of the tree. A rebuild costs O(N log N), so an add costs O(log N)
+    amortized and a query O(log N + tail) for the ring keys, plus the exact distance of
+    ``ring_candidates`` descriptors per query descriptor.
     """
 
     def __init__(self, settings: PlaceSettings | None = None) -> None:
