@@ -15,14 +15,12 @@ __all__ = ["FAST_SVD_STEP", "Method", "RegistrationSettings"]
 Method = Literal["randt", "ndt", "icp-point", "icp-plane"]
 
 
-#: Overrides for the SVD step as it was by default before 2026-11-26
+#: Overrides for the faster, less accurate SVD step
 #: (``RegistrationSettings.for_method("randt", **FAST_SVD_STEP)``, ``randt register --fast-svd``):
 #: the step on the NDT solver's own points (the reference after the IQR filter, the moving
 #: cloud's Algorithm 1 survivors at 0.5 of the finest voxel), 16-neighbour normals, looser fences,
-#: stopping below 0.1 mm / 1e-5 rad. About 0.75x the default's time (KITTI pairs 0.68x small_gicp
-#: VGICP's against 0.90x) for twice the error on the paper's protocol (0.50 / 0.54 cm against
-#: 0.19 / 0.20 cm), a rotation bias on real pairs (the car and small_gicp 0.25 deg from the
-#: reference against 0.08 / 0.17 deg) and 1.6x the cycle error on KITTI 00 (docs/benchmarks.md).
+#: stopping below 0.1 mm / 1e-5 rad (docs/registration.md, "Algorithm 3": the step as it was, and
+#: what the default gains over it).
 FAST_SVD_STEP: dict[str, float | bool | None] = {
     "svd_normal_neighbors": 16,
     "svd_residual_fence_k": 2.5,

@@ -3,9 +3,8 @@ neighbours and local planes.
 
 Why not a KD-tree: the SVD step only ever asks for partners within one finest NDT voxel, and
 its queries come in scan order, so a grid whose cell is that radius answers with one hash probe
-and a handful of points per query, and is built in one pass (0.7 ms for a KITTI reference against
-5 ms for ``scipy.spatial.cKDTree``). On a KITTI pair its searches take half the KD-tree's time;
-the compiled loops live in :mod:`randt.core.kernels` (:func:`~randt.core.kernels.build_grid`,
+and a handful of points per query, and is built in one pass (docs/registration.md, "Algorithm 3").
+The compiled loops live in :mod:`randt.core.kernels` (:func:`~randt.core.kernels.build_grid`,
 :func:`~randt.core.kernels.grid_nearest`, :func:`~randt.core.kernels.grid_knn_normals`).
 """
 

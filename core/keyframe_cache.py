@@ -7,7 +7,7 @@ is about 100 MB per kilometre of road in RAM: a city's map would not fit a node.
 :class:`KeyframeCache` keeps the ``capacity`` keyframes used last in memory and every keyframe's
 arrays in one ``.npy`` file per array under ``directory`` (written once, when the keyframe comes;
 read again when it is needed and no longer in memory). Without a directory it is a plain dict
-(everything in RAM, as before).
+(everything in RAM).
 
 The files are a cache of what the caller can rebuild (the service's graph log holds every
 keyframe): they are not fsync'd, and a cache opened on a directory clears it first.

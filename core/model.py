@@ -1,37 +1,12 @@
 """The incremental keyframe model of Algorithm 2: points and NDT moments added and removed per keyframe.
 
-The paper's Get fuses the window's keyframes into one density-equalized cloud and fits the NDT
-pyramid to it. Done in batch that is a full rebuild at every keyframe (every second or third
-sweep): the window's ~20 keyframes stacked, cropped, downsampled, Algorithm 1 over the whole
-fused cloud and the pyramid fitted from every point, about 120 ms for a KITTI window. Here the
-same model is kept up to date instead, as KISS-ICP keeps its voxel hash map:
-
-* **Density equalization** (Algorithm 2): one point per model voxel (``voxel_m``), the centroid
-  of the window keyframes' points in it, as the batch form's downsampling of the fused
-  keyframes gives. Each voxel keeps the sum and count of its keyframes' points: a keyframe adds
-  its points, the evicted oldest subtracts its own (kept by reference in ``window``), so the
-  centroids are the window's without a refill.
-* **Algorithm 1** (IQR on Mahalanobis distances) judges every centroid in the finest NDT voxels
-  a keyframe touches (nearly all of the model near the sensor), against Gaussians fitted to
-  every window centroid there, outliers included, with per-voxel quartiles over those
-  centroids, as the batch form does over the whole model; centroids elsewhere keep their
-  verdict. Outliers keep their voxel and their share of the judging Gaussians but are not
-  matched against.
-* **Radius bound**: voxels whose centroid lies farther than ``radius_m`` (in x-y) from the
-  newest keyframe leave the model for good (KISS-ICP drops its far voxels the same way); the
-  batch form crops the window's points at each rebuild, so a voxel 80 m behind could come back
-  if the vehicle turned around within the window's 20 keyframes.
-* **NDT moments**: per finest NDT voxel the count, the sum and the scatter of the inlier
-  centroids about the voxel's centre, in key-sorted arrays: the judged voxels' recomputed from
-  their judged inliers, the others' kept less the inliers that left them; the coarser levels
-  follow by the parent rule of :meth:`randt.core.voxel.VoxelGaussianMap.pyramid_from_moments`.
-* **Compiled bookkeeping**: the keyframe's voxels merged into the model's (two ascending key
-  runs), the evicted keyframe's walked out, the crop and the centroids' finest cells in one pass
-  each (:func:`randt.core.kernels.model_merge`, ``model_evict``, ``model_compact``, ``in_marked_cells``):
-  no sort or binary search over the model. :meth:`KeyframeModel.add_keyframe_numpy` is the same
-  update in numpy, the kernels' reference. On the simulated drive (about 100k model voxels, 20k
-  a keyframe) a keyframe's update went from 53 to 30 ms, most of it now Algorithm 1's Gaussians
-  and fences over the judged voxels (every one the keyframe touched, as the batch form judges).
+The paper's Get rebuilds the fused, density-equalized model and its NDT pyramid at every keyframe;
+:class:`KeyframeModel` keeps the same model up to date instead, as KISS-ICP keeps its voxel hash
+map: per-voxel sums and counts (centroids without a refill), Algorithm 1 on the voxels a keyframe
+touches, a radius bound, finest-level NDT moments with the coarser levels by the parent rule, and
+compiled bookkeeping (:func:`randt.core.kernels.model_merge` and friends;
+:meth:`KeyframeModel.add_keyframe_numpy` is their numpy reference). Each step against the batch
+form, and the equivalence measured: docs/mapping.md, "The keyframe model".
 
 A :class:`KeyframeModel` is immutable: :meth:`KeyframeModel.add_keyframe` returns a new one and
 shares nothing it changes, so a matcher state holding it is snapshotted by reference and a sweep
@@ -533,8 +508,8 @@ def _algorithm1(
 
 
 def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(keys, return_index=True)`` by one sort: numpy 2's hashed ``np.unique`` took
-    17 ms for 130k int64 keys on the simulated drive, most of a keyframe's update."""
+    """``np.unique(keys, return_index=True)`` by one sort: numpy 2's hashed ``np.unique`` is much
+    slower on a model's keys."""
     order = np.argsort(keys, kind="stable")
     s = keys[order]
     first = np.ones(s.size, dtype=bool)

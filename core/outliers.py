@@ -15,7 +15,7 @@ Algorithm 1 of Johnson et al. (2026), as implemented here
 5. Points outside their fences are removed; the caller refits the Gaussians on what remains.
 
 Per-voxel quartiles come from one counting sort by voxel and a sort of each voxel's few
-distances (:func:`randt.core.kernels.grouped_fence_mask`, 5x faster than one ``np.lexsort`` by (voxel,
+distances (:func:`randt.core.kernels.grouped_fence_mask`, instead of one ``np.lexsort`` by (voxel,
 distance)); :func:`iqr_inlier_mask_numpy` keeps the vectorized formulation the tests compare with.
 """
 

@@ -1,23 +1,12 @@
 """A pose graph per map: keyframe poses fused from odometry, GNSS/INS and loop closures.
 
-Nodes are keyframe poses ``T_world_sensor`` (any hashable key, e.g. ``(session, index)``). Factors:
-
-    odometry  -> between two keyframes of a session: the matcher's relative pose and covariance
-    gnss      -> unary, on a keyframe's position (GNSS) with its 3x3 covariance, Huber kernel (a
-                 multipath jump of many sigmas weighs linearly, not quadratically)
-    prior     -> unary, on a whole pose: GNSS/INS with heading, or a session's anchor on its first
-                 keyframe: position and heading free (1000 m, 3 rad: a gauge until GNSS or a loop
-                 ties the session in), roll and pitch within 0.1 rad of where they are (an
-                 odometry frame starts level; GNSS positions along a straight street cannot tell
-                 the roll about it, and without this the graph is indeterminate there)
-    loop      -> between keyframes of the same or different sessions, from a verified
-                 registration, with a Cauchy kernel sized in metres (a correction of
-                 ``loop_kernel_m`` weighs half; a wrong loop tens of metres off pulls little)
-
-The graph is solved incrementally by gtsam's iSAM2 (Kaess et al., IJRR 2012): each
-:meth:`PoseGraph.optimize` adds what arrived since the last one and relinearizes only what moved.
-gtsam orders a Pose3's tangent (rotation, translation); every covariance here is ours, (t then r)
-like :class:`randt.core.odometry.PosePrior`, and is reordered on the way in.
+Nodes are keyframe poses ``T_world_sensor`` (any hashable key, e.g. ``(session, index)``); factors
+are odometry between two keyframes of a session, GNSS positions (Huber kernel), whole-pose priors
+(GNSS/INS, or a session's loose anchor on its first keyframe) and verified loops (Cauchy kernel
+sized in metres). Solved incrementally by gtsam's iSAM2 (Kaess et al., IJRR 2012). gtsam orders a
+Pose3's tangent (rotation, translation); every covariance here is ours, (t then r) like
+:class:`randt.core.odometry.PosePrior`, and is reordered on the way in. The factors' noise and
+kernels, and why: docs/mapping.md, "One map from many sessions", step 4.
 """
 
 from __future__ import annotations

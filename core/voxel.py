@@ -2,7 +2,7 @@
 
 Voxel keys are the integer cell coordinates ``floor(p / voxel_size_m)`` packed into one int64
 (21 bits per axis, offset so negative cells pack too). Points are grouped by voxel in one hashed
-pass (:func:`randt.core.kernels.group_voxels`, 4x faster than sorting the keys with ``np.unique``),
+pass (:func:`randt.core.kernels.group_voxels`, instead of sorting the keys with ``np.unique``),
 per-voxel sums and 3x3 eigen-decompositions are compiled loops too (:mod:`randt.core.kernels`); map
 lookups are ``np.searchsorted`` on the sorted key array. There is no Python loop over points or
 voxels.
@@ -70,9 +70,8 @@ def trilinear_weights(points_xyz: np.ndarray, voxel_size_m: float) -> np.ndarray
 
     Unweighted, a point's 8 voxels switch at once when it crosses a cell's centre plane, and the
     NDT cost jumps there: a ripple one voxel long, which pinned poses on walls and ground lined
-    up with the grid (on bench/service.py's one-vehicle drive 9.7 cm of horizontal and 6.7 cm of
-    vertical drift over 600 sweeps; 8.3 and 0.9 weighted; docs/benchmarks.md). Weighted, a voxel
-    leaves the sum at weight 0: the cost is continuous (Magnusson 2009, trilinear NDT).
+    up with the grid (docs/registration.md, "NDT"). Weighted, a voxel leaves the sum at weight 0:
+    the cost is continuous (Magnusson 2009, trilinear NDT).
     """
     scaled = np.asarray(points_xyz, dtype=np.float64) / voxel_size_m - cell_shift(8)
     f = scaled - np.floor(scaled)  # (N,3) in [0,1): from the base cell's centre
@@ -90,8 +89,7 @@ def neighborhood_base(points_xyz: np.ndarray, voxel_size_m: float, n_neighbors: 
     axis): every point sees the Gaussians on both sides of the nearest cell boundary in each
     axis, where the 7-voxel one (own cell and its 6 faces) sees 5 on its own side of a boundary it
     lies near and one across. A flat ground on a boundary (the simulated town's z = 0) then pulls
-    the matched height by the imbalance: 11.1 cm of vertical drift over a 600-sweep simulated
-    drive (the two-vehicle fleet's first), 0.1 cm with these 8 (docs/benchmarks.md).
+    the matched height by the imbalance, which the 8 do not (docs/registration.md, "NDT").
     :func:`randt.core.kernels.cell_shift` is the same rule for the compiled kernels. The 8 are weighted
     trilinearly (:func:`trilinear_weights`).
     """
@@ -387,7 +385,7 @@ class VoxelGaussianMap:
                 "the cloud is too sparse for this voxel size"
             )
         keys, counts = keys[keep], counts[keep]
-        mean = np.compress(keep, mean, axis=0)  # np.compress: a boolean index of (M,3) is 8x slower
+        mean = np.compress(keep, mean, axis=0)  # np.compress: a boolean index of (M,3) is much slower
         cov, inv, whitening, normals = conditioned_gaussians(
             np.ascontiguousarray(np.compress(keep, scatter, axis=0), dtype=np.float64),
             counts.astype(np.float64),
