@@ -3,42 +3,12 @@
 ``randt simulate`` and ``randt demo`` are thin shells over :func:`run_fleet`: ``n_vehicles``
 vehicles of :func:`sim.plan_fleet` drive their loops through a procedural town, each in its
 own thread with its own :class:`~randt.clients.publisher.VehiclePublisher` (its own Zenoh session) and
-session.
-
-GNSS
-----
-Each vehicle has a GNSS mode (``FleetSettings.gnss``, cycled over the fleet), sent as the scans'
-prior poses (what the service fuses as GNSS, docs/clients.md):
-
-- ``exact``: every scan carries its true pose, 2 cm / 0.1 deg (an RTK receiver with an INS);
-- ``noisy``: every scan carries a fix of :class:`randt.sim.gnss.GnssReceiver` (``gnss_noise_m`` white
-  noise, a ``gnss_bias_m`` bias wandering over a minute, twice both vertically) and an attitude
-  ``gnss_yaw_error_deg`` off in yaw, announced with the receiver's covariance and 1 deg; no
-  fix during one outage (from 30 % of the drive, ``gnss_outage_s`` long). Multipath jumps are not
-  simulated: the service takes a prior for the truth within its covariance;
-- ``none``: no prior at all; the session starts in a map of its own, and the service's pose
-  graph places it into the shared map once it drives streets the others mapped (a join).
-
-The sessions with GNSS share the service's map ``default`` in the town's frame: the errors below
-compare their poses directly with the simulator's exact poses. A session without GNSS answers in
-its own frame: its live errors are after one rigid fit to the truth (``aligned``), and its
-trajectory as the pose graph corrected it (``randt demo``) is in the shared map's frame.
-
-Pacing
-------
-The service's matcher is slower than a real sensor on a small machine (about 0.3-0.5 s of one core
-per 120k-point sweep against 0.1 s between sweeps), so by default each vehicle keeps at most ``window``
-scans unanswered (flow control): simulated time runs slower than wall time, no scan is dropped and
-the errors measure the matcher, not the overload. ``window=0`` publishes at the sensor rate
-instead; the service then drops the oldest queued scans, and the summary counts them.
-
-Errors (per vehicle, over the scans that got a pose)
-----------------------------------------------------
-- ``ate_m``: RMS distance between estimated and true positions, no alignment (the shared frame).
-- ``rpe_cm``, ``rpe_deg``: RMS frame-to-frame error (``randt.core.metrics.trajectory.rpe``, delta 1).
-- ``drift_pct``: KITTI's translation error over the whole drive as one segment,
-  ``|t(inv(inv(E_0) E_n) inv(G_0) G_n)| / path length`` in percent; ``kitti_pct`` is the devkit's
-  average over 100-800 m segments when the drive is longer than 100 m.
+session. Each has a GNSS mode (``FleetSettings.gnss``: ``exact``, ``noisy`` or ``none``, sent as
+the scans' prior poses); by default each keeps at most ``window`` scans unanswered (flow control),
+so the errors measure the matcher, not an overload. The sessions with GNSS share the map
+``default`` in the town's frame and are compared directly with the simulator's exact poses; a
+session without GNSS after one rigid fit (``aligned``). The GNSS modes, the pacing and the error
+columns: docs/clients.md, "Simulated vehicles".
 """
 
 from __future__ import annotations
@@ -80,7 +50,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 GnssMode = Literal["exact", "noisy", "none"]
-#: The GNSS modes a simulated vehicle can have (module docstring).
+#: The GNSS modes a simulated vehicle can have (docs/clients.md, "Simulated vehicles").
 GNSS_MODES: tuple[str, ...] = get_args(GnssMode)
 
 
@@ -101,8 +71,8 @@ class FleetSettings:
     n_azimuth:
         Firings per revolution of the simulated HDL-64E: 2000 is the real sensor's 0.18 deg
         (about 120k points a sweep). Fewer firings simulate faster, but the matcher's default
-        gates are tuned on full sweeps: at 1000 (60k points) one of the three demo vehicles
-        already falls back on a straight road (inlier ratio 0.29 under the 0.3 gate).
+        gates are tuned on full sweeps: with half of them a vehicle may fall back on a straight
+        road.
     window:
         Most unanswered scans per vehicle (flow control); 0 = real time, no flow control.
     town_seed, fleet_seed:
@@ -112,7 +82,7 @@ class FleetSettings:
     prior_sigma_m, prior_sigma_deg:
         Covariance announced with an ``exact`` GNSS's prior poses.
     gnss:
-        GNSS mode per vehicle, cycled (module docstring): ``exact``, ``noisy`` or ``none``.
+        GNSS mode per vehicle, cycled (docs/clients.md): ``exact``, ``noisy`` or ``none``.
     shared_routes:
         Every vehicle on the first one's loop from the same start (:func:`sim.plan_fleet`'s
         ``shared``), leaving one after another: vehicle ``v`` starts once vehicle ``v - 1`` has
@@ -120,7 +90,7 @@ class FleetSettings:
         the sessions; a vehicle with GNSS starts where the map has points, which place its
         first sweep (docs/clients.md).
     gnss_noise_m, gnss_bias_m, gnss_outage_s, gnss_yaw_error_deg:
-        The ``noisy`` GNSS (module docstring).
+        The ``noisy`` GNSS (docs/clients.md).
     """
 
     n_vehicles: int = 3
@@ -157,7 +127,7 @@ class FleetSettings:
 
 
 class _Gnss:
-    """One vehicle's prior poses as its GNSS mode gives them (module docstring)."""
+    """One vehicle's prior poses as its GNSS mode gives them (docs/clients.md)."""
 
     def __init__(self, mode: GnssMode, fleet: FleetSettings, seed: int) -> None:
         self.mode = mode
@@ -197,8 +167,16 @@ class _Gnss:
 
 @dataclass(frozen=True)
 class VehicleErrors:
-    """Trajectory errors of one vehicle against the simulator's ground truth (module docstring);
-    ``aligned``: the ATE is after one rigid fit (a session in a frame of its own)."""
+    """Trajectory errors of one vehicle against the simulator's ground truth, over the scans that
+    got a pose.
+
+    ``ate_m``: RMS distance between estimated and true positions, no alignment (the shared frame),
+    or after one rigid fit when ``aligned`` (a session in a frame of its own). ``rpe_cm``,
+    ``rpe_deg``: RMS frame-to-frame error (``randt.core.metrics.trajectory.rpe``, delta 1).
+    ``drift_pct``: KITTI's translation error over the whole drive as one segment,
+    ``|t(inv(inv(E_0) E_n) inv(G_0) G_n)| / path length`` in percent; ``kitti_pct`` the devkit's
+    average over 100-800 m segments when the drive is longer than 100 m.
+    """
 
     aligned: bool
     n_poses: int
@@ -268,7 +246,7 @@ def evaluate(
     *,
     align: bool = False,
 ) -> VehicleErrors | None:
-    """Errors of ``estimate`` against ``truth`` over the scans both have (module docstring).
+    """Errors of ``estimate`` against ``truth`` over the scans both have (:class:`VehicleErrors`).
 
     Parameters
     ----------

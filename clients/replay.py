@@ -1,23 +1,12 @@
 """Replay a recorded drive into the service: ``randt replay`` is a thin shell over :func:`replay`.
 
-Sources (``randt.core.datasets.open_scans``): a KITTI odometry sequence folder (``velodyne/*.bin``,
-``times.txt`` for the stamps), a folder of ``.bin`` / ``.pcd`` / ``.ply`` / ``.csv`` / ``.txt`` /
-``.npy`` scans in file-name order (the RANDT paper's CSV conversions, header ``X,Y,Z,Intensity``,
-are such a folder), or a ROS bag's PointCloud2 topic (rosbag2 with sqlite3 or MCAP, ROS 1
-``.bag``; per-point times kept; the record times are the stamps; ``randt.core.io.bags``).
-
-Pacing
-------
-- ``rate_hz > 0``: scans go out at that rate (default: the rate of ``times.txt``, else 10 Hz), as
-  the sensor produced them. If the service is slower than the sensor, it drops the oldest scan of
-  a full session queue and answers it with the error ``dropped``: the progress bar shows it.
-- ``rate_hz == 0``: flow control. The next scan goes out once at most ``window - 1`` scans are
-  unanswered (``window = 1``: one scan at a time), so none is dropped and every scan is matched,
-  however slow the service: what you want to map a recorded drive completely.
-
-Stamps are the replay's start time plus each scan's time from ``times.txt`` (or ``index / rate``),
-so they are real Unix times and strictly increase. With ``loop=True`` the sequence restarts as a
-new session ``<session>.<pass>`` (the matcher would see a jump back to the start otherwise).
+Sources are those of :func:`randt.core.datasets.open_scans` (a KITTI sequence folder, a folder of
+scan files, a ROS bag's PointCloud2 topic). ``rate_hz > 0`` sends at that rate, as the sensor
+produced them (the service may drop scans it cannot keep up with); ``rate_hz == 0`` is flow
+control, ``window`` scans in flight, so every scan is matched. Stamps are the replay's start time
+plus each scan's recorded time; with ``loop=True`` each pass is a new session ``<session>.<pass>``
+(the matcher would see a jump back to the start otherwise). Options and outputs:
+docs/clients.md, "Replaying a recorded drive".
 """
 
 from __future__ import annotations

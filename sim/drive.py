@@ -660,7 +660,7 @@ class SimScan:
         (4,4) float64 exact world<-sensor pose at ``stamp_ns`` (the sweep start).
     points_xyz:
         (N,3) float32 points (m) in the sensor frame: the reference (sweep-start) frame when
-        ``deskewed``, else each point's firing-time frame (module docstring).
+        ``deskewed``, else each point's firing-time frame (docs/clients.md, "The simulator").
     intensity:
         (N,) float32 in [0, 1].
     time_offset_s:
@@ -728,7 +728,7 @@ def simulate(
     lidar:
         The sensor (``Lidar64()`` by default).
     deskewed:
-        Frame of the points (module docstring).
+        Frame of the points (:class:`SimScan`).
     speed_variation:
         Relative amplitude of a slow (20 s) sinusoidal speed change, in [0, 1).
     start_s_m:

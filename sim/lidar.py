@@ -386,7 +386,7 @@ class Sweep:
 
 @dataclass(frozen=True, eq=False)
 class Lidar64:
-    """HDL-64E-like spinning LiDAR (see the module docstring).
+    """HDL-64E-like spinning LiDAR (docs/clients.md, "The simulator").
 
     Attributes
     ----------

@@ -265,9 +265,8 @@ def remove_stale_tile_files(directory: Path, keep: Mapping[str, object]) -> None
             )
 
 
-#: libyaml's emitter and parser when PyYAML was built with it (same text; the metadata of an
-#: 800-tile map dumps in 15 ms against 48 ms: the service rewrites a map's metadata, which lists
-#: every tile, at each save).
+#: libyaml's emitter and parser when PyYAML was built with it (same text, much faster: the service
+#: rewrites a map's metadata, which lists every tile, at each save).
 _DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
@@ -281,7 +280,7 @@ def _yaml_text(document: dict[str, Any]) -> str:
     """``yaml.dump(document)`` as this module writes it (block style, lists of scalars in flow
     style, keys in order), with the entries of a long mapping rendered from a cache: the metadata
     and the sidecar list every tile and are rewritten at every save, so PyYAML's Python
-    representer over all of them grew with the map (7 ms a file at 213 tiles, 0.1 s at 3000).
+    representer over all of them grew with the map.
     Mappings of scalars or of ``[int, int]`` lists with string keys take the fast path; the text
     is exactly PyYAML's for them (tests); anything else goes to PyYAML."""
     lines = []

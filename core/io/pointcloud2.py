@@ -137,7 +137,7 @@ def pointcloud2_arrays(msg: _Cloud) -> tuple[np.ndarray, np.ndarray | None, np.n
         times = points[time_name]
         if np.issubdtype(times.dtype, np.integer) and times.dtype.itemsize <= 4 and len(times):
             # nanoseconds of a sweep (Ouster's uint32 t) straight to float32: 8 ns at most off
-            # at 0.1 s, the float32 seconds' own step; a third of the float64 route's cost
+            # at 0.1 s, the float32 seconds' own step, and cheaper than the float64 route
             ns = times.astype(np.float32)
             ns -= ns.min()
             _check_span(float(ns.max()) * 1e-9, times, time_name)
