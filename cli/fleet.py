@@ -313,7 +313,7 @@ WARM_UP_TIMEOUT_S = 300.0
 
 def _wait_warm(base: str) -> None:
     """Say that the matchers warm up, and wait for it (``/readyz``): the fleet's progress bar
-    would otherwise sit at 0 for the 20 s a first run takes, with no word of why."""
+    would otherwise sit at 0 while a first run compiles the kernels, with no word of why."""
     import time
 
     import httpx

@@ -3,8 +3,8 @@
 Python's own SIGINT handler raises ``KeyboardInterrupt`` wherever the main thread happens to be,
 and where that is a weakref callback or a ``__del__`` (the import system runs one at every module
 lock it drops), the interpreter prints ``Exception ignored in ...`` with a traceback and carries
-on: the Ctrl-C is gone. ``randt demo`` interrupted in its first second (its imports) once went
-on to serve until it was killed 90 s later (bench/ctrl_c.py; docs/reliability.md).
+on: the Ctrl-C is gone, and the command goes on as if nobody had asked it to stop
+(docs/reliability.md, ``bench/ctrl_c.py``).
 
 :func:`install` replaces that handler with one that first *notes* the signal, then raises as
 Python's does; the commands' long waits (:func:`sleep`, :func:`check`) raise it again from the

@@ -145,7 +145,7 @@ def access_control(
     common = [r["id"] for r in rules if r["id"].startswith("vehicle-")]
     for v in vehicles:
         # what is said to this vehicle: its poses, its errors, the pose graph's corrections of its
-        # keyframes (without the last, a vehicle of a secured deployment was never corrected)
+        # keyframes (without the last, a vehicle of a secured deployment is never corrected)
         answers = [pose_key(v), error_key(v), correction_key(v)]
         rules += [
             _rule(f"{v}/scan", "ingress", ["put"], [scan_key(v)]),
