@@ -72,14 +72,14 @@ def register(
         bool,
         typer.Option(
             "--fast-svd",
-            help="The SVD step on the NDT solver's moving points with looser fences, the default "
-            "before 2026-11-26 (randt.core.config.FAST_SVD_STEP): about 25 % faster, twice the error on "
-            "noisy clouds.",
+            help="The SVD step on the NDT solver's moving points with looser fences "
+            "(randt.core.config.FAST_SVD_STEP): faster, less accurate on noisy clouds "
+            "(docs/registration.md).",
         ),
     ] = False,
     dense_svd: Annotated[
         bool,
-        typer.Option("--dense-svd", hidden=True, help="The default since 2026-11-26 (kept for scripts)."),
+        typer.Option("--dense-svd", hidden=True, help="The default SVD step (kept for scripts)."),
     ] = False,
     global_: Annotated[
         bool,

@@ -144,8 +144,8 @@ class _Session:
 def placement_vote(result: GlobalResult, settings: FleetMapSettings) -> tuple[bool, str]:
     """Whether a confident registration of a session without a place may vote for one, and why
     not: only with NDT's refinement kept (when the settings refine), ``placement_min_inliers``
-    consistent correspondences and ``placement_min_overlap`` (:class:`FleetMapSettings`, where
-    they were measured)."""
+    consistent correspondences and ``placement_min_overlap`` (:class:`FleetMapSettings`; the
+    registrations they were measured on: docs/mapping.md)."""
     if settings.global_registration.refine and not result.refined:
         return False, "not a placement vote: NDT's refinement was not kept"
     if result.n_inliers < settings.placement_min_inliers:
