@@ -2,23 +2,12 @@
 
 A map's frame is Autoware's ``LocalCartesianUTM``: x east and y north on the UTM grid of the
 origin's zone, in metres, less the origin's UTM coordinates; z is the height above the WGS84
-ellipsoid less the origin's (``vertical_datum: WGS84``, the height a ``sensor_msgs/NavSatFix``
-gives). Why this one (docs/mapping.md, "Georeferenced maps"): it is one of the two Autoware's map
-projection loader takes for point-cloud maps, the frame is metric and small numbers near the
-origin (float32 map points keep millimetres), and the same map can be written as ``MGRS`` (the
-other, and Autoware's default) by a translation alone: MGRS coordinates are the UTM ones less the
-100 km square's corner. An origin set from a fix (:meth:`GeoOrigin.on_grid`) is moved to the
-nearest grid point of the map's tiles, so that translation is whole tiles.
-
-UTM is conformal but not true to scale: a metre on the grid is 0.9996 to 1.0010 metres on the
-ground (the scale factor, by distance from the zone's central meridian), and grid north differs
-from true north by the meridian convergence (up to about 3 degrees at a zone's edge). A GNSS fix's
-position goes through the projection itself; its orientation, given in the local East-North-Up
-frame, is turned by the convergence at the fix (:meth:`LocalCartesianUTM.enu_to_map_rotation`).
-
-The projection is PROJ's (``pyproj``) and the MGRS square's name the ``mgrs`` package's (the NGA's
-GEOTRANS code), both in the ``geo`` extra: a zone's exceptions (Norway, Svalbard) and the square
-letters are theirs, not ours.
+ellipsoid less the origin's. :class:`GeoOrigin` (an origin on the map's tile grid, so that the
+same map can be written as ``MGRS`` by whole tiles), :class:`LocalCartesianUTM` (a GNSS fix's
+position through the projection, its orientation and covariance turned by the meridian
+convergence) and :func:`write_mgrs_map`. The projection is PROJ's (``pyproj``) and the MGRS
+square's name the ``mgrs`` package's, both in the ``geo`` extra. Why this frame, UTM's scale and
+convergence: docs/mapping.md, "Georeferenced maps".
 """
 
 from __future__ import annotations
