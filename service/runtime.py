@@ -84,11 +84,11 @@ class Service:
         """The tile update message of one tile as last saved (the Zenoh queryable's answer)."""
         if self.sessions is None:
             return None
-        saved = self.sessions.durable_map(map_name)
+        saved = self.sessions.maps.durable(map_name)
         tile = None if saved is None else saved.by_id.get(tile_id)
         if tile is None:
             return None
-        return encode(self.sessions.tile_message(map_name, tile))
+        return encode(self.sessions.maps.tile_message(map_name, tile))
 
     def map_near(
         self, vehicle: str, session: str, x: float, y: float, radius_m: float
@@ -98,7 +98,7 @@ class Service:
         the shared map)``; ``None`` when the session is not running."""
         sessions = self.sessions
         name = None if sessions is None else sessions.fold_map(vehicle, session)
-        saved = None if sessions is None or name is None else sessions.durable_map(name)
+        saved = None if sessions is None or name is None else sessions.maps.durable(name)
         if saved is None:
             return None
         wanted = set(saved.grid.tiles_within_radius((x, y), radius_m))

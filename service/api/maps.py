@@ -1,7 +1,7 @@
 """``/maps``: the tiled maps, their tile index, tile downloads, Autoware metadata and merged exports.
 
 Everything is served from the tiles *as last saved* (:meth:`SessionManager.durable_map
-<randt.service.sessions.SessionManager.durable_map>`, immutable tile snapshots kept in memory), never
+<randt.service.live_maps.LiveMaps.durable>`, immutable tile snapshots kept in memory), never
 from the live grid that runs up to ``flush_interval_s`` ahead of the store: a version seen here
 is on disk, so after a crash it neither goes back nor comes again with other content.
 
@@ -49,7 +49,8 @@ from randt.service.api.models import (
     TileInfo,
 )
 from randt.service.api.views import map_summary
-from randt.service.sessions import DurableMap, SessionManager
+from randt.service.live_maps import DurableMap
+from randt.service.sessions import SessionManager
 
 __all__ = ["PduCache", "parse_bbox", "router"]
 
@@ -134,9 +135,9 @@ def _matches(if_none_match: str | None, etag: str) -> bool:
 
 def _saved_map(mgr: SessionManager, name: str) -> DurableMap:
     """The map ``name`` as last saved (404 if there is no such map)."""
-    saved = mgr.durable_map(name)
+    saved = mgr.maps.durable(name)
     if saved is None:
-        merged = mgr.merged_into(name)
+        merged = mgr.maps.merged_into(name)
         if merged is not None:
             raise NotFoundError(
                 f"map {name!r} was merged into map {merged[0]!r} when session {merged[1]} joined it",
@@ -151,7 +152,7 @@ def _saved_map(mgr: SessionManager, name: str) -> DurableMap:
 def list_maps(mgr: ManagerDep) -> MapIndex:
     """Every map: ``default`` (sessions with prior poses) and ``<vehicle>.<session>`` ones."""
     running = mgr.sessions()
-    return MapIndex(maps=[map_summary(n, m, running) for n, m in sorted(mgr.durable_maps().items())])
+    return MapIndex(maps=[map_summary(n, m, running) for n, m in sorted(mgr.maps.all_durable().items())])
 
 
 @router.get("/{map}", response_model=MapSummary, responses=_404)
@@ -315,7 +316,7 @@ def get_tile(
     if tile is None:  # tiles are never removed from a map; a new one appears once saved
         detail = f"tile {tid!r} of map {map!r} not found (holds no points, or not saved yet)"
         raise NotFoundError(detail, resource="tile", ident=tid)
-    etag = _etag(tile, mgr.tile_digest(map, tile), format)
+    etag = _etag(tile, mgr.maps.tile_digest(map, tile), format)
     headers = {"ETag": etag, "Cache-Control": "no-cache", "X-Randt-Tile-Version": str(tile.version)}
     if _matches(if_none_match, etag):
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers=headers)

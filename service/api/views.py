@@ -1,6 +1,6 @@
 """Builders of the response models from the service's live state and the store's records.
 
-A session is either **running** (a worker holds its matcher: :class:`randt.service.sessions.SessionState`)
+A session is either **running** (a worker holds its matcher: :class:`randt.service.worker.SessionInfo`)
 or only **stored** (:class:`randt.service.store.SessionRecord`: closed, expired, or active but not resumed
 since a restart). The routers ask :func:`find_session` for both and build one model from either.
 """
@@ -16,7 +16,9 @@ import numpy as np
 from randt.core.errors import NotFoundError
 from randt.core.tiles import TileGrid
 from randt.service.api.models import Lag, MapExtent, MapSummary, SessionDetail, SessionSummary
-from randt.service.sessions import DurableMap, SessionManager, SessionState
+from randt.service.live_maps import DurableMap
+from randt.service.session_info import SessionInfo
+from randt.service.sessions import SessionManager
 from randt.service.store import SessionRecord
 
 __all__ = [
@@ -40,7 +42,7 @@ def _finite(value: float) -> float | None:
 
 
 def session_summary(
-    info: SessionState | None, record: SessionRecord | None, depths: dict[str, int]
+    info: SessionInfo | None, record: SessionRecord | None, depths: dict[str, int]
 ) -> SessionSummary:
     """One session's summary from its running state (preferred) or its stored record."""
     if info is not None:
@@ -87,7 +89,7 @@ class FoundSession:
 
     vehicle: str
     session: str
-    info: SessionState | None
+    info: SessionInfo | None
     record: SessionRecord | None
 
     @property
@@ -143,7 +145,7 @@ def session_detail(mgr: SessionManager, found: FoundSession) -> SessionDetail:
     )
 
 
-def map_summary(name: str, grid: TileGrid | DurableMap, running: list[SessionState]) -> MapSummary:
+def map_summary(name: str, grid: TileGrid | DurableMap, running: list[SessionInfo]) -> MapSummary:
     """One map's summary: tiles, points, settings, extent and the running sessions feeding it."""
     tiles = grid.tiles()  # one snapshot: counts and extent agree
     extent = None

@@ -207,7 +207,7 @@ def test_a_session_behind_lets_its_model_lag_only_on_a_node_past_its_capacity(
     admission (``capacity_target=0``: the node's load unknown, taken as past it) the model lags
     and they differ."""
     from bench.offline import matcher_process
-    from randt.service.sessions import BEHIND_DEPTH, SessionWorker
+    from randt.service.worker import BEHIND_DEPTH, SessionWorker
 
     payloads = _drive_payloads(10)
     monkeypatch.setattr(SessionWorker, "depth", lambda self: BEHIND_DEPTH)

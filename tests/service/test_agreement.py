@@ -261,7 +261,7 @@ def test_a_joined_session_that_drives_into_a_town_the_map_never_saw_adds_nothing
         assert graph is not None and graph.wait_idle(300)
         again = graph.joined("nognss", "d1")
         restored = graph.snapshot("default")
-        merged = mgr.merged_into("nognss.d1")
+        merged = mgr.maps.merged_into("nognss.d1")
         own_loaded = "nognss.d1" in mgr.maps
     finally:
         mgr.stop()

@@ -450,7 +450,7 @@ def test_tile_etag_changes_when_the_tile_grows(served) -> None:
         f"/maps/default/tiles/{tile.ix}/{tile.iy}", headers={"If-None-Match": first.headers["etag"]}
     )
     assert r.status_code == 304 and r.headers["x-randt-tile-version"] == str(tile.version)
-    server.service.sessions.mark_tiles_dirty("default", changed)
+    server.service.sessions.maps.mark_dirty("default", changed)
     server.service.sessions.flush()
     r = client.get(
         f"/maps/default/tiles/{tile.ix}/{tile.iy}", headers={"If-None-Match": first.headers["etag"]}

@@ -184,7 +184,7 @@ def test_a_closed_session_is_not_reopened_and_an_expired_one_resumes(tmp_path) -
         deadline = time.monotonic() + 30
         states: dict[str, str] = {}
         while (
-            states != {"drive": "expired"} or ("v2", "drive") in mgr._closing
+            states != {"drive": "expired"} or ("v2", "drive") in mgr.table.closing
         ) and time.monotonic() < deadline:
             time.sleep(0.05)  # v2 idles past the expiry; its final save follows
             states = {r.session: r.state for r in store.list_sessions() if r.vehicle == "v2"}
@@ -215,9 +215,9 @@ def test_a_scan_for_a_session_being_saved_is_refused_not_reopened(manager) -> No
     """Between leaving the running set and its final save, a session must not be reopened from an
     older saved state (its last scans would be lost): the scan gets session_busy."""
     mgr, out = manager
-    mgr._closing.add(("v1", "s1"))  # the window close() holds open while it drains and saves
+    mgr.table.closing.add(("v1", "s1"))  # the window close() holds open while it drains and saves
     mgr.handle("v1", good("v1", 0), time.time_ns())  # what an intake worker calls
-    mgr._closing.discard(("v1", "s1"))
+    mgr.table.closing.discard(("v1", "s1"))
     mgr.handle("v1", good("v1", 1), time.time_ns())
     _wait(out, 2)
     answers = [(m.seq, getattr(m, "code", "pose")) for m in out if isinstance(m, PoseMessage | ErrorMessage)]
@@ -253,11 +253,11 @@ def test_overload_keeps_a_young_sessions_first_scans() -> None:
     waiting scan instead: its first scan anchors it, its first sweeps give the velocity."""
     from collections import deque
 
-    from randt.service.sessions import _Job, drop_index
+    from randt.service.queueing import Job, drop_index
     from randt.wire.messages import decode_scan
 
-    def job(seq: int) -> _Job:
-        return _Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM))), 0)
+    def job(seq: int) -> Job:
+        return Job(decode_scan(encode(scan_from_arrays("v", "s", seq, seq, ROOM))), 0)
 
     queue = deque([job(0), job(1), job(2)])
     assert [drop_index(queue, n_processed=n) for n in (0, 1, 2, 3, 50)] == [2, 2, 2, 0, 0]
@@ -271,7 +271,7 @@ def _taken_gaps(policy: str, *, stall: tuple[float, float], seconds: float = 12.
     from collections import deque
     from types import SimpleNamespace
 
-    from randt.service.sessions import drop_index
+    from randt.service.queueing import drop_index
 
     queue: deque = deque()
     taken: list[int] = []

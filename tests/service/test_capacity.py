@@ -120,7 +120,7 @@ def test_a_session_folds_its_scans_into_the_map_every_fold_scans_scans(tmp_path)
             answers = wait_answers(svc, 8)
             assert [(type(m), m.seq) for m in answers] == [(PoseMessage, seq) for seq in range(8)]
             svc.sessions.flush()
-            maps.append(svc.sessions.durable_map("default"))
+            maps.append(svc.sessions.maps.durable("default"))
         finally:
             svc.stop()
     a, b = maps

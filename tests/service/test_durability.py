@@ -157,8 +157,8 @@ def test_served_tile_versions_are_durable_never_reused_and_etags_name_the_conten
 
     rng = np.random.default_rng(1)
     first = _unflushed(tmp_path)
-    grid = first.sessions.map_grid("default")
-    first.sessions.mark_tiles_dirty("default", grid.insert(rng.uniform(0, 10, (200, 3))))
+    grid = first.sessions.maps.grid("default")
+    first.sessions.maps.mark_dirty("default", grid.insert(rng.uniform(0, 10, (200, 3))))
     first.sessions.flush()  # version 1 on disk
     tid = grid.tile_ids()[0]
     ix, iy = (int(v) for v in tid.split("_"))
@@ -175,7 +175,7 @@ def test_served_tile_versions_are_durable_never_reused_and_etags_name_the_conten
     try:
         grid2 = second.sessions.maps["default"]
         assert grid2.get(tid).version == 1
-        second.sessions.mark_tiles_dirty("default", grid2.insert(rng.uniform(0, 10, (200, 3)) - [0, 0, 30.0]))
+        second.sessions.maps.mark_dirty("default", grid2.insert(rng.uniform(0, 10, (200, 3)) - [0, 0, 30.0]))
         second.sessions.flush()
         again = payload(second, tid)
         assert again is not None and again[0] == 2  # never served before the crash: not a reuse
@@ -189,14 +189,14 @@ def test_served_tile_versions_are_durable_never_reused_and_etags_name_the_conten
         assert (update.version, hashlib.sha256(update.points).hexdigest()) == again
         # a deleted map's name: a new map of that name numbers its tiles above the old ones
         assert second.sessions.delete_map("default") >= 1
-        grid3 = second.sessions.map_grid("default")
+        grid3 = second.sessions.maps.grid("default")
         grid3.insert(rng.uniform(0, 10, (50, 3)))
         assert grid3.get(tid).version == 3
     finally:
         second.stop()
     third = _unflushed(tmp_path)  # the floor survives a restart
     try:
-        assert third.sessions.map_grid("default").insert(rng.uniform(0, 10, (50, 3)))
+        assert third.sessions.maps.grid("default").insert(rng.uniform(0, 10, (50, 3)))
         assert third.sessions.maps["default"].get(tid).version == 3
     finally:
         third.stop()

@@ -203,7 +203,7 @@ def test_a_given_origin_is_the_maps_and_a_conflicting_one_stops_the_service(tmp_
     mgr = manager(tmp_path / "a", given)
     try:
         g = geo_prior(48.1375, 11.576, 521.0, np.eye(3), COV_ENU)
-        placed = mgr.projections.prior_in_map("default", mgr.map_grid("default"), g)
+        placed = mgr.projections.prior_in_map("default", mgr.maps.grid("default"), g)
     finally:
         mgr.stop()
     info = yaml.safe_load((tmp_path / "a/maps/default/map_projector_info.yaml").read_text())

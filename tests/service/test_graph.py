@@ -748,7 +748,7 @@ def test_the_joined_sessions_own_map_is_merged_in_and_removed(join_drive) -> Non
     gone = httpx.get(f"{server.url}/maps/nognss.d1", timeout=30)
     assert gone.status_code == 404
     assert "merged into map 'default' when session nognss/d1 joined it" in gone.text
-    assert mgr.merged_into("nognss.d1") == ("default", "nognss/d1")
+    assert mgr.maps.merged_into("nognss.d1") == ("default", "nognss/d1")
 
 
 def _state(pid: int, settle_s: float = 1.0) -> str:

@@ -23,6 +23,7 @@ from randt.core.scenes import synthetic_room
 from randt.service.app import create_app
 from randt.service.intake import Intake
 from randt.service.metrics import ServiceMetrics
+from randt.service.opener import SessionOpener
 from randt.service.runtime import Service
 from randt.service.sessions import SessionManager
 from randt.service.settings import ServiceSettings
@@ -137,15 +138,15 @@ def test_status_and_other_vehicles_do_not_wait_for_a_stuck_session_open(tmp_path
     """A session whose opening hangs (a slow store read or a cold matcher warm-up, here 6 s):
     /status and /sessions answer within 0.5 s and another vehicle's scan gets its pose meanwhile;
     the stuck session's scan is answered once it is open."""
-    original = SessionManager._open_session
+    original = SessionOpener.open
     release = threading.Event()
 
-    def slow_open(self: SessionManager, scan):  # type: ignore[no-untyped-def]
+    def slow_open(self: SessionOpener, scan):  # type: ignore[no-untyped-def]
         if scan.vehicle == "slow":
             release.wait(6.0)
         return original(self, scan)
 
-    monkeypatch.setattr(SessionManager, "_open_session", slow_open)
+    monkeypatch.setattr(SessionOpener, "open", slow_open)
     # (admission by count: two sessions on one in-process core pass the measured capacity)
     settings = ServiceSettings(
         data_dir=tmp_path, matcher_processes=0, flush_interval_s=0.2, capacity_target=0

@@ -34,7 +34,7 @@ def _worker(data_dir: str) -> None:
     service = Service(ServiceSettings(data_dir=data_dir, flush_interval_s=0.05), with_zenoh=False)
     service.start()
     assert service.sessions is not None and service.sessions.wait_matchers(600)
-    record = next((r for r in service.sessions._records.values()), None)
+    record = next((r for r in service.sessions.records().values()), None)
     seq = 0 if record is None else record.last_seq + 1
     room = synthetic_room(np.random.default_rng(0), 2500)
     print("ready", flush=True)

@@ -54,7 +54,7 @@ def test_a_blocked_sensor_is_answered_lost_past_the_horizon_and_poses_resume_aft
             service.sessions.submit("car", payload)
             wait_answers(service, k + 1)  # one at a time, as a vehicle within capacity
         got = {m.seq: m for m in answers(service)}
-        info = service.sessions._workers[("car", "d1")].info
+        info = service.sessions.table.workers[("car", "d1")].info
         lost_flag, n_lost = info.lost, info.n_lost
     finally:
         service.stop()
