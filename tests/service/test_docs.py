@@ -65,4 +65,4 @@ def test_docs_assets_ship_in_the_package() -> None:
     assert {p.name for p in vendored} >= {"swagger-ui-bundle.js", "swagger-ui.css", "LICENSE", "NOTICE"}
     for path in vendored:
         rel = path.relative_to(ROOT / "service").as_posix()
-        assert any(fnmatch.fnmatch(rel, pat) for pat in patterns["service"]), rel
+        assert any(fnmatch.fnmatch(rel, pat) for pat in patterns["randt.service"]), rel
