@@ -27,6 +27,14 @@ SETTINGS_OPTIONS = (
 )  # fmt: skip
 
 
+#: ``--ros2-connect``'s help: its default is :class:`randt.service.settings.Ros2Settings`' (written
+#: out here, so that ``--help`` does not import the settings; tests/service/test_ros2.py checks it).
+ROS2_CONNECT_HELP = (
+    "With --ros2: the robots' rmw_zenohd router, repeatable  [default: the --connect endpoints "
+    "(and --zenoh-config), else tcp/127.0.0.1:7447; env var: RANDT_ROS2__CONNECT (a JSON list)]"
+)
+
+
 class ZenohMode(StrEnum):
     peer = "peer"
     client = "client"
@@ -72,7 +80,7 @@ def serve(
     ] = False,
     ros2_connect: Annotated[
         list[str] | None,
-        typer.Option(help="With --ros2: the robots' rmw_zenohd router, repeatable [RANDT_ROS2__CONNECT]."),
+        typer.Option(help=ROS2_CONNECT_HELP),
     ] = None,
 ) -> None:
     """Run the fleet mapping service (Zenoh ingest + HTTP) until SIGTERM or Ctrl-C.
@@ -121,18 +129,23 @@ def serve(
 
 def ros2_line(settings: ServiceSettings) -> str:
     r = settings.ros2
-    return f"; ROS 2 domain {r.domain} via {list(r.connect)}, topics {list(r.topics)}" if r.enabled else ""
+    return f"; ROS 2 domain {r.domain} via {list(r.routers)}, topics {list(r.topics)}" if r.enabled else ""
 
 
 def with_ros2(settings: ServiceSettings, connect: list[str] | None) -> ServiceSettings:
-    """``settings`` with the ROS 2 bridge on (and its router, when given), checked: the ``ros2``
-    extra must be installed (one line naming it, before anything starts)."""
+    """``settings`` with the ROS 2 bridge on, and its router when given (else the one the settings
+    name: ``RANDT_ROS2__CONNECT``, or the service's own ``connect``), checked: the ``ros2`` extra
+    must be installed (one line naming it, before anything starts)."""
     from randt.service.settings import Ros2Settings
     from randt.wire.ros2 import typestore
 
     typestore()  # FormatError naming the extra, without rosbags
     ros2 = settings.ros2.model_dump()
-    ros2.update(enabled=True, **({"connect": tuple(connect)} if connect else {}))
+    ros2["enabled"] = True
+    if connect:
+        ros2["connect"] = tuple(connect)
+        if "zenoh_config" in settings.ros2.from_service:  # (the service's file, for its own router)
+            ros2["zenoh_config"] = None
     return settings.model_copy(update={"ros2": Ros2Settings(**ros2)})
 
 

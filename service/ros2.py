@@ -2,11 +2,17 @@
 the robot (docs/ros2.md). With :mod:`randt.service.transport`, the only code of the service that talks
 to Zenoh.
 
-In: one Zenoh session, a *client* of the robots' ``rmw_zenohd`` router (``ros2.connect``: the
-router forwards to clients, while its ``peers_failover_brokering`` is off for peers), subscribed
-to every PointCloud2 of the domain (``<domain>/**/sensor_msgs::msg::dds_::PointCloud2_/*``).
-The callback only reads the key and the attachment (:mod:`randt.wire.rmw_zenoh`) and hands a
-:class:`randt.wire.ros2.Ros2Scan` to the session manager's intake, as our own scans go:
+In: one Zenoh session, a *client* of the robots' ``rmw_zenohd`` router (``ros2.connect``, by
+default where the service's own session connects: the router forwards to clients, while its
+``peers_failover_brokering`` is off for peers), subscribed to every PointCloud2 of the domain
+(``<domain>/**/sensor_msgs::msg::dds_::PointCloud2_/*``) and to the liveliness tokens of every
+PointCloud2 publisher (``@ros2_lv/<domain>/.../MP/...``, with their history). A publisher on a
+topic we take gets our subscription's token at once: a driver that publishes only while someone
+subscribes (velodyne_pointcloud's nodes ask rmw_zenoh, which counts the tokens) starts then. A
+PointCloud2 topic we do not take, seen by its publisher's token or by a sample, is named once in
+the log with the setting that would take it. The data callback only reads the key and the
+attachment (:mod:`randt.wire.rmw_zenoh`) and hands a :class:`randt.wire.ros2.Ros2Scan` to the
+session manager's intake, as our own scans go:
 
 * the topic must be one of ``ros2.topics`` (a relative name under any namespace, or an absolute
   one); the robot's namespace is its vehicle id (``/`` as ``.``), unless ``ros2.vehicles`` says;
@@ -36,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import itertools
+import json
 import logging
 import queue
 import struct
@@ -62,7 +69,9 @@ from randt.wire.rmw_zenoh import (
     dds_type_name,
     decode_attachment,
     encode_attachment,
+    endpoint_tokens,
     liveliness_token,
+    parse_liveliness_token,
     parse_topic_key,
     topic_key,
 )
@@ -84,7 +93,7 @@ from randt.wire.ros2 import (
 )
 from randt.wire.zenoh_config import zenoh_config
 
-__all__ = ["NODE_NAME", "Ros2Bridge", "vehicle_of_topic"]
+__all__ = ["NODE_NAME", "Ros2Bridge", "topics_to_take", "vehicle_of_topic"]
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +109,8 @@ MAX_FRAME_ID = 256
 FIXES_KEPT = 64
 #: Vehicles whose fixes are kept (the oldest forgotten beyond).
 MAX_GNSS_VEHICLES = 4096
+#: PointCloud2 topics not taken that are named in the log (once each; beyond, no more are).
+MAX_TOPICS_NAMED = 4096
 
 
 def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | None:
@@ -133,6 +144,24 @@ def vehicle_of_topic(topic: str, settings: Ros2Settings) -> tuple[str, str] | No
             )
         return vehicle, namespace
     return None
+
+
+def topics_to_take(topic: str, namespace: str | None, settings: Ros2Settings) -> str:
+    """The ``RANDT_ROS2__...`` setting(s) that would take ``topic`` (one none of ``settings.topics``
+    matches): the topics as they are plus ``topic`` relative to its robot's ``namespace`` (the
+    publishing node's; ``None`` when unknown: the first name of the topic is taken for it), or
+    ``topic`` absolute with its vehicle to name when it has no namespace."""
+    if namespace is None:
+        head, _, rest = topic.strip("/").partition("/")
+        namespace = f"/{head}" if rest else "/"
+    prefix = namespace.rstrip("/") + "/"
+    relative = namespace not in ("", "/") and topic.startswith(prefix) and topic != prefix
+    wanted = topic[len(prefix) :] if relative else topic
+    setting = f"RANDT_ROS2__TOPICS='{json.dumps([*settings.topics, wanted])}'"
+    if relative:
+        return setting
+    vehicles = json.dumps({**settings.vehicles, topic: "<vehicle id>"})
+    return f"{setting} RANDT_ROS2__VEHICLES='{vehicles}'"
 
 
 def _peek_header(cdr: bytes) -> tuple[int | None, str | None]:
@@ -226,6 +255,7 @@ class Ros2Bridge:
         self._topics: set[str] = set()
         self._fixes: OrderedDict[str, deque[tuple[int, GnssFix]]] = OrderedDict()
         self._warned: dict[tuple[str, str], int] = {}
+        self._named: set[str] = set()  # PointCloud2 topics named in the log (not taken, or no vehicle)
         self.dropped_outbound = 0
         #: the settings with the NavSatFix (map request) topic as the only topic, for vehicle_of_topic
         self._gnss_topics = settings.model_copy(update={"topics": (settings.gnss_topic or "gnss/fix",)})
@@ -238,11 +268,11 @@ class Ros2Bridge:
     def open(self) -> None:
         s = self.settings
         try:
-            self._session = zenoh.open(zenoh_config("client", (), s.connect, config_file=s.zenoh_config))
+            self._session = zenoh.open(zenoh_config("client", (), s.routers, config_file=s.zenoh_config))
         except zenoh.ZError as exc:
             reason = str(exc).split(" at /", 1)[0]
             raise ValueError(
-                f"Zenoh cannot open the ROS 2 session (router {', '.join(s.connect)}): {reason}"
+                f"Zenoh cannot open the ROS 2 session (router {', '.join(s.routers)}): {reason}"
             ) from exc
         self._zid = str(self._session.info.zid())
         self._sender = threading.Thread(target=self._send_loop, name="ros2-sender", daemon=True)
@@ -261,6 +291,9 @@ class Ros2Bridge:
                 f"{s.domain}/**/{dds_type_name(POINTCLOUD2)}/*", self._on_sample
             ),
             self._session.liveliness().declare_token(node),
+            self._session.liveliness().declare_subscriber(
+                endpoint_tokens(s.domain, "MP", POINTCLOUD2), self._on_publisher, history=True
+            ),
         ]
         if s.gnss_topic is not None:
             gnss = f"{s.domain}/**/{dds_type_name(NAV_SAT_FIX)}/*"
@@ -269,7 +302,7 @@ class Ros2Bridge:
             requests = f"{s.domain}/**/{dds_type_name(POINT_STAMPED)}/*"
             self._handles.append(self._session.declare_subscriber(requests, self._on_map_request))
         log.info(
-            "ROS 2: client of %s, domain %d, topics %s", ", ".join(s.connect), s.domain, ", ".join(s.topics)
+            "ROS 2: client of %s, domain %d, topics %s", ", ".join(s.routers), s.domain, ", ".join(s.topics)
         )
 
     # -- in (Zenoh's callback thread: no decoding, no waiting) ---------------------------------
@@ -287,6 +320,8 @@ class Ros2Bridge:
             found = vehicle_of_topic(topic, self.settings)
             if found is None:
                 self._count(topic, "ignored")
+                if key not in self._publishers:  # (not our own map answers)
+                    self._not_taken(topic, None, "a sample")
                 return
             vehicle, namespace = found
             att: Attachment = decode_attachment(None if attachment is None else attachment.to_bytes())
@@ -311,15 +346,67 @@ class Ros2Bridge:
                 )
             else:
                 self._routes.move_to_end((vehicle, session))
+        self._listen_soon(topic, parsed.type_hash)
+        self._count(topic, "accepted")
+        scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
+        self._on_scan(vehicle, scan, time.time_ns())
+
+    def _on_publisher(self, sample: zenoh.Sample) -> None:
+        """A PointCloud2 publisher's liveliness token (a put: it appeared; a delete: it went): on a
+        topic we take, our subscription is announced now, before any sample; another topic is
+        named once in the log."""
+        try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            token = parse_liveliness_token(str(sample.key_expr))
+            topic = token.topic
+            if token.zid == self._zid or topic is None:  # (our own map answers)
+                return
+            try:
+                found = vehicle_of_topic(topic, self.settings)
+            except BadMessageError as exc:
+                if self._first_naming(topic):
+                    log.warning(
+                        "ROS 2: PointCloud2 publisher %s on %s cannot be taken: %s", token.node, topic, exc
+                    )
+                return
+            if found is None:
+                self._not_taken(topic, token.namespace, f"publisher {token.node}")
+            else:
+                self._listen_soon(topic, token.type_hash or "")
+        except BadMessageError as exc:  # (a token that does not parse: not rmw_zenoh's)
+            log.debug("ROS 2: %s", exc)
+        except Exception:  # never let an exception escape into Zenoh's thread
+            log.exception("ROS 2 liveliness token %s failed", sample.key_expr)
+
+    def _not_taken(self, topic: str, namespace: str | None, seen_by: str) -> None:
+        """Name a PointCloud2 topic none of ``topics`` matches, once, with the setting that takes it."""
+        if not self._first_naming(topic):
+            return
+        wanted = ", ".join(self.settings.topics)
+        fix = topics_to_take(topic, namespace, self.settings)
+        log.info(
+            "ROS 2: PointCloud2 topic %s (%s) is not taken: it matches none of the topics (%s); "
+            "to take it: %s", topic, seen_by, wanted, fix,
+        )  # fmt: skip
+
+    def _first_naming(self, topic: str) -> bool:
+        """Whether ``topic`` is named in the log now (the first time, and while few have been)."""
+        with self._lock:
+            if topic in self._named or len(self._named) >= MAX_TOPICS_NAMED:
+                return False
+            self._named.add(topic)
+            return True
+
+    def _listen_soon(self, topic: str, hash_like: str) -> None:
+        """Have the sender thread announce our subscription to ``topic`` (once per topic)."""
+        with self._lock:
             listen = topic not in self._listening and len(self._listening) < MAX_ROUTES
             if listen:
                 self._listening[topic] = None  # (declared by the sender thread)
         if listen:
             with contextlib.suppress(queue.Full):
-                self._out.put_nowait(_Listen(topic, parsed.type_hash))
-        self._count(topic, "accepted")
-        scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
-        self._on_scan(vehicle, scan, time.time_ns())
+                self._out.put_nowait(_Listen(topic, hash_like))
 
     def _read_small(
         self, sample: zenoh.Sample, topics: Ros2Settings, read: Callable[[bytes], _T]

@@ -24,7 +24,16 @@ import re
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from randt.core.config import RegistrationSettings
@@ -33,7 +42,7 @@ from randt.core.odometry import MATCHER_REGISTRATION, MatcherSettings
 from randt.wire.ids import ID_REGEX
 from randt.wire.zenoh_config import check_endpoints, check_protocols, load_config_file
 
-__all__ = ["Ros2Settings", "ServiceSettings"]
+__all__ = ["DEFAULT_ROS2_ROUTER", "DEFAULT_ROS2_TOPICS", "Ros2Settings", "ServiceSettings"]
 
 
 #: The matcher's finest NDT level, in map voxels (:meth:`ServiceSettings.session_matcher`): 1 m
@@ -64,6 +73,24 @@ ZenohConfigFile = Annotated[Path | None, AfterValidator(_readable_config)]
 
 _ROS_NAME = r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$"
 
+#: The robots' router when neither ``ros2.connect`` nor the service's ``connect`` names one:
+#: rmw_zenohd's port on this host.
+DEFAULT_ROS2_ROUTER = "tcp/127.0.0.1:7447"
+
+#: The PointCloud2 topics taken by default: ours, and the default topic of each common LiDAR
+#: driver whose name stays one topic under a robot's namespace (docs/ros2.md lists those left out).
+#: Relative, so ``/car9/velodyne_points`` is vehicle ``car9``; a driver whose default is absolute
+#: (RoboSense's, Hesai's) publishes at the root unless its config is changed, and then needs its
+#: vehicle named in ``vehicles``.
+DEFAULT_ROS2_TOPICS = (
+    "lidar/points",  # ours (docs/ros2.md)
+    "velodyne_points",  # velodyne_pointcloud's convert and transform nodes (ros-drivers/velodyne)
+    "ouster/points",  # ouster-ros: namespace ouster, topic points (its README)
+    "rslidar_points",  # rslidar_sdk: ros_send_point_cloud_topic /rslidar_points (config/config.yaml)
+    "lidar_points",  # HesaiLidar_ROS_2.0: ros_send_point_cloud_topic /lidar_points (config/config.yaml)
+    "points_raw",  # Autoware.AI's and Autoware.Auto's raw LiDAR topic (/points_raw)
+)
+
 
 class Ros2Settings(BaseModel):
     """ROS 2 robots on rmw_zenoh (docs/ros2.md): ``RANDT_ROS2__<FIELD>``, or ``randt serve --ros2``.
@@ -75,10 +102,11 @@ class Ros2Settings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = Field(default=False, description="subscribe to the robots' PointCloud2 topics")
-    connect: Endpoints = Field(
-        default=("tcp/127.0.0.1:7447",),
+    connect: Endpoints | None = Field(
+        default=None,
         description="the rmw_zenohd router(s) the service connects to, as a Zenoh client (rmw_zenoh's "
-        "router forwards to clients, not between peers)",
+        "router forwards to clients, not between peers); None: the service's own `connect` endpoints "
+        f"(and its zenoh_config, unless one is given here), or {DEFAULT_ROS2_ROUTER} without them",
     )
     zenoh_config: ZenohConfigFile = Field(
         default=None,
@@ -87,10 +115,11 @@ class Ros2Settings(BaseModel):
     )
     domain: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
     topics: tuple[str, ...] = Field(
-        default=("lidar/points",),
+        default=DEFAULT_ROS2_TOPICS,
         min_length=1,
         description="PointCloud2 topics: relative (under any namespace, which names the vehicle) or "
-        "absolute (one topic; its vehicle from `vehicles`)",
+        "absolute (one topic; its vehicle from `vehicles`); by default ours and the common LiDAR "
+        "drivers' defaults (docs/ros2.md); a PointCloud2 topic not taken is named once in the log",
     )
     vehicles: dict[str, str] = Field(
         default_factory=dict,
@@ -131,9 +160,25 @@ class Ros2Settings(BaseModel):
         default=100.0, gt=0, le=1000.0, description="the map tiles within this of the requested point"
     )
 
+    #: the fields ServiceSettings filled from its own because they were not given here
+    _from_service: frozenset[str] = PrivateAttr(default=frozenset())
+
+    @property
+    def from_service(self) -> frozenset[str]:
+        """The fields (``connect``, ``zenoh_config``) :class:`ServiceSettings` filled from its own
+        because they were not given: a router given later (``--ros2-connect``) takes neither."""
+        return self._from_service
+
+    @property
+    def routers(self) -> tuple[str, ...]:
+        """The endpoints the ROS 2 session connects to: ``connect``, or :data:`DEFAULT_ROS2_ROUTER`
+        (:class:`ServiceSettings` has put its own ``connect`` there when this one was not given)."""
+        return self.connect if self.connect is not None else (DEFAULT_ROS2_ROUTER,)
+
     @model_validator(mode="after")
     def _endpoints_fit_the_config_file(self) -> Ros2Settings:
-        _fits_config(self.zenoh_config, self.connect)
+        if self.connect is not None:  # (else ServiceSettings checks, once it has named the routers)
+            _fits_config(self.zenoh_config, self.connect)
         return self
 
     @field_validator("topics")
@@ -425,6 +470,25 @@ class ServiceSettings(BaseSettings):
         if isinstance(value, dict):
             return {**MATCHER_REGISTRATION.model_dump(exclude_defaults=True), **value}
         return value
+
+    @field_validator("ros2")
+    @classmethod
+    def _ros2_router_defaults_to_ours(cls, value: Ros2Settings, info: ValidationInfo) -> Ros2Settings:
+        """``ros2.connect`` not given: the ROS 2 session goes where the service's own session
+        connects (``connect``, with its ``zenoh_config`` unless ``ros2`` names one), so that
+        ``randt serve --ros2 --connect tcp/R:P`` reaches the robots' router R."""
+        connect, zenoh_config = info.data.get("connect"), info.data.get("zenoh_config")
+        if value.connect is not None:
+            return value
+        if not connect:
+            _fits_config(value.zenoh_config, value.routers)
+            return value
+        filled = {"connect": connect}
+        if value.zenoh_config is None and zenoh_config is not None:
+            filled["zenoh_config"] = zenoh_config
+        resolved = Ros2Settings.model_validate({**value.model_dump(), **filled})
+        resolved._from_service = frozenset(filled)
+        return resolved
 
     @model_validator(mode="after")
     def _endpoints_fit_the_config_file(self) -> ServiceSettings:

@@ -10,7 +10,9 @@ puts on Zenoh, so that the service can read its topics and answer on them with n
   the LEB128 length 16 and the publisher's 16-byte GID (a ROS 2 subscriber drops a sample
   without it); the 77-byte layout of Jazzy 0.2.0-0.2.3 is read too;
 * endpoints announced by liveliness tokens under ``@ros2_lv/<domain>/...`` with ``/`` mangled to
-  ``%`` and the QoS in one chunk, empty where it equals rmw_zenoh's default.
+  ``%`` and the QoS in one chunk, empty where it equals rmw_zenoh's default: written by
+  :func:`liveliness_token`, read by :func:`parse_liveliness_token` (the service learns of a
+  robot's publishers from them, before and without any sample: :func:`endpoint_tokens`).
 
 No Zenoh here (``wire`` does not import it): the transport builds on these.
 """
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import re
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from randt.core.errors import BadMessageError
@@ -29,16 +31,20 @@ __all__ = [
     "ADMIN_SPACE",
     "HUMBLE_TYPE_HASH",
     "Attachment",
+    "LivelinessToken",
     "Qos",
     "TopicKey",
     "dds_type_name",
     "decode_attachment",
     "encode_attachment",
+    "endpoint_tokens",
     "liveliness_token",
     "mangle",
+    "parse_liveliness_token",
     "parse_topic_key",
     "ros_type_name",
     "topic_key",
+    "unmangle",
 ]
 
 #: The liveliness tokens' first chunk (a hermetic chunk: ``**`` never matches it).
@@ -169,6 +175,11 @@ def mangle(name: str) -> str:
     return "%" if name in ("", "/") else name.replace("/", "%")
 
 
+def unmangle(chunk: str) -> str:
+    """The inverse of :func:`mangle` (``%`` alone is ``/``)."""
+    return chunk.replace("%", "/")
+
+
 @dataclass(frozen=True)
 class Qos:
     """The QoS of an endpoint, in rmw's enum values (``rmw/types.h``); the defaults are rmw_zenoh's:
@@ -219,3 +230,77 @@ def liveliness_token(
     if topic is None or ros_type is None or type_hash is None:
         raise ValueError(f"an endpoint's token ({kind}) needs its topic, type and type hash")
     return f"{head}/{mangle(topic)}/{dds_type_name(ros_type)}/{type_hash}/{(qos or Qos()).keyexpr()}"
+
+
+#: The kinds of endpoint a token announces (``NN`` is a node, with no topic).
+EndpointKind = Literal["MP", "MS", "SS", "SC"]
+_KINDS = ("NN", "MP", "MS", "SS", "SC")
+
+
+@dataclass(frozen=True)
+class LivelinessToken:
+    """A liveliness token's parts (:func:`liveliness_token`'s arguments), names unmangled:
+    ``namespace`` ``/`` or ``/robot1``, ``topic`` with its leading slash, ``ros_type`` as
+    ``pkg/msg/Name``; the four endpoint fields are ``None`` for a node (``NN``). ``qos`` is the
+    QoS chunk as written (not parsed: the service does not need it)."""
+
+    domain: int
+    zid: str
+    node_id: int
+    entity_id: int
+    kind: str
+    enclave: str
+    namespace: str
+    node_name: str
+    topic: str | None = None
+    ros_type: str | None = None
+    type_hash: str | None = None
+    qos: str | None = None
+
+    @property
+    def node(self) -> str:
+        """The node's fully qualified name (``/robot1/lidar_driver``)."""
+        return f"{self.namespace.rstrip('/')}/{self.node_name}"
+
+
+def parse_liveliness_token(key: str) -> LivelinessToken:
+    """The parts of a liveliness token (:class:`~randt.core.errors.BadMessageError` ``invalid_field``
+    when ``key`` is not one). Chunks past the thirteenth (Rolling's buffer backends, whose place
+    docs/rmw_zenoh.md could not confirm) are not read; neither is the QoS chunk's content."""
+    chunks = str(key).split("/")
+
+    def bad(why: str) -> BadMessageError:
+        return BadMessageError(f"liveliness token {key!r}: {why}", code=ErrorCode.INVALID_FIELD)
+
+    if len(chunks) < 9 or chunks[0] != ADMIN_SPACE or not all(chunks[1:9]):
+        raise bad(f"not {ADMIN_SPACE}/<domain>/<zid>/<node>/<entity>/<kind>/<enclave>/<namespace>/<name>")
+    domain, zid, node_id, entity_id, kind, enclave, namespace, node_name = chunks[1:9]
+    if not (domain.isdigit() and node_id.isdigit() and entity_id.isdigit()) or kind not in _KINDS:
+        raise bad("domain, node and entity ids must be decimal, the kind one of " + ", ".join(_KINDS))
+    node = LivelinessToken(
+        int(domain),
+        zid,
+        int(node_id),
+        int(entity_id),
+        kind,
+        unmangle(enclave),
+        unmangle(namespace),
+        node_name,
+    )
+    if kind == "NN":
+        return node
+    if len(chunks) < 13 or not all(chunks[9:13]):
+        raise bad(f"an endpoint's token ({kind}) ends with <topic>/<type>/<hash>/<qos>")
+    try:
+        ros_type = ros_type_name(chunks[10])
+    except ValueError as exc:
+        raise bad(str(exc)) from None
+    if not _HASH_RE.match(chunks[11]):
+        raise bad(f"{chunks[11]!r} is not a type hash")
+    return replace(node, topic=unmangle(chunks[9]), ros_type=ros_type, type_hash=chunks[11], qos=chunks[12])
+
+
+def endpoint_tokens(domain: int, kind: EndpointKind, ros_type: str) -> str:
+    """The key expression of every ``kind`` endpoint's token of ``ros_type`` in ``domain``
+    (a liveliness subscriber's; ``@ros2_lv`` is written out: ``**`` never matches it)."""
+    return f"{ADMIN_SPACE}/{domain}/*/*/*/{kind}/*/*/*/*/{dds_type_name(ros_type)}/**"

@@ -311,7 +311,7 @@ def test_the_map_around_a_point_comes_as_a_pointcloud2_on_request(ros2_drive: Ro
         ("/robot7/lidar/points", {"/robot7": "truck-1"}, ("truck-1", "/robot7")),
         ("/lidar/points", {"/": "solo"}, ("solo", "")),
         ("/robot7/camera/points", {}, None),
-        ("/robot7/lidar/points_raw", {}, None),
+        ("/robot7/lidar/points_filtered", {}, None),
     ],
 )
 def test_a_robots_namespace_names_its_vehicle(topic: str, vehicles: dict[str, str], expected: Any) -> None:
@@ -408,3 +408,234 @@ def test_a_zenoh_config_for_the_router_is_checked_against_the_endpoints(tmp_path
     assert Ros2Settings(zenoh_config=tls_only, connect=("tls/router:7447",)).zenoh_config == tls_only
     with pytest.raises(ValidationError, match=r"missing\.json5"):
         Ros2Settings(zenoh_config=tmp_path / "missing.json5")
+
+
+# -- where the ROS 2 session connects, which topics it takes, what it says of the others -------
+
+
+def test_the_ros2_router_is_the_services_own_unless_one_is_given(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``randt serve --ros2 --connect tcp/R:P``: the ROS 2 session connects to R too (with the
+    service's Zenoh config file), not to tcp/127.0.0.1:7447; a router given for ROS 2
+    (``--ros2-connect``, ``RANDT_ROS2__CONNECT``) wins, and takes nothing of the service's;
+    ``randt serve --help`` and ``randt config`` say so."""
+    from typer.testing import CliRunner
+
+    from randt.cli.config import settings_groups
+    from randt.cli.main import app
+    from randt.cli.serve import with_ros2
+
+    monkeypatch.delenv("RANDT_ROS2__CONNECT", raising=False)
+    plain = tmp_path / "zenoh.json5"
+    plain.write_text("{}")
+    robots = "tcp/10.0.0.5:7447"
+    serve = ServiceSettings(data_dir=tmp_path, connect=(robots,), zenoh_config=plain)
+    ros2 = with_ros2(serve, None).ros2
+    assert (ros2.enabled, ros2.connect, ros2.zenoh_config) == (True, (robots,), plain)
+    own = with_ros2(serve, ["tcp/10.0.0.9:7447"]).ros2
+    assert (own.connect, own.zenoh_config) == (("tcp/10.0.0.9:7447",), None)
+    given = ServiceSettings(connect=(robots,), ros2=Ros2Settings(connect=("tcp/10.0.0.7:7447",)))
+    assert given.ros2.connect == ("tcp/10.0.0.7:7447",)
+    alone = ServiceSettings(data_dir=tmp_path).ros2  # (no router named anywhere: rmw_zenohd's port here)
+    assert alone.connect is None and alone.routers == ("tcp/127.0.0.1:7447",)
+    monkeypatch.setenv("RANDT_ROS2__CONNECT", '["tcp/10.0.0.8:7447"]')
+    assert ServiceSettings(connect=(robots,)).ros2.connect == ("tcp/10.0.0.8:7447",)
+    (row,) = [r for g in settings_groups() if g.name == "ros2" for r in g.rows if r.name == "connect"]
+    assert row.default is None and row.env == "RANDT_ROS2__CONNECT"
+    assert "the service's own `connect` endpoints" in row.help and "tcp/127.0.0.1:7447" in row.help
+    shown = " ".join(CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"}).output.split())
+    assert (
+        "router, repeatable [default: the --connect endpoints (and --zenoh-config), else tcp/127.0.0.1:7447"
+        in shown
+    )
+
+
+def test_the_service_started_with_connect_alone_joins_the_robots_router(router: str, tmp_path: Path) -> None:
+    """The service started as ``randt serve --ros2 --connect <router>`` starts (it used to fail on
+    tcp/127.0.0.1:7447) and its ROS 2 node ``randt_fleet`` is in the ROS graph of that router."""
+    from randt.cli.serve import with_ros2
+    from randt.wire.rmw_zenoh import parse_liveliness_token
+
+    settings = ServiceSettings(
+        data_dir=tmp_path / "d", zenoh_mode="client", listen=(), connect=(router,),
+        matcher_processes=0, graph=False,
+    )  # fmt: skip
+    service = Service(with_ros2(settings, None))
+    try:
+        service.start()
+        assert service.ros2 is not None and service.ros2.settings.routers == (router,)
+        probe = zenoh.open(zenoh_config("client", connect=(router,)))
+        try:
+            nodes = [
+                parse_liveliness_token(str(r.ok.key_expr)) for r in probe.liveliness().get("@ros2_lv/0/**")
+            ]
+        finally:
+            probe.close()
+        assert [(t.kind, t.node) for t in nodes if t.kind == "NN"] == [("NN", "/randt_fleet")]
+    finally:
+        service.stop()
+
+
+@pytest.mark.parametrize(
+    ("topic", "driver"),
+    [
+        ("/car9/lidar/points", "ours"),
+        ("/car9/velodyne_points", "velodyne_pointcloud"),
+        ("/car9/ouster/points", "ouster-ros"),
+        ("/car9/rslidar_points", "rslidar_sdk"),
+        ("/car9/lidar_points", "HesaiLidar_ROS_2.0"),
+        ("/car9/points_raw", "Autoware"),
+    ],
+)
+def test_the_common_lidar_drivers_default_topics_are_taken(topic: str, driver: str) -> None:
+    """Under the robot's namespace, each driver's default PointCloud2 topic is the robot's scan."""
+    assert vehicle_of_topic(topic, Ros2Settings()) == ("car9", "/car9"), driver
+    with pytest.raises(BadMessageError, match="no vehicle id"):  # (at the root: the vehicle is to name)
+        vehicle_of_topic(topic.removeprefix("/car9"), Ros2Settings())
+
+
+class _Node:
+    """A ROS 2 node as rmw_zenoh makes one (a peer of the robot's router): publishers announced
+    by liveliness tokens, samples with the 33-byte attachment."""
+
+    def __init__(self, router: str, namespace: str, name: str) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self.store = get_typestore(Stores.ROS2_JAZZY)
+        self.session = zenoh.open(zenoh_config("peer", connect=(router,)))
+        self.namespace, self.name = namespace, name
+        self.handles: list[Any] = []
+        self.subscriptions: set[str] = set()  # topics with a PointCloud2 subscription token (MS)
+
+        def on_token(sample: zenoh.Sample) -> None:
+            from randt.wire.rmw_zenoh import parse_liveliness_token
+
+            token = parse_liveliness_token(str(sample.key_expr))
+            if token.kind == "MS" and sample.kind == zenoh.SampleKind.PUT and token.topic:
+                self.subscriptions.add(token.topic)
+
+        self.handles.append(
+            self.session.liveliness().declare_subscriber("@ros2_lv/0/**", on_token, history=True)
+        )
+
+    def advertise(self, topic: str) -> tuple[str, bytes]:
+        """A PointCloud2 publisher on ``topic``: its key and GID."""
+        from randt.wire.rmw_zenoh import Qos, liveliness_token, topic_key
+        from randt.wire.ros2 import POINTCLOUD2
+
+        hash_ = self.store.hash_rihs01(POINTCLOUD2)
+        token = liveliness_token(
+            domain=0, zid=str(self.session.info.zid()), node_id=0, entity_id=len(self.handles), kind="MP",
+            namespace=self.namespace, node_name=self.name, topic=topic, ros_type=POINTCLOUD2,
+            type_hash=hash_, qos=Qos(depth=10),
+        )  # fmt: skip
+        self.handles.append(self.session.liveliness().declare_token(token))
+        return topic_key(0, topic, POINTCLOUD2, hash_), bytes(range(16))[::-1]
+
+    def publish(self, key: str, gid: bytes, seq: int) -> None:
+        from randt.wire.rmw_zenoh import Attachment, encode_attachment
+        from randt.wire.ros2 import POINTCLOUD2
+
+        types, rows = self.store.types, np.zeros(3, np.float32)
+        msg = types[POINTCLOUD2](
+            header=_header(types, STAMP0_NS + seq * 10**8),
+            **_cloud(types, np.eye(3, dtype=np.float32), rows, rows),
+        )
+        cdr = bytes(self.store.serialize_cdr(msg, POINTCLOUD2))
+        self.session.put(key, cdr, attachment=encode_attachment(Attachment(seq, time.time_ns(), gid)))
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.undeclare()
+        self.session.close()
+
+
+def test_a_velodyne_robot_is_taken_by_default_once_it_sees_our_subscription(router: str) -> None:
+    """velodyne_pointcloud publishes ``velodyne_points`` (relative: ``/car9/velodyne_points``
+    under the robot's namespace) only while rmw_zenoh counts a subscription to it, which it reads
+    from the subscriptions' liveliness tokens. With the default topics, the service announces its
+    subscription as soon as it sees the driver's publisher, before any sample: the driver starts,
+    and its clouds are vehicle car9's scans, one session (the publisher's GID), seq as sent."""
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.ros2 import Ros2Bridge
+    from randt.wire.ros2 import Ros2Scan
+
+    driver = _Node(router, "/car9", "velodyne_transform_node")
+    key, gid = driver.advertise("/car9/velodyne_points")
+    got: list[Ros2Scan] = []
+    bridge = Ros2Bridge(
+        Ros2Settings(enabled=True, connect=(router,)), lambda v, scan, t: got.append(scan), ServiceMetrics()
+    )
+    try:
+        bridge.open()
+        _wait(lambda: "/car9/velodyne_points" in driver.subscriptions, "the service's subscription", 20)
+        for seq in (1, 2, 3):  # (the driver publishes now: someone is listening)
+            driver.publish(key, gid, seq)
+        _wait(lambda: len(got) == 3, lambda: f"3 scans (got {len(got)})", 20)
+    finally:
+        bridge.close()
+        driver.close()
+    assert [(s.vehicle, s.topic, s.session, s.seq) for s in got] == [
+        ("car9", "/car9/velodyne_points", gid.hex(), seq) for seq in (1, 2, 3)
+    ]
+
+
+def test_a_pointcloud2_topic_not_taken_is_named_once_with_the_setting_that_takes_it(
+    router: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A robot's PointCloud2 topic that none of the topics matches is named once in the log, seen
+    by its publisher's liveliness token (the namespace from the node) or, without one, by its
+    samples, however many come, with the ``RANDT_ROS2__TOPICS`` (and, at the root, the
+    ``RANDT_ROS2__VEHICLES``) that would take it; its samples are counted as ignored."""
+    import logging
+
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.ros2 import Ros2Bridge
+
+    topics = list(Ros2Settings().topics)
+    camera = _Node(router, "/car9", "camera_driver")
+    depth_key, depth_gid = camera.advertise("/car9/camera/depth/points")
+    root = _Node(router, "/", "scanner")
+    root.advertise("/scan_cloud")  # (a publisher that has not published yet)
+    stereo_key = depth_key.replace("car9/camera/depth/points", "car7/stereo/points")  # no token
+    metrics = ServiceMetrics()
+    bridge = Ros2Bridge(Ros2Settings(enabled=True, connect=(router,)), lambda v, s, t: None, metrics)
+
+    def ignored(topic: str) -> float:
+        labels = {"topic": topic, "outcome": "ignored"}
+        return metrics.registry.get_sample_value("randt_ros2_samples_total", labels) or 0.0
+
+    caplog.set_level(logging.INFO, logger="randt.service.ros2")
+    try:
+        bridge.open()
+        _wait(lambda: "is not taken" in caplog.text, "a topic named", 20)
+        for seq in range(1, 6):
+            camera.publish(depth_key, depth_gid, seq)
+            camera.publish(stereo_key, depth_gid, seq)
+        _wait(
+            lambda: ignored("/car9/camera/depth/points") == 5 and ignored("/car7/stereo/points") == 5,
+            "10 ignored samples",
+            20,
+        )
+    finally:
+        bridge.close()
+        camera.close()
+        root.close()
+    named = [r for r in caplog.records if "is not taken" in r.getMessage()]
+
+    def line(topic: str) -> str:
+        (only,) = [r.getMessage() for r in named if f" topic {topic} (" in r.getMessage()]
+        return only
+
+    assert len(named) == 3
+    assert "(publisher /car9/camera_driver)" in line("/car9/camera/depth/points")
+    assert line("/car9/camera/depth/points").endswith(
+        f"to take it: RANDT_ROS2__TOPICS='{json.dumps([*topics, 'camera/depth/points'])}'"
+    )
+    assert "(a sample)" in line("/car7/stereo/points")
+    assert line("/car7/stereo/points").endswith(json.dumps([*topics, "stereo/points"]) + "'")
+    assert line("/scan_cloud").endswith(
+        f"RANDT_ROS2__TOPICS='{json.dumps([*topics, '/scan_cloud'])}' "
+        """RANDT_ROS2__VEHICLES='{"/scan_cloud": "<vehicle id>"}'"""
+    )

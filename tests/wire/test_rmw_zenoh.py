@@ -13,11 +13,14 @@ from randt.core.errors import BadMessageError
 from randt.wire.rmw_zenoh import (
     HUMBLE_TYPE_HASH,
     Attachment,
+    LivelinessToken,
     Qos,
     dds_type_name,
     decode_attachment,
     encode_attachment,
+    endpoint_tokens,
     liveliness_token,
+    parse_liveliness_token,
     parse_topic_key,
     ros_type_name,
     topic_key,
@@ -98,3 +101,50 @@ def test_liveliness_tokens_and_their_qos_chunk() -> None:
     assert node == f"@ros2_lv/0/{zid}/0/0/NN/%/%/n"
     with pytest.raises(ValueError, match="needs its topic"):
         liveliness_token(domain=0, zid=zid, node_id=0, entity_id=1, kind="MS", namespace="/", node_name="n")
+
+
+def test_liveliness_tokens_read_back_and_the_publishers_selector_matches_them() -> None:
+    """design.md's PointCloud2 publisher token reads back into its parts (names unmangled); ours
+    round-trip; Humble's placeholder hash reads; what is not a token is ``invalid_field``; the
+    selector the service subscribes with matches every PointCloud2 publisher's token and only those."""
+    import zenoh
+
+    zid = "aac3178e146ba6f1fc6e6a4085e77f21"
+    design = (
+        f"@ros2_lv/0/{zid}/0/3/MP/%/%robot1/lidar_driver/%robot1%lidar%points/"
+        f"sensor_msgs::msg::dds_::PointCloud2_/{POINTCLOUD2_HASH}/2::,5:,:,:,,"
+    )
+    token = parse_liveliness_token(design)
+    assert token == LivelinessToken(
+        0, zid, 0, 3, "MP", "/", "/robot1", "lidar_driver",
+        "/robot1/lidar/points", "sensor_msgs/msg/PointCloud2", POINTCLOUD2_HASH, "2::,5:,:,:,,",
+    )  # fmt: skip
+    assert token.node == "/robot1/lidar_driver"
+    ours = liveliness_token(
+        domain=7, zid=zid, node_id=1, entity_id=9, kind="MS", namespace="/fleet/car_3", node_name="n",
+        topic="/fleet/car_3/velodyne_points", ros_type="sensor_msgs/msg/PointCloud2",
+        type_hash=HUMBLE_TYPE_HASH,
+    )  # fmt: skip
+    back = parse_liveliness_token(ours)
+    assert (back.domain, back.kind, back.namespace, back.topic, back.type_hash) == (
+        7, "MS", "/fleet/car_3", "/fleet/car_3/velodyne_points", HUMBLE_TYPE_HASH,
+    )  # fmt: skip
+    node = parse_liveliness_token(f"@ros2_lv/0/{zid}/0/0/NN/%/%/n")
+    assert (node.kind, node.node, node.topic) == ("NN", "/n", None)
+    for bad in (
+        "@ros2_lv/0/z/0/0/NN/%/%",  # too few parts
+        "@ros2_lv/x/z/0/0/NN/%/%/n",  # a domain that is not a number
+        "@ros2_lv/0/z/0/0/XX/%/%/n",  # no such kind
+        f"@ros2_lv/0/{zid}/0/3/MP/%/%robot1/lidar_driver/%robot1%lidar%points",  # an endpoint cut short
+        design.replace(POINTCLOUD2_HASH, "RIHS01_00"),
+        design.replace("@ros2_lv", "@other"),
+    ):
+        with pytest.raises(BadMessageError) as info:
+            parse_liveliness_token(bad)
+        assert info.value.code == "invalid_field"
+    selector = zenoh.KeyExpr(endpoint_tokens(0, "MP", "sensor_msgs/msg/PointCloud2"))
+    assert selector.intersects(zenoh.KeyExpr(design))
+    for other in (design.replace("/MP/", "/MS/"), design.replace("@ros2_lv/0/", "@ros2_lv/1/"), ours):
+        assert not selector.intersects(zenoh.KeyExpr(other)), other
+    string = design.replace("sensor_msgs::msg::dds_::PointCloud2_", "std_msgs::msg::dds_::String_")
+    assert not selector.intersects(zenoh.KeyExpr(string))
