@@ -120,14 +120,14 @@ def breakdown(keyframes: list[tuple[np.ndarray, np.ndarray]], seed: int, spill: 
     (gtsam's iSAM2), then with the place index, then with the loop records and sessions."""
     import gc
 
-    from randt.service.graph import MapGeometry, _ProcessMap, _release_memory
+    from randt.service.graph_process import MapGeometry, ProcessMap, release_memory
 
     rng = np.random.default_rng(seed)
-    graph = _ProcessMap("default", FleetMapSettings(), MapGeometry(20, 0.2, 5), spill)
+    graph = ProcessMap("default", FleetMapSettings(), MapGeometry(20, 0.2, 5), spill)
 
     def rss() -> float:
         gc.collect()
-        _release_memory()
+        release_memory()
         return rss_mb(os.getpid())
 
     rows = []
@@ -141,7 +141,7 @@ def breakdown(keyframes: list[tuple[np.ndarray, np.ndarray]], seed: int, spill: 
         )  # fmt: skip
         if k % 20 == 19:
             graph.refold()
-            _release_memory()
+            release_memory()
     keyframes.clear()  # (this process held the drive)
     whole = rss()
     graph.mapper.graph = None  # type: ignore[assignment]

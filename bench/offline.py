@@ -10,7 +10,7 @@ pose before it updates the model), with the settings every session gets
 offline reference, ``bench/main_process.py``'s prepared answers): the same through the process's
 own code (``randt.service.matchers._Sessions.register_payload`` with a ``MapFrame``: the map points
 moved into the map frame and cut to the voxels not sent before; a keyframe's points where the
-pose graph's rule asks for one, ``randt.service.graph.wants_keyframe``), then ``update_model``. Only
+pose graph's rule asks for one, ``randt.service.graph_state.wants_keyframe``), then ``update_model``. Only
 the pipe and the service around it are missing.
 """
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from randt.core.odometry import IncrementalMatcher
-from randt.service.graph import wants_keyframe
+from randt.service.graph_state import wants_keyframe
 from randt.service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
 from randt.service.settings import ServiceSettings
 

@@ -46,31 +46,33 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
-import hashlib
 import logging
 import multiprocessing
 import multiprocessing.connection
 import os
-import signal
 import threading
 import time
-from collections.abc import Callable, Hashable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Hashable
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from randt.core.errors import RandtError
-from randt.core.fleet_map import FleetMapper, FleetMapSettings
-from randt.core.keyframe_cache import KeyframeCache
-from randt.core.tiles import TileGrid, tile_id
-from randt.core.transforms import rotation_angle_deg
+from randt.core.fleet_map import FleetMapSettings
 from randt.service.graph_log import GraphLog
-from randt.service.matchers import ignore_group_signals, single_threaded_blas, start_ignoring_group_signals
+from randt.service.graph_priority import GRAPH_NICE, YieldGate, process_cpu_s, set_graph_priority
+from randt.service.graph_process import MOVE_TOL_DEG, MOVE_TOL_M, MapGeometry, graph_main
+from randt.service.graph_state import (
+    GraphLoop,
+    GraphState,
+    Keyframe,
+    correct_trajectory,
+    corrected_mask,
+    wants_keyframe,
+)
+from randt.service.matchers import start_ignoring_group_signals
 from randt.service.metrics import ServiceMetrics
 from randt.wire.messages import CorrectionMessage, correction_from_arrays
 
@@ -88,15 +90,6 @@ log = logging.getLogger(__name__)
 
 SessionKey = tuple[str, str]
 
-#: A keyframe is reported again once its optimized pose moved this much since last reported.
-MOVE_TOL_M = 0.01
-MOVE_TOL_DEG = 0.05
-#: A keyframe's points are re-folded into the map's tiles once it moved this much from where they
-#: were folded (half the default map voxel).
-REFOLD_TOL_M = 0.1
-REFOLD_TOL_DEG = 0.2
-#: The graph process's niceness (added to the service's).
-GRAPH_NICE = 10
 #: The graph process runs at ``SCHED_IDLE``, which yields to any other process, ours or not: with
 #: work in flight and no answer for this long it is starved (two CPU burners beside the service
 #: held it for good: every pose-graph test of the suite failed), and runs at the normal policy
@@ -108,593 +101,12 @@ STARVED_S = 5.0
 #: graph had not caught up after 300 s. Admission counts the graph's CPU with the service
 #: process's (service/capacity.py), so the node's measured capacity leaves it that time.
 ESCALATE_S = 30.0
-#: A re-fold waits for a pause in the keyframes; under a steady stream it is done anyway once the
-#: last one is this many re-fold periods old (``graph_refold_s``).
-REFOLD_STARVE_PERIODS = 3.0
-#: Keyframes whose points the graph process keeps in memory per map (and per use: the matching's
-#: points, the re-fold's cloud), the ones used last; every keyframe's are on disk under the graph
-#: log's directory (``spill/``, rebuilt from the log at each start). About 0.75 MB a keyframe
-#: (bench/graph_memory.py: 75 MB of spill a km at a keyframe every 10 m).
-HOT_KEYFRAMES = 64
-
-
-class YieldGate:
-    """Keeps the graph process off the cores while sweeps are being matched: stopped
-    (``SIGSTOP``) when the first sweep enters :meth:`matching`, continued (``SIGCONT``) when the
-    last one leaves. ``SCHED_IDLE`` alone gives the matchers every core they ask for, but not the
-    caches, memory bandwidth and clock the graph shares with them from the other core.
-
-    The graph is never starved: once it has been held ``max_hold_s`` without a break, it runs
-    ``min_run_s`` whatever arrives. POSIX only (elsewhere it does nothing); the process it holds
-    must die with its parent (``_die_with_parent``), since a stopped process cannot exit itself.
-    """
-
-    def __init__(self, *, max_hold_s: float = 1.0, min_run_s: float = 0.2) -> None:
-        self.max_hold_s = max_hold_s
-        self.min_run_s = min_run_s
-        self._lock = threading.Lock()
-        self._pid: int | None = None
-        self._pidfd: int | None = None
-        self._busy = 0
-        self._held_since: float | None = None  # monotonic time of the SIGSTOP, while held
-        self._free_until = 0.0  # no hold before this (the starvation guard)
-        #: seconds the process was held, and how many holds (metrics, benchmarks)
-        self.held_s = 0.0
-        self.holds = 0
-
-    def attach(self, pid: int) -> None:
-        with self._lock:
-            self._pid = pid if hasattr(signal, "SIGSTOP") else None
-            # A pidfd names this process and no other: once it has exited and been reaped, its
-            # pid may be another process's, which a plain kill would stop (Linux >= 5.3).
-            try:
-                self._pidfd = os.pidfd_open(pid) if self._pid is not None else None
-            except ProcessLookupError:  # gone already: nothing to hold (its pid may be reused)
-                self._pid = self._pidfd = None
-            except (AttributeError, OSError):  # no pidfd here: the plain pid
-                self._pidfd = None
-
-    def detach(self) -> None:
-        """Continue the process for good (before stopping it, or when it is gone)."""
-        with self._lock:
-            self._release(time.monotonic())
-            self._pid = None
-            if self._pidfd is not None:
-                os.close(self._pidfd)
-                self._pidfd = None
-
-    def _signal(self, sig: int) -> bool:
-        """Send ``sig`` to the process; False when it is gone."""
-        assert self._pid is not None
-        try:
-            if self._pidfd is not None:
-                signal.pidfd_send_signal(self._pidfd, sig)
-            else:
-                os.kill(self._pid, sig)
-        except ProcessLookupError:
-            return False
-        return True
-
-    def _release(self, now: float) -> None:
-        if self._held_since is None or self._pid is None:
-            return
-        self._signal(signal.SIGCONT)
-        self.held_s += now - self._held_since
-        self._held_since = None
-
-    def _enter(self) -> None:
-        with self._lock:
-            self._busy += 1
-            now = time.monotonic()
-            if self._pid is None:
-                return
-            if self._held_since is not None and now - self._held_since > self.max_hold_s:
-                self._release(now)  # held too long without a break: it runs for a while
-                self._free_until = now + self.min_run_s
-            elif self._held_since is None and now >= self._free_until and self._signal(signal.SIGSTOP):
-                self._held_since = now
-                self.holds += 1
-
-    def _exit(self) -> None:
-        with self._lock:
-            self._busy -= 1
-            if self._busy == 0:
-                self._release(time.monotonic())
-
-    @contextlib.contextmanager
-    def matching(self) -> Iterator[None]:
-        """Around the matching of one sweep: the graph does not run while any is inside."""
-        self._enter()
-        try:
-            yield
-        finally:
-            self._exit()
-
-
-def process_cpu_s(pid: int) -> float:
-    """User + system CPU seconds of a process (all its threads), from ``/proc`` (Linux)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
-
-
-def _die_with_parent() -> None:
-    """Linux: this process gets SIGKILL when the service's process dies, even while it is
-    stopped by :class:`YieldGate` (a stopped process would otherwise outlive a killed service)."""
-    with contextlib.suppress(OSError, AttributeError):
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
-# ----------------------------------------------------------------------- the graph process
-def _far(a: np.ndarray, b: np.ndarray, tol_m: float, tol_deg: float) -> bool:
-    return bool(
-        np.linalg.norm(a[:3, 3] - b[:3, 3]) > tol_m or rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) > tol_deg
-    )
-
-
-def _moved(a: np.ndarray, b: np.ndarray) -> bool:
-    return _far(a, b, MOVE_TOL_M, MOVE_TOL_DEG)
-
-
-#: Tiles in a keyframe's bounding box up to which :meth:`_ProcessMap._tiles` counts instead of sorting.
-MAX_TILE_SPAN = 1 << 16
-
-
-@dataclass(frozen=True)
-class MapGeometry:
-    """What the graph process needs of a map to re-fold its tiles (the service's settings)."""
-
-    tile_size_m: int
-    voxel_size_m: float
-    max_points_per_voxel: int
-
-
-class _ProcessMap:
-    """One map's graph inside the graph process: the mapper, what was last reported of it, and
-    each keyframe's points (sensor frame, with intensity) for re-folding the map's tiles."""
-
-    def __init__(
-        self, name: str, settings: FleetMapSettings, geometry: MapGeometry, spill: Path | None = None
-    ) -> None:
-        """``spill``: where the keyframes' points are kept on disk, the :data:`HOT_KEYFRAMES` used
-        last in memory (:class:`~randt.core.keyframe_cache.KeyframeCache`); ``None``: all in memory."""
-        self.name = name
-        where = None if spill is None else spill / hashlib.sha1(name.encode()).hexdigest()[:16]
-        self.mapper = FleetMapper(
-            settings, KeyframeCache(None if where is None else where / "points", HOT_KEYFRAMES)
-        )
-        self.geometry = geometry
-        self.meta: dict[tuple[str, int], tuple[str, str, int, int]] = {}  # vehicle, session, seq, index
-        self.reported: dict[tuple[str, int], np.ndarray] = {}
-        #: Keyframes whose pose in this map was sent (moved or held): the service corrects a
-        #: trajectory only from keyframes this graph holds, at the pose it holds them.
-        self.announced: set[tuple[str, int]] = set()
-        self.sent: list[bool] = []  # each loop record's ``accepted`` as last sent
-        self.revision = 0
-        #: Each keyframe's points (sensor frame, float32) and intensity, for the re-folds.
-        self.cloud = KeyframeCache(None if where is None else where / "cloud", HOT_KEYFRAMES)
-        self.folded: dict[tuple[str, int], np.ndarray] = {}  # the pose its points are in the tiles at
-        self.tiles_of: dict[tuple[str, int], set[tuple[int, int]]] = {}
-        self.poses: dict[tuple[str, int], np.ndarray] = {}  # the optimized poses after the last keyframe
-        #: Keyframes moved since the last re-fold (it checks which moved far enough).
-        self.refold_pending = False
-
-    def close(self) -> None:
-        """Remove the map's keyframe files (a deleted map)."""
-        self.mapper.points.clear()
-        self.cloud.clear()
-
-    def _tiles(self, T: np.ndarray, xyz: np.ndarray) -> set[tuple[int, int]]:
-        """The tiles a keyframe's points fall in at pose ``T``. A count over the few tiles of the
-        points' bounding box, not ``np.unique(axis=0)``: 0.7 against 8.6 ms for 19k points (the
-        re-fold asks this of every keyframe it touches, and was a third of the graph's CPU)."""
-        xy = xyz.astype(np.float64) @ T[:2, :3].T + T[:2, 3]
-        cells = np.floor(xy / self.geometry.tile_size_m).astype(np.int64)
-        lo = cells.min(axis=0)
-        span = cells.max(axis=0) - lo + 1
-        if int(span[0]) * int(span[1]) > MAX_TILE_SPAN:  # far-flung points: sort them instead
-            return {(int(a), int(b)) for a, b in np.unique(cells, axis=0)}
-        flat = (cells[:, 0] - lo[0]) * span[1] + (cells[:, 1] - lo[1])
-        hit = np.flatnonzero(np.bincount(flat, minlength=int(span[0] * span[1])))
-        return {(int(lo[0] + h // span[1]), int(lo[1] + h % span[1])) for h in hit.tolist()}
-
-    def _refold(
-        self, poses: dict[tuple[str, int], np.ndarray]
-    ) -> tuple[list[str], np.ndarray, np.ndarray] | None:
-        """The tiles to re-fold once keyframes moved more than ``REFOLD_TOL_*`` from where their
-        points were folded, with every keyframe's points that fall in them at its optimized pose."""
-        # (a keyframe of a session that joined this map has not been folded into it yet)
-        due = {
-            k
-            for k, P in poses.items()
-            if k in self.cloud
-            and (k not in self.folded or _far(P, self.folded[k], REFOLD_TOL_M, REFOLD_TOL_DEG))
-        }
-        if not due:
-            return None
-        now = {k: self._tiles(poses[k], self.cloud.get(k)[0]) for k in due}
-        tiles: set[tuple[int, int]] = set()
-        for k in due:
-            tiles |= self.tiles_of.get(k, set()) | now[k]
-        contributors = [
-            k for k in self.cloud if k in poses and (now[k] if k in due else self.tiles_of[k]) & tiles
-        ]
-        # Equalized here, off the service's GIL: the service swaps the tiles in. Keyframe by
-        # keyframe into an empty grid (what one refold of them all gives), each read once (from
-        # disk, maybe): the memory it takes is the tiles', not every contributor's points at once.
-        g = self.geometry
-        grid = TileGrid(g.tile_size_m, g.voxel_size_m, g.max_points_per_voxel)
-        ids = sorted(tile_id(ix, iy) for ix, iy in tiles)
-        for k in contributors:
-            xyz_k, intensity_k = self.cloud.get(k)
-            grid.insert(xyz_k @ poses[k][:3, :3].T + poses[k][:3, 3], intensity_k, only_tiles=ids)
-            self.folded[k] = poses[k]
-            self.tiles_of[k] = now[k] if k in due else self._tiles(poses[k], xyz_k)
-        kept = grid.tiles()
-        if not kept:
-            return None
-        return (
-            [t.id for t in kept],
-            np.concatenate([t.points for t in kept]),
-            np.concatenate([t.intensity for t in kept]),
-        )
-
-    def refold(self) -> tuple[list[str], np.ndarray, np.ndarray] | None:
-        """The pending re-fold (:meth:`_refold` at the newest optimized poses), if any."""
-        if not self.refold_pending:
-            return None
-        self.refold_pending = False
-        return self._refold(self.poses)
-
-    def add(self, message: tuple[Any, ...], *, joining: bool = False) -> tuple[Any, ...]:
-        """One keyframe in; the ``update`` message out (raises on a refused keyframe). Re-folding
-        the tiles is left to :meth:`refold`, which the process runs in a pause (``_graph_main``).
-
-        A session's first keyframe places it at the identity: its poses are in its map's frame
-        already. With ``joining``, the keyframe is of a session without priors that lives in a map
-        of its own: it enters unplaced, and FleetMapper places it once two registrations against
-        this map agree, or by a fit of its GNSS fixes (a ROS 2 robot's NavSatFix, in this map's
-        frame) (its points are then folded into this map's tiles by the next re-fold)."""
-        _, _, vehicle, session, seq, index, T_live, points, intensity, gnss, _ = message
-        mapper = self.mapper
-        name = f"{vehicle}/{session}"
-        if name not in mapper.sessions and not joining:
-            mapper.place(name, np.eye(4))
-        was_placed = set(mapper.placed_sessions())
-        key = mapper.add_keyframe(name, T_live, points, gnss)
-        self.meta[key] = (vehicle, session, seq, index)
-        self.reported.setdefault(key, T_live)
-        xyz = np.asarray(points, dtype=np.float32)
-        self.cloud.put(key, xyz, np.zeros(len(xyz), np.float32) if intensity is None else intensity)
-        if not joining:  # folded by the service, moved by the session's newest correction
-            self.folded[key] = T_live
-            self.tiles_of[key] = self._tiles(T_live, xyz)
-        poses = self.poses = mapper.poses()
-        if set(mapper.placed_sessions()) != was_placed:
-            self.refold_pending = True
-        moved, held = [], []
-        for k, P in poses.items():
-            if _moved(P, self.reported[k]):
-                self.reported[k] = P
-                moved.append((*self.meta[k], P))
-            elif k not in self.announced:  # in the graph where it was answered: no correction
-                held.append((*self.meta[k], P))
-            self.announced.add(k)
-        if moved:
-            self.revision += 1
-            self.refold_pending = True
-        # Records from the first that changed (a placement vote is accepted once a second agrees).
-        start = next(
-            (i for i, (r, was) in enumerate(zip(mapper.loops, self.sent, strict=False)) if r.accepted != was),
-            len(self.sent),
-        )
-        loops = [
-            {
-                "a": self.meta[r.a][:3],
-                "b": self.meta[r.b][:3],
-                "source": r.source,
-                "confident": r.confident,
-                "accepted": r.accepted,
-                "reason": r.reason,
-                "n_inliers": r.n_inliers,
-            }
-            for r in mapper.loops[start:]
-        ]
-        self.sent = [r.accepted for r in mapper.loops]
-        placed = {n: mapper.sessions[n].T_world_session for n in mapper.placed_sessions()}
-        kind = "join" if joining else "update"
-        return (kind, self.name, self.revision, moved, held, start, loops, placed)
 
 
 def _retry_key(item: tuple[Any, ...]) -> Hashable:
     """What names an item across the process's deaths: a keyframe by its map, session and seq
     (taken again from the log, it is another object), anything else by identity."""
     return ("keyframe", *item[1:5]) if item[0] == "keyframe" else id(item)
-
-
-def _lowest_priority() -> None:
-    """Run this process only on a core nothing else wants: ``SCHED_IDLE`` (Linux), else niced by
-    ``GRAPH_NICE``. Two vehicles on two cores, per-sweep latency with the graph against without
-    it, by the mean: 1.24x with the process niced by 10, 1.02x at SCHED_IDLE, which still took
-    every keyframe (docs/benchmarks.md)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux, or refused
-        with contextlib.suppress(OSError):
-            os.nice(GRAPH_NICE)
-        return
-    # A policy is a thread's own: threads started before this call (the worker pools the imports
-    # start: BLAS, TBB) kept the normal one.
-    with contextlib.suppress(OSError):
-        for tid in os.listdir("/proc/self/task"):
-            with contextlib.suppress(OSError, ValueError):
-                os.sched_setscheduler(int(tid), os.SCHED_IDLE, os.sched_param(0))
-
-
-def set_graph_priority(pid: int, *, idle: bool, nice: int = GRAPH_NICE) -> bool:
-    """Every thread of process ``pid`` at ``SCHED_IDLE`` (``idle``), or at the normal policy niced
-    by ``nice`` beyond this process's own niceness; False if any was refused (not Linux, not
-    permitted, gone)."""
-    try:
-        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        niceness = min(19, os.getpriority(os.PRIO_PROCESS, 0) + nice)
-        policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
-    except (AttributeError, OSError, ValueError):
-        return False
-    done = True
-    for tid in tids:
-        try:
-            os.sched_setscheduler(tid, policy, os.sched_param(0))
-            if not idle:
-                os.setpriority(os.PRIO_PROCESS, tid, niceness)
-        except ProcessLookupError:  # a thread that ended meanwhile
-            continue
-        except OSError:
-            done = False
-    return done
-
-
-def _release_memory() -> None:
-    """Give the C heap's free memory back to the system (glibc's ``malloc_trim``; elsewhere
-    nothing). A re-fold allocates and frees the points of every tile it touches; without this the
-    freed heap stayed resident and the graph process grew by 43 MB a km of a long drive in
-    bench/graph_memory.py, with it by none."""
-    global _MALLOC_TRIM
-    if _MALLOC_TRIM is None:
-        try:
-            libc = ctypes.CDLL("libc.so.6")
-            _MALLOC_TRIM = libc.malloc_trim
-            _MALLOC_TRIM.argtypes = [ctypes.c_size_t]
-        except (OSError, AttributeError):
-            _MALLOC_TRIM = False
-    if _MALLOC_TRIM:
-        _MALLOC_TRIM(0)
-
-
-_MALLOC_TRIM: Any = None
-
-
-def _send_refolds(conn: Connection, maps: dict[str, _ProcessMap]) -> None:
-    """Re-fold every map with moved keyframes and send each map's tiles (``refold`` messages)."""
-    for map_name, graph in maps.items():
-        t0 = time.perf_counter()
-        try:
-            refold = graph.refold()
-        except Exception:  # a bug: the tiles stay as they are, the graph goes on
-            log.exception("graph process: re-folding map %s failed", map_name)
-            continue
-        if refold is not None:
-            conn.send(("refold", map_name, *refold, time.perf_counter() - t0))
-            del refold
-            _release_memory()
-
-
-def _graph_main(
-    conn: Connection,
-    settings: FleetMapSettings,
-    geometry: MapGeometry,
-    refold_s: float,
-    parent: int,
-    spill: Path | None = None,
-) -> None:
-    """The graph process: keyframes in, moved keyframes and loop verifications out (module docstring).
-
-    First it asks to die with the service (``_die_with_parent``), quits if the service (pid
-    ``parent``) died before that, and says it is ``alive``: only then may the service's
-    :class:`YieldGate` stop it (stopped before, during its imports, it outlived a service killed
-    with SIGKILL: seen after the kill -9 cycles of tests/service/test_durability.py).
-
-    Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
-    seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
-    old), and at once on a ``sync`` request. ``spill``: where the keyframes' points are kept on
-    disk (:class:`_ProcessMap`); ``None``: in memory."""
-    ignore_group_signals()  # the service stops it (``quit`` or the pipe closing), not Ctrl-C
-    _die_with_parent()
-    if os.getppid() != parent:  # the service died before the request: nobody would kill us
-        return
-    try:
-        conn.send(("alive",))
-    except (BrokenPipeError, OSError):
-        return
-    single_threaded_blas()
-    _lowest_priority()
-    maps: dict[str, _ProcessMap] = {}
-
-    def new_map(name: str) -> _ProcessMap:
-        return _ProcessMap(name, settings, geometry, spill)
-
-    last_refold = time.monotonic()
-    while True:
-        try:
-            if any(g.refold_pending for g in maps.values()):
-                due_in = last_refold + refold_s - time.monotonic()
-                starving = due_in <= -(REFOLD_STARVE_PERIODS - 1.0) * refold_s
-                if starving or not conn.poll(max(due_in, 0.0)):
-                    _send_refolds(conn, maps)
-                    last_refold = time.monotonic()
-                    continue
-            message = conn.recv()
-        except (EOFError, OSError):  # the service is gone
-            return
-        if message[0] == "quit":
-            return
-        if message[0] == "sync":  # tests and benchmarks: the map as the graph has it now
-            _send_refolds(conn, maps)
-            last_refold = time.monotonic()
-            conn.send(("synced", message[1]))
-            continue
-        if message[0] == "forget":  # a deleted map (ServiceGraph.forget_map)
-            gone = maps.pop(message[1], None)
-            if gone is not None:
-                gone.close()
-            conn.send(("forgotten", message[1]))
-            continue
-        if message[0] == "place":  # a restarted process: a session the graph had placed
-            _, map_name, vehicle, session, T_map_session = message
-            graph = maps.get(map_name) or maps.setdefault(
-                map_name, _ProcessMap(map_name, settings, geometry, spill)
-            )
-            with contextlib.suppress(RandtError):  # (placed already: nothing to do)
-                graph.mapper.place(f"{vehicle}/{session}", T_map_session)
-            conn.send(("placed", map_name, vehicle, session))
-            continue
-        map_name, vehicle, session, seq, join = message[1], message[2], message[3], message[4], message[-1]
-        t0 = time.perf_counter()
-        try:
-            graph = maps.get(map_name) or maps.setdefault(
-                map_name, _ProcessMap(map_name, settings, geometry, spill)
-            )
-            # a joining session's fixes are in the shared map's frame, not its own map's
-            update = graph.add(message if join is None or join == map_name else (*message[:-2], None, join))
-        except Exception as exc:  # bad input (or a bug): this keyframe is refused, the graph goes on
-            if not isinstance(exc, RandtError):
-                log.exception("graph process: keyframe %s/%s seq %d failed", vehicle, session, seq)
-            reason = f"{type(exc).__name__}: {exc}"
-            conn.send(("refused", map_name, vehicle, session, seq, reason, time.perf_counter() - t0))
-            continue
-        conn.send((*update, time.perf_counter() - t0))
-        shared = None if join is None or join == map_name else maps.get(join)
-        if shared is None and join is not None and join != map_name and message[-2] is not None:
-            shared = maps[join] = new_map(join)  # GNSS fixes alone can place it: a graph for them
-        if shared is None:  # (no session with priors, or with fixes, has made the shared map's graph yet)
-            continue
-        # A session without priors, in a map of its own: the same keyframe, unplaced, in the shared
-        # map's graph, which places it once two registrations against its keyframes agree.
-        t0 = time.perf_counter()
-        try:
-            update = shared.add(message, joining=True)
-        except Exception:  # (it was taken by its own map's graph: a bug)
-            log.exception(
-                "graph process: keyframe %s/%s seq %d not offered to map %s", vehicle, session, seq, join
-            )
-            continue
-        conn.send((*update, time.perf_counter() - t0))
-
-
-# ------------------------------------------------------------------------- service side
-@dataclass
-class _Keyframe:
-    seq: int
-    index: int
-    stamp_s: float
-    live: np.ndarray
-    optimized: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class GraphLoop:
-    """One loop verification between two keyframes ``(vehicle, session, seq)``."""
-
-    a: tuple[str, str, int]
-    b: tuple[str, str, int]
-    source: str
-    confident: bool
-    accepted: bool
-    reason: str
-    n_inliers: int
-
-
-@dataclass
-class GraphState:
-    """What the service knows of the graph: read by HTTP, written by the receiver thread."""
-
-    map: str
-    revision: int = 0
-    keyframes: dict[SessionKey, dict[int, _Keyframe]] = field(default_factory=dict)
-    loops: list[GraphLoop] = field(default_factory=list)
-    placed: set[SessionKey] = field(default_factory=set)
-    n_refused: int = 0
-    #: Sessions without priors placed into this map by the graph: ``T_map_session`` (the pose of
-    #: their own frame, which their answers stay in, in this map's).
-    joined: dict[SessionKey, np.ndarray] = field(default_factory=dict)
-
-    def session_keyframes(self, key: SessionKey) -> list[_Keyframe]:
-        return sorted(self.keyframes.get(key, {}).values(), key=lambda k: k.index)
-
-
-def correct_trajectory(
-    poses: np.ndarray,
-    indices: np.ndarray,
-    live: np.ndarray,
-    optimized: np.ndarray,
-    outside: np.ndarray | None = None,
-) -> np.ndarray:
-    """Per-sweep poses moved with their keyframes' corrections.
-
-    ``poses`` (N, 4, 4) are the live per-sweep poses; the keyframes are sweeps ``indices`` (K,)
-    (increasing) with live poses ``live`` and optimized poses ``optimized`` (K, 4, 4). Each
-    keyframe's correction ``C_k = optimized_k @ inv(live_k)`` is interpolated between the two
-    keyframes around a sweep (translation linearly, rotation by slerp, over the sweep index) and
-    applied on the left; sweeps before the first or after the last keyframe take its correction,
-    or, with ``outside`` (4x4: the frame change alone, e.g. a join's ``T_map_session``), are
-    only moved by it: live, uncorrected (:func:`corrected_mask` says which).
-    """
-    poses = np.asarray(poses, dtype=np.float64)
-    if len(indices) == 0 or len(poses) == 0:
-        return poses.copy()
-    if outside is not None:
-        out = correct_trajectory(poses, indices, live, optimized)
-        beyond = ~corrected_mask(len(poses), indices)
-        out[beyond] = outside @ poses[beyond]
-        return out
-    C = optimized @ np.linalg.inv(live)
-    n = len(poses)
-    at = np.clip(np.arange(n, dtype=np.float64), indices[0], indices[-1])
-    if len(indices) == 1:
-        out = C[0] @ poses
-        return out
-    t = np.interp(at, indices.astype(np.float64), np.arange(len(indices), dtype=np.float64))
-    lo = np.minimum(np.floor(t).astype(int), len(indices) - 2)
-    w = (t - lo)[:, None]
-    trans = (1 - w) * C[lo, :3, 3] + w * C[lo + 1, :3, 3]
-    rotations = Rotation.from_matrix(C[:, :3, :3])
-    rot = Slerp(np.arange(len(indices), dtype=np.float64), rotations)(t).as_matrix()
-    Ci = np.tile(np.eye(4), (n, 1, 1))
-    Ci[:, :3, :3] = rot
-    Ci[:, :3, 3] = trans
-    return Ci @ poses
-
-
-def corrected_mask(n: int, indices: np.ndarray) -> np.ndarray:
-    """Which of ``n`` sweeps lie between two keyframes the graph holds (or are one): those a
-    correction is interpolated for; the others are beyond what the graph knows of the session."""
-    at = np.arange(n)
-    if len(indices) == 0:
-        return np.zeros(n, dtype=bool)
-    return (at >= indices[0]) & (at <= indices[-1])
-
-
-def wants_keyframe(poses: list[np.ndarray], last_keyframe: np.ndarray | None, keyframe_m: float) -> bool:
-    """The keyframe rule: a session's next sweep is a keyframe when it is its first, or when it is
-    expected to reach ``keyframe_m`` from the last keyframe (the last pose's distance plus the
-    last step). Also bench/offline.py's, to ask for keyframes where the service would."""
-    if last_keyframe is None or not poses:
-        return True
-    step = float(np.linalg.norm(poses[-1][:3, 3] - poses[-2][:3, 3])) if len(poses) > 1 else 0.0
-    return float(np.linalg.norm(poses[-1][:3, 3] - last_keyframe[:3, 3])) + step >= keyframe_m
 
 
 class ServiceGraph:
@@ -823,7 +235,7 @@ class ServiceGraph:
                 key = (vehicle, session)
                 self._session_map.setdefault(key, map_name)  # (a join moves it, as it did)
                 st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
-                st.keyframes.setdefault(key, {})[index] = _Keyframe(seq, index, stamp_s, T_live.copy())
+                st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
                 self._last[key] = T_live
         log.info("pose graph: %d keyframes to take again from %s", len(records), self._log.path)
         with self._cond:
@@ -891,7 +303,7 @@ class ServiceGraph:
         return True
 
     def _stamp_of(self, item: tuple[Any, ...]) -> float:
-        """The stamp of a keyframe item (the service keeps it beside, in its ``_Keyframe``)."""
+        """The stamp of a keyframe item (the service keeps it beside, in its ``Keyframe``)."""
         _, map_name, vehicle, session, _seq, index = item[:6]
         with self._lock:
             for name in (map_name, self._session_map.get((vehicle, session))):
@@ -1006,7 +418,7 @@ class ServiceGraph:
             receiver.start()
             started = time.monotonic()
             self._metrics.graph_up.set(1)
-            self.raised = self.escalated = False  # a new process starts at SCHED_IDLE (_lowest_priority)
+            self.raised = self.escalated = False  # a new process starts at SCHED_IDLE (lowest_priority)
             while proc.is_alive() and not self._closed:
                 multiprocessing.connection.wait([proc.sentinel], timeout=0.5)
                 self._guard_starvation(proc.pid)
@@ -1055,7 +467,7 @@ class ServiceGraph:
         ctx = multiprocessing.get_context("spawn")
         conn, child = ctx.Pipe()
         proc = ctx.Process(
-            target=_graph_main,
+            target=graph_main,
             args=(child, self.settings, self.geometry, self.refold_s, os.getpid(), self._spill),
             name="randt-graph",
             daemon=True,
@@ -1247,7 +659,7 @@ class ServiceGraph:
                 join = None
             self._session_map[key] = map_name
             st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
-            st.keyframes.setdefault(key, {})[index] = _Keyframe(seq, index, stamp_s, T_live.copy())
+            st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
         item = ("keyframe", map_name, vehicle, session, seq, index, T_live, points, intensity, gnss, join)
         with self._cond:
             if self._closed:
@@ -1377,7 +789,7 @@ class ServiceGraph:
         if kind == "update" and publish:
             m.graph_keyframes.labels("added").inc()
         m.graph_update_seconds.observe(elapsed)
-        by_session: dict[SessionKey, list[_Keyframe]] = {}
+        by_session: dict[SessionKey, list[Keyframe]] = {}
         joins: list[tuple[SessionKey, np.ndarray]] = []
         with self._lock:
             st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))

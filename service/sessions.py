@@ -27,8 +27,9 @@ from randt.service.answers import Answers, Outbox
 from randt.service.capacity import Capacity, CapacityFigures
 from randt.service.counters import Counters
 from randt.service.georef import MapProjections
-from randt.service.graph import MapGeometry, ServiceGraph
+from randt.service.graph import ServiceGraph
 from randt.service.graph_log import GRAPH_DIRNAME
+from randt.service.graph_process import MapGeometry
 from randt.service.live_maps import LiveMaps
 from randt.service.matchers import MatcherExecutor, MatcherPool
 from randt.service.metrics import ServiceMetrics

@@ -22,14 +22,8 @@ from scipy.spatial import cKDTree
 
 from randt.core.fleet_map import FleetMapSettings
 from randt.core.transforms import invert, transform_error, umeyama
-from randt.service.graph import (
-    MAX_TILE_SPAN,
-    GraphState,
-    MapGeometry,
-    ServiceGraph,
-    _ProcessMap,
-    correct_trajectory,
-)
+from randt.service.graph import GraphState, ServiceGraph, correct_trajectory
+from randt.service.graph_process import MAX_TILE_SPAN, MapGeometry, ProcessMap
 from randt.service.metrics import ServiceMetrics
 from randt.service.transport import ZenohTransport
 from randt.sim.drive import Motion, SimScan, plan_fleet, simulate
@@ -86,7 +80,7 @@ def test_the_tiles_a_keyframe_touches_are_counted_exactly() -> None:
     from randt.core.fleet_map import FleetMapSettings
     from randt.core.transforms import make_transform
 
-    pm = _ProcessMap(
+    pm = ProcessMap(
         "m", FleetMapSettings(), MapGeometry(tile_size_m=20, voxel_size_m=0.5, max_points_per_voxel=1)
     )
     rng = np.random.default_rng(3)
@@ -104,7 +98,7 @@ def test_the_tiles_a_keyframe_touches_are_counted_exactly() -> None:
 def test_the_graph_process_says_which_keyframes_it_holds() -> None:
     """Each keyframe the graph takes is reported once: as held (where it was answered) or moved;
     one it refuses is not reported, so the service corrects nothing from it."""
-    pm = _ProcessMap(
+    pm = ProcessMap(
         "m", FleetMapSettings(), MapGeometry(tile_size_m=20, voxel_size_m=0.5, max_points_per_voxel=1)
     )
     rng = np.random.default_rng(5)
@@ -125,7 +119,7 @@ def test_poses_beyond_the_keyframes_the_graph_holds_are_served_live_and_marked()
     """Issue 32: a trajectory is corrected only from keyframes the graph holds. Sweeps before the
     first or after the newest one (the graph dropped them under load, or has not taken them yet)
     are served live, moved only by the frame change given (a join's T_map_session), and marked."""
-    from randt.service.graph import corrected_mask
+    from randt.service.graph_state import corrected_mask
 
     poses = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
     indices = np.array([5, 15])
@@ -152,7 +146,7 @@ def _joining(sent: list[CorrectionMessage]) -> tuple[ServiceGraph, tuple[str, st
     """A service's graph view before a join: ``gnss/d1`` placed in ``default``, ``nognss/d1`` in its
     own map with keyframes 0, 10 and 20 of a 30-sweep drive (``live``), to be placed in
     ``default`` at ``T_map_session``; ``(graph, key, T_map_session, live)``."""
-    from randt.service.graph import _Keyframe
+    from randt.service.graph_state import Keyframe
 
     graph = ServiceGraph(FleetMapSettings(), sent.append, ServiceMetrics(), yield_to_matchers=False)
     key = ("nognss", "d1")
@@ -161,7 +155,7 @@ def _joining(sent: list[CorrectionMessage]) -> tuple[ServiceGraph, tuple[str, st
     graph._session_map[key] = "nognss.d1"
     graph._states["nognss.d1"] = GraphState(
         "nognss.d1",
-        keyframes={key: {i: _Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
+        keyframes={key: {i: Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
         placed={key},
     )
     graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
@@ -175,7 +169,7 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     other vehicle's). Its corrected trajectory must come from the keyframes the graph holds, in
     the shared map's frame: it used to take such a keyframe's live pose (its own frame) as
     optimized, and the corrected trajectory was 31 m off on average, 106 m at worst."""
-    from randt.service.graph import _Keyframe
+    from randt.service.graph_state import Keyframe
 
     sent: list[CorrectionMessage] = []
     graph, key, T_map_session, live = _joining(sent)
@@ -185,7 +179,7 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
     assert graph.joined(*key) is not None
     # its next keyframe, in the shared map now: held where it was answered (no correction)
-    graph._states["default"].keyframes[key][29] = _Keyframe(29, 29, 2.9, live[29])
+    graph._states["default"].keyframes[key][29] = Keyframe(29, 29, 2.9, live[29])
     held = [("nognss", "d1", 29, 29, T_map_session @ live[29])]
     graph._apply(("update", "default", 4, [], held, 0, [], placed, 0.01))
     corrected, graph_map = graph.corrected(*key, live)
@@ -770,7 +764,7 @@ def _state(pid: int, settle_s: float = 1.0) -> str:
 def test_the_yield_gate_holds_the_process_while_sweeps_are_matched() -> None:
     import subprocess
 
-    from randt.service.graph import YieldGate
+    from randt.service.graph_priority import YieldGate
 
     proc = subprocess.Popen(["sleep", "60"])
     try:
@@ -808,7 +802,7 @@ def test_the_yield_gate_never_signals_a_process_that_is_gone() -> None:
     neither failed nor counted as a hold."""
     import subprocess
 
-    from randt.service.graph import YieldGate
+    from randt.service.graph_priority import YieldGate
 
     proc = subprocess.Popen(["sleep", "60"])
     gate = YieldGate()
@@ -823,7 +817,7 @@ def test_the_yield_gate_never_signals_a_process_that_is_gone() -> None:
 
 def test_a_held_graph_process_dies_with_the_service() -> None:
     """A stopped process cannot exit by itself: the graph process asks for SIGKILL when its
-    parent dies (``_die_with_parent``), so a killed service leaves no stopped graph behind."""
+    parent dies (``die_with_parent``), so a killed service leaves no stopped graph behind."""
     import os
     import signal
     import subprocess
@@ -831,9 +825,9 @@ def test_a_held_graph_process_dies_with_the_service() -> None:
 
     program = (
         "import multiprocessing as mp, sys, time\n"
-        "from randt.service.graph import _die_with_parent\n"
+        "from randt.service.graph_priority import die_with_parent\n"
         "def child():\n"
-        "    _die_with_parent()\n"
+        "    die_with_parent()\n"
         "    time.sleep(60)\n"
         "if __name__ == '__main__':\n"
         "    p = mp.get_context('fork').Process(target=child, daemon=True)\n"

@@ -189,7 +189,7 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     """A session without priors that joined the shared map lives in that map's graph at its
     ``T_map_session``: the new process is told so before any keyframe, and the map's revision
     and loop records go on from where the service had them."""
-    from randt.service.graph import GraphLoop, GraphState
+    from randt.service.graph_state import GraphLoop, GraphState
 
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     T = np.eye(4)
