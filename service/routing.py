@@ -1,6 +1,7 @@
 """From the intake to a session: each scan's header decoded at bounded cost, admission, the
 sequence check, and the session's queue, or the opening of a new session on an opener thread
-(``docs/architecture.md``, "One scan"). Never waits for a store read or a matcher."""
+(``docs/architecture.md``, "One scan, through the service"). Never waits for a store read or a
+matcher."""
 
 from __future__ import annotations
 

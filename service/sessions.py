@@ -1,12 +1,10 @@
-"""The session manager: routes each scan from the intake to its session's worker, opens and
-closes sessions, and runs the flusher that saves them and the maps.
+"""The session manager: builds the rooms a scan passes through, runs the flusher that saves the
+sessions and the maps, the maps' lifecycle, and what status asks.
 
-A scan's way (``docs/architecture.md``, "One scan"): the transport callback hands its bytes to
-:meth:`SessionManager.submit` (:mod:`randt.service.intake` queues them); an intake worker calls
-:meth:`SessionManager.handle`: the header decoded at bounded cost, admission
-(:mod:`randt.service.admission`), the sequence check, the session's queue (an opener thread opens
-a new session meanwhile: :mod:`randt.service.opener`); the session's worker
-(:mod:`randt.service.worker`) does the rest. Every scan gets exactly one answer.
+A scan's way (``docs/architecture.md``, "One scan, through the service"): the transport callback
+hands its bytes to :mod:`randt.service.routing` (intake, header, admission, seq check, the
+session's queue or its opening); the session's worker (:mod:`randt.service.worker`) does the
+rest. Every scan gets exactly one answer.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """One session's worker: its bounded queue, its thread, its matcher, and the stages one scan
-passes through, each answered exactly once (``docs/architecture.md``, "One scan").
+passes through, each answered exactly once (``docs/architecture.md``, "One scan, through the
+service").
 
 The worker sees only the collaborators it uses (:class:`WorkerServices`): the live maps, the
 store's pose log, the answers, the pose graph, the capacity; never the session manager.
@@ -313,7 +314,7 @@ class SessionWorker:
 
     def _fix_frame(self, has_prior: bool) -> None:
         """Set the session's frame from its first processed scan: with a prior it lives in the
-        shared map's frame, without one in its own (docs/api.md, "Frames")."""
+        shared map's frame, without one in its own (docs/architecture.md, "Sessions and frames")."""
         info, s = self.info, self.services
         frame: SessionFrame = "map" if has_prior else "session"
         if info.frame == frame:
