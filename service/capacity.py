@@ -252,3 +252,11 @@ class Capacity:
             f"of service CPU per sweep) and a new session at {self.rate_hz:g} Hz needs "
             f"{100 * f.new_session_load:.0f} % more: send again in {self.retry_after_s:g} s, or add capacity"
         )
+
+
+def saturated(capacity: Capacity | None, running: Callable[[], Collection[Hashable]]) -> bool:
+    """Whether the node is past what admission may fill (the ``running`` sessions' measured load
+    above 1; always without capacity admission): only then does a session that is behind let its
+    keyframe model lag. Within capacity a backlog clears by itself, and a session whose model never
+    lags gets the offline matcher's poses to the digit."""
+    return capacity is None or capacity.figures(running()).load > 1.0

@@ -9,6 +9,7 @@ rest. Every scan gets exactly one answer.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -22,7 +23,7 @@ from randt.core.errors import ConflictError, NotFoundError, RandtError, Unavaila
 from randt.core.geo import GeoOrigin
 from randt.service.admission import Admission
 from randt.service.answers import Answers, Outbox
-from randt.service.capacity import Capacity, CapacityFigures
+from randt.service.capacity import Capacity, CapacityFigures, saturated
 from randt.service.counters import Counters
 from randt.service.georef import MapProjections
 from randt.service.graph import ServiceGraph
@@ -138,7 +139,7 @@ class SessionManager:
             graph=self.graph,
             capacity=self.capacity,
             in_process=self.pool is None,
-            saturated=self.saturated,
+            saturated=functools.partial(saturated, self.capacity, self.table.keys),
             map_in_use=self.table.map_in_use,
             save=self.saver.save,
             leave=self.table.leave,
@@ -289,11 +290,8 @@ class SessionManager:
         m.capacity_service_cpu_seconds.set(f.service_cpu_s)
 
     def saturated(self) -> bool:
-        """Whether the node is past what admission may fill (the running sessions' measured load
-        above 1; always without capacity admission): only then does a session that is behind let
-        its keyframe model lag."""
-        f = self.capacity_figures()
-        return f is None or f.load > 1.0
+        """Whether the node is past what admission may fill (:func:`randt.service.capacity.saturated`)."""
+        return saturated(self.capacity, self.table.keys)
 
     def capacity_figures(self) -> CapacityFigures | None:
         """The node's capacity as measured now (``/status``), or None without capacity admission."""
