@@ -7,7 +7,7 @@ it to place and supervise the matchers. Zenoh stays the data plane between vehic
 service; each sweep goes from the service to its session's host and back over the host's socket
 (or, with transport ``"ray"``, in a Ray call).
 
-The shape, next to the local executor (:class:`randt.service.matchers.MatcherPool`)::
+The shape, next to the local executor (:class:`randt.service.matcher_pool.MatcherPool`)::
 
     hosts     -> RayMatcherPool(): one matcher host actor (``_MatcherHost``) per CPU of every live
                  node that has CPUs, 0 CPUs reserved, pinned to its node (node affinity), never
@@ -16,12 +16,13 @@ The shape, next to the local executor (:class:`randt.service.matchers.MatcherPoo
                  the next session's open
     connect   -> (transport "socket", the default) each host listens on its node's address with a
                  secret the service gave it through Ray; the service connects at the host's first
-                 use and speaks the local executor's protocol (randt.service.matchers.serve_requests)
+                 use and speaks the local executor's protocol (service/matcher_host.py)
     open      -> RayMatcherPool.open(key, state, grid, settings, registration): the session's
                  matcher on the host with fewest sessions, on the node with fewest per CPU
-    register  -> RayMatcher.register: one request per sweep, waited for; unless the session is
-                 behind, the host rebuilds a keyframe's model on a thread beside the answer, and
-                 the session's next request waits for it (as in a matcher process)
+    register  -> RayMatcher.register_payload: one request per sweep (the payload's bytes; the
+                 host decodes them), waited for; unless the session is behind, the host rebuilds
+                 a keyframe's model on a thread beside the answer, and the session's next request
+                 waits for it (as in a matcher process)
     errors    -> an exception raised in the host is raised again as itself; a closed connection,
                  or a late answer from a host that Ray reports dead (a node whose machine died
                  cannot close its sockets), is a MatcherProcessDiedError, which the session layer
@@ -31,11 +32,9 @@ The shape, next to the local executor (:class:`randt.service.matchers.MatcherPoo
                  for seconds, and a fresh host there fails too)
 
 Why hosts rather than one actor per session: a new actor is a new process that loads the kernels,
-and the session's first sweeps queue behind it for a second or two (bench/service.py: the
-largest latency of a Ray run was that wait). Why a socket rather than a Ray call per sweep: a Ray
-call cost 2.56 ms and 1.4 + 1.3 ms of CPU where the socket takes 0.79 ms and 0.47 + 0.42 ms
-(bench/ray_call.py, a 630 kB sweep and a 448 kB answer), on the cores the matchers need; Ray's
-compiled graphs were as fast but spin a core per idle host.
+and the session's first sweeps would queue behind it. Why a socket rather than a Ray call per
+sweep: the socket costs a fraction of a Ray call's time and CPU (bench/ray_call.py), on the cores
+the matchers need; Ray's compiled graphs were as fast but spin a core per idle host.
 
 Nothing here is imported unless ``executor="ray"`` (``pip install "randt-fleet[ray]"``).
 """
@@ -58,28 +57,16 @@ import numpy as np
 
 from randt.core.config import RegistrationSettings
 from randt.core.errors import RandtError
-from randt.core.odometry import MatcherSettings, PosePrior
+from randt.core.odometry import MatcherSettings
 from randt.core.tiles import TileGrid
-from randt.service.matchers import (
-    _READY,
-    ForwardingMatcher,
-    MapFrame,
-    MatcherProcessDiedError,
-    Registered,
-    _Channel,
-    _Sessions,
-    serve_requests,
-    single_threaded_blas,
-    warm_up,
-)
-from randt.wire.messages import WireLimits
-from randt.wire.ros2 import Ros2Scan
+from randt.service.matcher_host import READY, _Sessions, serve_requests, warm_up
+from randt.service.matcher_io import Key, MatcherProcessDiedError
+from randt.service.matcher_pool import Channel, ForwardingMatcher
+from randt.service.processes import single_threaded_blas
 
 __all__ = ["RayMatcher", "RayMatcherPool"]
 
 log = logging.getLogger(__name__)
-
-Key = tuple[str, str]
 
 
 class ConfigurationError(RandtError):
@@ -87,17 +74,16 @@ class ConfigurationError(RandtError):
 
 
 #: Ray settings (environment variables) for the per-sweep call: the sweep and its answer travel
-#: inline in the call rather than through Ray's object store (Ray's own CPU 4.8 -> 1.2 ms per
-#: sweep), and no task events or metrics are recorded per call (the service has its own; the
-#: call's CPU in the service 1.57 -> 1.18 ms, measured with a 630 kB sweep and a 448 kB answer).
+#: inline in the call rather than through Ray's object store (less of Ray's own CPU per sweep),
+#: and no task events or metrics are recorded per call (the service has its own).
 RAY_ENV = {
     "RAY_max_direct_call_object_size": str(8 << 20),
     "RAY_task_rpc_inlined_bytes_limit": str(16 << 20),
     "RAY_task_events_report_interval_ms": "0",
     "RAY_enable_metrics_collection": "0",
-    # Ray starts its workers at nice 15: a matcher host then yields its core to the service
-    # and every other process (two vehicles on two cores: 1.2-1.3x the local executor's mean
-    # latency, with the same CPU). The matchers are the work; they run at the service's priority.
+    # Ray starts its workers at nice 15: a matcher host then yields its core to the service and
+    # every other process, and the sweeps wait. The matchers are the work; they run at the
+    # service's priority.
     "RAY_worker_niceness": "0",
 }
 
@@ -109,11 +95,11 @@ class _MatcherHost:
     """Several sessions' :class:`~randt.core.odometry.IncrementalMatcher` in one Ray worker process,
     one request at a time (wrapped by ``ray.remote`` in :class:`RayMatcherPool`, so that importing
     this module needs no Ray): the actor counterpart of a local matcher process
-    (:func:`randt.service.matchers._serve`), warmed up the same way when it starts.
+    (:func:`randt.service.matcher_host.serve_process`), warmed up the same way when it starts.
 
     Two ways in, one per pool (``transport``): the service's socket (:meth:`listen`: the local
-    executor's protocol, :func:`randt.service.matchers.serve_requests`, on a connection of its own), or
-    a Ray call per request (:meth:`call`, the same requests)."""
+    executor's protocol, :func:`randt.service.matcher_host.serve_requests`, on a connection of its
+    own), or a Ray call per request (:meth:`call`, the same requests)."""
 
     def __init__(self) -> None:
         single_threaded_blas()
@@ -173,7 +159,7 @@ class _MatcherHost:
             conn.close()
             return
         try:
-            conn.send(_READY)
+            conn.send(READY)
             serve_requests(conn, self.sessions)
         except (EOFError, OSError):
             pass
@@ -182,7 +168,7 @@ class _MatcherHost:
 
     # -- Ray calls ----------------------------------------------------------------------------------
     def call(self, op: str, key: Key, *args: Any) -> Any:
-        """One request of :func:`randt.service.matchers.serve_requests`' protocol as a Ray call
+        """One request of :func:`randt.service.matcher_host.serve_requests`' protocol as a Ray call
         (transport "ray"): a keyframe's model is rebuilt on a thread beside the answer, and the
         session's next request waits for it, as in a matcher process. One remote call per sweep."""
         return self.sessions.handle(op, key, args)
@@ -211,7 +197,7 @@ def _no_delay(conn: Connection) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
-class _SocketChannel(_Channel):
+class _SocketChannel(Channel):
     """The service's connection to a matcher host's socket. A host on another machine that dies
     with its machine cannot close the connection: while an answer is late, the host is asked
     through Ray whether it still lives (Ray notices dead nodes)."""
@@ -242,7 +228,7 @@ ANSWER_CHECK_S = 2.0
 CONNECT_TIMEOUT_S = 10.0
 #: After a host dies, its node gets no new host and no session for this long while another node
 #: can take them: Ray may still report a node alive for seconds after its machine died, and a
-#: session resumed on a new host there failed a second time (seen in CI under load).
+#: session resumed on a new host there would fail a second time.
 SUSPECT_NODE_S = 60.0
 
 
@@ -265,7 +251,7 @@ Transport = Literal["socket", "ray"]
 
 class RayMatcherPool:
     """The Ray executor (module docstring): the same interface as
-    :class:`randt.service.matchers.MatcherPool`.
+    :class:`randt.service.matcher_pool.MatcherPool`.
 
     ``address``: a running cluster's (``ray://`` or ``host:port``); None starts a local Ray (or
     joins the one this process already initialized). A cluster that does not answer yet (its head
@@ -273,9 +259,9 @@ class RayMatcherPool:
 
     ``transport``: how a sweep reaches its host. ``"socket"`` (the default): over a TCP connection
     from the service to each host (the local executor's protocol, authenticated with a secret
-    handed over through Ray; Ray places and supervises the hosts): 0.79 ms per call where a Ray
-    call takes 2.56 ms (bench/ray_call.py), and the service must reach the nodes' addresses on
-    ephemeral ports. ``"ray"``: every sweep a Ray actor call (only Ray's own ports needed)."""
+    handed over through Ray; Ray places and supervises the hosts): a fraction of a Ray call's
+    cost (bench/ray_call.py), and the service must reach the nodes' addresses on ephemeral ports.
+    ``"ray"``: every sweep a Ray actor call (only Ray's own ports needed)."""
 
     def __init__(
         self, address: str | None = None, transport: Transport = "socket", join_timeout_s: float = 60.0
@@ -498,13 +484,14 @@ class RayMatcherPool:
 
 
 class RayMatcher(ForwardingMatcher):
-    """A session's matcher in a Ray actor: the interface of :class:`randt.service.matchers.RemoteMatcher`."""
+    """A session's matcher in a Ray actor: the interface of
+    :class:`randt.service.matcher_pool.RemoteMatcher`, over the host's socket or a Ray call."""
 
     def __init__(
         self, pool: RayMatcherPool, host: _Host, key: Key, state: dict[str, np.ndarray] | None
     ) -> None:
         self._pool, self._host, self._key = pool, host, key
-        self.poses: list[np.ndarray] = [] if not state else list(np.asarray(state["poses"]).reshape(-1, 4, 4))
+        super().__init__(state)
 
     def _call(self, op: str, *args: Any) -> Any:
         """``op`` on the session's host, over its socket or as a Ray call (the pool's transport):
@@ -533,50 +520,6 @@ class RayMatcher(ForwardingMatcher):
             raise MatcherProcessDiedError(
                 f"the Ray matcher host of session {self._key[0]}/{self._key[1]} is gone: {type(exc).__name__}"
             ) from exc
-
-    def register(
-        self,
-        points_xyz: np.ndarray,
-        *,
-        time_offset_s: np.ndarray | None = None,
-        prior: PosePrior | None = None,
-        stamp_s: float | None = None,
-        behind: bool = False,
-        keyframe_voxel_m: float | None = None,
-        frame: MapFrame | None = None,
-    ) -> Registered:
-        """:meth:`randt.service.matchers.RemoteMatcher.register`, on the session's host."""
-        registered: Registered = self._call(
-            "register", points_xyz, time_offset_s, prior, stamp_s, behind, keyframe_voxel_m, frame
-        )
-        self.poses.append(registered.result.T_world_sensor)
-        return registered
-
-    def register_payload(
-        self,
-        payload: bytes | Ros2Scan,
-        *,
-        limits: WireLimits | None = None,
-        behind: bool = False,
-        keyframe_voxel_m: float | None = None,
-        frame: MapFrame | None = None,
-    ) -> Registered:
-        """:meth:`randt.service.matchers.RemoteMatcher.register_payload`, on the session's host: the
-        payload's bytes travel, the host decodes them."""
-        registered: Registered = self._call(
-            "register_payload", payload, limits, behind, keyframe_voxel_m, frame
-        )
-        self.poses.append(registered.result.T_world_sensor)
-        return registered
-
-    def state_dict(self) -> dict[str, np.ndarray]:
-        state: dict[str, np.ndarray] = self._call("state")
-        return state
-
-    def snapshot_state(self) -> dict[str, np.ndarray]:
-        """:meth:`state_dict` without the trajectory (:func:`randt.service.matchers.without_trajectory`)."""
-        state: dict[str, np.ndarray] = self._call("snapshot")
-        return state
 
     def close(self) -> None:
         """Forget the session in its host (its state should have been saved first)."""

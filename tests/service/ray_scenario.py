@@ -36,6 +36,7 @@ def main() -> None:
     from randt.core.odometry import IncrementalMatcher, MatcherSettings
     from randt.core.tiles import TileGrid
     from randt.core.transforms import invert
+    from randt.service.matchers import scan_payload
     from randt.service.metrics import ServiceMetrics
     from randt.service.ray_executor import RAY_ENV, RayMatcherPool
     from randt.service.sessions import SessionManager
@@ -91,11 +92,13 @@ def main() -> None:
                 for s in scans:
                     xyz = s.points_xyz.astype(np.float32)
                     a = local.register_scan(xyz.astype(np.float64), stamp_s=s.stamp_ns * 1e-9)
-                    registered = remote.register(xyz, stamp_s=s.stamp_ns * 1e-9)
+                    payload = scan_payload(xyz, stamp_ns=s.stamp_ns, seq=s.index)  # (read as stamp_ns * 1e-9)
+                    registered = remote.register_payload(payload)
                     b = registered.result
-                    # what moves per sweep: the call's arguments there, the answer back (pickled;
-                    # the answer carries the points the session's map can keep)
-                    call = (xyz, None, None, s.stamp_ns * 1e-9, None)
+                    # what moves per sweep: the call's arguments there (the payload as the vehicle
+                    # sent it), the answer back (pickled; the answer carries the points the
+                    # session's map can keep)
+                    call = (payload, None, False, None, None)
                     sent_bytes.append(len(pickle.dumps(call, protocol=5)))
                     back_bytes.append(len(pickle.dumps(registered, protocol=5)))
                     n_points.append(len(xyz))

@@ -18,14 +18,14 @@ from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
 from randt.core.scenes import synthetic_room
 from randt.core.tiles import TileGrid
 from randt.core.transforms import invert, make_transform, transform_points
+from randt.service.matcher_host import _Sessions, portable_error
 from randt.service.matchers import (
     LocalMatcher,
     MapFrame,
     MatcherPool,
     MatcherProcessDiedError,
     MatcherProcessError,
-    _portable,
-    _Sessions,
+    scan_payload,
 )
 from randt.service.metrics import ServiceMetrics
 from randt.service.sessions import SessionManager
@@ -35,6 +35,7 @@ from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arr
 
 ROOM = synthetic_room(np.random.default_rng(0), 3000)
 STEP = make_transform(euler_deg=(0.0, 0.0, 2.0), translation=(0.3, 0.05, 0.0))
+PERIOD_NS = 100_000_000  # the sweeps' stamps: one every 0.1 s, as a 10 Hz LiDAR's
 
 
 def _sweeps(n: int) -> list[np.ndarray]:
@@ -44,14 +45,25 @@ def _sweeps(n: int) -> list[np.ndarray]:
     return [transform_points(invert(T), ROOM).astype(np.float32) for T in poses]
 
 
+def _payload(xyz: np.ndarray, seq: int) -> bytes:
+    """Sweep ``seq`` as a vehicle sends it (float32 points, stamped every :data:`PERIOD_NS`)."""
+    return scan_payload(xyz, stamp_ns=seq * PERIOD_NS, seq=seq)
+
+
+def _stamp_s(seq: int) -> float:
+    """Sweep ``seq``'s stamp as the matcher reads it from the payload."""
+    return seq * PERIOD_NS * 1e-9
+
+
 def test_a_remote_matcher_gives_the_in_process_poses_and_state() -> None:
     sweeps = [s.astype(np.float64) for s in _sweeps(5)]
     local = IncrementalMatcher(MatcherSettings())
     pool = MatcherPool(2)
     try:
         remote = pool.open(("v", "s"))
-        for xyz in sweeps:
-            a, b = local.register_scan(xyz), remote.register_scan(xyz)
+        for seq, xyz in enumerate(sweeps):
+            a = local.register_scan(xyz, stamp_s=_stamp_s(seq))
+            b = remote.register_payload(_payload(xyz, seq)).result
             assert a.status == b.status
             np.testing.assert_allclose(b.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(np.array(remote.poses), np.array(local.poses))
@@ -60,8 +72,10 @@ def test_a_remote_matcher_gives_the_in_process_poses_and_state() -> None:
             np.testing.assert_array_equal(state[key], value, err_msg=key)
         resumed = pool.open(("v", "s2"), state)  # restored on the other (least busy) process
         assert resumed.process_index != remote.process_index
-        again = resumed.register_scan(sweeps[-1]).T_world_sensor
-        np.testing.assert_allclose(again, local.register_scan(sweeps[-1]).T_world_sensor, atol=1e-12)
+        n = len(sweeps)
+        again = resumed.register_payload(_payload(sweeps[-1], n)).result.T_world_sensor
+        expected = local.register_scan(sweeps[-1], stamp_s=_stamp_s(n)).T_world_sensor
+        np.testing.assert_allclose(again, expected, atol=1e-12)
     finally:
         pool.close()
 
@@ -95,9 +109,9 @@ def test_keyframe_rebuilds_run_beside_the_answers_and_the_next_sweep_waits_for_t
     sessions, key = _Sessions(), ("v", "s")
     sessions.handle("open", key, (None, (20, 0.2, 1), settings, None))
     cpus = []
-    for xyz in sweeps:
-        expected = local.register_scan(xyz.astype(np.float64))
-        answer = sessions.handle("register", key, (xyz, None, None, None, False, None, None))
+    for seq, xyz in enumerate(sweeps):
+        expected = local.register_scan(xyz.astype(np.float64), stamp_s=_stamp_s(seq))
+        answer = sessions.handle("register_payload", key, (_payload(xyz, seq), None, False, None, None))
         np.testing.assert_allclose(answer.result.T_world_sensor, expected.T_world_sensor, rtol=0, atol=1e-12)
         cpus.append(answer.cpu_s)
     sessions.rebuilds.wait_all()
@@ -163,7 +177,7 @@ def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
     """With the session's map given, the worker process sends back the candidate points only, in
     the map frame as float32, from float32 sweeps (as the wire carries them); the map built from
     them equals the map built from the full in-process float64 result, and the in-process
-    matcher's ``register`` gives every point."""
+    matcher's ``register_payload`` gives every point."""
     sweeps = _sweeps(3)
     local = IncrementalMatcher(MatcherSettings())
     in_process = LocalMatcher(MatcherSettings())
@@ -171,10 +185,10 @@ def test_remote_results_carry_only_the_points_the_map_can_keep() -> None:
     pool = MatcherPool(1)
     try:
         remote = pool.open(("v", "s"), None, reduced)
-        for xyz in sweeps:
-            a = local.register_scan(xyz.astype(np.float64))
-            b = remote.register(xyz)
-            c = in_process.register(xyz)
+        for seq, xyz in enumerate(sweeps):
+            a = local.register_scan(xyz.astype(np.float64), stamp_s=_stamp_s(seq))
+            b = remote.register_payload(_payload(xyz, seq))
+            c = in_process.register_payload(_payload(xyz, seq))
             np.testing.assert_allclose(b.result.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
             assert b.map_xyz.dtype == np.float32 and b.result.deskewed_xyz.shape[0] == 0
             assert 0 < b.map_xyz.shape[0] == b.map_index.shape[0] < a.deskewed_xyz.shape[0]
@@ -205,16 +219,18 @@ def test_a_map_frame_sends_each_voxel_once_moved_by_the_correction() -> None:
     sent, candidates = [], []
     try:
         remote = pool.open(("v", "s"), None, cut)
-        for xyz in sweeps:
-            a = local.register_scan(xyz.astype(np.float64))
-            b = remote.register(xyz, frame=MapFrame(("m", *cut.content_token), C))
+        for seq, xyz in enumerate(sweeps):
+            a = local.register_scan(xyz.astype(np.float64), stamp_s=_stamp_s(seq))
+            b = remote.register_payload(_payload(xyz, seq), frame=MapFrame(("m", *cut.content_token), C))
             np.testing.assert_array_equal(b.correction, C)
             world = transform_points(C @ a.T_world_sensor, a.deskewed_xyz)
             assert full.insert(world) == cut.insert(b.map_xyz)
             sent.append(b.map_xyz.shape[0])
             candidates.append(int(cut.candidate_mask(world).sum()))
         cut.refold(cut.tile_ids()[:1], cut.get(cut.tile_ids()[0]).points)  # the content token moves
-        again = remote.register(sweeps[-1], frame=MapFrame(("m", *cut.content_token), C))
+        again = remote.register_payload(
+            _payload(sweeps[-1], len(sweeps)), frame=MapFrame(("m", *cut.content_token), C)
+        )
     finally:
         pool.close()
     assert full.tile_ids() == cut.tile_ids() and full.n_points == cut.n_points > 1000
@@ -260,10 +276,10 @@ def test_an_error_that_cannot_be_pickled_arrives_as_a_matcher_process_error() ->
     class LocalError(Exception):  # not importable by name: cannot be unpickled by the session
         pass
 
-    sent = _portable(LocalError("boom"))
+    sent = portable_error(LocalError("boom"))
     assert type(sent) is MatcherProcessError and isinstance(sent, RandtError)
     assert str(sent) == f"in matcher process pid {os.getpid()}: LocalError: boom"
-    kept = _portable(DegenerateProblemError("flat", weak_directions=("tz", "rx")))
+    kept = portable_error(DegenerateProblemError("flat", weak_directions=("tz", "rx")))
     back = pickle.loads(pickle.dumps(kept))
     assert type(back) is DegenerateProblemError and back.weak_directions == ("tz", "rx")
     assert issubclass(MatcherProcessDiedError, MatcherProcessError)
@@ -313,7 +329,7 @@ def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
     from multiprocessing import AuthenticationError
     from multiprocessing.connection import Connection, answer_challenge, deliver_challenge
 
-    from randt.service.matchers import _Channel
+    from randt.service.matcher_pool import Channel
     from randt.service.ray_executor import _MatcherHost
 
     host = _MatcherHost()  # warms up here, as in its Ray worker
@@ -337,12 +353,14 @@ def test_a_ray_matcher_host_serves_its_socket_only_to_the_key_holder() -> None:
         assert conn.poll(10), "no handshake: the silent connection keeps the service's out"
         answer_challenge(conn, key)
         deliver_challenge(conn, key)
-        channel = _Channel(conn, "matcher host")
+        channel = Channel(conn, "matcher host")
         channel.call("open", ("v", "s"), None, None, None, None)
         local = IncrementalMatcher(MatcherSettings())
-        for xyz in _sweeps(4):
-            registered = channel.call("register", ("v", "s"), xyz, None, None, None, False, None, None)
-            a = local.register_scan(xyz.astype(np.float64))
+        for seq, xyz in enumerate(_sweeps(4)):
+            registered = channel.call(
+                "register_payload", ("v", "s"), _payload(xyz, seq), None, False, None, None
+            )
+            a = local.register_scan(xyz.astype(np.float64), stamp_s=_stamp_s(seq))
             assert registered.result.status == a.status
             np.testing.assert_allclose(registered.result.T_world_sensor, a.T_world_sensor, rtol=0, atol=1e-12)
         assert channel.call("drop", ("v", "s")) is True

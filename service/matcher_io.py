@@ -1,0 +1,286 @@
+"""What a session and its matcher exchange, wherever the matcher runs: the sweep as a payload
+(:func:`decoded_sweep`, :func:`scan_payload`), where its map points go (:class:`MapFrame`), the
+answer (:class:`Registered`), the matcher's state in a snapshot (:func:`without_trajectory`,
+:func:`with_trajectory`) and the errors of a matcher that runs in another process.
+
+Everything here crosses a pipe or a socket pickled (service/matcher_host.py on the far side), so
+both sides import these classes from this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from randt.core.errors import FormatError, RandtError
+from randt.core.odometry import PosePrior, ScanResult
+from randt.core.tiles import SentVoxels, TileGrid
+from randt.core.transforms import invert, transform_points
+from randt.core.voxel import pack_keys, voxel_coords
+from randt.wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan, encode, scan_from_arrays
+from randt.wire.ros2 import Ros2Scan, sweep_arrays
+
+__all__ = [
+    "TRAJECTORY_LENGTH_KEY",
+    "Key",
+    "MapFrame",
+    "MatcherProcessDiedError",
+    "MatcherProcessError",
+    "Registered",
+    "decoded_sweep",
+    "prior_of",
+    "scan_payload",
+    "with_trajectory",
+    "without_trajectory",
+]
+
+#: A session's key: (vehicle, session).
+Key = tuple[str, str]
+
+
+class MatcherProcessError(RandtError, RuntimeError):
+    """A matcher worker process failed: an error raised there could not be sent back as itself."""
+
+
+class MatcherProcessDiedError(MatcherProcessError):
+    """The worker process holding a session's matcher is gone (the session must be resumed)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MapFrame:
+    """Where a sweep's map points go, as the session thread knows it when it sends the sweep.
+
+    Attributes
+    ----------
+    token:
+        The map's content and identity (its name and :attr:`randt.core.tiles.TileGrid.content_token`):
+        a matcher that knows the map sends only the voxels it has not sent under the same token
+        (:class:`randt.core.tiles.SentVoxels`) and starts over when it changes.
+    correction:
+        The pose graph's newest correction of the session (4x4), which moves the map points
+        before they are folded (``None``: none yet). The matcher applies it with the pose, so
+        the points arrive in the frame they are folded in.
+    seed_xyz:
+        With a session's first sweep that carries a prior: the map's points around the prior
+        (world frame, float32), which the matcher places the sweep against
+        (:meth:`randt.core.odometry.IncrementalMatcher.register_scan`'s ``map_seed``); ``None`` else.
+    prior:
+        The scan's prior in the map frame when the session thread placed it there (a WGS84
+        ``geo_prior``, through the map's geodetic origin: core/geo.py); it replaces the payload's
+        own (which then has none). ``None``: the payload's ``prior``, if any.
+    """
+
+    token: tuple[str, int, int]
+    correction: np.ndarray | None = None
+    seed_xyz: np.ndarray | None = None
+    prior: PosePrior | None = None
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A registered sweep and the points of it that the session's map may keep.
+
+    Attributes
+    ----------
+    result:
+        The matcher's :class:`~randt.core.odometry.ScanResult`. From a matcher process that knows the
+        session's map, its ``deskewed_xyz`` and ``map_index`` are empty: ``map_xyz`` and
+        ``map_index`` below replace them (nothing is sent twice).
+    map_xyz:
+        (M, 3) float32 points in the map frame, ready for :meth:`randt.core.tiles.TileGrid.insert`
+        (which stores float32): the deskewed sweep moved by the pose, cut to the points the map
+        can keep (:meth:`~randt.core.tiles.TileGrid.candidate_mask`) when the map is known; none for
+        a ``fallback`` result (its points are not folded into the map).
+    map_index:
+        (M,) rows of the sweep as sent, for each point of ``map_xyz`` (its intensity).
+    keyframe_xyz, keyframe_index:
+        When asked for (``keyframe_voxel_m``): the sweep's mappable points, deskewed, in the
+        sensor frame, the first of each voxel (real points, float32), for the pose graph and the
+        re-folding of the map (service/graph.py), and their rows in the sweep as sent (their
+        intensity); else ``None``, and always ``None`` for a fallback.
+    map_intensity, keyframe_intensity:
+        The intensity (float32) of each point of ``map_xyz`` and ``keyframe_xyz``, read from the
+        payload where it was decoded; ``None`` when the sweep has none.
+    correction:
+        The correction ``map_xyz`` was moved by (the :class:`MapFrame`'s), ``None`` for none.
+    cpu_s:
+        CPU seconds the matcher's thread spent on this sweep where it ran: decoding, matching, and
+        the keyframe model's rebuild after the session's previous sweep (service/capacity.py).
+    """
+
+    result: ScanResult
+    map_xyz: np.ndarray
+    map_index: np.ndarray
+    keyframe_xyz: np.ndarray | None = None
+    keyframe_index: np.ndarray | None = None
+    map_intensity: np.ndarray | None = None
+    keyframe_intensity: np.ndarray | None = None
+    correction: np.ndarray | None = None
+    cpu_s: float = 0.0
+
+    @classmethod
+    def of(
+        cls,
+        result: ScanResult,
+        grid: TileGrid | None,
+        keyframe_voxel_m: float | None = None,
+        frame: MapFrame | None = None,
+        sent: SentVoxels | None = None,
+    ) -> Registered:
+        """The answer for ``result``: its points in the map frame (float32, moved by the frame's
+        correction), cut to those the map could keep when its sizes are known (``grid``): to the
+        voxels not sent before under the frame's token (``sent``, with a ``frame``), else to the
+        candidates (:meth:`TileGrid.candidate_mask`); and the keyframe's points when
+        ``keyframe_voxel_m`` is given. A fallback keeps no points."""
+        if result.status == "fallback":
+            return cls(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
+        keyframe = keyframe_index = None
+        if keyframe_voxel_m is not None and len(result.deskewed_xyz):
+            keys = pack_keys(voxel_coords(result.deskewed_xyz, keyframe_voxel_m))
+            _, first = np.unique(keys, return_index=True)
+            keyframe = result.deskewed_xyz[first].astype(np.float32)
+            keyframe_index = result.map_index[first]
+        C = None if frame is None else frame.correction
+        T = result.T_world_sensor if C is None else C @ result.T_world_sensor
+        world = transform_points(T, result.deskewed_xyz)
+        if grid is None:
+            return cls(
+                result, world.astype(np.float32), result.map_index, keyframe, keyframe_index, correction=C
+            )
+        keep = (
+            grid.candidate_mask(world) if frame is None or sent is None else sent.admitted(world, frame.token)
+        )
+        slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
+        return cls(
+            slim,
+            world[keep].astype(np.float32),
+            result.map_index[keep],
+            keyframe,
+            keyframe_index,
+            correction=C,
+        )
+
+    def with_intensity(self, intensity: np.ndarray | None) -> Registered:
+        """This answer with the intensities of its map and keyframe points (itself without)."""
+        if intensity is None:
+            return self
+        kf = self.keyframe_index
+        return replace(
+            self,
+            map_intensity=intensity[self.map_index],
+            keyframe_intensity=None if kf is None else intensity[kf],
+        )
+
+    def map_points_under(self, correction: np.ndarray | None) -> np.ndarray:
+        """``map_xyz`` moved from the correction they were sent with to ``correction`` (the
+        pose graph corrected the session while the sweep was matched); ``map_xyz`` itself when
+        the two are equal (``None``: no correction)."""
+        sent = self.correction
+        if correction is sent or (
+            correction is not None and sent is not None and np.array_equal(correction, sent)
+        ):
+            return self.map_xyz
+        C = np.eye(4) if correction is None else correction
+        D = C if sent is None else C @ invert(sent)
+        return transform_points(D, self.map_xyz).astype(np.float32)
+
+
+def decoded_sweep(
+    payload: bytes | Ros2Scan, limits: WireLimits | None, frame: MapFrame | None = None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, PosePrior | None, float]:
+    """A scan payload decoded for the matcher (:func:`randt.wire.messages.decode_scan`: v2 bodies
+    decompressed here; a ROS 2 PointCloud2 by :func:`randt.wire.ros2.sweep_arrays`): ``(xyz float32
+    view, time offsets float32 or None, intensity float32 or None, prior, stamp s)``; the prior is
+    ``frame``'s when it has one (:attr:`MapFrame.prior`). Raises
+    :class:`~randt.core.errors.BadMessageError` as the decoder does."""
+    if isinstance(payload, Ros2Scan):
+        xyz, offsets, intensity, stamp_s = sweep_arrays(payload)
+        return xyz, offsets, intensity, None if frame is None else frame.prior, stamp_s
+    scan = decode_scan(payload, limits)
+    offsets = None if scan.time_offsets is None else np.frombuffer(scan.time_offsets, dtype="<f4")
+    prior = frame.prior if frame is not None and frame.prior is not None else prior_of(scan)
+    return scan.points_f32()[:, :3], offsets, scan.intensity(), prior, scan.stamp_ns * 1e-9
+
+
+def scan_payload(
+    points_xyz: np.ndarray,
+    *,
+    stamp_ns: int,
+    seq: int = 0,
+    time_offset_s: np.ndarray | None = None,
+    prior: PosePrior | None = None,
+    intensity: np.ndarray | None = None,
+    vehicle: str = "v",
+    session: str = "s",
+) -> bytes:
+    """A sweep's arrays as the payload a vehicle sends, for a caller that holds arrays (tests,
+    benchmarks) and a matcher's ``register_payload``: a v1 scan
+    (:func:`randt.wire.messages.scan_from_arrays`), points and time offsets float32 as the wire
+    carries them, the prior's pose and covariance as they are.
+
+    The matcher reads the stamp back as ``stamp_ns * 1e-9`` s (:func:`decoded_sweep`): a caller
+    comparing with an in-process matcher gives it that. Raises
+    :class:`~randt.core.errors.BadMessageError` for a sweep the service would refuse.
+    """
+    message = scan_from_arrays(
+        vehicle,
+        session,
+        seq,
+        stamp_ns,
+        points_xyz,
+        intensity,
+        time_offset_s,
+        None if prior is None else prior.T_world_sensor,
+        None if prior is None else prior.covariance,
+    )
+    return encode(message)
+
+
+def prior_of(scan: ScanMessage | ScanHeader) -> PosePrior | None:
+    """The scan's prior pose (GNSS/INS) with its covariance, if it carries one."""
+    pose = scan.prior_pose()
+    if pose is None:
+        return None
+    cov = scan.prior_covariance()
+    assert cov is not None  # a scan's prior carries both
+    return PosePrior(pose, cov)
+
+
+#: A snapshot's matcher state keeps the number of poses it was taken at under this key, in place
+#: of the poses themselves (:func:`without_trajectory`).
+TRAJECTORY_LENGTH_KEY = "n_poses"
+
+
+def without_trajectory(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """An :meth:`IncrementalMatcher.state_dict <randt.core.odometry.IncrementalMatcher.state_dict>` for a
+    snapshot: its ``poses`` (N, 4, 4), which grow with the session, replaced by N
+    (:data:`TRAJECTORY_LENGTH_KEY`). The store holds the trajectory (every pose is logged before
+    it is published); :func:`with_trajectory` undoes this."""
+    out = {key: value for key, value in state.items() if key != "poses"}
+    n = np.asarray(state["poses"]).reshape(-1, 4, 4).shape[0]
+    out[TRAJECTORY_LENGTH_KEY] = np.array(n, dtype=np.int64)
+    return out
+
+
+def with_trajectory(state: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
+    """The state :meth:`IncrementalMatcher.load_state_dict
+    <randt.core.odometry.IncrementalMatcher.load_state_dict>` takes, from a snapshot's
+    (:func:`without_trajectory`) and the stored trajectory ``poses`` (N, 4, 4): its first
+    ``n_poses`` poses go back in. A state that kept its poses (snapshots written before) is
+    returned as it is.
+
+    Raises
+    ------
+    FormatError
+        The trajectory is shorter than the snapshot's.
+    """
+    if "poses" in state or TRAJECTORY_LENGTH_KEY not in state:
+        return state
+    n = int(state[TRAJECTORY_LENGTH_KEY])
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if not 0 <= n <= poses.shape[0]:
+        raise FormatError(f"the matcher state was taken at {n} poses, the trajectory has {poses.shape[0]}")
+    out = {key: value for key, value in state.items() if key != TRAJECTORY_LENGTH_KEY}
+    out["poses"] = poses[:n].copy()
+    return out
