@@ -24,7 +24,8 @@ import numpy as np
 
 from randt.core.odometry import IncrementalMatcher
 from randt.service.graph_state import wants_keyframe
-from randt.service.matchers import MapFrame, Registered, _Sessions, decoded_sweep
+from randt.service.matcher_host import _Sessions
+from randt.service.matchers import MapFrame, Registered, decoded_sweep
 from randt.service.settings import ServiceSettings
 
 

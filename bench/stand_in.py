@@ -45,9 +45,6 @@ class StandInMatcher:
         self.poses.append(registered.result.T_world_sensor)
         return registered
 
-    def register(self, *args: Any, **kwargs: Any) -> Any:
-        raise NotImplementedError("the stand-in answers payloads only")
-
     def update_model(self) -> float:
         return 0.0
 

@@ -31,7 +31,6 @@ import numpy as np
 from randt.core.config import RegistrationSettings
 from randt.core.odometry import IncrementalMatcher, MatcherSettings
 from randt.core.tiles import TileGrid
-from randt.service.matcher_host import _Sessions as _Sessions  # (bench/offline.py)
 from randt.service.matcher_host import serve_requests, warm_up
 from randt.service.matcher_io import (
     TRAJECTORY_LENGTH_KEY,
