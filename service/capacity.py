@@ -1,32 +1,10 @@
 """What the node can carry: admission by measured capacity.
 
-A session costs the node its scan rate times the CPU each of its sweeps takes, and both are
-measured here, never assumed from a count of sessions:
-
-- **rate**: the scans that *arrive* for the session (``arrived``, at intake: shed scans cost
-  nothing but still say what the vehicle asks for), a moving average of the intervals;
-- **CPU per sweep**: what its matcher spent on each sweep where it runs (``matched``:
-  :attr:`randt.service.matchers.Registered.cpu_s`, the thread's CPU time for decoding, matching and
-  the keyframe model's rebuild after its previous sweep), a moving average;
-- **the service process's own CPU per sweep** (``service_sample``: this process's CPU time over
-  the sweeps matched since the last sample, less what in-process matchers spent in it, plus the
-  pose graph's process's: it runs at the lowest priority, but a node that leaves it no time
-  drops keyframes and its map drifts from the true surfaces: 5.9 -> 14.1 cm p90 in
-  bench/service.py).
-
-The node's load is ``sum(rate * (matcher CPU + service CPU))`` against ``cores * target``, where
-matchers share the node's cores with the service process (local worker processes, or in-process
-matchers on one core); with Ray the matchers' share is measured against the cluster's CPUs and
-the service process's against its one core (its threads share one GIL; the graph's process is
-then counted with it), and the larger of the two fractions is the load. A session that has sent
-nothing for ``idle_s`` costs nothing. A session not measured yet (young, or opening) is counted
-at the expected cost of a new one: ``rate_hz`` (the sensor rate the vehicle library publishes at)
-times the mean CPU per sweep of the measured sessions (of the last measured ones when none runs;
-``sweep_cpu_s`` before any).
-
-:meth:`Capacity.refusal` says why a new session cannot be admitted (its expected cost does not fit
-in what is left) or ``None``; the session manager answers such a scan ``sessions_full`` with
-``retry_after_s``, before the session costs anything.
+A session costs the node the rate its scans arrive at (shed ones too: they say what the vehicle
+asks for) times the CPU each of its sweeps takes, its matcher's (:meth:`Capacity.matched`) plus
+the service process's own, the pose graph's process's counted with it (:meth:`Capacity.service_sample`):
+a node that leaves the graph no time drops keyframes and its map drifts. :meth:`Capacity.refusal`
+says why a new session does not fit, or ``None`` (docs/architecture.md, "Admission").
 """
 
 from __future__ import annotations
@@ -42,8 +20,8 @@ __all__ = ["Capacity", "CapacityFigures"]
 #: Weight of the newest sample in the moving averages.
 ALPHA = 0.2
 #: A session's rate is its own once this many of its scans arrived; its CPU once this many matched
-#: (a session's first sweeps are cheap: its keyframe model is small; counted at them, a burst of
-#: young sessions measured 5 ms a sweep and admitted five vehicles on two cores).
+#: (its first sweeps are cheap, its keyframe model small: counted at them, a burst of young
+#: sessions would look cheaper than they are).
 MIN_ARRIVALS = 5
 MIN_SWEEPS = 20
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
@@ -177,6 +155,9 @@ class Capacity:
 
     # -- the model ------------------------------------------------------------------------------
     def _expected_cpu_s(self) -> float:
+        """What a session not measured yet (young, or opening) is counted at: the measured
+        sessions' mean CPU per sweep, the last measured ones' when none runs, the prior
+        ``sweep_cpu_s`` before any."""
         measured = [
             ld.cpu_s for ld in self._loads.values() if ld.cpu_s is not None and ld.sweeps >= MIN_SWEEPS
         ]
@@ -185,6 +166,7 @@ class Capacity:
         return self._last_cpu_s
 
     def _rate_hz(self, load: _Load, now: float) -> float:
+        """The session's measured scan rate; ``rate_hz`` until measured, 0 once idle ``idle_s``."""
         if load.last_arrival is not None and now - load.last_arrival > self.idle_s:
             return 0.0  # it stopped sending: it costs nothing until it sends again
         if load.arrivals >= MIN_ARRIVALS and load.interval_s:
@@ -197,7 +179,9 @@ class Capacity:
         return max(float(self._cores()), 1.0)
 
     def _share(self, matcher_cores: float, service_cores: float, cores: float) -> float:
-        """Cores used as a share of what admission may fill (1.0: full)."""
+        """Cores used as a share of what admission may fill (1.0: full): matchers and service
+        process together where they share the node's cores; else (Ray) the larger of the
+        matchers' share of the cluster and the service process's of its one core (one GIL)."""
         if self.shares_cores:
             return (matcher_cores + service_cores) / (cores * self.target)
         return max(matcher_cores / (cores * self.target), service_cores / self.target)

@@ -1,21 +1,11 @@
 """Service settings: one pydantic-settings model, every field settable as ``RANDT_<NAME>``.
 
-Lists (``RANDT_LISTEN``, ``RANDT_CONNECT``) take JSON (``'["tcp/127.0.0.1:7447"]'``). The CLI's
-flags (``randt serve --help``) override the environment. ``RANDT_ZENOH_CONFIG`` names a native
-Zenoh config file (TLS, passwords, access control: ``docs/security.md``), read and checked here.
-Settings are built in the app factory (``randt.service.runtime.Service``), never at import time.
-
-Every session's matcher gets two nested groups, one environment variable per field with ``__``
-between group and field:
-
-* ``matcher`` (:class:`randt.core.odometry.MatcherSettings`): ``RANDT_MATCHER__MAX_RANGE_M=80``,
-  ``RANDT_MATCHER__VOXEL_SIZES_M='[8, 4, 2, 1]'`` (JSON for tuples);
-* ``registration`` (:class:`randt.core.config.RegistrationSettings`, what the matcher's NDT uses):
-  ``RANDT_REGISTRATION__MAX_ITERATIONS=20``. Fields not given keep the *matcher's* defaults
-  (:data:`randt.core.odometry.MATCHER_REGISTRATION`: Algorithm 1 and 3 off), not pairwise
-  registration's.
-
-A whole group can also be given as one JSON object (``RANDT_MATCHER='{"max_range_m": 80}'``).
+Lists take JSON (``RANDT_LISTEN='["tcp/127.0.0.1:7447"]'``), and ``randt serve``'s flags override
+the environment. The nested groups ``matcher`` and ``registration`` take ``__`` per field
+(``RANDT_MATCHER__MAX_RANGE_M=80``, tuples as JSON) or one JSON object; registration fields not
+given keep the matcher's defaults (:data:`randt.core.odometry.MATCHER_REGISTRATION`), not pairwise
+registration's. ``RANDT_ZENOH_CONFIG`` is read and checked here (docs/security.md). Built in the
+app factory, never at import time; ``randt config`` lists every field (docs/deploy.md, "Environment").
 """
 
 from __future__ import annotations
@@ -46,10 +36,8 @@ __all__ = ["DEFAULT_ROS2_ROUTER", "DEFAULT_ROS2_TOPICS", "Ros2Settings", "Servic
 
 
 #: The matcher's finest NDT level, in map voxels (:meth:`ServiceSettings.session_matcher`): 1 m
-#: with the default 0.2 m map voxel (``auto_voxel_sizes`` finds 0.7-0.8 m on raw KITTI and
-#: simulated sweeps, 2 m on reduced ones). Measured on 100 reduced simulated sweeps (10 m/s):
-#: 0.8 m cost 96 ms per sweep, 1 m 70 ms, 1.6 m 50 ms; the reduced trajectory was 4.1, 0.5 and
-#: 12.8 cm (ATE) from the raw one matched at the same levels.
+#: with the default 0.2 m map voxel, near what ``auto_voxel_sizes`` finds on raw sweeps; of the
+#: levels tried, the one where reduced sweeps track closest to raw ones, and cheaper than finer.
 NDT_VOXELS_PER_MAP_VOXEL = 5.0
 
 
@@ -234,8 +222,7 @@ class ServiceSettings(BaseSettings):
         default=-1,
         ge=-1,
         description="running sessions at most; a scan that would open one more is refused "
-        "(sessions_full): -1 = 4 per core (8 on 2 cores, which track 8 vehicles at 10 Hz with the "
-        "vehicle library's reduced sweeps, docs/benchmarks.md), 0 = no limit",
+        "(sessions_full): -1 = 4 per core (8 on 2 cores), 0 = no limit",
     )
     capacity_target: float = Field(
         default=0.6,
@@ -254,14 +241,13 @@ class ServiceSettings(BaseSettings):
         gt=0,
         description="matcher CPU per sweep a new session is expected to cost until a session has been "
         "measured (then the measured sessions' mean); 0.09: a reduced simulated sweep's matcher work "
-        "in the service (65-80 ms on a 2-core AMD EPYC, bench/service.py) with room for the service's "
-        "and the pose graph's (17 and 6 ms) until those are measured",
+        "in the service, with room for the service's and the pose graph's until those are measured",
     )
     admission_retry_s: float = Field(
         default=10.0, gt=0, description="retry_after_s told to a vehicle refused for lack of capacity"
     )
     idle_expiry_s: float = Field(default=120.0, gt=0, description="an idle session is saved and closed")
-    # intake and fair admission (service/intake.py, service/sessions.py: Admission)
+    # intake and fair admission (service/intake.py, service/admission.py)
     intake_workers: int = Field(
         default=2, ge=1, description="threads decoding and admitting scans, vehicles served round-robin"
     )
@@ -347,7 +333,7 @@ class ServiceSettings(BaseSettings):
     snapshot_interval_s: float = Field(
         default=30.0,
         gt=0,
-        description="a running session's snapshot (its matcher state, about 10 MB, and its record) is "
+        description="a running session's snapshot (its matcher state and its record) is "
         "written when it opens and ends, and in between at most this often (or after "
         "snapshot_distance_m); its pose log holds every acknowledged pose meanwhile",
     )
@@ -355,9 +341,9 @@ class ServiceSettings(BaseSettings):
         default=20.0,
         ge=0,
         description="a running session's snapshot is also due once its vehicle is this far from where "
-        "the last one was taken: after a crash the session resumes against the snapshot's keyframes "
-        "(a full window matched a sweep 40 m ahead, not 50 m; a first sweep alone 28 m, not 34 m) "
-        "and a recent sweep the flusher saved (resume.npz) (0: by time only)",
+        "the last one was taken: after a crash the session resumes against the snapshot's keyframes, "
+        "which reach only so far (docs/architecture.md, The store), and a recent sweep the flusher "
+        "saved (resume.npz) (0: by time only)",
     )
     tile_save_interval_s: float | None = Field(
         default=None,
@@ -398,7 +384,6 @@ class ServiceSettings(BaseSettings):
         description="every session's NDT levels from map_voxel_m (finest 5 map voxels); false: each "
         "session derives them from its first sweep, as `randt map` does (ServiceSettings.session_matcher)",
     )
-    # wire limits
     # pose graph (service/graph.py, docs/mapping.md)
     graph: bool = Field(
         default=True,
@@ -424,6 +409,7 @@ class ServiceSettings(BaseSettings):
     fleet_map: FleetMapSettings = Field(
         default_factory=FleetMapSettings, description="the pose graph's settings (randt.core.fleet_map)"
     )
+    # wire limits
     max_points: int = Field(default=300_000, ge=1)
     max_payload_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
     # every session's matcher (module docstring: RANDT_MATCHER__<FIELD>, RANDT_REGISTRATION__<FIELD>)
@@ -452,10 +438,9 @@ class ServiceSettings(BaseSettings):
         :data:`NDT_VOXELS_PER_MAP_VOXEL` map voxels (1 m with the default 0.2 m map voxel; the
         levels are (16r, 8r, 4r, 2r, r)). The matcher alone would derive them from a session's
         first sweep (``auto_voxel_sizes``), and that estimate depends on the sweep's point density:
-        a sweep the vehicle library reduced to one point per map voxel gives r = 2 m where its raw
-        sweep gives 0.7-0.8 m, and coarser levels put the reduced session's trajectory 3.3-4.7 cm
-        off the raw one's (bench/link.py). Tied to the map, raw and reduced sweeps match at the
-        same scale.
+        a sweep the vehicle library reduced gets coarser levels than its raw sweep, which put the
+        reduced session's trajectory off the raw one's (docs/benchmarks.md, "Vehicle link"). Tied
+        to the map, raw and reduced sweeps match at the same scale.
         """
         given = self.matcher.voxel_sizes_m is not None or self.registration.voxel_sizes_m is not None
         if given or not self.ndt_levels_from_map:
