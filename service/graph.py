@@ -1,45 +1,10 @@
 """The pose graphs in the service: loop closure and GNSS fusion beside the live answers.
 
-Flow of a keyframe::
-
-    SessionWorker, after a pose is durable --> ServiceGraph.offer: every ``graph_keyframe_m`` of
-        travel (and a session's first sweep), the sweep's points (sensor frame, float32), its
-        live pose and its prior's position --> bounded queue (``graph_queue``, oldest dropped)
-    sender thread --> the graph process (one, at SCHED_IDLE: the matchers come first) -->
-        one randt.core.fleet_map.FleetMapper per map: placement, place recognition, global
-        registration, iSAM2 (docs/mapping.md)
-    graph process --> after each keyframe: the keyframes that moved since last reported (more
-        than ``MOVE_TOL_M`` / ``MOVE_TOL_DEG``), the keyframes it newly holds where they were
-        answered, the new loop verifications, the placed sessions;
-        at most every ``graph_refold_s``, in a pause between keyframes: the tiles of the keyframes
-        that moved, re-folded (SessionManager.refold_tiles swaps them in)
-    receiver thread --> GraphState (per session: each keyframe's live and optimized pose) -->
-        one CorrectionMessage per session that moved, to the outbox (``randt/fleet/<vehicle>/
-        correction``), and what ``GET /maps/{map}/graph`` and ``trajectory?corrected=true`` serve
-
-Why a process: one keyframe costs the graph about 0.3 s when it verifies a loop candidate (FPFH,
-matching, the clique, GNC, NDT), mostly Python glue between numpy calls; on a thread it would hold
-the GIL against the session threads and push up every vehicle's per-sweep latency. The process
-runs at the lowest priority (``SCHED_IDLE``, :func:`_lowest_priority`) so that on a busy machine
-the matchers win; when it falls behind, its queue drops the oldest keyframes.
-
-A session's keyframes go to the graph of its map, where it is placed at once: its poses are in
-its map's frame already (a session with priors lives in the shared map ``default_map``, anchored
-by its first prior; one without has its own map). Each prior's position enters the graph as a
-GNSS factor. A session without priors also offers its keyframes, unplaced, to the shared map's
-graph; once two registrations against it agree, FleetMapper places it there and the session
-*joins* that map: it lives in that graph from then on, its points fold into that map, and
-``on_join`` tells the session manager. The per-sweep answers are never
-rewritten: a client corrects the poses it holds with the newest keyframe poses
-(:class:`randt.wire.messages.CorrectionMessage`).
-
-The process is supervised (:meth:`ServiceGraph._supervise`): one thread owns it for the service's
-life and starts it again when it dies. The graph is durable (service/graph_log.py): each keyframe
-the process took is logged (fsync'd) before what it made of it is applied or published, and a
-restarted process (or service) takes the logged keyframes again, in order, before new ones: the
-same graph, revisions and joins, nothing published again. Without a log directory (tests) a
-restarted process starts an empty graph, the sessions it had placed into another map than their
-own are placed there again, and revisions go on from the service's.
+:class:`ServiceGraph` feeds a session's keyframes (every ``graph_keyframe_m`` of travel) to one
+process at the lowest priority (service/graph_process.py: one FleetMapper per map), off the
+session threads' GIL; it supervises that process, logs each keyframe before the graph takes it
+(service/graph_log.py), and turns what the graph moved into corrections, re-folded tiles and
+joins. The per-sweep answers are never rewritten (docs/mapping.md, "In the service").
 """
 
 from __future__ import annotations
@@ -91,15 +56,14 @@ log = logging.getLogger(__name__)
 SessionKey = tuple[str, str]
 
 #: The graph process runs at ``SCHED_IDLE``, which yields to any other process, ours or not: with
-#: work in flight and no answer for this long it is starved (two CPU burners beside the service
-#: held it for good: every pose-graph test of the suite failed), and runs at the normal policy
-#: niced by GRAPH_NICE until its queue is empty (:meth:`ServiceGraph._guard_starvation`).
+#: work in flight and no answer for this long it is starved (other processes can hold it for good:
+#: docs/architecture.md, "Threads or processes"), and runs at the normal policy niced by
+#: GRAPH_NICE until its queue is empty (:meth:`ServiceGraph._guard_starvation`).
 STARVED_S = 5.0
 #: Raised and still behind this long, it runs at the service's own niceness until its queue is
-#: empty: niced by 10 beside a CPU burner at the normal niceness it gets about a tenth of a core
-#: (the kernel's weights: 110 against 1024), and beside two burners the loop-closure drive's
-#: graph had not caught up after 300 s. Admission counts the graph's CPU with the service
-#: process's (service/capacity.py), so the node's measured capacity leaves it that time.
+#: empty: niced, beside a CPU burner at the normal niceness, it gets about a tenth of a core.
+#: Admission counts the graph's CPU with the service process's (service/capacity.py), so the
+#: node's measured capacity leaves it that time.
 ESCALATE_S = 30.0
 
 
@@ -164,8 +128,8 @@ class ServiceGraph:
         self._syncs = 0  # sync requests sent (wait_idle) ...
         self._synced = 0  # ... and answered
         self._cond = threading.Condition()
-        #: One sender on the pipe at a time: the send loop's keyframe and close's ``quit``
-        #: interleaved their bytes once (the process read "invalid load key" at a SIGTERM).
+        #: One sender on the pipe at a time (the send loop, and close's ``quit``): two sends at
+        #: once interleave their bytes.
         self._send_lock = threading.Lock()
         self._closed = False
         self._on_restart = on_restart
@@ -357,9 +321,9 @@ class ServiceGraph:
     def cpu_s(self) -> float:
         """CPU seconds the graph's processes have used so far, every generation counted (Linux,
         from /proc; 0 elsewhere): the node's admission counts them (service/capacity.py). A
-        process's start (spawn and imports until it says it is alive, about 2 s of CPU) is not
-        counted: it is no cost per sweep, and billed to the sweeps of the next flush it put the
-        service's CPU per sweep at 0.2 s, past the node's capacity with one vehicle."""
+        process's start (spawn and imports until it says it is alive) is not counted: it is no
+        cost per sweep, and billed to one flush's sweeps it would fill the node's capacity
+        (docs/benchmarks.md, "One vehicle within capacity")."""
         pid = self.pid
         now = 0.0
         if pid is not None:
@@ -403,8 +367,8 @@ class ServiceGraph:
 
         The process is started from this thread, which lives until :meth:`close`: the graph
         process asks for SIGKILL when the *thread* that started it exits (``PR_SET_PDEATHSIG``
-        follows the forking thread, not the process), so started from a session's worker thread
-        it died with the first session that ended."""
+        follows the forking thread, not the process), so it must not be started from a session's
+        worker thread, which ends with its session."""
         pause = 0.0
         while True:
             with self._cond:
@@ -712,9 +676,8 @@ class ServiceGraph:
 
     def _answered(self) -> None:
         """The process answered the oldest item in flight (under ``_cond``). Its id leaves the
-        sets that mark items by id: once the item is gone, a new one may get the same id (a
-        keyframe offered after a restart was taken for a replayed one, neither logged nor
-        published, until this was so)."""
+        sets that mark items by id: once the item is gone, a new one may get the same id (and a
+        new keyframe would pass for a replayed one: neither logged nor published)."""
         self._progress_at = time.monotonic()
         if self._inflight:
             item = self._inflight.pop(0)

@@ -1,34 +1,8 @@
 """The pose graph's durable input (issue 33): every keyframe offered to the graph, in the order
-offered, appended and fsync'd before the graph process gets it (so before anything made of it is
-shown outside).
-
-The graph's state (FleetMapper: keyframes, odometry and GNSS factors, loops with their
-verification, placements, joins) is a deterministic function of the keyframes it took and their
-order (no randomness in place recognition, global registration or iSAM2). So instead of writing
-that state, the service writes its input: a restarted graph process (or service) takes the logged
-keyframes again, in order, and arrives at the same graph, revisions and all; only then does it
-take new ones. A keyframe is logged when it is offered (by a writer thread, not the session's),
-and the process takes keyframes in that order, so a graph that lags loses nothing to a kill -9:
-what a kill may lose is the keyframes offered and not yet written (the writer's backlog, a few
-milliseconds of fsync). A keyframe the graph will never take (dropped by a full queue, or in
-flight at two deaths of the process) is named by a ``drop`` record after it, and not taken
-again.
-
-File: ``DATA/graph/keyframes.log``, records appended one by one::
-
-    u32 length of the body | u32 CRC-32 of the body | body (msgpack)
-
-The body is ``(stamp_s, item)``: the keyframe as :meth:`randt.service.graph.ServiceGraph.offer` queues
-it (``("keyframe", map, vehicle, session, seq, ...)``), with its arrays as ``[dtype, shape,
-bytes]``, or ``("drop", map, vehicle, session, seq)``. A torn or corrupt tail (a crash
-mid-append) ends the log: it is cut off when the log is opened, and the next append goes after the
-last good record.
-
-A deleted map leaves the log (:meth:`GraphLog.without_map`: the log rewritten without its
-records, atomically, and without the offers of other maps' keyframes to it), so a restart
-never brings its graph back; its revision stays in ``DATA/graph/floors.json`` (map -> revision),
-the floor of a later map of the same name, whose corrections then go on numbering above what its
-vehicles saw.
+offered, appended and fsync'd before the graph process gets it. The graph is a deterministic
+function of the keyframes it took and their order, so a restarted graph process (or service)
+takes the logged keyframes again, in order, and arrives at the same graph (docs/mapping.md,
+"In the service": "The graph is durable").
 """
 
 from __future__ import annotations
@@ -54,7 +28,7 @@ GRAPH_DIRNAME = "graph"
 GRAPH_LOG_FILENAME = "keyframes.log"
 GRAPH_FLOORS_FILENAME = "floors.json"
 _HEAD = struct.Struct("<II")
-#: A record larger than this is damage, not a keyframe (a keyframe is ~0.2-1 MB).
+#: A record larger than this is damage, not a keyframe (far larger than any keyframe's record).
 _MAX_RECORD = 256 << 20
 
 
@@ -105,7 +79,17 @@ def decode_items(data: bytes) -> tuple[list[tuple[Any, ...]], int]:
 
 
 class GraphLog:
-    """The keyframes the graph took (module docstring), in a directory of the store."""
+    """The keyframes offered to the graph, in a directory of the store (``DATA/graph/``).
+
+    ``keyframes.log`` holds records appended one by one, ``u32 length of the body | u32 CRC-32 of
+    the body | body (msgpack)``; the body is ``(stamp_s, item)``: the keyframe as
+    :meth:`randt.service.graph.ServiceGraph.offer` queues it (``("keyframe", map, vehicle,
+    session, seq, ...)``, arrays as ``[dtype, shape, bytes]``), or ``("drop", map, vehicle,
+    session, seq)`` after a keyframe the graph will never take (dropped by a full queue, or in
+    flight at two deaths of the process). A torn or corrupt tail (a crash mid-append) ends the
+    log: it is cut off when the log is read. ``floors.json`` (map -> revision) keeps each deleted
+    map's revision, the floor of a later map of the same name.
+    """
 
     def __init__(self, directory: str | os.PathLike[str]) -> None:
         self.directory = Path(directory)

@@ -137,9 +137,9 @@ def die_with_parent() -> None:
 
 def lowest_priority() -> None:
     """Run this process only on a core nothing else wants: ``SCHED_IDLE`` (Linux), else niced by
-    ``GRAPH_NICE``. Two vehicles on two cores, per-sweep latency with the graph against without
-    it, by the mean: 1.24x with the process niced by 10, 1.02x at SCHED_IDLE, which still took
-    every keyframe (docs/benchmarks.md)."""
+    ``GRAPH_NICE``. Niced alone, the graph still slowed the matchers' answers; at ``SCHED_IDLE``
+    it hardly does, and still takes every keyframe (docs/benchmarks.md, "Service with the pose
+    graph on and off")."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):  # not Linux, or refused

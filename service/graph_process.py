@@ -42,8 +42,8 @@ REFOLD_TOL_DEG = 0.2
 REFOLD_STARVE_PERIODS = 3.0
 #: Keyframes whose points the graph process keeps in memory per map (and per use: the matching's
 #: points, the re-fold's cloud), the ones used last; every keyframe's are on disk under the graph
-#: log's directory (``spill/``, rebuilt from the log at each start). About 0.75 MB a keyframe
-#: (bench/graph_memory.py: 75 MB of spill a km at a keyframe every 10 m).
+#: log's directory (``spill/``, rebuilt from the log at each start): in RAM they grew with the
+#: drive (docs/architecture.md, "Threads or processes").
 HOT_KEYFRAMES = 64
 
 
@@ -107,8 +107,8 @@ class ProcessMap:
 
     def _tiles(self, T: np.ndarray, xyz: np.ndarray) -> set[tuple[int, int]]:
         """The tiles a keyframe's points fall in at pose ``T``. A count over the few tiles of the
-        points' bounding box, not ``np.unique(axis=0)``: 0.7 against 8.6 ms for 19k points (the
-        re-fold asks this of every keyframe it touches, and was a third of the graph's CPU)."""
+        points' bounding box, not ``np.unique(axis=0)``, which sorts: the re-fold asks this of
+        every keyframe it touches."""
         xy = xyz.astype(np.float64) @ T[:2, :3].T + T[:2, 3]
         cells = np.floor(xy / self.geometry.tile_size_m).astype(np.int64)
         lo = cells.min(axis=0)
@@ -230,8 +230,8 @@ class ProcessMap:
 def release_memory() -> None:
     """Give the C heap's free memory back to the system (glibc's ``malloc_trim``; elsewhere
     nothing). A re-fold allocates and frees the points of every tile it touches; without this the
-    freed heap stayed resident and the graph process grew by 43 MB a km of a long drive in
-    bench/graph_memory.py, with it by none."""
+    freed heap stays resident and the graph process grows with the drive (docs/benchmarks.md,
+    "The pose graph's memory")."""
     global _MALLOC_TRIM
     if _MALLOC_TRIM is None:
         try:
@@ -274,8 +274,8 @@ def graph_main(
 
     First it asks to die with the service (``die_with_parent``), quits if the service (pid
     ``parent``) died before that, and says it is ``alive``: only then may the service's
-    :class:`YieldGate` stop it (stopped before, during its imports, it outlived a service killed
-    with SIGKILL: seen after the kill -9 cycles of tests/service/test_durability.py).
+    :class:`YieldGate` stop it (stopped before it asked, it would outlive a service killed with
+    SIGKILL: docs/mapping.md, "In the service").
 
     Keyframes come first: the tiles of moved keyframes are re-folded at most every ``refold_s``
     seconds, when no keyframe waits (or once the last re-fold is ``REFOLD_STARVE_PERIODS`` periods
