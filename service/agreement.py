@@ -1,34 +1,9 @@
 """Only sweeps that agree with the map reach it (issue 32): a session's map points wait until a
 check says its sweeps still agree with the map they fold into.
 
-The NDT fitness of a match says a sweep agrees with the session's own keyframes; a vehicle that
-tracks itself perfectly may still be somewhere the map says something else (a town the map never
-saw along the same coordinates, a wrong prior, a drift the graph has not corrected). So every
-``map_agreement_every`` sweeps (its first, every sweep the pose graph takes as a keyframe, and
-the first match after a fallback, which passed only the matcher's loose correction gate) the matcher
-also returns the sweep's thinned points, and the session thread measures, above the ground
-(:func:`randt.core.tiles.above_ground`), the share of them within 0.5 m of the map's points where the
-map has content (:meth:`randt.core.tiles.TileGrid.agreement`, a few milliseconds). The points of the
-sweeps since the last check are *held* meanwhile, not folded:
-
-- the share reaches ``map_agreement_min`` (or the map has too little content there to have an
-  opinion): the held points go to the map;
-- it does not: the held points are dropped, and the session is *lost* (answered ``lost``, no
-  pose, nothing folded or offered to the pose graph) until :data:`AGREEING_CHECKS` checks in a
-  row agree again.
-
-Measured (tests/core/test_tiles.py, bench/unmapped_town.py): on 21 real KITTI 00 revisits a
-sweep at its true pose has 0.73-0.98 of its checked points near the earlier sweep (median 0.92),
-the same sweep 4 m off 0.31-0.58; the simulator's towns give 0.86-0.95 right and 0.19-0.32 for
-a town the map never saw. The default threshold, 0.4, sits between, and a check has an opinion
-only with 2,000 points where the map has content: a right first sweep against a map of one other
-vehicle's first sweep (582 checked points, a 5 cm / 0.2 deg prior) scored 0.50 in tests/service/
-test_e2e.py and was answered lost at the earlier 0.5 and 500 points.
-
-What it costs and leaves open: a session's newest map points reach the map up to
-``map_agreement_every`` sweeps later (a second at 10 Hz; tiles are saved every 3 s anyway), and a
-session that closes folds what it holds unless its last check disagreed. Poses answered ``ok``
-since the last check are not taken back when a check disagrees.
+A match's fitness says a sweep agrees with the session's own keyframes, not with the map (a town
+the map never saw along the same coordinates, a wrong prior, a drift the graph has not corrected).
+The threshold and what it separates: docs/benchmarks.md, "The map agreement check".
 """
 
 from __future__ import annotations
@@ -57,7 +32,16 @@ Held = tuple[str, np.ndarray, np.ndarray | None]
 class AgreementGate:
     """One session's checks against its map, and the map points it holds between them.
 
-    ``min_share`` 0 turns the gate off: every sweep's points go straight through.
+    Every ``every`` sweeps (its first, every sweep the pose graph takes as a keyframe, and the
+    first match after a fallback, which passed only the matcher's loose correction gate) the
+    matcher also returns the sweep's thinned points, and the share of them above the ground within
+    ``reach_m`` of the map's points, where the map has content, is measured
+    (:meth:`randt.core.tiles.TileGrid.agreement`). It reaches ``min_share``, or fewer than
+    ``min_points`` fall where the map has content: the held points go to the map. It does not:
+    they are dropped, and the session is lost (answered ``lost``, nothing folded or offered to the
+    pose graph) until :data:`AGREEING_CHECKS` checks in a row agree again. Poses answered ``ok``
+    since the last check are not taken back. ``min_share`` 0 turns the gate off: every sweep's
+    points go straight through.
     """
 
     min_share: float

@@ -1,37 +1,10 @@
 """Scan intake: the Zenoh callback only enqueues bytes; intake workers decode and admit them, fairly.
 
-Flow of a scan payload::
-
-    Zenoh callback thread (service/transport.py)
-      Intake.put(vehicle from the key, payload bytes, received_ns)        O(1), never waits on a
-        key's vehicle not an id ------> counted (invalid_id), no key to    matcher, the store or a
-                                        answer on                          session lock
-        payload > max_payload_bytes --> answered payload_too_large (bounded peek of seq/session)
-        else appended to the vehicle's queue
-             per vehicle: at most intake_queue_scans payloads and intake_queue_bytes bytes
-             all vehicles: at most intake_total_bytes bytes
-             overflow: the vehicle's (for the total: the largest queue's) OLDEST payload is
-                       dropped and answered `dropped`
-                |
-                v   vehicles served round-robin: one payload of a vehicle, then the next vehicle
-    intake worker threads (intake_workers; a vehicle is on at most one of them at a time, so its
-    scans stay in order)
-      handle(vehicle, payload, received_ns)   = SessionManager.handle: decode with bounded cost
-        (randt.wire.messages: structure check, msgpack limits), seq check, admission, then the session
-        worker's queue, or the queue of a session being opened (service/sessions.py)
-
-**What a vehicle is promised.** Every payload that reaches the service on a scan key whose
-``<vehicle>`` chunk is an id gets exactly one answer on ``randt/fleet/<vehicle>/pose`` or
-``.../error``: a pose, or an error. A payload dropped here is answered ``dropped`` with the
-``session`` and ``seq`` read by a bounded peek (``unknown`` and ``None`` when the payload does not
-hold readable ones). A payload on a key whose vehicle chunk is not an id has no key to answer on:
-it is counted (``randt_scans_rejected_total{reason="invalid_id"}``) and logged.
-
-**Fairness.** A vehicle that floods, or sends payloads that are expensive to reject, only fills
-its own queue and loses its own oldest payloads; the workers take one payload per vehicle in
-turn, so another vehicle's scan waits for at most one payload of each other vehicle with work
-(each costs bounded time: a decode is at most a few milliseconds for a valid 16 MiB scan, about
-a millisecond for a hostile one).
+:meth:`Intake.put` (the callback's, O(1)) appends a payload to its vehicle's bounded queue; on
+overflow the vehicle's oldest (for the total, the largest queue's) is dropped and answered
+``dropped``. The workers serve vehicles round-robin, a vehicle on one worker at a time so its scans
+stay in order: a vehicle that floods loses only its own payloads, and another's scan waits for at
+most one bounded-cost payload of each vehicle with work (docs/architecture.md, "Intake").
 """
 
 from __future__ import annotations

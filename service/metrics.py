@@ -1,22 +1,10 @@
-"""Prometheus metrics of one service instance (prometheus_client, one registry per instance).
+"""Prometheus metrics of one service instance (prometheus_client, one registry per instance, not
+the global default: instances, and tests, stay independent).
 
-A registry per :class:`randt.service.runtime.Service` (not the global default) keeps instances, and
-tests, independent. ``GET /metrics`` renders :attr:`ServiceMetrics.registry` with
-prometheus_client's own exposition code (never a hand-written text format).
-
-Two kinds of series live here:
-
-* **events**, counted where they happen (``service/sessions.py``): scans received, processed (by
-  status), rejected (by reason, the wire error code), dropped; registration time and
-  receive-to-pose latency histograms; per-session queue depth; tiles written; store errors. The
-  counters' totals (:attr:`ServiceMetrics.PERSISTENT`) are saved by the flusher in
-  ``DATA/counters.json`` and restored at start (:meth:`ServiceMetrics.restore`), so they count
-  across restarts (a kill -9 loses at most the last flush interval's counts);
-* **state**, read when Prometheus scrapes (:meth:`ServiceMetrics.watch`): points and tiles per map,
-  so the numbers are always those of the live maps and nothing has to remember to update them.
-
-Names follow Prometheus conventions: counters end in ``_total`` in the exposition (the client
-adds it), durations are in seconds.
+Events are counted where they happen, and the totals of :attr:`ServiceMetrics.PERSISTENT` count
+across restarts (saved by the flusher, :meth:`ServiceMetrics.restore` at start); the maps' tiles
+and points are read at each scrape (:meth:`ServiceMetrics.watch`). ``GET /metrics`` renders the
+registry; the series: docs/api.md, "GET /metrics".
 """
 
 from __future__ import annotations

@@ -1,40 +1,12 @@
 """The ROS 2 bridge: robots on rmw_zenoh feed the service and hear its answers, with no code on
-the robot (docs/ros2.md). With :mod:`randt.service.transport`, the only code of the service that talks
-to Zenoh.
+the robot. With :mod:`randt.service.transport`, the only code of the service that talks to Zenoh.
 
-In: one Zenoh session, a *client* of the robots' ``rmw_zenohd`` router (``ros2.connect``, by
-default where the service's own session connects: the router forwards to clients, while its
-``peers_failover_brokering`` is off for peers), subscribed to every PointCloud2 of the domain
-(``<domain>/**/sensor_msgs::msg::dds_::PointCloud2_/*``) and to the liveliness tokens of every
-PointCloud2 publisher (``@ros2_lv/<domain>/.../MP/...``, with their history). A publisher on a
-topic we take gets our subscription's token at once: a driver that publishes only while someone
-subscribes (velodyne_pointcloud's nodes ask rmw_zenoh, which counts the tokens) starts then. A
-PointCloud2 topic we do not take, seen by its publisher's token or by a sample, is named once in
-the log with the setting that would take it. The data callback only reads the key and the
-attachment (:mod:`randt.wire.rmw_zenoh`) and hands a :class:`randt.wire.ros2.Ros2Scan` to the
-session manager's intake, as our own scans go:
-
-* the topic must be one of ``ros2.topics`` (a relative name under any namespace, or an absolute
-  one); the robot's namespace is its vehicle id (``/`` as ``.``), unless ``ros2.vehicles`` says;
-* the session is the publisher's GID (hex): a restarted driver is a new session;
-* the scan's ``seq`` is the attachment's sequence number, its stamp the cloud's header stamp.
-
-A sample that is not for us (another topic) is counted and ignored; one that cannot be a scan
-(no attachment, a key or a vehicle that does not parse) is counted and logged per topic, never
-answered (there is no session to answer), never fatal. Decoding, admission, durability and
-errors are the session manager's, as for every scan.
-
-Out (the session manager's outbox, tapped): for a ROS 2 session, each ``first`` and ``ok`` pose as
-``nav_msgs/msg/Odometry`` on ``<namespace>/<ros2.odometry_topic>`` (``odom_frame`` ->
-the sensor's frame, the matcher's covariance), every other answer (a fallback, a refusal, an
-error) as one JSON line of ``std_msgs/msg/String`` on ``<namespace>/<ros2.status_topic>``, and the
-pose graph's newest correction as ``geometry_msgs/msg/TransformStamped`` (``map_frame`` ->
-``odom_frame``) on ``<namespace>/<ros2.correction_topic>``. Each sample carries rmw_zenoh's
-attachment (sequence number from 1, source time, the publisher's GID), and each publisher is
-announced by a liveliness token under ``@ros2_lv`` (with the node's, ``randt_fleet``), so
-``ros2 topic list``/``echo`` and RViz 2 see them. The keys use the type hash the robot used
-(``RIHS01_...``, or Humble's placeholder). One sender thread serializes and publishes: neither
-the Zenoh callback nor a session worker waits on it.
+:class:`Ros2Bridge` is a Zenoh client of the robots' router. Its callback reads a PointCloud2
+sample's key and attachment (:mod:`randt.wire.rmw_zenoh`), no point, and hands a
+:class:`randt.wire.ros2.Ros2Scan` to the intake as our own scans go (vehicle: the namespace;
+session: the publisher's GID; seq: the attachment's). One sender thread answers a ROS 2 session
+on its robot's topics as rmw_zenoh publishes, so neither the callback nor a session worker waits
+on it (docs/ros2.md; the keys and tokens: docs/rmw_zenoh.md).
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""Zenoh transport: the only module of the service that talks to Zenoh.
+"""Zenoh transport: with service/ros2.py, the only code of the service that talks to Zenoh.
 
-- a subscriber on ``randt/fleet/*/scan`` whose callback only copies the payload and hands it, with
-  the vehicle of its key and the receive time, to ``SessionManager.submit``, which puts it in that
-  vehicle's bounded intake queue (``service/intake.py``): no decoding, no locks held across work, no
-  store or matcher, no Zenoh calls inside the callback. Intake workers decode and admit it;
-- one sender thread that publishes everything outbound (poses, errors, tile updates) from a
-  bounded queue, so neither callbacks nor session workers ever wait on the network. Answers
-  (poses, errors) go before tile updates waiting in it: the flusher queues a burst of tile updates
-  every second (tens to hundreds of kB each), and a pose queued behind them waited for all of them;
-- a liveliness token ``randt/service/<instance>`` while the instance runs;
-- a queryable on ``randt/map/*/tile/*`` answering with the tile's current update message.
-
-The key expressions come from :mod:`randt.wire.keys`, the session's configuration from
-:mod:`randt.wire.zenoh_config`. Peer mode listening on 127.0.0.1 is the embedded default (no router).
-Multicast scouting is off: peers and routers are reached through explicit endpoints only.
-``settings.zenoh_config`` (``--zenoh-config``) adds a native Zenoh config file: TLS, user/password
-and access control (``docs/security.md``).
+A scan subscriber whose callback only hands the payload to ``SessionManager.submit`` (the
+vehicle's intake queue: service/intake.py), one sender thread publishing everything outbound from
+a bounded queue (answers before tile updates), a liveliness token ``randt/service/<instance>`` and
+a tile queryable. Keys come from :mod:`randt.wire.keys`, the session's config from
+:mod:`randt.wire.zenoh_config` (docs/architecture.md, "Packages"; docs/security.md).
 """
 
 from __future__ import annotations
@@ -53,8 +42,9 @@ class ZenohTransport:
         self.settings = settings
         self._on_scan = on_scan
         self._tile_provider = tile_provider
-        # (rank, order, item): answers (rank 0) before tile updates (1), each in order; the stop
-        # mark (2) after everything queued before it.
+        # (rank, order, item): answers (rank 0) before tile updates (1), each in order, so a pose
+        # never waits behind a flush's burst of tile updates; the stop mark (2) after everything
+        # queued before it.
         self._out: queue.PriorityQueue[tuple[int, int, tuple[str, bytes, bool] | None]] = queue.PriorityQueue(
             max_outbound
         )
