@@ -33,8 +33,8 @@ service. Mutating endpoints need `Authorization: Bearer <RANDT_API_TOKEN>`; read
 
 class HeadAsGet:
     """``HEAD`` answered wherever ``GET`` is (RFC 9110 9.3.2: the same status and headers, no
-    body): FastAPI routes ``GET`` only, and ``HEAD`` on a tile answered 405. The request runs as
-    its ``GET`` (a ``HEAD`` costs what the ``GET`` does) and the body is dropped."""
+    body): FastAPI routes ``GET`` only, so ``HEAD`` would answer 405. The request runs as its
+    ``GET`` (a ``HEAD`` costs what the ``GET`` does) and the body is dropped."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app

@@ -1,25 +1,10 @@
 """What the routers share: the service, auth and validated path parameters.
 
-Auth
-----
-``RANDT_API_TOKEN`` is a bearer token (``Authorization: Bearer <token>``).
-
-* mutating endpoints depend on :func:`require_writer`: no token configured -> **403**
-  (:class:`~randt.core.errors.ForbiddenError`: they are refused, never open); missing or wrong token ->
-  **401** with ``WWW-Authenticate: Bearer`` (:class:`~randt.core.errors.AuthError`);
-* read endpoints depend on :func:`require_reader`: open unless ``RANDT_PROTECT_READS=true``, then
-  the same check (the settings refuse ``protect_reads`` without a token).
-* ``/healthz`` and ``/readyz`` stay open (probes carry no secrets), as do the viewer's static files
-  (the page asks for the token when the API answers 401).
-
-Ids
----
-Map, vehicle and session names are checked against the id rule
-(:data:`randt.wire.ids.ID_REGEX`) by FastAPI before a handler runs (**422** otherwise), and tile
-indices are bounded integers. Handlers look names up in the live maps and sessions; no file is ever
-opened from a client-supplied string.
-
-Errors are the project's (:mod:`randt.core.errors`), answered by :mod:`randt.service.api.errors`.
+Mutating endpoints depend on :func:`require_writer` (no ``RANDT_API_TOKEN`` configured: 403;
+a missing or wrong bearer token: 401), read endpoints on :func:`require_reader` (open unless
+``RANDT_PROTECT_READS=true``); ``/healthz``, ``/readyz`` and the viewer's files stay open. Names
+are checked against the id rule before a handler runs (422), so no file is ever opened from a
+client-supplied string (docs/api.md, "Conventions" and "Auth").
 """
 
 from __future__ import annotations
@@ -123,7 +108,8 @@ WRITER_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 
 def require_writer(svc: ServiceDep, credentials: _Credentials) -> None:
-    """Guard of mutating endpoints (module docstring): 403 without a configured token, else 401."""
+    """Guard of mutating endpoints: 403 without a configured token, else 401 on a missing or
+    wrong one."""
     token = svc.settings.api_token
     if not token:
         raise ForbiddenError(
@@ -133,7 +119,7 @@ def require_writer(svc: ServiceDep, credentials: _Credentials) -> None:
 
 
 def require_reader(svc: ServiceDep, credentials: _Credentials) -> None:
-    """Guard of read endpoints: open unless ``RANDT_PROTECT_READS`` is set (module docstring)."""
+    """Guard of read endpoints: open unless ``RANDT_PROTECT_READS`` is set, then as :func:`require_writer`."""
     token = svc.settings.api_token
     if svc.settings.protect_reads and token:
         _check_token(token, credentials)

@@ -1,7 +1,7 @@
 """``/docs``: the interactive OpenAPI page, with Swagger UI served by the service itself.
 
-FastAPI's own ``/docs`` loads Swagger UI from a CDN, so on a vehicle depot's network without the
-internet it showed a blank page. The app factory turns it off (``docs_url=None``, and ReDoc,
+FastAPI's own ``/docs`` loads Swagger UI from a CDN, so without the internet (a vehicle depot's
+network) it shows a blank page. The app factory turns it off (``docs_url=None``, and ReDoc,
 which has the same problem, with ``redoc_url=None``); this route renders the same page from the
 vendored copy under ``service/static/vendor/swagger-ui/`` (``README.md`` there: version, licence,
 how to update), mounted with the viewer's static files at ``/static``.

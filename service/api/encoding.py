@@ -1,24 +1,9 @@
-"""Point clouds as HTTP bodies: binary PCD and PLY (streamed), and LAS 1.4 (laspy).
+"""Point clouds as HTTP bodies: binary PCD and PLY, and LAS 1.4 (laspy), all streamed.
 
-Every format carries float32 ``x y z intensity`` in the map frame, as the store's tiles do:
-
-* **PCD** v0.7 binary, the same bytes :func:`randt.core.io.write_pcd` writes for the store's tiles
-  (PCL, Open3D, Autoware, CloudCompare);
-* **PLY** binary little-endian with ``float x, y, z, intensity`` (Open3D, CloudCompare, MeshLab);
-* **LAS** 1.4, point format 6 (QGIS, PDAL, CloudCompare, LAStools), written by laspy. LAS stores
-  integer coordinates with a scale: 0.1 mm here, far below float32's resolution at map
-  coordinates, so a point comes back within 0.05 mm. The wire gives intensity no fixed scale, so
-  the exact float32 value goes into an extra dimension ``intensity_raw``, and LAS's own uint16
-  ``intensity`` holds ``round(clip(i, 0, 1) * 65535)``: the full range for reflectance-scaled
-  sensors (KITTI, the simulator); a sensor reporting 0-255 saturates there but not in
-  ``intensity_raw``.
-
-Headers hold the point count, which is known up front from immutable tile snapshots, so
-:func:`stream_cloud` yields the header and then one chunk per tile: a merged export never holds a
-second copy of the map in memory, whatever the format or the number of concurrent downloads. A
-LAS header also holds the bounds and per-return counts that laspy's writer fills in when its file
-closes: :func:`stream_cloud` computes them first with laspy's own ``LasHeader.grow`` over the
-chunks' records (built twice, one chunk at a time), so the bytes are those laspy writes.
+Every format carries float32 ``x y z intensity`` in the map frame, as the store's tiles do; a PCD
+is the same bytes :func:`randt.core.io.write_pcd` writes for them. LAS keeps the exact intensity
+in an extra dimension ``intensity_raw`` beside its uint16 ``intensity`` (docs/api.md,
+"GET /maps/{map}/tiles/{ix}/{iy}").
 """
 
 from __future__ import annotations
@@ -92,7 +77,9 @@ def _rows(xyz: np.ndarray, intensity: np.ndarray) -> bytes:
 
 def stream_cloud(fmt: CloudFormat, n_points: int, chunks: Sequence[Chunk]) -> Iterator[bytes]:
     """Yield a binary PCD or PLY, or a LAS 1.4 file, of ``n_points`` points: the header, then the
-    chunks' points (at most ``_CHUNK_POINTS`` at a time).
+    chunks' points (at most ``_CHUNK_POINTS`` at a time). The header holds the point count, known
+    up front from immutable tile snapshots, so a merged export never holds a second copy of the
+    map in memory.
 
     Parameters
     ----------
@@ -131,7 +118,8 @@ def _pieces(chunks: Sequence[Chunk], size: int = _CHUNK_POINTS) -> Iterator[Chun
 
 def _stream_las(n_points: int, chunks: Sequence[Chunk]) -> Iterator[bytes]:
     """LAS 1.4 point format 6: the header as laspy's writer leaves it at close (bounds, counts and
-    the extra dimension's range grown over every record), then the records."""
+    the extra dimension's range grown with laspy's own ``LasHeader.grow`` over every record, built
+    twice, one piece at a time), then the records: the bytes laspy writes."""
     lows = [xyz.min(axis=0) for xyz, _ in chunks if xyz.shape[0]]
     header = _las_header(np.min(lows, axis=0) if lows else np.zeros(3))
     header.partial_reset()
@@ -166,6 +154,9 @@ def _las_header(lo: np.ndarray) -> laspy.LasHeader:
 def _las_points(
     header: laspy.LasHeader, xyz: np.ndarray, intensity: np.ndarray
 ) -> laspy.ScaleAwarePointRecord:
+    """LAS records: coordinates on the ``_LAS_SCALE`` grid (far below float32's resolution at map
+    coordinates), ``intensity`` as ``round(clip(i, 0, 1) * 65535)`` (the wire gives intensity no
+    fixed scale: a 0-255 sensor saturates there, not in ``intensity_raw``, the exact value)."""
     record = laspy.ScaleAwarePointRecord.zeros(xyz.shape[0], header=header)
     xyz64 = xyz.astype(np.float64)
     record.x, record.y, record.z = xyz64[:, 0], xyz64[:, 1], xyz64[:, 2]

@@ -1,27 +1,10 @@
 """The one map from the project's exception tree (:mod:`randt.core.errors`) to HTTP answers.
 
 Routes and dependencies raise the tree's errors; :func:`error_response`, registered by the app
-factory (:func:`randt.service.app.create_app`) for every class of :data:`HTTP_STATUS`, turns them into
-status codes and the :class:`~randt.service.api.models.ErrorBody` JSON:
-
-======================================================  ======  ===================================
-error (and its subclasses)                              status  body
-======================================================  ======  ===================================
-:class:`~randt.core.errors.InvalidRequestError`,              422     ``{"detail"}``
-:class:`~randt.core.errors.BadMessageError`,
-:class:`~randt.core.errors.InvalidCloudError`,
-:class:`~randt.core.errors.FormatError`
-:class:`~randt.core.errors.AuthError`                         401     ``{"detail"}``, ``WWW-Authenticate``
-:class:`~randt.core.errors.ForbiddenError`                    403     ``{"detail"}``
-:class:`~randt.core.errors.NotFoundError`                     404     ``{"detail", "resource", "id"}``
-:class:`~randt.core.errors.ConflictError`                     409     ``{"detail"}``
-:class:`~randt.core.errors.UnavailableError`                  503     ``{"detail"}``
-======================================================  ======  ===================================
-
-The most specific class wins (a :class:`~randt.core.errors.ForbiddenError` is an
-:class:`~randt.core.errors.AuthError` answered 403). Errors outside the table (a failed registration,
-a broken store) stay server errors: 500, logged by the server. FastAPI's own request validation
-answers 422 ``{"detail": [...]}`` before a handler runs.
+factory for every class of :data:`HTTP_STATUS` (the most specific class wins), answers its status
+with an :class:`~randt.service.api.models.ErrorBody` (a 404 also names ``resource`` and ``id``; a
+401 carries ``WWW-Authenticate``). Errors outside the table stay 500. The table: docs/api.md,
+"Conventions".
 """
 
 from __future__ import annotations

@@ -57,7 +57,8 @@ class Ready(BaseModel):
     store_writable: bool
     workers: bool = Field(description="the session manager and its flusher are running")
     matchers_warm: bool = Field(
-        description="the matcher processes have loaded their compiled kernels (about 10 s on a cold cache)"
+        description="the matcher processes have loaded their compiled kernels (longer when numba's "
+        "on-disk cache is cold: they are compiled then)"
     )
     graph: bool = Field(
         default=True,
