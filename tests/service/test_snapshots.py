@@ -18,7 +18,7 @@ from typing import Any, Literal
 import numpy as np
 import pytest
 
-import randt.service.store as store_module
+import randt.service.session_store as store_module
 from randt.core.scenes import synthetic_room
 from randt.core.transforms import make_transform, transform_points
 from randt.service.matchers import LocalMatcher, MatcherPool, with_trajectory, without_trajectory
@@ -235,8 +235,8 @@ def _crash_at(monkeypatch: pytest.MonkeyPatch, step: int | None, steps: list[str
     the one numbered ``step`` (counting from 0 after this call)."""
     real_write, real_commit, real_view, real_replace = (
         store_module.atomic_write_bytes,
-        store_module._write_commit,
-        store_module.Store._extend_view,
+        store_module.write_commit,
+        store_module.SessionStore._extend_view,
         os.replace,
     )
 
@@ -253,7 +253,7 @@ def _crash_at(monkeypatch: pytest.MonkeyPatch, step: int | None, steps: list[str
         hit("commit")
         real_commit(path, arrays)
 
-    def view(self: Store, *args: Any) -> None:
+    def view(self: store_module.SessionStore, *args: Any) -> None:
         hit("view")
         real_view(self, *args)
 
@@ -263,8 +263,8 @@ def _crash_at(monkeypatch: pytest.MonkeyPatch, step: int | None, steps: list[str
         real_replace(src, dst)
 
     monkeypatch.setattr(store_module, "atomic_write_bytes", write)
-    monkeypatch.setattr(store_module, "_write_commit", commit)
-    monkeypatch.setattr(store_module.Store, "_extend_view", view)
+    monkeypatch.setattr(store_module, "write_commit", commit)
+    monkeypatch.setattr(store_module.SessionStore, "_extend_view", view)
     monkeypatch.setattr(os, "replace", replace)
 
 

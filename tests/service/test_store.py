@@ -740,13 +740,13 @@ def test_a_finalizer_inside_the_lock_guard_does_not_deadlock(tmp_path: Path) -> 
     """A Store's finalizer can run from the garbage collector while this thread is inside the
     lock guard (opening another Store): a CI run hung there. The release is queued and done at
     the next entry into the guard: the flock is free afterwards."""
-    from randt.service import store as store_module
+    from randt.service import data_dir_lock
 
     first = Store(tmp_path / "a")
     key = (tmp_path / "a").resolve()
-    with store_module._guarded():  # as if the GC ran first's finalizer in _acquire_lock
+    with data_dir_lock._guarded():  # as if the GC ran first's finalizer in acquire_lock
         first._finalizer()  # queued, returns at once instead of waiting on the guard
-        assert key in store_module._HELD_LOCKS
+        assert key in data_dir_lock._HELD_LOCKS
     with Store(tmp_path / "b"):  # the next entry into the guard performs the queued release
-        assert key not in store_module._HELD_LOCKS
+        assert key not in data_dir_lock._HELD_LOCKS
     assert open_in_another_process(tmp_path / "a").returncode == 0
