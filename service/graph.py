@@ -37,8 +37,8 @@ from randt.service.graph_state import (
     corrected_mask,
     wants_keyframe,
 )
-from randt.service.matchers import start_ignoring_group_signals
 from randt.service.metrics import ServiceMetrics
+from randt.service.processes import start_ignoring_group_signals
 from randt.wire.messages import CorrectionMessage, correction_from_arrays
 
 __all__ = [

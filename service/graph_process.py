@@ -24,7 +24,7 @@ from randt.core.keyframe_cache import KeyframeCache
 from randt.core.tiles import TileGrid, tile_id
 from randt.core.transforms import rotation_angle_deg
 from randt.service.graph_priority import die_with_parent, lowest_priority
-from randt.service.matchers import ignore_group_signals, single_threaded_blas
+from randt.service.processes import ignore_group_signals, single_threaded_blas
 
 __all__ = ["MOVE_TOL_DEG", "MOVE_TOL_M", "MapGeometry", "ProcessMap", "graph_main"]
 
