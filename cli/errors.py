@@ -109,7 +109,7 @@ class WrongInputError(RandtError):
 #: not import them; :func:`exit_code` resolves them when an error is being mapped.
 EXIT_CODES: tuple[tuple[type[BaseException] | str, ExitCode], ...] = (
     (PortInUseError, ExitCode.PORT_IN_USE),
-    ("randt.service.store:DataDirInUseError", ExitCode.DATA_DIR_IN_USE),
+    ("randt.service.data_dir_lock:DataDirInUseError", ExitCode.DATA_DIR_IN_USE),
     (WrongInputError, ExitCode.WRONG_INPUT),
     (IsADirectoryError, ExitCode.WRONG_INPUT),
     (NotADirectoryError, ExitCode.WRONG_INPUT),

@@ -6,8 +6,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from randt.service.counter_totals import load_counters, save_counters
 from randt.service.metrics import ServiceMetrics
-from randt.service.store import load_counters, save_counters
 
 __all__ = ["Counters"]
 
