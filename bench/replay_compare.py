@@ -10,9 +10,8 @@ frames of ``../shared/data/kitti00`` into it with ``randt replay --rate 0`` (the
 last is answered, none dropped) and reads the poses it answered (``poses_tum.txt``, full
 precision). The runs alternate between the installs. Printed: the largest position difference
 (m) between every two runs, so that the spread between installs can be held against the spread of
-one install with itself (the service's poses are not bit-exact run to run: the matcher's model
-rebuild runs beside the answer, and the compiled kernels' parallel reductions then split their work
-differently; ``--numba-threads 1`` takes that away).
+one install with itself: the service's poses are not bit-exact run to run (up to a few 1e-8 m on
+these frames, with one compiled-kernel thread as well; ``randt map`` of the same frames is).
 """
 
 from __future__ import annotations
@@ -75,14 +74,7 @@ def main() -> None:
     parser.add_argument("--randt", type=Path, action="append", required=True, help="a randt command (twice)")
     parser.add_argument("--runs", type=int, default=3, help="runs of each install, alternating")
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti00")
-    parser.add_argument(
-        "--numba-threads",
-        type=int,
-        help="NUMBA_NUM_THREADS of the services (1: the compiled kernels' reductions in one order)",
-    )
     args = parser.parse_args()
-    if args.numba_threads is not None:
-        os.environ["NUMBA_NUM_THREADS"] = str(args.numba_threads)
     print(machine_line({}, single_threaded=False))
     labels = [f"{i}:{p.parent.parent.name}" for i, p in enumerate(args.randt)]
     runs: dict[str, list[np.ndarray]] = {label: [] for label in labels}
