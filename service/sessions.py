@@ -157,20 +157,6 @@ class SessionManager:
         """Decode, validate and route one scan to its session (an intake worker's call)."""
         self.router.handle(key_vehicle, payload, received_ns)
 
-    def reject(
-        self,
-        vehicle: str,
-        session: str,
-        seq: int | None,
-        code: str,
-        reason: str,
-        retry_after_s: float | None = None,
-        *,
-        count: bool = True,
-    ) -> None:
-        """Answer one scan with an error and count it on its session."""
-        self.router.reject(vehicle, session, seq, code, reason, retry_after_s, count=count)
-
     # -- the maps' lifecycle ----------------------------------------------------------------------
     def fold_map(self, vehicle: str, session: str) -> str | None:
         """The map a running session's points go into (the shared map it joined, or its own);
