@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Hashable
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -32,14 +32,13 @@ from randt.service.graph_process import MOVE_TOL_DEG, MOVE_TOL_M, MapGeometry, g
 from randt.service.graph_state import (
     GraphLoop,
     GraphState,
+    GraphView,
     Keyframe,
     correct_trajectory,
-    corrected_mask,
-    wants_keyframe,
 )
 from randt.service.metrics import ServiceMetrics
 from randt.service.processes import start_ignoring_group_signals
-from randt.wire.messages import CorrectionMessage, correction_from_arrays
+from randt.wire.messages import CorrectionMessage
 
 __all__ = [
     "GRAPH_NICE",
@@ -106,23 +105,12 @@ class ServiceGraph:
         self.gate: YieldGate | None = YieldGate() if yield_to_matchers else None
         self.refold_s = refold_s
         self.geometry = geometry or MapGeometry(20, 0.2, 1)
-        self._on_refold = on_refold
-        #: Per session, the correction of its newest optimized keyframe (``optimized @ inv(live)``):
-        #: what its new sweeps' points are moved by before they are folded into the map.
-        self._correction: dict[SessionKey, tuple[int, np.ndarray]] = {}
-        #: Sessions without priors the graph placed into a shared map: ``(map, T_map_session)``.
-        self._joined: dict[SessionKey, tuple[str, np.ndarray]] = {}
-        self._on_join = on_join
         self.keyframe_m = keyframe_m
-        self._outbox = outbox
         self._metrics = metrics
-        self._states: dict[str, GraphState] = {}
-        self._session_map: dict[SessionKey, str] = {}
-        self._lock = threading.Lock()  # guards the states
-        self._last: dict[SessionKey, np.ndarray] = {}  # last offered keyframe's live pose
+        #: What the service knows of the graphs (the receiver writes it, the reads read it).
+        self.view = GraphView(metrics, outbox, on_refold, on_join, keyframe_m)
         self._queue_size = queue_size
         self._queued: list[tuple[Any, ...]] = []
-        self._counted_loops: dict[str, int] = {}  # loop records counted in the metrics, per map
         self._offered = 0  # keyframes queued (dropped ones subtracted) ...
         self._done = 0  # ... and answered by the process: wait_idle
         self._syncs = 0  # sync requests sent (wait_idle) ...
@@ -146,12 +134,6 @@ class ServiceGraph:
         self._unlogged: list[tuple[Any, ...]] = []
         self._writing = threading.Lock()
         self._writer: threading.Thread | None = None
-        #: Per map, the revision and loop count when the current process started: a restarted
-        #: process counts both from zero, and what the service shows never goes back.
-        self._bases: dict[str, tuple[int, int]] = {}
-        #: Per map, the sessions placed before the current process started (it places only those
-        #: that offer keyframes to it).
-        self._placed_before: dict[str, set[SessionKey]] = {}
         #: Per map, its deletions the process has not answered yet (:meth:`forget_map`): what it
         #: says of the map until then is of the deleted map, not of a new one of the same name.
         self._forgetting: dict[str, int] = {}
@@ -189,18 +171,11 @@ class ServiceGraph:
         except RandtError as exc:
             log.error("pose graph: %s: the revisions of maps deleted before may start lower", exc)
             floors = {}
-        self._bases = {name: (revision, 0) for name, revision in floors.items()}
+        self.view.bases = {name: (revision, 0) for name, revision in floors.items()}
         records = self._replayable(self._log.read())
         if not records:
             return
-        with self._lock:
-            for stamp_s, item in records:
-                _, map_name, vehicle, session, seq, index, T_live = item[:7]
-                key = (vehicle, session)
-                self._session_map.setdefault(key, map_name)  # (a join moves it, as it did)
-                st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
-                st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
-                self._last[key] = T_live
+        self.view.restore(records)
         log.info("pose graph: %d keyframes to take again from %s", len(records), self._log.path)
         with self._cond:
             self._queue_replay([item for _, item in records])
@@ -252,7 +227,7 @@ class ServiceGraph:
                     else:
                         dropped = self._enqueue(item)
                 if not ok:
-                    self._forget_keyframe(item[1], (item[2], item[3]), item[4])
+                    self.view.forget_keyframe(item[1], (item[2], item[3]), item[4])
                 elif dropped is not None:  # logged before: the graph never took it
                     self._append(0.0, ("drop", *dropped[1:5]))
 
@@ -269,13 +244,7 @@ class ServiceGraph:
     def _stamp_of(self, item: tuple[Any, ...]) -> float:
         """The stamp of a keyframe item (the service keeps it beside, in its ``Keyframe``)."""
         _, map_name, vehicle, session, _seq, index = item[:6]
-        with self._lock:
-            for name in (map_name, self._session_map.get((vehicle, session))):
-                st = None if name is None else self._states.get(name)
-                kf = None if st is None else st.keyframes.get((vehicle, session), {}).get(index)
-                if kf is not None:
-                    return kf.stamp_s
-        return 0.0
+        return self.view.stamp_of(map_name, (vehicle, session), index)
 
     def _enqueue(self, item: tuple[Any, ...]) -> tuple[Any, ...] | None:
         """Queue a keyframe for the process (under ``_cond``); when ``graph_queue`` keyframes
@@ -292,7 +261,7 @@ class ServiceGraph:
             self._offered -= 1
             self._metrics.graph_queue_dropped.inc()
             log.warning("pose graph behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
-            self._forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
+            self.view.forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
         self._queued.append(item)
         self._cond.notify_all()
         return dropped
@@ -330,7 +299,7 @@ class ServiceGraph:
             with contextlib.suppress(OSError, ValueError, IndexError):
                 started = self._cpu_at_alive.get(pid)
                 now = 0.0 if started is None else max(process_cpu_s(pid) - started, 0.0)
-        with self._lock:
+        with self.view.lock:
             if pid != self._cpu_pid:  # a new generation: the last one's CPU stays counted
                 self._cpu_dead += self._cpu_last
                 self._cpu_pid, self._cpu_last = pid, 0.0
@@ -472,7 +441,7 @@ class ServiceGraph:
                     log.error("pose graph: %s dropped, in flight at two deaths of the process", item[0])
                     if item[0] == "keyframe":
                         self._offered -= 1
-                        self._forget_keyframe(item[1], (item[2], item[3]), item[4])
+                        self.view.forget_keyframe(item[1], (item[2], item[3]), item[4])
                         poison.append(item)
                     elif item[0] == "sync":
                         self._synced = max(self._synced, item[1])
@@ -482,15 +451,7 @@ class ServiceGraph:
                 self._retried.add(key)
                 retry.append(item)
             self._inflight = []
-            places: list[tuple[Any, ...]] = []
-            with self._lock:
-                self._counted_loops = {name: len(st.loops) for name, st in self._states.items()}
-                if self._log is None:  # an empty graph: revisions and loops go on from here
-                    self._bases = {name: (st.revision, len(st.loops)) for name, st in self._states.items()}
-                    self._placed_before = {name: set(st.placed) for name, st in self._states.items()}
-                    places = [
-                        ("place", map_name, key[0], key[1], T) for key, (map_name, T) in self._joined.items()
-                    ]
+            places = self.view.rebase(empty=self._log is None)
             self._queued[:0] = places + retry
             if self._log is not None:
                 # Every keyframe queued or in flight is in the log: the log, taken again in order,
@@ -532,13 +493,6 @@ class ServiceGraph:
         self._metrics.graph_up.set(0)
 
     # -- input (session threads) -------------------------------------------------------------
-    def wants_keyframe(self, vehicle: str, session: str, poses: list[np.ndarray]) -> bool:
-        """Whether a session's next sweep should be a keyframe, from its poses so far: its first
-        sweep, or the one expected to reach ``keyframe_m`` from the last keyframe (the last
-        pose's distance plus the last step), so that the matcher returns its points
-        (``keyframe_voxel_m``)."""
-        return wants_keyframe(poses, self._last.get((vehicle, session)), self.keyframe_m)
-
     def forget_map(self, map_name: str) -> None:
         """A deleted map's graph goes (SessionManager.delete_map, whose sessions have ended):
         from the log first (:meth:`GraphLog.without_map`: a restart never brings it back), then
@@ -551,9 +505,7 @@ class ServiceGraph:
         FormatError
             The log could not be rewritten (the graph is then as it was).
         """
-        with self._lock:
-            st = self._states.get(map_name)
-            revision = max(0 if st is None else st.revision, self._bases.get(map_name, (0, 0))[0])
+        revision = self.view.revision(map_name)
         with self._writing:  # (the log's writer waits: nothing of the map is logged after this)
             if self._log is not None:
                 self._log.set_floor(map_name, revision)
@@ -574,17 +526,7 @@ class ServiceGraph:
                     self._replay_ids -= {id(it) for it in self._queued} - {id(it) for it in kept}
                     self._queued = [*kept, ("forget", map_name)]
                 self._cond.notify_all()
-        with self._lock:
-            self._states.pop(map_name, None)
-            self._bases[map_name] = (revision, 0)
-            self._counted_loops.pop(map_name, None)
-            self._placed_before.pop(map_name, None)
-            for key in [k for k, name in self._session_map.items() if name == map_name]:
-                del self._session_map[key]
-                self._correction.pop(key, None)
-                self._last.pop(key, None)
-            for key in [k for k, (name, _) in self._joined.items() if name == map_name]:
-                del self._joined[key]
+        self.view.forget(map_name, revision)
 
     def _forgotten(self, map_name: str) -> None:
         """The process dropped a deleted map (under ``_cond``)."""
@@ -615,15 +557,11 @@ class ServiceGraph:
         map a session without priors (in a map of its own) may join, once the graph places it
         there (:meth:`joined`). Never blocks: when ``graph_queue`` keyframes wait, the oldest is
         dropped (counted, logged)."""
-        key = (vehicle, session)
-        self._last[key] = T_live
-        with self._lock:
-            map_name = self._joined.get(key, (map_name, None))[0]  # it lives in the map it joined
-            if map_name == join:
-                join = None
-            self._session_map[key] = map_name
-            st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
-            st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
+        map_name = self.view.offered(
+            (vehicle, session), map_name, Keyframe(seq, index, stamp_s, T_live.copy())
+        )
+        if map_name == join:
+            join = None
         item = ("keyframe", map_name, vehicle, session, seq, index, T_live, points, intensity, gnss, join)
         with self._cond:
             if self._closed:
@@ -639,15 +577,8 @@ class ServiceGraph:
                 self._offered -= 1
                 self._metrics.graph_queue_dropped.inc()
                 log.warning("pose graph log behind: keyframe %s/%s seq %d dropped", *dropped[2:5])
-                self._forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
+                self.view.forget_keyframe(dropped[1], (dropped[2], dropped[3]), dropped[4])
             self._cond.notify_all()
-
-    def _forget_keyframe(self, map_name: str, key: SessionKey, seq: int) -> None:
-        with self._lock:
-            st = self._states.get(map_name)
-            kfs = {} if st is None else st.keyframes.get(key, {})
-            for index in [i for i, kf in kfs.items() if kf.seq == seq]:
-                del kfs[index]
 
     def _send_loop(self) -> None:
         """Queued items to the current process, in order; an item whose send fails (the process
@@ -716,7 +647,7 @@ class ServiceGraph:
                 stale = message[1] in self._forgetting  # of a deleted map (forget_map)
             try:
                 if not stale:
-                    self._apply(message, publish=not self._answered_replay)
+                    self.view.apply(message, publish=not self._answered_replay)
             except Exception:  # a bug must not stop the graph's output
                 log.exception("pose graph: an update could not be applied")
             if message[0] in ("update", "refused"):  # one per keyframe offered
@@ -725,190 +656,41 @@ class ServiceGraph:
                     self._done += 1
                     self._cond.notify_all()
 
-    def _apply(self, message: tuple[Any, ...], *, publish: bool = True) -> None:
-        """One message of the graph process into the service's view of the graphs; with
-        ``publish`` false (a keyframe taken again from the log) no correction goes out and no
-        counter moves: they did the first time."""
-        m = self._metrics
-        if message[0] == "refold":
-            _, map_name, tile_ids, xyz, intensity, elapsed = message
-            m.graph_refold_seconds.observe(elapsed)
-            if self._on_refold is not None:
-                self._on_refold(map_name, tile_ids, xyz, intensity)
-            return
-        if message[0] == "refused":
-            _, map_name, vehicle, session, seq, reason, elapsed = message
-            log.warning("pose graph refused keyframe %s/%s seq %d: %s", vehicle, session, seq, reason)
-            m.graph_keyframes.labels("refused").inc()
-            m.graph_update_seconds.observe(elapsed)
-            self._forget_keyframe(map_name, (vehicle, session), seq)
-            with self._lock:
-                self._states[map_name].n_refused += 1
-            return
-        kind, map_name, revision, moved, held, start, loops, placed, elapsed = message
-        base_revision, base_loops = self._bases.get(map_name, (0, 0))
-        revision += base_revision
-        start += base_loops
-        if kind == "update" and publish:
-            m.graph_keyframes.labels("added").inc()
-        m.graph_update_seconds.observe(elapsed)
-        by_session: dict[SessionKey, list[Keyframe]] = {}
-        joins: list[tuple[SessionKey, np.ndarray]] = []
-        with self._lock:
-            st = self._states.get(map_name) or self._states.setdefault(map_name, GraphState(map_name))
-            for name, T_map_session in placed.items():
-                key = cast(SessionKey, tuple(name.split("/", 1)))
-                home = self._session_map.get(key)
-                if home is None or home == map_name or key in self._joined:
-                    # (once joined, it stays: its own map's graph, answering keyframes offered to
-                    # it before the service learned of the join, still lists it as placed there)
-                    continue
-                # A session without priors was placed into this map: it lives here from now on.
-                self._joined[key] = (map_name, T_map_session)
-                st.joined[key] = T_map_session
-                self._session_map[key] = map_name
-                self._correction.pop(key, None)  # its own map's corrections no longer apply
-                old = self._states[home]
-                old.placed.discard(key)
-                for moving in old.keyframes.pop(key, {}).values():
-                    moving.optimized = None
-                    st.keyframes.setdefault(key, {})[moving.index] = moving
-                joins.append((key, T_map_session))  # (logged by on_join)
-            # Moved keyframes are corrected (and said to their vehicle); held ones are in the graph
-            # where they were answered. A keyframe the graph never held (dropped, refused, offered
-            # before this map's graph existed) keeps no optimized pose: trajectories are corrected
-            # only from keyframes the graph holds.
-            reports = [(r, True) for r in moved] + [(r, False) for r in held]
-            for (vehicle, session, _seq, index, P), was_moved in reports:
-                if self._session_map.get((vehicle, session)) != map_name:
-                    continue  # a session that joined another map, or still joining this one
-                kf = st.keyframes.get((vehicle, session), {}).get(index)
-                if kf is None:
-                    continue
-                kf.optimized = P
-                if was_moved:
-                    by_session.setdefault((vehicle, session), []).append(kf)
-                newest = self._correction.get((vehicle, session))
-                if newest is None or newest[0] <= index:
-                    self._correction[(vehicle, session)] = (index, P @ np.linalg.inv(kf.live))
-            del st.loops[start:]
-            counted = self._counted_loops.get(map_name, 0)
-            for loop in loops:
-                record = GraphLoop(
-                    a=tuple(loop["a"]),
-                    b=tuple(loop["b"]),
-                    source=loop["source"],
-                    confident=loop["confident"],
-                    accepted=loop["accepted"],
-                    reason=loop["reason"],
-                    n_inliers=loop["n_inliers"],
-                )
-                if len(st.loops) >= counted:
-                    m.graph_loops.labels("accepted" if record.accepted else "refused").inc()
-                st.loops.append(record)
-            self._counted_loops[map_name] = max(counted, len(st.loops))
-            st.placed = {
-                key
-                for key in (
-                    *((name.split("/", 1)[0], name.split("/", 1)[1]) for name in placed),
-                    *self._placed_before.get(map_name, ()),
-                )
-                if self._session_map.get(key) == map_name
-            }
-            st.revision = max(st.revision, revision)
-        for (vehicle, session), T_map_session in joins:
-            if self._on_join is not None:
-                self._on_join(vehicle, session, map_name, T_map_session)
-        for (vehicle, session), kfs in by_session.items() if publish else ():
-            kfs.sort(key=lambda k: k.index)
-            self._outbox(
-                correction_from_arrays(
-                    vehicle,
-                    session,
-                    map_name,
-                    max(revision, 1),
-                    np.array([k.seq for k in kfs]),
-                    np.stack([k.optimized for k in kfs if k.optimized is not None]),
-                    np.stack([k.live for k in kfs]),
-                )
-            )
-
     # -- reads -------------------------------------------------------------------------------
+    # -- reads (the service's view of the graphs: graph_state.GraphView) ---------------------
+    def wants_keyframe(self, vehicle: str, session: str, poses: list[np.ndarray]) -> bool:
+        """:meth:`GraphView.wants_keyframe`."""
+        return self.view.wants_keyframe(vehicle, session, poses)
+
     def fold_target(self, vehicle: str, session: str, map_name: str) -> tuple[np.ndarray | None, str]:
-        """``(correction, map)`` for a new sweep's points of a session living in ``map_name``: the
-        map they go into (the shared map a session without priors joined, else ``map_name``) and
-        what they are moved by first (:meth:`correction`), read together."""
-        key = (vehicle, session)
-        with self._lock:
-            found = self._correction.get(key)
-            joined = self._joined.get(key)
-        return (None if found is None else found[1]), (map_name if joined is None else joined[0])
+        """:meth:`GraphView.fold_target`."""
+        return self.view.fold_target(vehicle, session, map_name)
 
     def joined(self, vehicle: str, session: str) -> tuple[str, np.ndarray] | None:
-        """``(map, T_map_session)`` once the graph placed a session without priors into a shared map."""
-        with self._lock:
-            return self._joined.get((vehicle, session))
+        """:meth:`GraphView.joined`."""
+        return self.view.joined(vehicle, session)
 
     def correction(self, vehicle: str, session: str) -> np.ndarray | None:
-        """The correction of the session's newest optimized keyframe (``optimized @ inv(live)``),
-        or ``None`` while the graph has moved none of its keyframes: a new sweep's points are
-        folded into the map moved by it, so the map follows the graph."""
-        with self._lock:
-            found = self._correction.get((vehicle, session))
-        return None if found is None else found[1]
+        """:meth:`GraphView.correction`."""
+        return self.view.correction(vehicle, session)
 
     def corrected(self, vehicle: str, session: str, poses: np.ndarray) -> tuple[np.ndarray, str | None]:
-        """``(poses, map)``: a session's live per-sweep poses moved with its keyframes
-        (:func:`correct_trajectory`) and the map whose frame they are in; the live poses
-        unchanged and ``None`` while the session is not placed in a graph."""
-        out, map_name, _ = self.corrected_marked(vehicle, session, poses)
-        return out, map_name
+        """:meth:`GraphView.corrected`."""
+        return self.view.corrected(vehicle, session, poses)
 
     def corrected_marked(
         self, vehicle: str, session: str, poses: np.ndarray
     ) -> tuple[np.ndarray, str | None, np.ndarray]:
-        """``(poses, map, corrected)``: as :meth:`corrected`, except that the sweeps beyond the
-        keyframes the graph holds of the session (before the first, after the newest: the graph
-        dropped or has not yet taken them) are served live, only moved into the map's frame
-        (a joined session's ``T_map_session``), and ``corrected`` (N,) bool says which were
-        corrected from the graph's keyframes (issue 32: what cannot be corrected is marked so)."""
-        key = (vehicle, session)
-        with self._lock:
-            map_name = self._session_map.get(key)
-            st = None if map_name is None else self._states.get(map_name)
-            placed = st is not None and key in st.placed
-            kfs = [] if st is None else [k for k in st.session_keyframes(key) if k.optimized is not None]
-            joined = self._joined.get(key)
-        kfs = [k for k in kfs if k.index < len(poses)]
-        if not placed or not kfs:
-            return np.asarray(poses, dtype=np.float64).copy(), None, np.zeros(len(poses), dtype=bool)
-        indices = np.array([k.index for k in kfs])
-        live = np.stack([k.live for k in kfs])
-        opt = np.stack([k.optimized for k in kfs if k.optimized is not None])
-        frame = joined[1] if joined is not None and joined[0] == map_name else np.eye(4)
-        out = correct_trajectory(poses, indices, live, opt, outside=frame)
-        return out, map_name, corrected_mask(len(poses), indices)
+        """:meth:`GraphView.corrected_marked`."""
+        return self.view.corrected_marked(vehicle, session, poses)
 
     def maps(self) -> list[str]:
-        """Maps with a graph (a keyframe was offered to it)."""
-        with self._lock:
-            return sorted(self._states)
+        """:meth:`GraphView.maps`."""
+        return self.view.maps()
 
     def snapshot(self, map_name: str) -> GraphState | None:
-        """A consistent copy of one map's graph state (keyframes copied shallowly), or ``None``."""
-        with self._lock:
-            st = self._states.get(map_name)
-            if st is None:
-                return None
-            return GraphState(
-                st.map,
-                st.revision,
-                {k: dict(v) for k, v in st.keyframes.items()},
-                list(st.loops),
-                set(st.placed),
-                st.n_refused,
-                dict(st.joined),
-            )
+        """:meth:`GraphView.snapshot`."""
+        return self.view.snapshot(map_name)
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
         """Wait until the process has answered every queued keyframe and re-folded the tiles of

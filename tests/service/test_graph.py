@@ -152,14 +152,14 @@ def _joining(sent: list[CorrectionMessage]) -> tuple[ServiceGraph, tuple[str, st
     key = ("nognss", "d1")
     T_map_session = _pose(90.0, (-34.0, -5.5, 1.7))
     live = np.stack([_pose(0.0, (float(i), 0.0, 0.0)) for i in range(30)])
-    graph._session_map[key] = "nognss.d1"
-    graph._states["nognss.d1"] = GraphState(
+    graph.view.session_map[key] = "nognss.d1"
+    graph.view.states["nognss.d1"] = GraphState(
         "nognss.d1",
         keyframes={key: {i: Keyframe(i, i, 0.1 * i, live[i]) for i in (0, 10, 20)}},
         placed={key},
     )
-    graph._states["default"] = GraphState("default", placed={("gnss", "d1")})
-    graph._session_map[("gnss", "d1")] = "default"
+    graph.view.states["default"] = GraphState("default", placed={("gnss", "d1")})
+    graph.view.session_map[("gnss", "d1")] = "default"
     return graph, key, T_map_session, live
 
 
@@ -176,12 +176,12 @@ def test_a_joined_trajectory_is_corrected_only_from_keyframes_the_graph_holds() 
     # the shared map's graph places it, with the two keyframes it holds (10 and 20), moved
     moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (10, 20)]
     placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
-    graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
+    graph.view.apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
     assert graph.joined(*key) is not None
     # its next keyframe, in the shared map now: held where it was answered (no correction)
-    graph._states["default"].keyframes[key][29] = Keyframe(29, 29, 2.9, live[29])
+    graph.view.states["default"].keyframes[key][29] = Keyframe(29, 29, 2.9, live[29])
     held = [("nognss", "d1", 29, 29, T_map_session @ live[29])]
-    graph._apply(("update", "default", 4, [], held, 0, [], placed, 0.01))
+    graph.view.apply(("update", "default", 4, [], held, 0, [], placed, 0.01))
     corrected, graph_map = graph.corrected(*key, live)
     assert graph_map == "default"
     err = np.linalg.norm(corrected[:, :3, 3] - (T_map_session @ live)[:, :3, 3], axis=1)
@@ -207,13 +207,13 @@ def test_a_late_update_of_a_joined_sessions_own_map_is_not_a_join() -> None:
     graph, key, T_map_session, live = _joining(sent)
     placed = {"gnss/d1": np.eye(4), "nognss/d1": T_map_session}
     moved = [("nognss", "d1", i, i, T_map_session @ live[i]) for i in (0, 10)]
-    graph._apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
+    graph.view.apply(("join", "default", 3, moved, [], 0, [], placed, 0.01))
     # keyframe 20, offered to its own map before the join was known, answered by both graphs
     own = [("nognss", "d1", 20, 20, live[20])]
-    graph._apply(("update", "nognss.d1", 2, [], own, 0, [], {"nognss/d1": np.eye(4)}, 0.01))
+    graph.view.apply(("update", "nognss.d1", 2, [], own, 0, [], {"nognss/d1": np.eye(4)}, 0.01))
     assert graph.joined(*key) == ("default", pytest.approx(T_map_session))  # type: ignore[comparison-overlap]
     shared = [("nognss", "d1", 20, 20, T_map_session @ live[20])]
-    graph._apply(("join", "default", 4, shared, [], 0, [], placed, 0.01))
+    graph.view.apply(("join", "default", 4, shared, [], 0, [], placed, 0.01))
     kfs = graph.snapshot("default").session_keyframes(key)  # type: ignore[union-attr]
     assert [k.index for k in kfs if k.optimized is not None] == [0, 10, 20]
     corrected, graph_map = graph.corrected(*key, live)

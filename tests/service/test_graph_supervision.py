@@ -208,19 +208,19 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     T = np.eye(4)
     T[:3, 3] = (12.0, -3.0, 0.5)
-    graph._joined[("nognss", "d1")] = ("default", T)
+    graph.view.joins[("nognss", "d1")] = ("default", T)
     loop = GraphLoop(("a", "d1", 5), ("a", "d1", 90), "place", True, True, "", 40)
-    graph._states["default"] = GraphState("default", revision=7, loops=[loop], placed={("a", "d1")})
+    graph.view.states["default"] = GraphState("default", revision=7, loops=[loop], placed={("a", "d1")})
     keyframe = ("keyframe", "default", "a", "d1", 100, 100, np.eye(4), np.zeros((20, 3)), None, None, None)
     graph._queued = [keyframe]
     graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
     first = graph._queued[0]
     assert first[:4] == ("place", "default", "nognss", "d1") and np.array_equal(first[4], T)
     assert graph._queued[1] is keyframe
-    assert graph._bases["default"] == (7, 1) and graph._placed_before["default"] == {("a", "d1")}
+    assert graph.view.bases["default"] == (7, 1) and graph.view.placed_before["default"] == {("a", "d1")}
     # an update from the new process (its revision 1, its loop records from 0) is numbered on
-    graph._session_map[("a", "d1")] = "default"
-    graph._apply(("update", "default", 1, [], [], 0, [], {"a/d1": np.eye(4)}, 0.01))
+    graph.view.session_map[("a", "d1")] = "default"
+    graph.view.apply(("update", "default", 1, [], [], 0, [], {"a/d1": np.eye(4)}, 0.01))
     state = graph.snapshot("default")
     assert state is not None and state.revision == 8 and state.loops == [loop]
     assert state.placed == {("a", "d1")}
