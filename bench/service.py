@@ -235,7 +235,7 @@ graph = service.sessions.graph
 stats = {}
 if graph is not None:
     graph.wait_idle(300)
-    proc = graph._proc
+    proc = graph.supervisor.proc
     if proc is not None and proc.pid:
         with open(f"/proc/{proc.pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()

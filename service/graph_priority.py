@@ -6,6 +6,7 @@ starved, dies with the service, and its CPU is read for admission (``docs/archit
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import threading
@@ -13,7 +14,11 @@ import time
 from collections.abc import Iterator
 
 __all__ = [
+    "ESCALATE_S",
     "GRAPH_NICE",
+    "STARVED_S",
+    "CpuMeter",
+    "StarvationGuard",
     "YieldGate",
     "die_with_parent",
     "lowest_priority",
@@ -21,8 +26,20 @@ __all__ = [
     "set_graph_priority",
 ]
 
+log = logging.getLogger(__name__)
+
 #: The graph process's niceness (added to the service's).
 GRAPH_NICE = 10
+#: The graph process runs at ``SCHED_IDLE``, which yields to any other process, ours or not: with
+#: work in flight and no answer for this long it is starved (other processes can hold it for good:
+#: docs/architecture.md, "Threads or processes"), and runs at the normal policy niced by
+#: GRAPH_NICE until its queue is empty (:class:`StarvationGuard`).
+STARVED_S = 5.0
+#: Raised and still behind this long, it runs at the service's own niceness until its queue is
+#: empty: niced, beside a CPU burner at the normal niceness, it gets about a tenth of a core.
+#: Admission counts the graph's CPU with the service process's (service/capacity.py), so the
+#: node's measured capacity leaves it that time.
+ESCALATE_S = 30.0
 
 
 class YieldGate:
@@ -175,3 +192,85 @@ def set_graph_priority(pid: int, *, idle: bool, nice: int = GRAPH_NICE) -> bool:
         except OSError:
             done = False
     return done
+
+
+class StarvationGuard:
+    """Raises a starved graph process above ``SCHED_IDLE`` (:data:`STARVED_S`), to the service's
+    own niceness if it is still behind (:data:`ESCALATE_S`), and lowers it again once it has
+    caught up; :meth:`check` runs at each of the supervisor's looks at the process."""
+
+    def __init__(self) -> None:
+        #: the process runs above SCHED_IDLE for now (starved), and how often it was raised; runs
+        #: at the service's niceness for now (raised and still behind), and how often
+        self.raised = False
+        self.starvations = 0
+        self.escalated = False
+        self.escalations = 0
+        self._raised_at = 0.0
+
+    def reset(self) -> None:
+        """A new process: it starts at ``SCHED_IDLE`` (:func:`lowest_priority`)."""
+        self.raised = self.escalated = False
+
+    def check(self, pid: int, *, busy: bool, waited_s: float | None) -> None:
+        """``busy``: work queued or in flight; ``waited_s``: how long the work in flight has
+        waited for an answer (None: none in flight)."""
+        now = time.monotonic()
+        starved = waited_s is not None and waited_s > STARVED_S
+        if starved and not self.raised and set_graph_priority(pid, idle=False):
+            self.raised, self._raised_at = True, now
+            self.starvations += 1
+            log.warning(
+                "pose graph: no answer for %.0f s with work in flight (other processes take every "
+                "core): it runs niced by %d instead of SCHED_IDLE until it catches up",
+                STARVED_S,
+                GRAPH_NICE,
+            )
+        elif busy and self.raised and not self.escalated and now - self._raised_at > ESCALATE_S:
+            if set_graph_priority(pid, idle=False, nice=0):
+                self.escalated = True
+                self.escalations += 1
+                log.warning(
+                    "pose graph: still behind %.0f s after it was raised: it runs at the service's "
+                    "niceness until it catches up",
+                    ESCALATE_S,
+                )
+        elif not busy and self.raised and set_graph_priority(pid, idle=True):
+            self.raised = self.escalated = False
+            log.info("pose graph: caught up, back to SCHED_IDLE")
+
+
+class CpuMeter:
+    """CPU seconds the graph's processes have used, every generation counted (Linux, from /proc;
+    0 elsewhere): the node's admission counts them (service/capacity.py). A process's start
+    (spawn and imports until it says it is alive) is not counted: it is no cost per sweep, and
+    billed to one flush's sweeps it would fill the node's capacity (docs/benchmarks.md, "One
+    vehicle within capacity")."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        #: the process last read, its CPU then, and that of the generations before
+        self._pid: int | None = None
+        self._last = 0.0
+        self._dead = 0.0
+        #: each process's CPU when it said it is alive (its start, not counted)
+        self._at_alive: dict[int, float] = {}
+
+    def alive(self, pid: int) -> None:
+        """Process ``pid`` says it is alive: its CPU counts from now."""
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            self._at_alive[pid] = process_cpu_s(pid)
+
+    def read(self, pid: int | None) -> float:
+        """The total so far, ``pid`` the current process (None: none runs)."""
+        now = 0.0
+        if pid is not None:
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                started = self._at_alive.get(pid)
+                now = 0.0 if started is None else max(process_cpu_s(pid) - started, 0.0)
+        with self._lock:
+            if pid != self._pid:  # a new generation: the last one's CPU stays counted
+                self._dead += self._last
+                self._pid, self._last = pid, 0.0
+            self._last = max(self._last, now)
+            return self._dead + self._last

@@ -370,18 +370,18 @@ def test_every_thread_of_the_graph_process_runs_at_the_lowest_priority(loop_driv
     import os
 
     graph = loop_drive.server.service.sessions.graph
-    assert graph is not None and graph._proc is not None and graph._proc.pid is not None
+    assert graph is not None and graph.supervisor.proc is not None and graph.supervisor.proc.pid is not None
     # A graph starved by other processes (two CPU burners beside the suite) runs raised until it
     # has caught up (test_graph_priority.py); the drive is over and the graph idle, so it is
     # lowered again within the supervisor's next tick (0.5 s).
-    assert wait_for(lambda: not graph.raised, 10), "the idle graph stayed raised"
-    tids = [int(t) for t in os.listdir(f"/proc/{graph._proc.pid}/task")]
+    assert wait_for(lambda: not graph.supervisor.guard.raised, 10), "the idle graph stayed raised"
+    tids = [int(t) for t in os.listdir(f"/proc/{graph.supervisor.proc.pid}/task")]
     assert len(tids) >= 1
     assert {tid: os.sched_getscheduler(tid) for tid in tids} == dict.fromkeys(tids, os.SCHED_IDLE)
     # and it yielded the cores while sweeps were matched (YieldGate), yet took every keyframe
     # (test_live_graph_closes_the_loop_and_corrects_the_trajectory); it is not left stopped
     assert graph.gate is not None and graph.gate.holds > 0
-    assert _state(graph._proc.pid) != "T"
+    assert _state(graph.supervisor.proc.pid) != "T"
 
 
 def test_corrections_are_published_and_replay_to_the_graph_state(loop_drive) -> None:

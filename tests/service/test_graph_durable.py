@@ -130,7 +130,7 @@ def test_an_offered_keyframe_is_durable_before_the_graph_takes_it(tmp_path) -> N
             while len(GraphLog(log_dir).read()) < 4:
                 assert time.monotonic() < deadline, "offered keyframes not logged"
                 time.sleep(0.05)
-            assert graph._done == 1  # none of them taken
+            assert graph.queue.done == 1  # none of them taken
         finally:
             os.kill(graph.pid, signal.SIGCONT)
     finally:

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-import randt.service.graph as graph_module
+import randt.service.graph_priority as graph_priority
 from randt.core.fleet_map import FleetMapSettings
 from randt.service.graph import ServiceGraph
 from randt.service.metrics import ServiceMetrics
@@ -43,13 +43,14 @@ def _nices(pid: int) -> set[int]:
 def _wait_lowered(graph: ServiceGraph) -> None:
     """Until the guard has lowered the graph again (at its next check, 0.5 s, once idle)."""
     deadline = time.monotonic() + 5
-    while graph.raised and time.monotonic() < deadline:
+    while graph.supervisor.guard.raised and time.monotonic() < deadline:
         time.sleep(0.1)
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
 def test_a_graph_starved_by_other_processes_is_raised_until_it_catches_up(monkeypatch) -> None:
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
+    guard = graph.supervisor.guard
 
     def offer(k: int) -> None:
         T = np.eye(4)
@@ -66,7 +67,7 @@ def test_a_graph_starved_by_other_processes_is_raised_until_it_catches_up(monkey
         # (beside CI's burners the guard may have raised it for this first keyframe already: it is
         # lowered at the next check once idle)
         _wait_lowered(graph)
-        starved_before = graph.starvations
+        starved_before = guard.starvations
         pid = graph.pid
         assert pid is not None and _policies(pid) == {os.SCHED_IDLE}
         # One burner on each core at the normal policy: SCHED_IDLE gets (almost) nothing. Each is
@@ -77,32 +78,32 @@ def test_a_graph_starved_by_other_processes_is_raised_until_it_catches_up(monkey
         for cpu in sorted(os.sched_getaffinity(0)):
             burners.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
             os.sched_setaffinity(burners[-1].pid, {cpu})
-        monkeypatch.setattr(graph_module, "STARVED_S", 1e9)  # no guard: the failure mode
+        monkeypatch.setattr(graph_priority, "STARVED_S", 1e9)  # no guard: the failure mode
         for k in range(1, 13):
             offer(k)
         assert not graph.wait_idle(10), "the graph caught up at SCHED_IDLE beside the burners"
-        assert graph.starvations == starved_before and _policies(pid) == {os.SCHED_IDLE}
+        assert guard.starvations == starved_before and _policies(pid) == {os.SCHED_IDLE}
         # The guard (5 s in the service), then the service's own niceness once still behind (30 s
         # in the service; here from the guard's next check, every 0.5 s)
-        monkeypatch.setattr(graph_module, "STARVED_S", 2.0)
-        monkeypatch.setattr(graph_module, "ESCALATE_S", 0.1)
+        monkeypatch.setattr(graph_priority, "STARVED_S", 2.0)
+        monkeypatch.setattr(graph_priority, "ESCALATE_S", 0.1)
         own_nice = os.getpriority(os.PRIO_PROCESS, 0)
         seen: set[tuple[bool, frozenset[int]]] = set()
         t0 = time.monotonic()
         while time.monotonic() - t0 < 90:
-            if graph.raised:
-                seen.add((graph.escalated, frozenset(_nices(pid))))
+            if guard.raised:
+                seen.add((guard.escalated, frozenset(_nices(pid))))
             elif seen:  # lowered again: caught up
                 break
             time.sleep(0.02)
         assert graph.wait_idle(30), "the graph did not catch up once raised"
         caught_up_s = time.monotonic() - t0
-        assert graph.starvations == starved_before + 1 and graph.pid == pid  # raised once, not restarted
-        assert graph.escalations == 1, (seen, caught_up_s)
-        assert (False, frozenset({own_nice + graph_module.GRAPH_NICE})) in seen, seen
+        assert guard.starvations == starved_before + 1 and graph.pid == pid  # raised once, not restarted
+        assert guard.escalations == 1, (seen, caught_up_s)
+        assert (False, frozenset({own_nice + graph_priority.GRAPH_NICE})) in seen, seen
         assert (True, frozenset({own_nice})) in seen, seen
         _wait_lowered(graph)
-        assert not graph.raised and _policies(pid) == {os.SCHED_IDLE}, caught_up_s
+        assert not guard.raised and _policies(pid) == {os.SCHED_IDLE}, caught_up_s
     finally:
         for b in burners:
             b.kill()

@@ -171,7 +171,7 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
 
 
 class Dead:
-    """A dead graph process, its pipe and its receiver thread, as ``ServiceGraph._died`` sees them."""
+    """A dead graph process, its pipe and its receiver thread, as ``GraphSupervisor.died`` sees them."""
 
     exitcode = -9
 
@@ -190,12 +190,12 @@ def test_an_item_in_flight_at_two_deaths_is_dropped_not_retried_forever(deaths: 
     graph = ServiceGraph(FleetMapSettings(), lambda m: None, ServiceMetrics(), yield_to_matchers=False)
     item = ("sync", 1)
     for _ in range(deaths):
-        graph._queued = [q for q in graph._queued if q is not item]
-        graph._inflight = [item]  # sent, not answered
-        graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
-    assert (item in graph._queued) == (deaths == 1)
-    assert graph._synced == (0 if deaths == 1 else 1)  # a dropped sync is answered, never waited for
-    assert (id(item) in graph._retried) == (deaths == 1)  # a dropped item leaves no trace
+        graph.queue.queued = [q for q in graph.queue.queued if q is not item]
+        graph.queue.inflight = [item]  # sent, not answered
+        graph.supervisor.died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
+    assert (item in graph.queue.queued) == (deaths == 1)
+    assert graph.queue.synced == (0 if deaths == 1 else 1)  # a dropped sync is answered, never waited for
+    assert (id(item) in graph.queue.retried) == (deaths == 1)  # a dropped item leaves no trace
     assert graph.restarts == deaths and graph.last_exit == "signal 9"
 
 
@@ -212,11 +212,11 @@ def test_a_restarted_process_first_places_the_sessions_that_had_joined_another_m
     loop = GraphLoop(("a", "d1", 5), ("a", "d1", 90), "place", True, True, "", 40)
     graph.view.states["default"] = GraphState("default", revision=7, loops=[loop], placed={("a", "d1")})
     keyframe = ("keyframe", "default", "a", "d1", 100, 100, np.eye(4), np.zeros((20, 3)), None, None, None)
-    graph._queued = [keyframe]
-    graph._died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
-    first = graph._queued[0]
+    graph.queue.queued = [keyframe]
+    graph.supervisor.died(Dead(), Dead(), Dead())  # type: ignore[arg-type]
+    first = graph.queue.queued[0]
     assert first[:4] == ("place", "default", "nognss", "d1") and np.array_equal(first[4], T)
-    assert graph._queued[1] is keyframe
+    assert graph.queue.queued[1] is keyframe
     assert graph.view.bases["default"] == (7, 1) and graph.view.placed_before["default"] == {("a", "d1")}
     # an update from the new process (its revision 1, its loop records from 0) is numbered on
     graph.view.session_map[("a", "d1")] = "default"
@@ -244,8 +244,7 @@ def test_a_graph_process_held_while_starting_dies_with_a_killed_service() -> Non
         "        with graph.gate.matching():\n"
         "            time.sleep(0.02)\n"
         "threading.Thread(target=sweeps, daemon=True).start()\n"
-        "with graph._cond:\n"
-        "    graph._start()\n"
+        "graph.supervisor.start()\n"
         "while graph.pid is None:\n"
         "    time.sleep(0.005)\n"
         "print(graph.pid, flush=True)\n"
