@@ -137,11 +137,10 @@ def _worker(data_dir: str, sessions: int, seed: int, matcher_processes: int, flu
         matcher_processes=matcher_processes,
         idle_expiry_s=3600,
     )
-    service = Service(settings, with_zenoh=False)
+    service = Service(settings, with_zenoh=False, outbox=emit)
     service.start()
     mgr = service.sessions
     assert mgr is not None
-    mgr.outbox = emit
     mgr.wait_matchers(600)
     records = mgr.records()
     room = synthetic_room(np.random.default_rng(0), 2500)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
@@ -19,10 +19,19 @@ from randt.service.agreement import AgreementGate, Held
 from randt.service.live_maps import LiveMaps
 from randt.service.matchers import Registered
 from randt.service.metrics import ServiceMetrics
+from randt.service.session_info import SessionInfo
 
-__all__ = ["MapPoints"]
+__all__ = ["MapPoints", "SessionMap"]
 
 log = logging.getLogger(__name__)
+
+
+class SessionMap(Protocol):
+    """The session's own map as it stands: its tiles and its name (``info.map_name``), read
+    under the session's lock (the session changes them with its frame)."""
+
+    grid: TileGrid
+    info: SessionInfo
 
 
 class MapPoints:
@@ -33,8 +42,14 @@ class MapPoints:
     serialized, so points enter the map in arrival order."""
 
     def __init__(
-        self, gate: AgreementGate, session_lock: threading.Lock, maps: LiveMaps, metrics: ServiceMetrics
+        self,
+        session: SessionMap,
+        gate: AgreementGate,
+        session_lock: threading.Lock,
+        maps: LiveMaps,
+        metrics: ServiceMetrics,
     ) -> None:
+        self._session = session
         self.gate = gate
         self._session_lock = session_lock
         self._maps, self._metrics = maps, metrics
@@ -49,17 +64,15 @@ class MapPoints:
         registered: Registered,
         correction: np.ndarray | None,
         fold_map: str,
-        grid: Callable[[], TileGrid],
-        session: tuple[str, str, str],
     ) -> tuple[str | None, float | None]:
         """A matched sweep's map points (none for a fallback) wait to be folded into ``fold_map``,
         moved by the session's newest ``correction``; first through the agreement check when the
         matcher returned the sweep's thinned points, whose verdict folds or drops the points held
-        since the last check, its own included (``session``: vehicle, session id and the session's
-        own map, for the log and the answer; ``grid``: ``fold_map``'s, asked for only by a check).
+        since the last check, its own included (called under the session's lock).
         Returns ``(why the session is lost, or None; the check's share of points near the map, or
         None when none ran)``."""
-        gate, (vehicle, session_id, own_map) = self.gate, session
+        gate, info = self.gate, self._session.info
+        vehicle, session_id, own_map = info.vehicle, info.session, info.map_name
         checked = gate.enabled and registered.keyframe_xyz is not None
         if gate.disagreeing and not checked:
             gate.matched()
@@ -75,7 +88,8 @@ class MapPoints:
         T = registered.result.T_world_sensor
         T = T if correction is None else correction @ T
         was_lost = gate.disagreeing
-        self._waiting.extend(gate.check(grid(), T, registered.keyframe_xyz))
+        grid = self._session.grid if fold_map == own_map else self._maps.grid(fold_map)
+        self._waiting.extend(gate.check(grid, T, registered.keyframe_xyz))
         last = gate.last
         assert last is not None
         if gate.disagreeing and not was_lost:
@@ -88,15 +102,15 @@ class MapPoints:
             log.info("session %s/%s agrees with map %s again", vehicle, session_id, fold_map)
         return (gate.lost_reason(own_map) if gate.disagreeing else None), last.share
 
-    def fold(self, own: Callable[[], tuple[TileGrid, str]], *, release: bool = False) -> None:
+    def fold(self, *, release: bool = False) -> None:
         """Insert the waiting points into their maps and mark the tiles that changed for the next
         save. ``release`` (the session ends or merges its map): the points the agreement check
-        holds too, unless its last check disagreed. ``own``: the session's grid and map, read
-        with the points."""
+        holds too, unless its last check disagreed. The session's own map is read with the
+        points."""
         with self._fold_lock:
             with self._session_lock:
                 batch, self._waiting = self._waiting + (self.gate.release() if release else []), []
-                own_grid, own_map = own()
+                own_grid, own_map = self._session.grid, self._session.info.map_name
             # (a session without priors folds into the shared map once it joined it)
             for map_name in dict.fromkeys(name for name, _, _ in batch):
                 part = [(x, i) for name, x, i in batch if name == map_name]

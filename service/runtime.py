@@ -33,12 +33,19 @@ class Service:
     """One running instance (module docstring)."""
 
     def __init__(
-        self, settings: ServiceSettings, *, with_zenoh: bool = True, executor: MatcherExecutor | None = None
+        self,
+        settings: ServiceSettings,
+        *,
+        with_zenoh: bool = True,
+        executor: MatcherExecutor | None = None,
+        outbox: Callable[[WireMessage], None] | None = None,
     ) -> None:
         """``executor``: where the sessions' matchers run, instead of the one the settings name
-        (bench/main_process.py's stand-in that answers at once measures this process alone)."""
+        (bench/main_process.py's stand-in that answers at once measures this process alone);
+        ``outbox``: where the messages go without Zenoh (else a list, ``_sent``)."""
         self.settings = settings
         self._executor = executor
+        self._outbox = outbox
         self.metrics = ServiceMetrics()
         self.started_at = time.time()
         self.store: Store | None = None
@@ -60,7 +67,7 @@ class Service:
                 self.ros2 = Ros2Bridge(s.ros2, self._on_scan, self.metrics, map_near=self.map_near)
                 outbox = self._answer_both
         else:
-            outbox = self._sent.append
+            outbox = self._outbox or self._sent.append
         self.sessions = SessionManager(s, self.store, outbox, self.metrics, self._executor)
         self.metrics.watch(self.map_stats, instance=s.instance)
         if self.transport is not None:

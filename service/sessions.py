@@ -42,7 +42,7 @@ from randt.service.store import SessionRecord, Store
 from randt.service.store import SessionState as RecordState
 from randt.service.worker import SessionWorker, WorkerServices
 from randt.wire.ids import session_map_name
-from randt.wire.messages import WireLimits, WireMessage
+from randt.wire.messages import WireLimits
 from randt.wire.ros2 import Ros2Scan
 
 __all__ = ["MapInUseError", "Outbox", "SessionManager"]
@@ -73,7 +73,7 @@ class SessionManager:
             MapProjections(store).give(name, name in store.list_maps(), GeoOrigin(*settings.map_origin))
         self.metrics = metrics or ServiceMetrics()
         self.limits = WireLimits(max_points=settings.max_points, max_payload_bytes=settings.max_payload_bytes)
-        self.answers = Answers(self._emit, self.metrics, self.limits)
+        self.answers = Answers(outbox, self.metrics, self.limits)
         self._flush_lock = threading.Lock()  # one flush at a time; map deletion waits for it
         self.pool: MatcherExecutor | None = executor if executor is not None else _executor(settings)
         self.capacity: Capacity | None = _capacity(settings, self.pool)
@@ -93,7 +93,7 @@ class SessionManager:
             voxel_size_m=settings.map_voxel_m,
             default_map=settings.default_map,
             metrics=self.metrics,
-            outbox=self._emit,
+            outbox=outbox,
         )
         #: Each map's geodetic origin, if it has one (service/georef.py).
         self.projections = MapProjections(store)
@@ -107,11 +107,6 @@ class SessionManager:
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_loop, name="store-flusher", daemon=True)
         self._flusher.start()
-
-    def _emit(self, message: WireMessage) -> None:
-        """To the outbox (``self.outbox``, which a caller may swap after the start, as bench/crash.py
-        does)."""
-        self.outbox(message)
 
     def _pose_graph(self) -> ServiceGraph:
         s = self.settings

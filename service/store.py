@@ -138,7 +138,7 @@ from randt.service.session_record import (
     SessionState,
 )
 from randt.service.session_store import SEGMENT_RECORDS, SESSIONS_DIRNAME, SessionStore, scan_sessions
-from randt.service.store_files import ProblemKind, StoreProblem, remove_temp_files, report_problem
+from randt.service.store_files import OpenCheck, ProblemKind, StoreProblem, remove_temp_files, report_problem
 from randt.service.tile_store import MAPS_DIRNAME, VERSIONS_DIRNAME, TileStore
 
 __all__ = [
@@ -195,22 +195,6 @@ class StoreContents:
     problems: list[StoreProblem] = field(default_factory=list)
 
 
-class _OpenCheck:
-    """Raises once the store is closed: what the store's parts call before each read and write.
-
-    It holds the store's finalizer, not the store: a reference from the parts back to the store
-    would keep a store that is dropped unclosed (and its lock) alive until the garbage collector
-    runs.
-    """
-
-    def __init__(self, finalizer: weakref.finalize, root: Path) -> None:
-        self._finalizer, self._root = finalizer, root
-
-    def __call__(self) -> None:
-        if not self._finalizer.alive:
-            raise RandtError(f"the store at {self._root} is closed")
-
-
 class Store:
     """The durable store of maps and sessions under ``data_dir`` (see the module docstring).
 
@@ -255,7 +239,7 @@ class Store:
             raise FormatError(f"cannot create the data directory {self._root}: {exc}") from exc
         lock_key, first = acquire_lock(self._root)
         self._finalizer = weakref.finalize(self, release_lock, lock_key)
-        self._check_open = _OpenCheck(self._finalizer, self._root)
+        self._check_open = OpenCheck(self._finalizer, self._root)
         self._versions = self._root / VERSIONS_DIRNAME
         self._tiles = TileStore(self._maps, self._versions, self._check_open)
         self._session_store = SessionStore(self._sessions, self._check_open)

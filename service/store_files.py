@@ -10,16 +10,19 @@ import os
 import re
 import shutil
 import time
+import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from randt.core.errors import RandtError
 from randt.core.io.atomic import fsync_directory
 from randt.service.counter_totals import COUNTERS_FILENAME
 
 __all__ = [
     "DELETED_PREFIX",
+    "OpenCheck",
     "ProblemKind",
     "StoreProblem",
     "copy_tree_durably",
@@ -107,3 +110,19 @@ def copy_tree_durably(source: Path, target: Path, parent: Path) -> None:
                 os.fsync(fh.fileno())
     fsync_directory(scratch)
     os.replace(scratch, target)
+
+
+class OpenCheck:
+    """Raises once the store is closed: what the store's parts call before each read and write.
+
+    It holds the store's finalizer, not the store: a reference from the parts back to the store
+    would keep a store that is dropped unclosed (and its lock) alive until the garbage collector
+    runs.
+    """
+
+    def __init__(self, finalizer: weakref.finalize, root: Path) -> None:
+        self._finalizer, self._root = finalizer, root
+
+    def __call__(self) -> None:
+        if not self._finalizer.alive:
+            raise RandtError(f"the store at {self._root} is closed")

@@ -134,7 +134,7 @@ class SessionWorker:
         self.out = SessionOutbox(info, services.answers, self._cond)
         s = services.settings
         gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
-        self.points = MapPoints(gate, self.lock, services.maps, services.metrics)
+        self.points = MapPoints(self, gate, self.lock, services.maps, services.metrics)
         self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionSaver.save_resume_sweeps).
@@ -393,9 +393,7 @@ class SessionWorker:
         session's newest correction (the map follows the pose graph), after the map agreement
         check; lost when the session's sweeps disagree with its map."""
         C, fold_map = self._fold_target()
-        own = fold_map == self.info.map_name
-        grid = (lambda: self.grid) if own else (lambda: self.services.maps.grid(fold_map))
-        why, share = self.points.take(registered, C, fold_map, grid, (*self.key, self.info.map_name))
+        why, share = self.points.take(registered, C, fold_map)
         if share is not None:
             self.info.map_agreement, self.info.map_disagrees = share, self.gate.disagreeing
         return None if why is None else Refusal(ErrorCode.LOST, why)
@@ -509,7 +507,7 @@ class SessionWorker:
     def fold(self, *, release: bool = False) -> None:
         """Fold the session's waiting map points into its maps (the session thread, and the
         flusher before it saves); ``release``: what the agreement check holds too."""
-        self.points.fold(lambda: (self.grid, self.info.map_name), release=release)
+        self.points.fold(release=release)
 
 
 def pose_message(scan: ScanHeader, result: ScanResult, map_name: str) -> PoseMessage:
