@@ -182,7 +182,10 @@ def _restart(data_dir: Path, result: FaultResult, **overrides: Any) -> None:
     """A second service on the same data directory starts and answers /readyz."""
     try:
         with live_service(data_dir, warm_timeout=300, **overrides) as live:
-            status, _ = http_raw(live.port, "GET", "/readyz")
+            # (ready once the pose graph has taken its log again, too: seconds after the warm-up)
+            deadline = time.monotonic() + 120
+            while (status := http_raw(live.port, "GET", "/readyz")[0]) != 200 and time.monotonic() < deadline:
+                time.sleep(0.2)
             result.checks["restarted"] = status == 200
             if status != 200:
                 result.detail += f"; restart: /readyz {status}"

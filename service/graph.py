@@ -121,6 +121,13 @@ class ServiceGraph:
         return self.supervisor.last_exit
 
     @property
+    def replaying(self) -> bool:
+        """The process is still taking keyframes again from the log (after a start or a death):
+        until then the graph it shows lacks some of what it had (``/readyz`` waits for it)."""
+        with self.queue.cond:
+            return bool(self.queue.replay_ids)
+
+    @property
     def pending(self) -> int:
         """Keyframes offered that the process has not answered yet (the graph's lag)."""
         return self.queue.pending

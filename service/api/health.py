@@ -31,7 +31,7 @@ def readiness(svc: Service) -> Ready:
     workers = svc.sessions is not None and svc.sessions.running
     warm = svc.sessions is not None and svc.sessions.matchers_warm
     g = None if svc.sessions is None else svc.sessions.graph
-    graph = g is None or not g.started or g.running
+    graph = g is None or not g.started or (g.running and not g.replaying)
     return Ready(
         ready=zenoh and store and workers and warm and graph,
         zenoh=zenoh,
@@ -85,6 +85,7 @@ def status(svc: ServiceDep) -> Status:
             restarts=0 if g is None else g.restarts,
             last_exit=None if g is None else g.last_exit,
             pending=0 if g is None else g.pending,
+            replaying=g is not None and g.replaying,
         ),
         capacity=_capacity(mgr),
     )

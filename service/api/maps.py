@@ -222,6 +222,7 @@ def get_graph(map: MapName, mgr: ManagerDep) -> MapGraph:
             for loop in state.loops
         ],
         refused_keyframes=state.n_refused,
+        replaying=graph is not None and graph.replaying,
         joined={f"{v}/{s}": T.tolist() for (v, s), T in sorted(state.joined.items())},
     )
 

@@ -63,7 +63,8 @@ class Ready(BaseModel):
     graph: bool = Field(
         default=True,
         description="the pose graph process runs (or is not needed yet: no keyframe so far, or the graph "
-        "is off); false while it is being restarted after it died",
+        "is off) and has taken again every keyframe of its log; false while it is being restarted after "
+        "it died, and while it replays its log (its graph lacks keyframes and loops it had until then)",
     )
 
 
@@ -74,6 +75,10 @@ class GraphStatus(BaseModel):
     last_exit: str | None = Field(description="how the process last died ('signal 9', 'exit code 1')")
     pending: int = Field(
         default=0, description="keyframes offered to the graph that it has not processed yet (it lags)"
+    )
+    replaying: bool = Field(
+        default=False,
+        description="the process is taking the keyframes of its log again (after a start or a death)",
     )
 
 
@@ -228,6 +233,11 @@ class MapGraph(BaseModel):
     keyframes: list[GraphKeyframe]
     loops: list[GraphEdge] = Field(description="every verification, accepted or not")
     refused_keyframes: int
+    replaying: bool = Field(
+        default=False,
+        description="the graph process is still taking the keyframes of its log again (after a restart "
+        "or its death): some keyframes and loops it had are not shown yet",
+    )
     joined: dict[str, list[list[float]]] = Field(
         default_factory=dict,
         description="sessions without priors the graph placed into this map: <vehicle>/<session> -> "

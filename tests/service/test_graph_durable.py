@@ -9,8 +9,9 @@ import time
 
 import numpy as np
 
+from randt.service.api.health import readiness
 from randt.service.graph import GraphState, ServiceGraph
-from randt.service.graph_log import GRAPH_DIRNAME, GraphLog
+from randt.service.graph_log import GRAPH_DIRNAME, GRAPH_LOG_FILENAME, GraphLog, decode_items
 from randt.wire.messages import CorrectionMessage
 from tests.service.api_server import live_server
 from tests.service.test_graph_supervision import N_SCANS, _drives, _send
@@ -41,10 +42,23 @@ def test_a_restarted_service_shows_the_graph_it_had_and_corrects_on_from_there(t
         before = graph.snapshot("default")
         assert before is not None
         sent = [m for m in server.service._sent if isinstance(m, CorrectionMessage)]
-    assert len(GraphLog(data / GRAPH_DIRNAME)) == len(_keyframes(before)) >= 4
+    kb0 = _keyframes(before)
+    assert len(GraphLog(data / GRAPH_DIRNAME)) == len(kb0) >= 4
 
     with live_server(data, capacity_target=0) as server:
         graph = _graph(server)
+        # /readyz answers 200 only once the graph shows every keyframe and loop it showed before
+        deadline = time.monotonic() + 120
+        while not readiness(server.service).ready:
+            assert time.monotonic() < deadline, readiness(server.service)
+            time.sleep(0.01)
+        at_ready = graph.snapshot("default")
+        assert at_ready is not None and not graph.replaying
+        ready_keyframes = _keyframes(at_ready)
+        assert ready_keyframes.keys() == kb0.keys() and at_ready.loops == before.loops
+        for key, P in kb0.items():
+            Q = ready_keyframes[key]
+            assert P is not None and Q is not None and np.abs(P - Q).max() < 1e-3, key
         assert graph.wait_idle(120)
         after = graph.snapshot("default")
         assert after is not None
@@ -127,7 +141,8 @@ def test_an_offered_keyframe_is_durable_before_the_graph_takes_it(tmp_path) -> N
             for k in range(1, 4):
                 offer(k)
             deadline = time.monotonic() + 60  # (the process's start may have taken the first one's)
-            while len(GraphLog(log_dir).read()) < 4:
+            # (read without repairing: a GraphLog would cut the writer's record in progress as torn)
+            while len(decode_items((log_dir / GRAPH_LOG_FILENAME).read_bytes())[0]) < 4:
                 assert time.monotonic() < deadline, "offered keyframes not logged"
                 time.sleep(0.05)
             assert graph.queue.done == 1  # none of them taken
