@@ -404,6 +404,7 @@ class VehiclePublisher:
         prior_pose: np.ndarray | None = None,
         prior_covariance: np.ndarray | None = None,
         geo_prior: GeoPrior | None = None,
+        seq: int | None = None,
     ) -> int:
         """Reduce and encode one sweep (:func:`encode_sweep`), queue it for sending and return its
         ``seq``; never waits for the network.
@@ -430,6 +431,9 @@ class VehiclePublisher:
             ellipsoidal altitude, orientation and covariance in East-North-Up), as a GNSS/INS
             receiver gives it; the service places it through its map's geodetic origin, which the
             first such prior sets (docs/mapping.md, "Georeferenced maps").
+        seq:
+            A number already used, to send a scan again that the service refused with
+            ``retry_after_s`` (admission: its session was not opened); default the next one.
 
         Returns
         -------
@@ -447,8 +451,10 @@ class VehiclePublisher:
         with self._cond:
             if self._closing:
                 raise RuntimeError("the publisher is closed")
-            seq = self._next_seq
-            self._next_seq += 1
+            if seq is None:
+                seq, self._next_seq = self._next_seq, self._next_seq + 1
+            elif not 0 <= seq < self._next_seq:
+                raise ValueError(f"seq {seq} was never used: only a refused scan is sent again")
         payload = encode_sweep(
             self.vehicle,
             self.session,

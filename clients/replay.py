@@ -3,7 +3,9 @@
 Sources are those of :func:`randt.core.datasets.open_scans` (a KITTI sequence folder, a folder of
 scan files, a ROS bag's PointCloud2 topic). ``rate_hz > 0`` sends at that rate, as the sensor
 produced them (the service may drop scans it cannot keep up with); ``rate_hz == 0`` is flow
-control, ``window`` scans in flight, so every scan is matched. Stamps are the replay's start time
+control, ``window`` scans in flight, so every scan is matched. A scan the service refuses with
+``retry_after_s`` (admission: no room for the session yet) is sent again after that pause, the
+replay held meanwhile (recorded data can wait; a live sensor could not). Stamps are the replay's start time
 plus each scan's recorded time; with ``loop=True`` each pass is a new session ``<session>.<pass>``
 (the matcher would see a jump back to the start otherwise). Options and outputs:
 docs/clients.md, "Replaying a recorded drive".
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -97,6 +100,57 @@ def _returns_only(cloud: PointCloud) -> PointCloud:
     if cloud.intensity is not None:
         finite &= np.isfinite(cloud.intensity)
     return cloud if finite.all() else cloud.select(finite)
+
+
+class _Retries:
+    """The scans of a pass the service refused with ``retry_after_s``, to send again after it
+    (their clouds kept until they are answered otherwise)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._unanswered: dict[int, tuple[PointCloud, int]] = {}
+        self._refused: dict[int, float] = {}  # seq -> retry_after_s
+
+    def sent(self, seq: int, cloud: PointCloud, stamp_ns: int) -> None:
+        with self._lock:
+            self._unanswered[seq] = (cloud, stamp_ns)
+
+    def refused(self, msg: ErrorMessage) -> bool:
+        """An error answer: True when it is a refusal to send again (then not a final answer)."""
+        assert msg.seq is not None
+        with self._lock:
+            if msg.retry_after_s is not None and msg.seq in self._unanswered:
+                self._refused[msg.seq] = msg.retry_after_s
+                return True
+            self._unanswered.pop(msg.seq, None)
+            return False
+
+    def answered(self, seq: int) -> None:
+        with self._lock:
+            self._unanswered.pop(seq, None)
+
+    def send_again(self, pub: VehiclePublisher, timeout_s: float, refresh: Callable[[], None]) -> float:
+        """Wait each refusal's ``retry_after_s``, send the refused scans again (their own seq),
+        until none is refused or ``timeout_s`` has passed; the seconds waited."""
+        tic = time.monotonic()
+        while time.monotonic() - tic < timeout_s:
+            with self._lock:
+                batch, self._refused = sorted(self._refused.items()), {}
+            if not batch:
+                break
+            pause = max(after for _, after in batch)
+            log.info("%d scans refused for now: sent again in %.1f s", len(batch), pause)
+            time.sleep(min(pause, max(0.0, timeout_s - (time.monotonic() - tic))))
+            for s, _ in batch:
+                with self._lock:
+                    cloud, stamp_ns = self._unanswered[s]
+                pub.publish(
+                    cloud.xyz, stamp_ns, intensity=cloud.intensity, time_offset_s=cloud.time_offset_s, seq=s
+                )
+            deadline = time.monotonic() + timeout_s
+            while not pub.flush(timeout=0.5) and time.monotonic() < deadline:
+                refresh()
+        return time.monotonic() - tic
 
 
 def replay(
@@ -218,14 +272,16 @@ def _one_pass(
     result = ReplayResult(vehicle, session, len(seq), PublisherStats())
 
     def pose_cb(msg: PoseMessage) -> None:
+        retries.answered(msg.seq)
         result.poses[msg.seq] = msg
         if on_pose is not None:
             on_pose(msg)
 
     def error_cb(msg: ErrorMessage) -> None:
-        if msg.seq is not None:
+        if msg.seq is not None and not retries.refused(msg):
             result.errors[msg.seq] = msg
 
+    retries = _Retries()
     tic = time.monotonic()
     pub = VehiclePublisher(
         vehicle,
@@ -264,13 +320,10 @@ def _one_pass(
                 if delay > 0:
                     time.sleep(delay)
             cloud = _returns_only(recorded)
+            stamp_ns = stamp0_ns + round(stamp_t[i] * 1e9)
             try:
-                pub.publish(
-                    cloud.xyz,
-                    stamp0_ns + round(stamp_t[i] * 1e9),
-                    intensity=cloud.intensity,
-                    time_offset_s=cloud.time_offset_s,
-                )
+                pub.publish(cloud.xyz, stamp_ns, intensity=cloud.intensity, time_offset_s=cloud.time_offset_s)
+                retries.sent(i, cloud, stamp_ns)
             except BadMessageError as exc:
                 log.warning("%s: scan %d not sent: %s", seq.label(i), i, exc)
                 result.skipped.append(i)  # its seq stays unused: seq == scan index throughout
@@ -279,10 +332,12 @@ def _one_pass(
                 deadline = time.monotonic() + answer_timeout_s
                 while not pub.wait_pending(window - 1, timeout=0.5) and time.monotonic() < deadline:
                     refresh()
+            t0_wall += retries.send_again(pub, answer_timeout_s, refresh)  # (the pacing waits too)
             refresh()
         deadline = time.monotonic() + answer_timeout_s
         while not pub.flush(timeout=0.5) and time.monotonic() < deadline:
             refresh()
+        retries.send_again(pub, answer_timeout_s, refresh)
         refresh()
     finally:
         bar.close()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -59,6 +60,11 @@ class FakeService:
 
     def __init__(self, endpoint: str, reject_seqs: frozenset[int] = frozenset()) -> None:
         self.reject_seqs = reject_seqs
+        #: Scans received within this long of the first are refused ``sessions_full`` with
+        #: ``retry_after_s`` (:attr:`retry_after_s`), as admission refuses a session with no room.
+        self.full_for_s = 0.0
+        self.retry_after_s = 0.3
+        self._first_at: float | None = None
         self.received: list[tuple[str, str, int, int]] = []  # vehicle, session, seq, n_points
         self._jobs: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._zs = zenoh.open(zenoh_config("client", connect=(endpoint,)))
@@ -73,8 +79,19 @@ class FakeService:
             except BadMessageError:
                 continue
             self.received.append((scan.vehicle, scan.session, scan.seq, scan.n_points))
-            if scan.seq in self.reject_seqs:
+            now = time.monotonic()
+            self._first_at = now if self._first_at is None else self._first_at
+            if now - self._first_at < self.full_for_s:
                 answer: ErrorMessage | PoseMessage = ErrorMessage(
+                    vehicle=scan.vehicle,
+                    session=scan.session,
+                    seq=scan.seq,
+                    code=ErrorCode.SESSIONS_FULL,
+                    reason="no room for a new session (test)",
+                    retry_after_s=self.retry_after_s,
+                )
+            elif scan.seq in self.reject_seqs:
+                answer = ErrorMessage(
                     vehicle=scan.vehicle,
                     session=scan.session,
                     seq=scan.seq,

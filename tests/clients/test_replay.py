@@ -146,3 +146,31 @@ def test_rate_loop_and_range_on_a_pcd_folder(
         stamps = np.array([r.poses[s].stamp_ns for s in sorted(r.poses)])
         assert np.all(np.diff(stamps) == 50_000_000), "stamps 1/rate apart without times.txt"
     assert [r[3] for r in fake_service.received] == [299] * 8
+
+
+def test_a_replay_refused_for_now_waits_and_sends_the_scans_again(
+    restartable_router: Router, fake_service: FakeService, tmp_path
+) -> None:
+    """A recorded drive can wait: scans refused ``sessions_full`` with ``retry_after_s`` (no room
+    for the session yet) are sent again after that pause, at a rate and under flow control alike,
+    and every scan ends with a pose (before: the replay ended with 0 poses)."""
+    rng = np.random.default_rng(2)
+    for i in range(6):
+        write_cloud(tmp_path / f"{i:03d}.pcd", PointCloud(rng.normal(0, 5, (200, 3))))
+    fake_service.reject_seqs = frozenset()
+    fake_service.full_for_s, fake_service.retry_after_s = 0.8, 0.4
+    for n, rate in enumerate((5.0, 0.0)):
+        fake_service.received.clear()
+        fake_service._first_at = None
+        (result,) = replay(
+            tmp_path,
+            "car-3",
+            session=f"r{n}",
+            rate_hz=rate,
+            settings=PublisherSettings(connect=(restartable_router.endpoint,)),
+            progress=False,
+        )
+        assert sorted(result.poses) == list(range(6)) and not result.errors, (rate, result.errors)
+        seqs = [r[2] for r in fake_service.received]
+        assert len(seqs) > 6 and seqs.count(0) >= 2, (rate, seqs)  # the refused ones went again
+        assert result.wall_s >= 0.8, rate
