@@ -310,6 +310,14 @@ def default_session_id(now: datetime | None = None) -> str:
     return (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
 
 
+def _settings_with(settings: PublisherSettings | None, **overrides: Any) -> PublisherSettings:
+    """The arguments given (not None) first, then ``settings`` or RANDT_VEHICLE_*, then the defaults."""
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if settings is None:
+        return PublisherSettings(**given)
+    return PublisherSettings.model_validate({**settings.model_dump(), **given})
+
+
 @dataclass
 class _Outgoing:
     seq: int
@@ -353,24 +361,19 @@ class VehiclePublisher:
         on_error: Callable[[ErrorMessage], Any] | None = None,
         first_seq: int = 0,
     ) -> None:
-        overrides: dict[str, Any] = {
-            "mode": mode,
-            "connect": tuple(connect) if connect is not None else None,
-            "listen": tuple(listen) if listen is not None else None,
-            "queue_size": queue_size,
-            "answer_timeout_s": answer_timeout_s,
-        }
-        overrides = {k: v for k, v in overrides.items() if v is not None}
-        if settings is None:  # arguments first, then RANDT_VEHICLE_*, then the defaults
-            self.settings = PublisherSettings(**overrides)
-        else:
-            self.settings = PublisherSettings.model_validate({**settings.model_dump(), **overrides})
+        self.settings = _settings_with(
+            settings,
+            mode=mode,
+            connect=tuple(connect) if connect is not None else None,
+            listen=tuple(listen) if listen is not None else None,
+            queue_size=queue_size,
+            answer_timeout_s=answer_timeout_s,
+        )
         self.vehicle = vehicle
         self.session = session or default_session_id()
         # fail early on ids the service would reject (raises BadMessageError with code invalid_id)
         scan_from_arrays(vehicle, self.session, 0, 0, np.zeros((1, 3), np.float32))
-        self.on_pose = on_pose
-        self.on_error = on_error
+        self.on_pose, self.on_error = on_pose, on_error
         self.scan_key = scan_key(vehicle)
         self._next_seq = first_seq
         self._cond = threading.Condition()
@@ -432,8 +435,7 @@ class VehiclePublisher:
             receiver gives it; the service places it through its map's geodetic origin, which the
             first such prior sets (docs/mapping.md, "Georeferenced maps").
         seq:
-            A number already used, to send a scan again that the service refused with
-            ``retry_after_s`` (admission: its session was not opened); default the next one.
+            A used number: a scan the service refused with ``retry_after_s``, sent again.
 
         Returns
         -------
@@ -451,10 +453,10 @@ class VehiclePublisher:
         with self._cond:
             if self._closing:
                 raise RuntimeError("the publisher is closed")
-            if seq is None:
-                seq, self._next_seq = self._next_seq, self._next_seq + 1
-            elif not 0 <= seq < self._next_seq:
+            if seq is not None and not 0 <= seq < self._next_seq:
                 raise ValueError(f"seq {seq} was never used: only a refused scan is sent again")
+            seq = self._next_seq if seq is None else seq
+            self._next_seq = max(self._next_seq, seq + 1)
         payload = encode_sweep(
             self.vehicle,
             self.session,
