@@ -2,9 +2,9 @@
 
 The session thread's per-sweep orchestrator (``SessionWorker._process``) calls each stage in the
 module of its concern; no stage calls back into a module that is still below it on the stack (a
-module the scan has left on its way down), nor up into the manager that holds the sessions. Measured here with a profile hook on real scans
-through a real SessionManager: every call into a ``randt`` module while a ``_process`` runs,
-with the modules on the stack beneath it.
+module the scan has left on its way down), nor up into the manager that holds the sessions.
+Measured here with a profile hook on real scans through a real SessionManager: every call into a
+``randt`` module while a ``_process`` runs, with the modules on the stack beneath it.
 """
 
 from __future__ import annotations
