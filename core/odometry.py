@@ -24,6 +24,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 from typing import Literal, NamedTuple
 
@@ -142,6 +143,9 @@ OBJECT_CHECK_POINTS = 2000
 #: A session's first sweep with a prior is matched to its map's points around the prior
 #: (``register_scan``'s ``map_seed``) when there are at least this many.
 MAP_SEED_MIN_POINTS = 2000
+#: Sweep points matched against the map when localizing on it (a stratified subsample): the map
+#: is fixed, so a few thousand drive Newton as well as all (docs/mapping.md, "Localizing on the map").
+ON_MAP_MATCH_POINTS = 3000
 #: The message of a first sweep placed by its match to the map, not at its prior.
 MATCHED_TO_MAP = "matched to the map from the prior"
 
@@ -310,9 +314,10 @@ class ScanResult:
     frame) and ``map_index`` their row in the input, so per-point attributes such as intensity can
     follow them into the map.
 
-    ``status`` is ``"first"`` (the first sweep, placed at the identity or its prior), ``"ok"`` (a
-    match was accepted) or ``"fallback"`` (the match failed or was rejected; ``T_world_sensor`` is
-    the motion prediction or the prior and ``message`` says why).
+    ``status`` is ``"first"`` (the first sweep, placed at the identity or its prior, or matched
+    on the map: ``localized``), ``"ok"`` (a match was accepted) or ``"fallback"`` (the match failed
+    or was rejected; ``T_world_sensor`` is the motion prediction or the prior and ``message`` says
+    why).
     """
 
     index: int
@@ -330,6 +335,8 @@ class ScanResult:
     n_nonfinite_dropped: int
     message: str = ""
     stage_times_s: dict[str, float] = field(default_factory=dict)
+    #: matched on the map (``register_scan``'s ``on_map``), not on the session's keyframes
+    localized: bool = False
 
 
 def _same(a: object, b: object) -> bool:
@@ -370,6 +377,7 @@ class MatcherState:
     prior_offset : the last accepted pose's position minus its prior's (the session's drift from
         its priors, ``None`` before a sweep with a prior), and ``prior_offset_travel_m``: the
         path length then (the prior gate, :meth:`IncrementalMatcher._agrees`).
+    localized : the last sweep matched on the map, while the session localizes (below).
 
     Arrays in it are replaced, never changed in place, so a snapshot copies only the containers.
     Two states are equal when every field is (arrays element by element, the model and the store
@@ -393,6 +401,9 @@ class MatcherState:
     travel_m: float = 0.0
     prior_offset: np.ndarray | None = None
     prior_offset_travel_m: float = 0.0
+    #: The last sweep matched on the map (its pose and model points), while the session localizes:
+    #: the keyframe model starts again from it when the session maps again.
+    localized: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def empty(cls, max_keyframes: int) -> MatcherState:
@@ -637,8 +648,15 @@ class IncrementalMatcher:
         stamp_s: float | None = None,
         defer_model: bool = False,
         map_seed: np.ndarray | None = None,
+        on_map: PreparedReference | None = None,
     ) -> ScanResult:
         """Register one sweep (sensor frame) and return its :class:`ScanResult`.
+
+        ``on_map``: the map around the vehicle (:meth:`prepare_map`): the sweep is matched against
+        it instead of the session's keyframes (localizing on the map: no keyframe, no model
+        update; ``ScanResult.localized``). The prediction, the gates and the hypotheses are the
+        same. A session that maps again after localizing starts its keyframe model afresh from
+        its last localized sweep (the keyframes from before lie behind it).
 
         ``map_seed``: for a session's first sweep with a ``prior``, the points (world frame) its
         map already has around the prior. The sweep is matched to them from the prior and placed
@@ -670,10 +688,57 @@ class IncrementalMatcher:
                 stamp_s=stamp_s,
                 defer_model=defer_model,
                 map_seed=map_seed,
+                on_map=on_map,
             )
         except BaseException:
             self._state = saved
             raise
+
+    def prepare_map(self, map_xyz: np.ndarray) -> PreparedReference:
+        """The map's points around the vehicle (world frame) prepared as this session's model is
+        (its levels: from the settings, else from its first sweep), for :meth:`register_scan`'s
+        ``on_map``; a few thousand of a sweep's points are matched against it
+        (:data:`ON_MAP_MATCH_POINTS`).
+
+        Raises
+        ------
+        InvalidCloudError
+            The session's levels are not known yet (before its first sweep), or the points are too
+            few or too sparse for them.
+        """
+        if not self.registration.voxel_sizes_m and self.settings.voxel_sizes_m:
+            self._resolve_scales(np.zeros((0, 3)))  # (levels the settings fix need no sweep)
+        levels = self.registration.voxel_sizes_m
+        if not levels:
+            raise InvalidCloudError("the map cannot be prepared before the session's first sweep")
+        return prepare_reference(np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), levels)
+
+    def _on_map_registration(self) -> RegistrationSettings:
+        return self.registration.model_copy(update={"max_match_points": ON_MAP_MATCH_POINTS})
+
+    @contextmanager
+    def _matching_on(self, on_map: PreparedReference | None) -> Iterator[None]:
+        """Match this sweep against ``on_map`` (the session's model and settings put back after)."""
+        if on_map is None:
+            yield
+            return
+        model, registration = self._state.model, self.registration
+        self._state.model, self.registration = on_map, self._on_map_registration()
+        try:
+            yield
+        finally:
+            self._state.model, self.registration = model, registration
+
+    def _restart_model(self) -> None:
+        """Mapping again after localizing: the keyframe model starts from the last localized sweep."""
+        st = self._state
+        assert st.localized is not None
+        T, points = st.localized
+        st.keyframes.clear()
+        st.store = st.model = None
+        st.pending = []
+        st.localized = None
+        self.set_keyframe(T, points)
 
     def _register_scan(
         self,
@@ -684,6 +749,7 @@ class IncrementalMatcher:
         stamp_s: float | None = None,
         defer_model: bool = False,
         map_seed: np.ndarray | None = None,
+        on_map: PreparedReference | None = None,
     ) -> ScanResult:
         """One sweep, the stages of the module docstring; :meth:`register_scan` restores the state
         if it raises."""
@@ -693,6 +759,8 @@ class IncrementalMatcher:
         index = len(self._state.poses)
         if index == 0:
             self._resolve_scales(sweep.xyz)
+        if on_map is None and self._state.localized is not None:
+            self._restart_model()
         prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
         # Periods since the previous sweep: 1 without stamps, more after sweeps dropped upstream.
         periods = self._periods_since_last(stamp_s)
@@ -703,14 +771,17 @@ class IncrementalMatcher:
         if index == 0:
             if sweep.time_offset_s is not None:
                 self._state.first_raw = (xyz, sweep.time_offset_s)
-            T_first, message = self._first_in_map(feats, prior_T, prior, map_seed)
+            with self._matching_on(on_map):
+                T_first, message = self._first_in_map(feats, prior_T, prior, map_seed, on_map)
             outcome = _Outcome(T_first, "first", message, True, 0.0, np.full((6, 6), np.nan), 1.0, xyz, feats)
         else:
             t0 = time.perf_counter()
             has_times = sweep.time_offset_s is not None
-            outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
-            if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
-                outcome = self._second_sweep_again(outcome, prepare, _Gating(T_pred, prior_T, prior, periods))
+            with self._matching_on(on_map):
+                outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
+                if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
+                    gating = _Gating(T_pred, prior_T, prior, periods)
+                    outcome = self._second_sweep_again(outcome, prepare, gating)
             times["match"] = time.perf_counter() - t0
         T = orthonormalize(outcome.T)
         matched = outcome.status == "ok"
@@ -718,7 +789,13 @@ class IncrementalMatcher:
         self._keep_prior_offset(T, prior_T, outcome.status)
         keep_map = ~outcome.feats.noise_mask
         mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # not xyz[keep_map]: see _sanitize
-        is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
+        localized = on_map is not None and (matched or outcome.message == MATCHED_TO_MAP)
+        if on_map is not None:  # no keyframe on the map; mapping again starts from the last one
+            is_kf = False
+            if localized:
+                self._state.localized = (T.copy(), mapped_xyz)
+        else:
+            is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
         return ScanResult(
             index=index,
             T_world_sensor=T,
@@ -735,6 +812,7 @@ class IncrementalMatcher:
             n_nonfinite_dropped=sweep.n_nonfinite_dropped,
             message=outcome.message,
             stage_times_s=times,
+            localized=localized,
         )
 
     # -- the stages of one sweep ------------------------------------------------------------------
@@ -777,16 +855,22 @@ class IncrementalMatcher:
         prior_T: np.ndarray | None,
         prior: PosePrior | None,
         map_seed: np.ndarray | None,
+        on_map: PreparedReference | None = None,
     ) -> tuple[np.ndarray, str]:
         """The first sweep's pose and message: matched to its map's points around its prior
-        (``register_scan``'s ``map_seed``) when that match passes, else the prior (or the identity)."""
+        (``register_scan``'s ``map_seed``, or the map prepared: ``on_map``) when that match
+        passes, else the prior (or the identity)."""
         if prior_T is None or prior is None:
             return np.eye(4), ""
-        if map_seed is None or len(map_seed) < MAP_SEED_MIN_POINTS:
+        if on_map is None and (map_seed is None or len(map_seed) < MAP_SEED_MIN_POINTS):
             return prior_T, ""
         levels = self.registration.voxel_sizes_m or ()
         try:
-            reference = prepare_reference(np.asarray(map_seed, dtype=np.float64), self.registration, levels)
+            reference = on_map
+            if reference is None:
+                assert map_seed is not None
+                seed = np.asarray(map_seed, dtype=np.float64)
+                reference = prepare_reference(seed, self.registration, levels)
             res = register(feats.matching_xyz, None, prior_T, settings=self.registration, reference=reference)
         except RandtError as exc:
             log.info("first sweep: its match to the map failed (%s): placed at its prior", exc)
@@ -979,6 +1063,7 @@ class IncrementalMatcher:
         run = self._state.fallback_run + 1  # counting this sweep's fallback
         return (
             self.settings.relocalize
+            and self._state.localized is None  # (on the map: its keyframes are not there)
             and self._state.model is not None
             and run >= LOST_AFTER_FALLBACKS
             and (run - LOST_AFTER_FALLBACKS) % RELOCALIZE_EVERY == 0

@@ -1,0 +1,117 @@
+"""The incremental matcher localizing on the map (``register_scan(on_map=...)``, core/odometry.py).
+
+A first drive through the simulator's town is folded into tiles at its true poses (the map); a
+second drive along the same streets, with other noise, is matched on the map: every sweep within
+a few centimetres of the truth, no keyframe, no drift. Then it maps again for a stretch (the map
+withheld) and localizes once more: no jump at either switch.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
+from randt.core.tiles import TileGrid
+from randt.core.transforms import transform_error
+from randt.sim.drive import SimScan, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+
+N_SCANS = 60
+WINDOW_M = 60.0
+PRIOR_COV = np.diag([1.0] * 3 + [np.radians(5.0) ** 2] * 3)
+
+
+@functools.cache
+def _drives() -> tuple[list[SimScan], list[SimScan]]:
+    town = Town.generate(0)
+    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
+
+    def drive(seed: int) -> list[SimScan]:
+        return list(
+            simulate(
+                town, plan.route, n_scans=N_SCANS, seed=seed, lidar=lidar, start_s_m=plan.start_s_m, workers=2
+            )
+        )
+
+    return drive(1), drive(2)
+
+
+@functools.cache
+def _map() -> TileGrid:
+    grid = TileGrid(20, 0.2, 1)
+    for scan in _drives()[0]:
+        T = scan.T_world_sensor
+        grid.insert(scan.points_xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3])
+    return grid
+
+
+def _window(matcher: IncrementalMatcher, xy: np.ndarray):
+    xyz = _map().points_in_bbox(xy - WINDOW_M, xy + WINDOW_M).xyz
+    return matcher.prepare_map(xyz)
+
+
+def _matcher() -> IncrementalMatcher:
+    return IncrementalMatcher(MatcherSettings(voxel_sizes_m=(8.0, 4.0, 2.0, 1.0)))
+
+
+def test_a_second_drive_localized_on_the_map_stays_on_the_truth_without_keyframes() -> None:
+    _, second = _drives()
+    matcher = _matcher()
+    first = second[0]
+    T0 = first.T_world_sensor.copy()
+    T0[:2, 3] += (1.5, -1.0)  # a GNSS fix's error
+    # (levels are known from the settings: the window is prepared before the first sweep)
+    window, center = None, None
+    errors = []
+    for k, scan in enumerate(second):
+        xy = (T0 if k == 0 else matcher.poses[-1])[:2, 3]
+        if window is None or np.linalg.norm(xy - center) > 20.0:
+            window, center = _window(matcher, xy), xy.copy()
+        prior = PosePrior(T0, PRIOR_COV) if k == 0 else None
+        result = matcher.register_scan(
+            scan.points_xyz, prior=prior, stamp_s=scan.stamp_ns * 1e-9, on_map=window
+        )
+        assert result.localized and not result.is_keyframe, (k, result.status, result.message)
+        errors.append(transform_error(result.T_world_sensor, scan.T_world_sensor))
+    err = np.array(errors)
+    assert err[:, 0].max() < 0.05 and err[:, 1].max() < 0.3, err.max(axis=0)
+    assert matcher.state.model is None and not matcher.state.keyframes  # nothing learned
+
+
+def test_mapping_between_two_stretches_on_the_map_jumps_at_neither_switch() -> None:
+    _, second = _drives()
+    matcher = _matcher()
+    window_xy = second[0].T_world_sensor[:2, 3].copy()
+    window = _window(matcher, window_xy)
+    modes = ["map"] * 15 + ["mapping"] * 25 + ["map"] * (N_SCANS - 40)
+    poses, errors, results = [], [], []
+    for k, (scan, mode) in enumerate(zip(second, modes, strict=True)):
+        if mode == "map" and k and np.linalg.norm(matcher.poses[-1][:2, 3] - window_xy) > 20.0:
+            window_xy = matcher.poses[-1][:2, 3].copy()
+            window = _window(matcher, window_xy)
+        prior = PosePrior(scan.T_world_sensor, np.diag([1e-4] * 3 + [1e-6] * 3)) if k == 0 else None
+        result = matcher.register_scan(
+            scan.points_xyz,
+            prior=prior,
+            stamp_s=scan.stamp_ns * 1e-9,
+            on_map=window if mode == "map" else None,
+        )
+        results.append(result)
+        poses.append(result.T_world_sensor)
+        errors.append(transform_error(result.T_world_sensor, scan.T_world_sensor)[0])
+    assert [r.localized for r in results] == [m == "map" for m in modes]
+    fallbacks = [r.message for r in results if r.status == "fallback"]
+    assert all(r.status in ("first", "ok") for r in results), fallbacks
+    # mapping starts the keyframe model afresh from the last localized sweep, and adds keyframes
+    assert sum(r.is_keyframe for r in results[15:40]) >= 3
+    assert not any(r.is_keyframe for r in results[40:])
+    err = np.array(errors)
+    assert err.max() < 0.08, err.round(3)
+    true = [scan.T_world_sensor for scan in second]
+    steps = [np.linalg.norm(poses[k][:3, 3] - poses[k - 1][:3, 3]) for k in (15, 40)]
+    truth = [np.linalg.norm(true[k][:3, 3] - true[k - 1][:3, 3]) for k in (15, 40)]
+    assert np.allclose(steps, truth, atol=0.05), (steps, truth)  # no jump beyond the motion
