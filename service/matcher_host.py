@@ -36,6 +36,7 @@ from randt.core.transforms import transform_points
 from randt.service.matcher_io import (
     Key,
     MapFrame,
+    MapWindows,
     MatcherProcessError,
     Registered,
     decoded_sweep,
@@ -162,6 +163,7 @@ class _Sessions:
         self.matchers: dict[Key, IncrementalMatcher] = {}
         self.grids: dict[Key, TileGrid | None] = {}
         self.sent: dict[Key, SentVoxels] = {}
+        self.windows: dict[Key, MapWindows] = {}
         self.ledger = CpuLedger()
         self.rebuilds = _Rebuilds(self.ledger)
 
@@ -177,6 +179,7 @@ class _Sessions:
         if state:
             matcher.load_state_dict(state)
         self.matchers[key] = matcher
+        self.windows[key] = MapWindows()
         self.grids[key] = None if grid_params is None else TileGrid(*grid_params)
         if grid_params is not None:
             self.sent[key] = SentVoxels(*grid_params)
@@ -206,6 +209,7 @@ class _Sessions:
             stamp_s=stamp_s,
             defer_model=True,
             map_seed=None if frame is None else frame.seed_xyz,
+            on_map=self.windows[key].on_map(matcher, None if frame is None else frame.window),
         )
         if rebuild and matcher.model_pending:  # (it and Registered.of only read the sweep's points)
             self.rebuilds.start(key, matcher)
@@ -222,6 +226,7 @@ class _Sessions:
     def drop(self, key: Key) -> bool:
         self.grids.pop(key, None)
         self.sent.pop(key, None)
+        self.windows.pop(key, None)
         return self.matchers.pop(key, None) is not None
 
     def _catch_up(self, key: Key, behind: bool) -> None:

@@ -13,8 +13,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from randt.core.errors import FormatError, RandtError
-from randt.core.odometry import PosePrior, ScanResult
+from randt.core.errors import FormatError, InvalidCloudError, RandtError
+from randt.core.odometry import IncrementalMatcher, PosePrior, ScanResult
+from randt.core.registration import PreparedReference
 from randt.core.tiles import SentVoxels, TileGrid
 from randt.core.transforms import invert, transform_points
 from randt.core.voxel import pack_keys, voxel_coords
@@ -25,6 +26,8 @@ __all__ = [
     "TRAJECTORY_LENGTH_KEY",
     "Key",
     "MapFrame",
+    "MapWindow",
+    "MapWindows",
     "MatcherProcessDiedError",
     "MatcherProcessError",
     "Registered",
@@ -69,12 +72,51 @@ class MapFrame:
         The scan's prior in the map frame when the session thread placed it there (a WGS84
         ``geo_prior``, through the map's geodetic origin: core/geo.py); it replaces the payload's
         own (which then has none). ``None``: the payload's ``prior``, if any.
+    window:
+        The map around the vehicle, to localize the sweep on (:class:`MapWindow`); ``None``: the
+        sweep is mapped (matched on the session's keyframes).
     """
 
     token: tuple[str, int, int]
     correction: np.ndarray | None = None
     seed_xyz: np.ndarray | None = None
     prior: PosePrior | None = None
+    window: MapWindow | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class MapWindow:
+    """The map around the vehicle for a sweep to be localized on (docs/mapping.md, "Localizing on
+    the map"): the map's identity and content when it was cut (``token``, as :attr:`MapFrame.token`),
+    its centre, and its points (world frame, float32) when the matcher is to prepare it anew
+    (``None``: the one it holds, cut with the same token and centre)."""
+
+    token: tuple[str, int, int]
+    center_xy: tuple[float, float]
+    xyz: np.ndarray | None = None
+
+
+class MapWindows:
+    """The window a matcher holds for one session, prepared once for each window sent."""
+
+    def __init__(self) -> None:
+        self._held: tuple[tuple[object, ...], PreparedReference] | None = None
+
+    def on_map(self, matcher: IncrementalMatcher, window: MapWindow | None) -> PreparedReference | None:
+        """The prepared map to match this sweep on (``register_scan``'s ``on_map``), or ``None``:
+        no window asked for, one too sparse to prepare, or one this matcher does not hold (the
+        sweep is mapped then, and its answer says so: ``ScanResult.localized``)."""
+        if window is None:
+            return None
+        key = (window.token, window.center_xy)
+        if window.xyz is not None:
+            try:
+                self._held = (key, matcher.prepare_map(window.xyz))
+            except InvalidCloudError:
+                self._held = None
+        if self._held is None or self._held[0] != key:
+            return None
+        return self._held[1]
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from randt.service.matcher_io import (
     TRAJECTORY_LENGTH_KEY,
     Key,
     MapFrame,
+    MapWindows,
     MatcherProcessDiedError,
     MatcherProcessError,
     Registered,
@@ -141,6 +142,8 @@ class LocalMatcher(IncrementalMatcher):
 
     #: CPU seconds of model rebuilds not billed to a sweep yet (:attr:`Registered.cpu_s`)
     _carried_cpu_s: float = 0.0
+    #: the map window it holds (localizing on the map)
+    _windows: MapWindows | None = None
 
     def update_model(self) -> float:
         """:meth:`IncrementalMatcher.update_model`, its CPU time billed to the next sweep."""
@@ -166,6 +169,7 @@ class LocalMatcher(IncrementalMatcher):
         del behind  # (the caller's to act on: it skips update_model then)
         t0 = time.thread_time()
         xyz, offsets, intensity, prior, stamp_s = decoded_sweep(payload, limits, frame)
+        self._windows = self._windows or MapWindows()
         result = self.register_scan(
             xyz,
             time_offset_s=offsets,
@@ -173,6 +177,7 @@ class LocalMatcher(IncrementalMatcher):
             stamp_s=stamp_s,
             defer_model=True,
             map_seed=None if frame is None else frame.seed_xyz,
+            on_map=self._windows.on_map(self, None if frame is None else frame.window),
         )
         registered = Registered.of(result, None, keyframe_voxel_m, frame).with_intensity(intensity)
         cpu_s, self._carried_cpu_s = time.thread_time() - t0 + self._carried_cpu_s, 0.0

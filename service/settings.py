@@ -384,6 +384,22 @@ class ServiceSettings(BaseSettings):
         description="every session's NDT levels from map_voxel_m (finest 5 map voxels); false: each "
         "session derives them from its first sweep, as `randt map` does (ServiceSettings.session_matcher)",
     )
+    # localizing on the map (service/localizing.py, docs/mapping.md "Localizing on the map")
+    localize: bool = Field(
+        default=False,
+        description="a session in the shared map whose surroundings are in it matches its sweeps on the "
+        "map around the vehicle instead of its own keyframes (no drift, no model update); where the map "
+        "has too little it maps",
+    )
+    localize_radius_m: float = Field(
+        default=80.0, gt=0, description="the map around the vehicle it localizes on"
+    )
+    localize_reload_m: float = Field(
+        default=20.0, gt=0, description="travel from the window's centre before the window is cut again"
+    )
+    localize_min_map_points: int = Field(
+        default=20000, ge=1, description="fewer map points around the vehicle: the session maps there"
+    )
     # pose graph (service/graph.py, docs/mapping.md)
     graph: bool = Field(
         default=True,

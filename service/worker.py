@@ -28,6 +28,7 @@ from randt.service.folding import MapPoints
 from randt.service.georef import MapProjections
 from randt.service.graph import ServiceGraph
 from randt.service.live_maps import LiveMaps
+from randt.service.localizing import SessionLocalizer
 from randt.service.matchers import (
     MapFrame,
     MatcherProcessDiedError,
@@ -135,6 +136,7 @@ class SessionWorker:
         s = services.settings
         gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self.points = MapPoints(self, gate, self.lock, services.maps, services.metrics)
+        self.localizer = SessionLocalizer(s)  # (localizing on the map or mapping, sweep by sweep)
         self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionSaver.save_resume_sweeps).
@@ -335,10 +337,7 @@ class SessionWorker:
         """The scan's payload to the matcher, which decodes and matches it (the keyframe model is
         rebuilt after the pose is out). A matcher process that died breaks the session."""
         scan, s = job.scan, self.services
-        frame = self._map_frame(
-            self._map_seed(prior) if self.info.n_scans == 0 else None,
-            prior if scan.geo_prior is not None else None,  # (placed here: the payload has none)
-        )
+        frame = self._map_frame(scan, prior)
         try:
             registered = self.matcher.register_payload(
                 job.payload,
@@ -359,6 +358,7 @@ class SessionWorker:
             return Refusal(ErrorCode.REGISTRATION_FAILED, str(exc))
         if s.capacity is not None:
             s.capacity.matched(self.key, registered.cpu_s, in_process=s.in_process)
+        self.localizer.answered(registered.result)
         return registered
 
     def _log_pose(self, scan: ScanHeader, result: ScanResult) -> Refusal | None:
@@ -468,13 +468,17 @@ class SessionWorker:
             return None, info.map_name
         return graph.fold_target(info.vehicle, info.session, info.map_name)
 
-    def _map_frame(self, seed_xyz: np.ndarray | None = None, prior: PosePrior | None = None) -> MapFrame:
+    def _map_frame(self, scan: ScanHeader, prior: PosePrior | None) -> MapFrame:
         """Where this sweep's map points go (:class:`~randt.service.matchers.MapFrame`): the matcher
-        moves them by the correction and sends only voxels it has not sent to this map's content
-        (``seed_xyz``: :meth:`_map_seed`; ``prior``: a WGS84 prior placed in the map)."""
+        moves them by the correction and sends only voxels it has not sent to this map's content;
+        a first sweep's map seed (:meth:`_map_seed`), a WGS84 prior placed in the map (the payload
+        has none), and the map around the vehicle to localize on (service/localizing.py)."""
         C, fold_map = self._fold_target()
         grid = self.grid if fold_map == self.info.map_name else self.services.maps.grid(fold_map)
-        return MapFrame((fold_map, *grid.content_token), C, seed_xyz, prior)
+        token = (fold_map, *grid.content_token)
+        seed = self._map_seed(prior) if self.info.n_scans == 0 else None
+        window = self.localizer.window(grid, token, prior, self.matcher.poses, self.info.frame)
+        return MapFrame(token, C, seed, prior if scan.geo_prior is not None else None, window)
 
     def _map_seed(self, prior: PosePrior | None) -> np.ndarray | None:
         """For a session's first sweep with a prior: its map's points within
@@ -526,4 +530,5 @@ def pose_message(scan: ScanHeader, result: ScanResult, map_name: str) -> PoseMes
         covariance=None if not np.all(np.isfinite(cov)) else tuple(cov.ravel().tolist()),
         latency_ms=0.0,
         map=map_name,
+        mode="localizing" if result.localized else "mapping",
     )

@@ -740,6 +740,10 @@ class PoseMessage(_Message):
         Receive-to-publish time on the service, milliseconds.
     map:
         Name of the map the pose is in.
+    mode:
+        ``"mapping"`` (matched on the session's own keyframes; its points extend the map) or
+        ``"localizing"`` (matched on the map around the vehicle: docs/mapping.md, "Localizing on the
+        map"); absent on the wire when mapping.
     """
 
     vehicle: str
@@ -754,6 +758,7 @@ class PoseMessage(_Message):
     covariance: Floats36 | None = None
     latency_ms: float
     map: str
+    mode: Literal["mapping", "localizing"] = Field(default="mapping", exclude_if=lambda v: v == "mapping")
 
     @field_validator("vehicle", "session", "map")
     @classmethod

@@ -1,0 +1,90 @@
+"""A session's choice, sweep by sweep, between localizing on its map and mapping.
+
+:class:`SessionLocalizer` is the session thread's side (docs/mapping.md, "Localizing on the map"):
+a session in the shared map's frame, with ``localize`` on, localizes where the map around the
+vehicle has at least ``localize_min_map_points`` points. It cuts the window (the map's points
+within ``localize_radius_m``) and sends it with the sweep once, then again after
+``localize_reload_m`` of travel or when the map's content changed (its token); the matcher holds
+it meanwhile (service/matcher_io.py, ``MapWindows``). A sweep the map does not hold (its answer
+comes back not localized: the map ends there, or changed) makes the session map for
+:data:`MAP_AFTER_MISS` sweeps before it tries again; its points extend the map meanwhile.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from randt.core.odometry import PosePrior, ScanResult
+from randt.core.tiles import TileGrid
+from randt.service.matcher_io import MapWindow
+from randt.service.session_record import SessionFrame
+from randt.service.settings import ServiceSettings
+
+__all__ = ["MAP_AFTER_MISS", "SessionLocalizer"]
+
+#: Sweeps a session maps after one that the map did not hold, before it localizes again.
+MAP_AFTER_MISS = 20
+
+
+class SessionLocalizer:
+    """One session's localizing or mapping (module docstring)."""
+
+    def __init__(self, settings: ServiceSettings) -> None:
+        self.enabled = settings.localize
+        self.radius_m = settings.localize_radius_m
+        self.reload_m = settings.localize_reload_m
+        self.min_points = settings.localize_min_map_points
+        #: the window the matcher holds (token and centre), as this side sent it
+        self._held: tuple[tuple[str, int, int], tuple[float, float]] | None = None
+        self._asked = False  # the last sweep asked to be localized
+        self._mapping_for = 0  # sweeps to map before localizing again
+        #: sweeps localized, and mapped, so far (the session's figures)
+        self.n_localized = 0
+        self.n_mapped = 0
+
+    def window(
+        self,
+        grid: TileGrid,
+        token: tuple[str, int, int],
+        prior: PosePrior | None,
+        poses: list[np.ndarray],
+        frame: SessionFrame,
+    ) -> MapWindow | None:
+        """The window to localize this sweep on, or ``None``: map it. The vehicle is about at its
+        ``prior``, else at its last pose (neither: not known yet, it maps); only a session in the
+        shared map's frame localizes (the map of ``grid``, its fold target)."""
+        self._asked = False
+        if not self.enabled or frame != "map" or (prior is None and not poses):
+            return None
+        if self._mapping_for > 0:
+            self._mapping_for -= 1
+            return None
+        near = prior.T_world_sensor if prior is not None else poses[-1]
+        xy = np.asarray(near, dtype=np.float64)[:2, 3]
+        held = self._held
+        if held is not None and held[0] == token and np.hypot(*(xy - held[1])) <= self.reload_m:
+            self._asked = True
+            return MapWindow(token, held[1])
+        xyz = self._cut(grid, xy)
+        if xyz.shape[0] < self.min_points:
+            self._held = None
+            return None
+        center = (float(xy[0]), float(xy[1]))
+        self._held, self._asked = (token, center), True
+        return MapWindow(token, center, xyz)
+
+    def _cut(self, grid: TileGrid, xy: np.ndarray) -> np.ndarray:
+        xyz = grid.points_in_bbox(xy - self.radius_m, xy + self.radius_m).xyz
+        keep = np.sum((xyz[:, :2] - xy) ** 2, axis=1) <= self.radius_m**2
+        return np.ascontiguousarray(xyz[keep], dtype=np.float32)
+
+    def answered(self, result: ScanResult) -> None:
+        """A sweep's answer: counted; one asked to be localized that was not (the map does not
+        hold it there, or the matcher lost the window) maps for a while, and the window is cut
+        again when it localizes next."""
+        if result.localized:
+            self.n_localized += 1
+            return
+        self.n_mapped += 1
+        if self._asked:
+            self._held, self._mapping_for = None, MAP_AFTER_MISS

@@ -1,0 +1,85 @@
+"""Localizing on the map in the service (service/localizing.py, ``RANDT_LOCALIZE``).
+
+A first vehicle maps the simulator's streets; a second drives them after it, with a first prior
+1.5 m off (a GNSS fix): its sweeps are matched on the map around it in the matcher processes
+(``mode: localizing``), in the map's frame from its first answer, each within a few centimetres of
+the truth; with ``localize`` off the same drive maps as before.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from randt.core.transforms import transform_error
+from randt.service.metrics import ServiceMetrics
+from randt.service.sessions import SessionManager
+from randt.service.settings import ServiceSettings
+from randt.service.store import Store
+from randt.sim.drive import SimScan, plan_fleet, simulate
+from randt.sim.lidar import Lidar64
+from randt.sim.town import Town
+from randt.wire.messages import ErrorMessage, PoseMessage, encode, scan_from_arrays
+
+N_SCANS = 50
+EXACT = np.diag([1e-4] * 3 + [1e-6] * 3)
+GNSS = np.diag([1.0] * 3 + [np.radians(5.0) ** 2] * 3)
+
+
+def _drive(seed: int) -> list[SimScan]:
+    town = Town.generate(0)
+    plan = plan_fleet(town, 1, seed=0, route_length_m=400.0)[0]
+    lidar = Lidar64(n_azimuth=1000, max_range_m=70.0)
+    return list(
+        simulate(
+            town, plan.route, n_scans=N_SCANS, seed=seed, lidar=lidar, start_s_m=plan.start_s_m, workers=2
+        )
+    )
+
+
+def _send(
+    mgr: SessionManager, out: list, vehicle: str, scans: list[SimScan], first_T: np.ndarray, cov
+) -> None:
+    for k, scan in enumerate(scans):
+        n = sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out))
+        extra = {"prior_pose": first_T, "prior_covariance": cov} if k == 0 else {}
+        mgr.submit(
+            vehicle, encode(scan_from_arrays(vehicle, "d1", k, scan.stamp_ns, scan.points_xyz, **extra))
+        )
+        deadline = time.monotonic() + 60
+        while sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out)) < n + 1:
+            assert time.monotonic() < deadline, "the service stopped answering"
+            time.sleep(0.002)
+
+
+@pytest.mark.parametrize("localize", [True, False])
+def test_a_second_vehicle_localizes_on_the_first_ones_map(tmp_path: Path, localize: bool) -> None:
+    mapper, second = _drive(1), _drive(2)
+    settings = ServiceSettings(
+        data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, graph=False, localize=localize
+    )  # type: ignore[call-arg]
+    out: list = []
+    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    try:
+        assert mgr.wait_matchers(300)
+        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
+        mgr.close("mapper", "d1")
+        mgr.flush()
+        T0 = second[0].T_world_sensor.copy()
+        T0[:2, 3] += (1.5, -1.0)  # the GNSS fix's error
+        _send(mgr, out, "second", second, T0, GNSS)
+    finally:
+        mgr.stop()
+    answers = {m.seq: m for m in out if isinstance(m, PoseMessage) and m.vehicle == "second"}
+    assert sorted(answers) == list(range(N_SCANS))
+    modes = [answers[k].mode for k in range(N_SCANS)]
+    errors = np.array([transform_error(answers[k].matrix(), s.T_world_sensor) for k, s in enumerate(second)])
+    if not localize:
+        assert set(modes) == {"mapping"}
+        return
+    assert modes.count("localizing") == N_SCANS, modes  # from its first sweep on
+    assert all(a.map == "default" and a.status in ("first", "ok") for a in answers.values())
+    assert errors[:, 0].max() < 0.05 and errors[:, 1].max() < 0.3, errors.max(axis=0)
