@@ -35,6 +35,8 @@ from randt.wire.messages import CorrectionMessage
 
 __all__ = [
     "GRAPH_NICE",
+    "KNOWN_PLACE_DEG",
+    "KNOWN_PLACE_M",
     "MOVE_TOL_DEG",
     "MOVE_TOL_M",
     "GraphLoop",
@@ -42,6 +44,13 @@ __all__ = [
     "ServiceGraph",
     "correct_trajectory",
 ]
+
+
+#: A localized sweep within this reach and turn of a keyframe the map's graph holds adds no
+#: keyframe: the graph has that view of the place (half the keyframe spacing; another heading sees
+#: other faces), so repeated drives add none and a place keeps a few views, one per heading.
+KNOWN_PLACE_M = 5.0
+KNOWN_PLACE_DEG = 30.0
 
 
 class ServiceGraph:
@@ -168,13 +177,20 @@ class ServiceGraph:
         intensity: np.ndarray | None = None,
         gnss: tuple[np.ndarray, np.ndarray] | None = None,
         join: str | None = None,
+        localized: bool = False,
     ) -> None:
         """Queue a keyframe of a session in map ``map_name``: a durable pose ``T_live`` (sweep
         ``index``), its points (sensor frame, deskewed) with their intensity, and its GNSS fix.
         The points also make the map's tiles when the graph re-folds them. ``join``: the shared
         map a session without priors (in a map of its own) may join, once the graph places it
         there (:meth:`joined`). Never blocks: when ``graph_queue`` keyframes wait, the oldest is
-        dropped (counted, logged)."""
+        dropped (counted, logged). A ``localized`` sweep (matched on the map) at a place the
+        graph holds (:data:`KNOWN_PLACE_M`, :data:`KNOWN_PLACE_DEG`) adds nothing: the graph grows
+        with the area, not with the distance driven (counted ``known_place``)."""
+        if localized and self.view.known_place(map_name, T_live, KNOWN_PLACE_M, KNOWN_PLACE_DEG):
+            self.view.passed((vehicle, session), T_live)
+            self.view.metrics.graph_keyframes.labels("known_place").inc()
+            return
         map_name = self.view.offered(
             (vehicle, session), map_name, Keyframe(seq, index, stamp_s, T_live.copy())
         )

@@ -237,6 +237,28 @@ class GraphView:
         (``keyframe_voxel_m``)."""
         return wants_keyframe(poses, self.last.get((vehicle, session)), self.keyframe_m)
 
+    def known_place(self, map_name: str, T: np.ndarray, reach_m: float, turn_deg: float) -> bool:
+        """The graph of ``map_name`` holds a keyframe within ``reach_m`` of pose ``T`` and within
+        ``turn_deg`` of its heading (its optimized pose, else its live one)."""
+        with self.lock:
+            st = self.states.get(map_name)
+            kfs = [] if st is None else [kf for per in st.keyframes.values() for kf in per.values()]
+            poses = [kf.live if kf.optimized is None else kf.optimized for kf in kfs]
+        if not poses:
+            return False
+        P = np.asarray(poses)
+        near = np.linalg.norm(P[:, :3, 3] - T[:3, 3], axis=1) <= reach_m
+        # heading: the angle between the sensors' x axes in the horizontal plane
+        cos = np.einsum("ij,j->i", P[near][:, :2, 0], T[:2, 0]) / np.maximum(
+            np.linalg.norm(P[near][:, :2, 0], axis=1) * np.linalg.norm(T[:2, 0]), 1e-12
+        )
+        return bool(np.any(cos >= np.cos(np.radians(turn_deg))))
+
+    def passed(self, key: SessionKey, T: np.ndarray) -> None:
+        """A session passed a place the graph holds without offering a keyframe: the spacing of
+        its next one counts from here (:meth:`wants_keyframe`)."""
+        self.last[key] = np.asarray(T, dtype=np.float64).copy()
+
     def forget_keyframe(self, map_name: str, key: SessionKey, seq: int) -> None:
         with self.lock:
             st = self.states.get(map_name)

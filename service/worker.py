@@ -457,6 +457,7 @@ class SessionWorker:
             intensity=registered.keyframe_intensity,
             gnss=self._gnss(scan, prior),
             join=s.settings.default_map if info.frame == "session" else None,
+            localized=result.localized,
         )
 
     # -- where a sweep's points go ---------------------------------------------------------------

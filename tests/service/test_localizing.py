@@ -83,3 +83,39 @@ def test_a_second_vehicle_localizes_on_the_first_ones_map(tmp_path: Path, locali
     assert modes.count("localizing") == N_SCANS, modes  # from its first sweep on
     assert all(a.map == "default" and a.status in ("first", "ok") for a in answers.values())
     assert errors[:, 0].max() < 0.05 and errors[:, 1].max() < 0.3, errors.max(axis=0)
+
+
+def test_a_localized_drive_adds_no_graph_keyframe_where_the_graph_has_one(tmp_path: Path) -> None:
+    """Growth by area: the second drive, localized on the same streets, offers the graph no
+    keyframe within KNOWN_PLACE_M and KNOWN_PLACE_DEG of one it holds (counted ``known_place``);
+    the first drive's keyframes are there every 10 m."""
+    from randt.service.graph import KNOWN_PLACE_M
+
+    mapper, second = _drive(1), _drive(2)
+    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, localize=True)  # type: ignore[call-arg]
+    out: list = []
+    metrics = ServiceMetrics()
+    mgr = SessionManager(settings, Store(tmp_path), out.append, metrics)
+    try:
+        assert mgr.wait_matchers(300) and mgr.graph is not None
+        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
+        mgr.close("mapper", "d1")
+        mgr.flush()
+        T0 = second[0].T_world_sensor.copy()
+        T0[:2, 3] += (1.5, -1.0)
+        _send(mgr, out, "second", second, T0, GNSS)
+        assert mgr.graph.wait_idle(120)
+        state = mgr.graph.snapshot("default")
+    finally:
+        mgr.stop()
+    assert state is not None
+    first_kfs = state.session_keyframes(("mapper", "d1"))
+    travel = np.linalg.norm(mapper[-1].T_world_sensor[:3, 3] - mapper[0].T_world_sensor[:3, 3])
+    assert len(first_kfs) >= travel // 10  # the first drive left one every 10 m
+    # the second: none where the first left one within reach (its first sweep's only, if any)
+    second_kfs = state.session_keyframes(("second", "d1"))
+    firsts = np.array([kf.live[:3, 3] for kf in first_kfs])
+    for kf in second_kfs:
+        assert np.linalg.norm(firsts - kf.live[:3, 3], axis=1).min() > KNOWN_PLACE_M or kf.index == 0, kf
+    skipped = metrics.graph_keyframes.labels("known_place")._value.get()
+    assert skipped >= len(first_kfs) - 2 - len(second_kfs), (skipped, len(first_kfs), len(second_kfs))
