@@ -76,6 +76,11 @@ class ServiceMetrics:
         r = self.registry
         self.info = Info("randt_service", "The service instance", registry=r)
         self.scans_received = Counter("randt_scans_received", "Scan messages received", registry=r)
+        self.scans_localized = Counter(
+            "randt_scans_localized",
+            "Scans of scans_processed matched on the map around the vehicle (localizing, not mapping)",
+            registry=r,
+        )
         self.scans_processed = Counter(
             "randt_scans_processed", "Scans registered (pose published)", ["status"], registry=r
         )
@@ -166,6 +171,7 @@ class ServiceMetrics:
     PERSISTENT = (
         "scans_received",
         "scans_processed",
+        "scans_localized",
         "scans_rejected",
         "scans_dropped",
         "tiles_written",

@@ -66,6 +66,9 @@ class SessionOutbox:
         metrics = self.answers.metrics
         metrics.latency_seconds.observe(latency_ms * 1e-3)
         metrics.scans_processed.labels(pose.status).inc()
+        if pose.mode == "localizing":
+            metrics.scans_localized.inc()
+            self.info.n_localized += 1
         self.answers.send(pose.model_copy(update={"latency_ms": latency_ms}))
 
     def _save_first(self, save: Callable[[], bool]) -> None:

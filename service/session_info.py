@@ -27,6 +27,8 @@ class SessionInfo:
     last_seq: int = -1
     n_scans: int = 0
     n_fallbacks: int = 0
+    #: poses answered localizing on the map (docs/mapping.md, "Localizing on the map")
+    n_localized: int = 0
     n_errors: int = 0
     stamps_s: list[float] = field(default_factory=list)
     last_fitness: float = float("nan")

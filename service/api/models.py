@@ -138,6 +138,10 @@ class SessionSummary(BaseModel):
     )
     scans: int
     fallbacks: int
+    localized: int | None = Field(
+        default=None,
+        description="of its scans, those answered localizing on the map (mode localizing); null when idle",
+    )
     lost: bool | None = Field(
         default=None,
         description="the session has lost its track (its scans are answered `lost` without a pose "

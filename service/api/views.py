@@ -57,6 +57,7 @@ def session_summary(
             state="active",
             scans=info.n_scans,
             fallbacks=info.n_fallbacks,
+            localized=info.n_localized,
             lost=info.lost or info.map_disagrees,
             map_agreement=None if info.map_agreement != info.map_agreement else info.map_agreement,
             lost_scans=info.n_lost,

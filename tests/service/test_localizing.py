@@ -62,7 +62,8 @@ def test_a_second_vehicle_localizes_on_the_first_ones_map(tmp_path: Path, locali
         data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, graph=False, localize=localize
     )  # type: ignore[call-arg]
     out: list = []
-    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    metrics = ServiceMetrics()
+    mgr = SessionManager(settings, Store(tmp_path), out.append, metrics)
     try:
         assert mgr.wait_matchers(300)
         _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
@@ -70,7 +71,11 @@ def test_a_second_vehicle_localizes_on_the_first_ones_map(tmp_path: Path, locali
         mgr.flush()
         T0 = second[0].T_world_sensor.copy()
         T0[:2, 3] += (1.5, -1.0)  # the GNSS fix's error
+        localized_before = metrics.scans_localized._value.get()
         _send(mgr, out, "second", second, T0, GNSS)
+        localized = metrics.scans_localized._value.get() - localized_before
+        info = next(w.info for w in mgr.table.running() if w.info.vehicle == "second")
+        assert localized == info.n_localized == (N_SCANS if localize else 0)  # counted as answered
     finally:
         mgr.stop()
     answers = {m.seq: m for m in out if isinstance(m, PoseMessage) and m.vehicle == "second"}
