@@ -138,6 +138,8 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
         new_pid = graph.pid
         status = httpx.get(f"{url}/status", timeout=30).json()["graph"]
         pending = status.pop("pending")  # (the restarted process takes the log again: it lags)
+        replaying = status.pop("replaying")  # (and says so until it has: /readyz waits for it)
+        assert isinstance(replaying, bool)
         # (a CI run read running false here once, restarts 1: the new process had ended at once)
         alive = new_pid is not None and _alive(new_pid)
         assert status == {"enabled": True, "running": True, "restarts": 1, "last_exit": "signal 9"}, (
@@ -145,7 +147,13 @@ def test_the_graph_outlives_every_session_and_its_own_death(tmp_path, caplog) ->
         )
         assert isinstance(pending, int) and pending >= 0
         assert _restarts_metric(url) == 1.0
-        assert httpx.get(f"{url}/readyz", timeout=30).json()["graph"] is True
+        # ready once the new process has taken its log again (not ready meanwhile)
+        _wait(
+            "the restarted graph ready",
+            lambda: httpx.get(f"{url}/readyz", timeout=30).json()["graph"] is True,
+            timeout=120,
+        )
+        assert not graph.replaying
         assert any("pose graph process died (signal 9)" in r.getMessage() for r in caplog.records)
 
         # The later vehicle drives on: its keyframes are placed and corrected by the new process.
