@@ -146,6 +146,9 @@ MAP_SEED_MIN_POINTS = 2000
 #: Sweep points matched against the map when localizing on it (a stratified subsample): the map
 #: is fixed, so a few thousand drive Newton as well as all (docs/mapping.md, "Localizing on the map").
 ON_MAP_MATCH_POINTS = 3000
+#: Of a sweep localized on the map, every this many points are taken (features, match, the points
+#: it returns for the map): the map already holds its surroundings.
+ON_MAP_STRIDE = 3
 #: The message of a first sweep placed by its match to the map, not at its prior.
 MATCHED_TO_MAP = "matched to the map from the prior"
 
@@ -377,7 +380,7 @@ class MatcherState:
     prior_offset : the last accepted pose's position minus its prior's (the session's drift from
         its priors, ``None`` before a sweep with a prior), and ``prior_offset_travel_m``: the
         path length then (the prior gate, :meth:`IncrementalMatcher._agrees`).
-    localized : the last sweep matched on the map, while the session localizes (below).
+    localized : the map the last sweep was localized on, while the session localizes (below).
 
     Arrays in it are replaced, never changed in place, so a snapshot copies only the containers.
     Two states are equal when every field is (arrays element by element, the model and the store
@@ -401,9 +404,9 @@ class MatcherState:
     travel_m: float = 0.0
     prior_offset: np.ndarray | None = None
     prior_offset_travel_m: float = 0.0
-    #: The last sweep matched on the map (its pose and model points), while the session localizes:
-    #: the keyframe model starts again from it when the session maps again.
-    localized: tuple[np.ndarray, np.ndarray] | None = None
+    #: The map the last sweep was localized on, while the session localizes: the first sweep that
+    #: maps again is matched on it, and the keyframe model starts again from that sweep.
+    localized: PreparedReference | None = None
 
     @classmethod
     def empty(cls, max_keyframes: int) -> MatcherState:
@@ -425,8 +428,14 @@ class MatcherState:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, MatcherState):
             return NotImplemented
-        return self.model is other.model and all(
-            _same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self) if f.name != "model"
+        return (
+            self.model is other.model
+            and self.localized is other.localized
+            and all(
+                _same(getattr(self, f.name), getattr(other, f.name))
+                for f in fields(self)
+                if f.name not in ("model", "localized")
+            )
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable
@@ -655,8 +664,9 @@ class IncrementalMatcher:
         ``on_map``: the map around the vehicle (:meth:`prepare_map`): the sweep is matched against
         it instead of the session's keyframes (localizing on the map: no keyframe, no model
         update; ``ScanResult.localized``). The prediction, the gates and the hypotheses are the
-        same. A session that maps again after localizing starts its keyframe model afresh from
-        its last localized sweep (the keyframes from before lie behind it).
+        same. A session that maps again after localizing matches that sweep on the map it was
+        localized on last and starts its keyframe model afresh from it (the keyframes from before
+        lie behind it).
 
         ``map_seed``: for a session's first sweep with a ``prior``, the points (world frame) its
         map already has around the prior. The sweep is matched to them from the prior and placed
@@ -714,7 +724,9 @@ class IncrementalMatcher:
         return prepare_reference(np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), levels)
 
     def _on_map_registration(self) -> RegistrationSettings:
-        return self.registration.model_copy(update={"max_match_points": ON_MAP_MATCH_POINTS})
+        return self.registration.model_copy(
+            update={"max_match_points": ON_MAP_MATCH_POINTS, "outlier_removal": "none"}
+        )
 
     @contextmanager
     def _matching_on(self, on_map: PreparedReference | None) -> Iterator[None]:
@@ -729,11 +741,10 @@ class IncrementalMatcher:
         finally:
             self._state.model, self.registration = model, registration
 
-    def _restart_model(self) -> None:
-        """Mapping again after localizing: the keyframe model starts from the last localized sweep."""
+    def _restart_model(self, T: np.ndarray, points: np.ndarray) -> None:
+        """Mapping again after localizing: the keyframe model starts from this sweep (its pose
+        found on the map), the keyframes from before lie behind the vehicle."""
         st = self._state
-        assert st.localized is not None
-        T, points = st.localized
         st.keyframes.clear()
         st.store = st.model = None
         st.pending = []
@@ -755,12 +766,13 @@ class IncrementalMatcher:
         if it raises."""
         t_start = time.perf_counter()
         times: dict[str, float] = {"deskew": 0.0, "features": 0.0}
-        sweep = self._sanitize(points_xyz, time_offset_s)
+        sweep = self._sanitize(points_xyz, time_offset_s, 1 if on_map is None else ON_MAP_STRIDE)
         index = len(self._state.poses)
         if index == 0:
             self._resolve_scales(sweep.xyz)
-        if on_map is None and self._state.localized is not None:
-            self._restart_model()
+        # (the first sweep that maps again is matched on the map it was localized on last)
+        restart = on_map is None and self._state.localized is not None
+        reference = self._state.localized if restart else on_map
         prior_T = None if prior is None else as_transform(prior.T_world_sensor, name="prior pose")
         # Periods since the previous sweep: 1 without stamps, more after sweeps dropped upstream.
         periods = self._periods_since_last(stamp_s)
@@ -777,7 +789,7 @@ class IncrementalMatcher:
         else:
             t0 = time.perf_counter()
             has_times = sweep.time_offset_s is not None
-            with self._matching_on(on_map):
+            with self._matching_on(reference):
                 outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
                 if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
                     gating = _Gating(T_pred, prior_T, prior, periods)
@@ -790,10 +802,13 @@ class IncrementalMatcher:
         keep_map = ~outcome.feats.noise_mask
         mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # not xyz[keep_map]: see _sanitize
         localized = on_map is not None and (matched or outcome.message == MATCHED_TO_MAP)
-        if on_map is not None:  # no keyframe on the map; mapping again starts from the last one
+        if on_map is not None:  # no keyframe on the map
             is_kf = False
             if localized:
-                self._state.localized = (T.copy(), mapped_xyz)
+                self._state.localized = on_map
+        elif restart:
+            self._restart_model(T, mapped_xyz)
+            is_kf = True
         else:
             is_kf = self._keyframe_if_due(T, outcome.status, mapped_xyz, defer_model, times)
         return ScanResult(
@@ -816,7 +831,7 @@ class IncrementalMatcher:
         )
 
     # -- the stages of one sweep ------------------------------------------------------------------
-    def _sanitize(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None) -> _Sweep:
+    def _sanitize(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None, stride: int = 1) -> _Sweep:
         """Finite points (counted) within ``min_range_m``..``max_range_m``, with their point times
         and their rows in the input; a sweep with too few is an :class:`InvalidCloudError`."""
         s = self.settings
@@ -839,6 +854,8 @@ class IncrementalMatcher:
         x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         rng2 = x * x + y * y + z * z
         keep = (rng2 >= s.min_range_m**2) & (rng2 <= s.max_range_m**2)
+        if stride > 1:  # (on the map: a share of the points is enough, the map holds the rest)
+            keep[np.arange(keep.shape[0]) % stride != 0] = False
         # np.compress, not xyz[keep]: a boolean index of an (N,3) array takes numpy's generic,
         # much slower path.
         xyz = np.compress(keep, xyz, axis=0)

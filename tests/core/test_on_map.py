@@ -106,7 +106,7 @@ def test_mapping_between_two_stretches_on_the_map_jumps_at_neither_switch() -> N
     assert [r.localized for r in results] == [m == "map" for m in modes]
     fallbacks = [r.message for r in results if r.status == "fallback"]
     assert all(r.status in ("first", "ok") for r in results), fallbacks
-    # mapping starts the keyframe model afresh from the last localized sweep, and adds keyframes
+    # mapping again matches its first sweep on the last map window and starts the model from it
     assert sum(r.is_keyframe for r in results[15:40]) >= 3
     assert not any(r.is_keyframe for r in results[40:])
     err = np.array(errors)
