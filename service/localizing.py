@@ -38,9 +38,6 @@ class SessionLocalizer:
         self._held: tuple[tuple[str, int, int], tuple[float, float]] | None = None
         self._asked = False  # the last sweep asked to be localized
         self._mapping_for = 0  # sweeps to map before localizing again
-        #: sweeps localized, and mapped, so far (the session's figures)
-        self.n_localized = 0
-        self.n_mapped = 0
 
     def window(
         self,
@@ -79,12 +76,10 @@ class SessionLocalizer:
         return np.ascontiguousarray(xyz[keep], dtype=np.float32)
 
     def answered(self, result: ScanResult) -> None:
-        """A sweep's answer: counted; one asked to be localized that was not (the map does not
-        hold it there, or the matcher lost the window) maps for a while, and the window is cut
-        again when it localizes next."""
+        """A sweep's answer: one asked to be localized that was not (the map does not hold it
+        there, or the matcher lost the window) maps for a while, and the window is cut again when
+        it localizes next (the poses localized are counted as they go out: SessionInfo)."""
         if result.localized:
-            self.n_localized += 1
             return
-        self.n_mapped += 1
         if self._asked:
             self._held, self._mapping_for = None, MAP_AFTER_MISS
