@@ -41,10 +41,13 @@ from randt.core.ndt import ndt_constants, ndt_cost
 from randt.core.place import query_descriptors, scan_context, scan_context_distance
 from randt.core.registration import (
     PreparedReference,
+    ReferencePiece,
     RegistrationResult,
     auto_voxel_sizes,
     inlier_ratio,
+    join_reference,
     prepare_reference,
+    reference_piece,
     register,
     sanitize_points,
 )
@@ -144,11 +147,13 @@ OBJECT_CHECK_POINTS = 2000
 #: (``register_scan``'s ``map_seed``) when there are at least this many.
 MAP_SEED_MIN_POINTS = 2000
 #: Sweep points matched against the map when localizing on it (a stratified subsample): the map
-#: is fixed, so a few thousand drive Newton as well as all (docs/mapping.md, "Localizing on the map").
-ON_MAP_MATCH_POINTS = 3000
+#: is fixed, so 1,500 (Autoware's random_downsample_filter) drive Newton as well as all: 3,000 gave
+#: the same error (docs/mapping.md, "Localizing on the map").
+ON_MAP_MATCH_POINTS = 1500
 #: Of a sweep localized on the map, every this many points are taken (features, match, the points
-#: it returns for the map): the map already holds its surroundings.
-ON_MAP_STRIDE = 3
+#: it returns for the map): the map already holds its surroundings. Prime to a 64- or 32-ring
+#: sensor's rows, so a sweep stored column by column keeps points of every ring.
+ON_MAP_STRIDE = 5
 #: The message of a first sweep placed by its match to the map, not at its prior.
 MATCHED_TO_MAP = "matched to the map from the prior"
 
@@ -708,7 +713,7 @@ class IncrementalMatcher:
         """The map's points around the vehicle (world frame) prepared as this session's model is
         (its levels: from the settings, else from its first sweep), for :meth:`register_scan`'s
         ``on_map``; a few thousand of a sweep's points are matched against it
-        (:data:`ON_MAP_MATCH_POINTS`).
+        (:data:`ON_MAP_MATCH_POINTS`). The same as :meth:`join_map` of one piece.
 
         Raises
         ------
@@ -716,12 +721,49 @@ class IncrementalMatcher:
             The session's levels are not known yet (before its first sweep), or the points are too
             few or too sparse for them.
         """
+        return self.join_map([self.prepare_map_piece(map_xyz)])
+
+    def prepare_map_piece(self, map_xyz: np.ndarray) -> ReferencePiece:
+        """One part of the map around the vehicle (a tile's points, world frame) for
+        :meth:`join_map`: a window that moves keeps the pieces it still covers.
+
+        Raises
+        ------
+        InvalidCloudError
+            The session's levels are not known yet (before its first sweep).
+        """
+        return reference_piece(
+            np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), self.map_levels()
+        )
+
+    def join_map(self, pieces: list[ReferencePiece]) -> PreparedReference:
+        """The map around the vehicle from its pieces (:meth:`prepare_map_piece`, prepared at the
+        session's current levels: :meth:`map_levels`), for :meth:`register_scan`'s ``on_map``.
+
+        Raises
+        ------
+        InvalidCloudError
+            No piece, pieces at other levels, or too few points or too sparse for the levels.
+        """
+        if not pieces or any(p.voxel_sizes_m != self.map_levels() for p in pieces):
+            raise InvalidCloudError("the map's pieces were not prepared at this session's levels")
+        return join_reference(pieces, self._on_map_registration())
+
+    def map_levels(self) -> tuple[float, ...]:
+        """The NDT levels the map is prepared at (the session's: from the settings, else from its
+        first sweep).
+
+        Raises
+        ------
+        InvalidCloudError
+            Not known yet (levels from the first sweep, before it).
+        """
         if not self.registration.voxel_sizes_m and self.settings.voxel_sizes_m:
             self._resolve_scales(np.zeros((0, 3)))  # (levels the settings fix need no sweep)
-        levels = self.registration.voxel_sizes_m
+        levels = tuple(float(v) for v in self.registration.voxel_sizes_m or ())
         if not levels:
             raise InvalidCloudError("the map cannot be prepared before the session's first sweep")
-        return prepare_reference(np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), levels)
+        return levels
 
     def _on_map_registration(self) -> RegistrationSettings:
         return self.registration.model_copy(
@@ -833,16 +875,23 @@ class IncrementalMatcher:
     # -- the stages of one sweep ------------------------------------------------------------------
     def _sanitize(self, points_xyz: np.ndarray, time_offset_s: np.ndarray | None, stride: int = 1) -> _Sweep:
         """Finite points (counted) within ``min_range_m``..``max_range_m``, with their point times
-        and their rows in the input; a sweep with too few is an :class:`InvalidCloudError`."""
+        and their rows in the input; a sweep with too few is an :class:`InvalidCloudError`.
+        ``stride``: only every this many rows are looked at (on the map: a share of the points is
+        enough, the map holds the rest; the non-finite rows are counted among them)."""
         s = self.settings
-        xyz, n_bad = sanitize_points(points_xyz, name="scan", min_points=self.registration.min_points)
+        if np.ndim(points_xyz) != 2:  # (the shape's own error first)
+            sanitize_points(points_xyz, name="scan", min_points=self.registration.min_points)
+        n_rows = np.asarray(points_xyz).shape[0]
         if time_offset_s is not None:
             time_offset_s = np.asarray(time_offset_s, dtype=np.float64)
-            if time_offset_s.shape != (np.asarray(points_xyz).shape[0],):
-                raise InvalidCloudError(
-                    f"scan: {time_offset_s.shape[0]} time offsets for "
-                    f"{np.asarray(points_xyz).shape[0]} points"
-                )
+            if time_offset_s.shape != (n_rows,):
+                raise InvalidCloudError(f"scan: {time_offset_s.shape[0]} time offsets for {n_rows} points")
+        rows = np.arange(0, n_rows, stride) if stride > 1 else None
+        if rows is not None:  # (taken before the float64 copy and the range test: a third of the work)
+            points_xyz = np.asarray(points_xyz)[::stride]
+            if time_offset_s is not None:
+                time_offset_s = time_offset_s[::stride]
+        xyz, n_bad = sanitize_points(points_xyz, name="scan", min_points=self.registration.min_points)
         if n_bad:
             source_index = np.flatnonzero(
                 np.isfinite(np.asarray(points_xyz, dtype=np.float64)[:, :3]).all(axis=1)
@@ -854,12 +903,12 @@ class IncrementalMatcher:
         x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         rng2 = x * x + y * y + z * z
         keep = (rng2 >= s.min_range_m**2) & (rng2 <= s.max_range_m**2)
-        if stride > 1:  # (on the map: a share of the points is enough, the map holds the rest)
-            keep[np.arange(keep.shape[0]) % stride != 0] = False
         # np.compress, not xyz[keep]: a boolean index of an (N,3) array takes numpy's generic,
         # much slower path.
         xyz = np.compress(keep, xyz, axis=0)
         source_index = source_index[keep]
+        if rows is not None:
+            source_index = rows[source_index]
         if time_offset_s is not None:
             time_offset_s = time_offset_s[keep]
         if xyz.shape[0] < self.registration.min_points:

@@ -33,7 +33,7 @@ from randt.core.config import Method, RegistrationSettings
 from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from randt.core.grid import PointGrid
 from randt.core.icp import icp_point_to_plane, icp_point_to_point
-from randt.core.kernels import best_voxel, plane_information, projected_pair_moments
+from randt.core.kernels import best_voxel, group_moments, plane_information, projected_pair_moments
 from randt.core.ndt import (
     NdtEvaluation,
     NeighborCache,
@@ -57,21 +57,26 @@ from randt.core.transforms import (
 from randt.core.voxel import (
     NEIGHBOR_OFFSETS,
     VoxelGaussianMap,
+    merge_moments,
     pack_keys,
     stratified_subsample,
     voxel_coords,
     voxel_downsample,
+    voxel_groups,
 )
 
 __all__ = [
     "PreparedReference",
+    "ReferencePiece",
     "RegistrationResult",
     "auto_voxel_sizes",
     "centroid_start",
     "inlier_ratio",
     "is_sparse_cloud",
+    "join_reference",
     "prepare_reference",
     "reference_inlier_mask",
+    "reference_piece",
     "register",
     "sanitize_points",
 ]
@@ -368,6 +373,87 @@ def prepare_reference(
         eigenvalue_ratio=settings.eigenvalue_ratio,
     )
     return PreparedReference(pts, maps, n_in, n_in - pts.shape[0], unfiltered)
+
+
+@dataclass(frozen=True)
+class ReferencePiece:
+    """A part of a reference (one map tile, say) made ready to be joined with others
+    (:func:`join_reference`): its points downsampled as :func:`prepare_reference` does and their
+    moments at the finest NDT voxel. A window of a map moved by a few tiles is joined from the
+    pieces it kept and the few new ones: only those are downsampled and grouped again."""
+
+    voxel_sizes_m: tuple[float, ...]
+    points_xyz: np.ndarray
+    keys: np.ndarray
+    counts: np.ndarray
+    means: np.ndarray
+    scatter: np.ndarray
+    n_input_points: int
+
+
+def reference_piece(
+    target_xyz: np.ndarray, settings: RegistrationSettings, voxel_sizes_m: tuple[float, ...]
+) -> ReferencePiece:
+    """One piece of a reference for :func:`join_reference` (no outlier removal: the pieces' points
+    are judged nowhere, as ``outlier_removal="none"`` has them). Pieces cut on boundaries that are
+    multiples of the downsampling voxel and of the finest NDT voxel join into exactly the
+    reference :func:`prepare_reference` makes of them all; elsewhere a voxel cut by a boundary
+    keeps a centroid on each side and its moments are combined (:func:`~randt.core.voxel.merge_moments`)."""
+    sizes = tuple(float(v) for v in voxel_sizes_m)
+    finest = min(sizes)
+    if np.asarray(target_xyz).shape[0] == 0:
+        return ReferencePiece(
+            sizes, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
+            np.zeros((0, 3, 3)), 0,
+        )  # fmt: skip
+    pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
+    inverse, keys, _ = voxel_groups(pts, finest)
+    counts, means, scatter = group_moments(pts, inverse, keys.size)
+    return ReferencePiece(sizes, pts, keys, counts, means, scatter, pts.shape[0])
+
+
+def join_reference(pieces: list[ReferencePiece], settings: RegistrationSettings) -> PreparedReference:
+    """The reference of all ``pieces`` (:func:`reference_piece`, all at the same voxel sizes):
+    their points, and the NDT pyramid from their finest moments (sizes that do not nest by powers
+    of two: from their points).
+
+    Raises
+    ------
+    ValueError
+        No piece, pieces at different voxel sizes, or settings that judge the reference's points
+        (``outlier_removal`` other than ``"none"``: its fences are the whole reference's).
+    InvalidCloudError
+        Too few points for the voxel sizes (as :func:`prepare_reference`).
+    """
+    if not pieces:
+        raise ValueError("no piece to join")
+    sizes = pieces[0].voxel_sizes_m
+    if any(p.voxel_sizes_m != sizes for p in pieces):
+        raise ValueError("the pieces were prepared at different voxel sizes")
+    if settings.outlier_removal != "none":
+        raise ValueError(f"pieces are joined without outlier removal, not {settings.outlier_removal!r}")
+    pts = np.concatenate([p.points_xyz for p in pieces])
+    finest = min(sizes)
+    if pts.shape[0] == 0:
+        raise InvalidCloudError("the reference has no points")
+    moments = merge_moments(
+        np.concatenate([p.keys for p in pieces]),
+        np.concatenate([p.counts for p in pieces]),
+        np.concatenate([p.means for p in pieces]),
+        np.concatenate([p.scatter for p in pieces]),
+    )
+    min_points, ratio = settings.min_points_per_voxel, settings.eigenvalue_ratio
+    if all(abs(v - finest * 2.0 ** round(np.log2(v / finest))) <= 1e-9 * v for v in sizes):
+        maps = VoxelGaussianMap.pyramid_from_moments(
+            moments, finest, sizes, min_points_per_voxel=min_points, eigenvalue_ratio=ratio
+        )
+    else:
+        maps = VoxelGaussianMap.build_pyramid(
+            pts, sizes, min_points_per_voxel=min_points, eigenvalue_ratio=ratio
+        )
+    n_in = sum(p.n_input_points for p in pieces)
+    unfiltered = pts if settings.svd_refinement and not settings.svd_on_filtered_points else None
+    return PreparedReference(pts, maps, n_in, 0, unfiltered)
 
 
 def reference_inlier_mask(

@@ -838,11 +838,16 @@ class TileGrid:
             raise ValueError("center_xy must be an (x, y) pair")
         if not (math.isfinite(radius_m) and radius_m >= 0):
             raise ValueError(f"radius_m must be finite and >= 0, got {radius_m!r}")
+        return [t.id for t in self.tiles_near(c, radius_m)]
+
+    def tiles_near(self, center_xy: Iterable[float], radius_m: float) -> list[Tile]:
+        """The snapshots of :meth:`tiles_within_radius` (same order), taken together."""
+        c = np.asarray(tuple(center_xy), dtype=np.float64)
         tiles = self._snapshot()
         corner = self._cell_corners(tiles)
         gap = np.maximum(np.maximum(corner - c, c - (corner + self._tile_size)), 0.0)
         hit = np.hypot(gap[:, 0], gap[:, 1]) <= radius_m
-        return [t.id for t, h in zip(tiles, hit, strict=True) if h]
+        return [t for t, h in zip(tiles, hit, strict=True) if h]
 
     # ---------------------------------------------------------------------------- metrics
 

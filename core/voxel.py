@@ -29,6 +29,7 @@ from randt.core.kernels import (
 __all__ = [
     "NEIGHBOR_OFFSETS",
     "VoxelGaussianMap",
+    "merge_moments",
     "pack_keys",
     "stratified_subsample",
     "unpack_keys",
@@ -465,6 +466,33 @@ class VoxelGaussianMap:
             normals=self.normals[mask],
             counts=self.counts[mask],
         )
+
+
+def merge_moments(
+    keys: np.ndarray, counts: np.ndarray, mean: np.ndarray, scatter: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel moments ``(keys, counts, means, scatter matrices about the means)`` with each key once:
+    the rows of a key that occurs more than once (the same voxel from two parts of a cloud, e.g.
+    two map tiles) combined as the moments of their points together, ``S = sum(S_r + n_r d_r d_r^T)``
+    with ``d_r`` a row's mean about the combined mean; keys ascending. Rows with unique keys come
+    back as they are (sorted)."""
+    order = np.argsort(keys, kind="stable")
+    k = keys[order]
+    first = np.ones(k.shape[0], dtype=bool)
+    first[1:] = k[1:] != k[:-1]
+    n = counts[order]
+    m = np.ascontiguousarray(mean[order], dtype=np.float64)
+    S = np.ascontiguousarray(scatter[order], dtype=np.float64)
+    if first.all():
+        return k, n, m, S
+    start = np.flatnonzero(first)
+    group = np.cumsum(first) - 1
+    w = n.astype(np.float64)
+    n_g = np.add.reduceat(w, start)
+    mean_g = np.add.reduceat(w[:, None] * m, start) / n_g[:, None]
+    d = m - mean_g[group]
+    S_g = np.add.reduceat(S + w[:, None, None] * (d[:, :, None] * d[:, None, :]), start)
+    return k[start], np.add.reduceat(n, start), mean_g, S_g
 
 
 def _parent_moments(

@@ -2,12 +2,15 @@
 
 :class:`SessionLocalizer` is the session thread's side (docs/mapping.md, "Localizing on the map"):
 a session in the shared map's frame, with ``localize`` on, localizes where the map around the
-vehicle has at least ``localize_min_map_points`` points. It cuts the window (the map's points
+vehicle has at least ``localize_min_map_points`` points. It cuts the window (the map's tiles
 within ``localize_radius_m``) and sends it with the sweep once, then again after
 ``localize_reload_m`` of travel or when the map's content changed (its token); the matcher holds
-it meanwhile (service/matcher_io.py, ``MapWindows``). A sweep the map does not hold (its answer
-comes back not localized: the map ends there, or changed) makes the session map for
-:data:`MAP_AFTER_MISS` sweeps before it tries again; its points extend the map meanwhile.
+it meanwhile (service/matcher_io.py, ``MapWindows``). A window cut again sends only the points of
+the tiles that are new to it or grew since (:data:`RESEND_GROWTH`): the matcher keeps the others
+prepared. A sweep the
+map does not hold (its answer comes back not localized: the map ends there, or changed) makes the
+session map for :data:`MAP_AFTER_MISS` sweeps before it tries again; its points extend the map
+meanwhile.
 """
 
 from __future__ import annotations
@@ -20,10 +23,15 @@ from randt.service.matcher_io import MapWindow
 from randt.service.session_record import SessionFrame
 from randt.service.settings import ServiceSettings
 
-__all__ = ["MAP_AFTER_MISS", "SessionLocalizer"]
+__all__ = ["MAP_AFTER_MISS", "RESEND_GROWTH", "SessionLocalizer"]
 
 #: Sweeps a session maps after one that the map did not hold, before it localizes again.
 MAP_AFTER_MISS = 20
+#: A tile the matcher holds is sent again with a new window when it has grown by more than this
+#: share since: inserts only add (a removal changes the map's token, and every tile is sent), and
+#: what a localized session folds is the little the map lacked around it, which changes no match;
+#: sending every tile whose version moved sent 40 of 60 tiles at each reload.
+RESEND_GROWTH = 0.05
 
 
 class SessionLocalizer:
@@ -34,8 +42,9 @@ class SessionLocalizer:
         self.radius_m = settings.localize_radius_m
         self.reload_m = settings.localize_reload_m
         self.min_points = settings.localize_min_map_points
-        #: the window the matcher holds (token and centre), as this side sent it
-        self._held: tuple[tuple[str, int, int], tuple[float, float]] | None = None
+        #: the window the matcher holds (token, centre; its tiles' versions and sizes as sent), as
+        #: this side sent it
+        self._held: tuple[tuple[str, int, int], tuple[float, float], dict[str, tuple[int, int]]] | None = None
         self._asked = False  # the last sweep asked to be localized
         self._mapping_for = 0  # sweeps to map before localizing again
 
@@ -62,18 +71,28 @@ class SessionLocalizer:
         if held is not None and held[0] == token and np.hypot(*(xy - held[1])) <= self.reload_m:
             self._asked = True
             return MapWindow(token, held[1])
-        xyz = self._cut(grid, xy)
-        if xyz.shape[0] < self.min_points:
+        return self._cut(grid, token, xy)
+
+    def _cut(self, grid: TileGrid, token: tuple[str, int, int], xy: np.ndarray) -> MapWindow | None:
+        """A new window: the tiles within ``localize_radius_m``. The matcher keeps the tiles of the
+        window before: only the points of the new ones, and of those that grew by more than
+        :data:`RESEND_GROWTH` since they were sent, go with it."""
+        tiles = grid.tiles_near(xy, self.radius_m)
+        if sum(t.n_points for t in tiles) < self.min_points:
             self._held = None
             return None
+        sent = self._held[2] if self._held is not None and self._held[0] == token else {}
+        held: dict[str, tuple[int, int]] = {}
+        points: dict[str, np.ndarray] = {}
+        for t in tiles:
+            was = sent.get(t.id)
+            if was is not None and t.n_points <= was[1] * (1.0 + RESEND_GROWTH):
+                held[t.id] = was
+            else:
+                held[t.id], points[t.id] = (t.version, t.n_points), t.points
         center = (float(xy[0]), float(xy[1]))
-        self._held, self._asked = (token, center), True
-        return MapWindow(token, center, xyz)
-
-    def _cut(self, grid: TileGrid, xy: np.ndarray) -> np.ndarray:
-        xyz = grid.points_in_bbox(xy - self.radius_m, xy + self.radius_m).xyz
-        keep = np.sum((xyz[:, :2] - xy) ** 2, axis=1) <= self.radius_m**2
-        return np.ascontiguousarray(xyz[keep], dtype=np.float32)
+        self._held, self._asked = (token, center, held), True
+        return MapWindow(token, center, tuple((tid, v) for tid, (v, _) in held.items()), points)
 
     def answered(self, result: ScanResult) -> None:
         """A sweep's answer: one asked to be localized that was not (the map does not hold it

@@ -9,13 +9,13 @@ both sides import these classes from this module.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from randt.core.errors import FormatError, InvalidCloudError, RandtError
 from randt.core.odometry import IncrementalMatcher, PosePrior, ScanResult
-from randt.core.registration import PreparedReference
+from randt.core.registration import PreparedReference, ReferencePiece
 from randt.core.tiles import SentVoxels, TileGrid
 from randt.core.transforms import invert, transform_points
 from randt.core.voxel import pack_keys, voxel_coords
@@ -88,19 +88,25 @@ class MapFrame:
 class MapWindow:
     """The map around the vehicle for a sweep to be localized on (docs/mapping.md, "Localizing on
     the map"): the map's identity and content when it was cut (``token``, as :attr:`MapFrame.token`),
-    its centre, and its points (world frame, float32) when the matcher is to prepare it anew
-    (``None``: the one it holds, cut with the same token and centre)."""
+    its centre, and the tiles it is made of, ``(id, version)`` each, when the matcher is to join it
+    anew (``None``: the one it holds, cut with the same token and centre). ``points``: the points
+    (world frame, float32) of those tiles the matcher does not hold at that version (the others it
+    kept from the windows before)."""
 
     token: tuple[str, int, int]
     center_xy: tuple[float, float]
-    xyz: np.ndarray | None = None
+    tiles: tuple[tuple[str, int], ...] | None = None
+    points: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class MapWindows:
-    """The window a matcher holds for one session, prepared once for each window sent."""
+    """The window a matcher holds for one session, joined from its tiles' pieces; each tile is
+    prepared once while it stays in the windows sent (:meth:`IncrementalMatcher.prepare_map_piece`)."""
 
     def __init__(self) -> None:
         self._held: tuple[tuple[object, ...], PreparedReference] | None = None
+        #: tile id -> (token, version, piece) of the tiles of the last window joined
+        self._pieces: dict[str, tuple[tuple[str, int, int], int, ReferencePiece]] = {}
 
     def on_map(self, matcher: IncrementalMatcher, window: MapWindow | None) -> PreparedReference | None:
         """The prepared map to match this sweep on (``register_scan``'s ``on_map``), or ``None``:
@@ -109,14 +115,31 @@ class MapWindows:
         if window is None:
             return None
         key = (window.token, window.center_xy)
-        if window.xyz is not None:
+        if window.tiles is not None:
             try:
-                self._held = (key, matcher.prepare_map(window.xyz))
+                self._held = (key, self._join(matcher, window))
             except InvalidCloudError:
-                self._held = None
+                self._held, self._pieces = None, {}
         if self._held is None or self._held[0] != key:
             return None
         return self._held[1]
+
+    def _join(self, matcher: IncrementalMatcher, window: MapWindow) -> PreparedReference:
+        """The window's tiles, the new ones prepared and the others taken from the last window
+        (a tile sent without its points that is not held at that version: InvalidCloudError)."""
+        levels = matcher.map_levels()
+        pieces: dict[str, tuple[tuple[str, int, int], int, ReferencePiece]] = {}
+        for tid, version in window.tiles or ():
+            xyz = window.points.get(tid)
+            held = self._pieces.get(tid)
+            if xyz is not None:
+                pieces[tid] = (window.token, version, matcher.prepare_map_piece(xyz))
+            elif held is not None and held[:2] == (window.token, version) and held[2].voxel_sizes_m == levels:
+                pieces[tid] = held
+            else:
+                raise InvalidCloudError(f"map tile {tid} (version {version}) is not held")
+        self._pieces = pieces
+        return matcher.join_map([p for _, _, p in pieces.values()])
 
 
 @dataclass(frozen=True)

@@ -177,3 +177,29 @@ def test_the_compiled_update_is_the_numpy_one(kitti_scans) -> None:
         _same_moments(a.moments, b.moments)
         assert a.n_removed_outliers == b.n_removed_outliers
     assert len(a.ids) == 4 and a.n_points < a.points_xyz.shape[0]  # evicted, and outliers judged
+
+
+def test_merged_moments_are_those_of_the_points_together() -> None:
+    """A voxel's moments from two parts of its points (two map tiles) combined equal its moments
+    from all of them; unique keys pass through, sorted."""
+    from randt.core.kernels import group_moments
+    from randt.core.voxel import merge_moments, voxel_groups
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0.0, 4.0, size=(3000, 3))
+    parts = []
+    for h in (pts[:1300], pts[1300:]):
+        inverse, keys, _ = voxel_groups(h, 1.0)
+        parts.append((keys, *group_moments(h, inverse, keys.size)))
+    keys, counts, means, scatter = merge_moments(*(np.concatenate([p[i] for p in parts]) for i in range(4)))
+    inverse, k_all, _ = voxel_groups(pts, 1.0)
+    c_all, m_all, s_all = group_moments(pts, inverse, k_all.size)
+    order = np.argsort(k_all)
+    assert keys.size == 64 == k_all.size  # (every voxel of the 4 m cube in both parts)
+    np.testing.assert_array_equal(keys, k_all[order])
+    np.testing.assert_array_equal(counts, c_all[order])
+    np.testing.assert_allclose(means, m_all[order], atol=1e-12)
+    np.testing.assert_allclose(scatter, s_all[order], atol=1e-9)
+    same = merge_moments(k_all, c_all, m_all, s_all)
+    np.testing.assert_array_equal(same[0], k_all[order])
+    np.testing.assert_array_equal(same[3], s_all[order])

@@ -115,3 +115,37 @@ def test_mapping_between_two_stretches_on_the_map_jumps_at_neither_switch() -> N
     steps = [np.linalg.norm(poses[k][:3, 3] - poses[k - 1][:3, 3]) for k in (15, 40)]
     truth = [np.linalg.norm(true[k][:3, 3] - true[k - 1][:3, 3]) for k in (15, 40)]
     assert np.allclose(steps, truth, atol=0.05), (steps, truth)  # no jump beyond the motion
+
+
+def test_a_map_joined_from_its_tiles_is_the_map_prepared_whole() -> None:
+    """The window from per-tile pieces (the service keeps the tiles a moving window still covers)
+    holds the same points and Gaussians at every level as the window prepared in one piece: 20 m
+    tiles cut on multiples of the downsampling voxel and of the finest NDT voxel."""
+    matcher = _matcher()
+    grid = _map()
+    xy = _drives()[1][10].T_world_sensor[:2, 3]
+    tiles = grid.tiles_near(xy, WINDOW_M)
+    assert len(tiles) > 10
+    whole = matcher.prepare_map(np.concatenate([t.points for t in tiles]))
+    joined = matcher.join_map([matcher.prepare_map_piece(t.points) for t in tiles])
+    assert joined.n_input_points == whole.n_input_points
+    np.testing.assert_array_equal(np.unique(joined.points_xyz, axis=0), np.unique(whole.points_xyz, axis=0))
+    for a, b in zip(joined.maps, whole.maps, strict=True):
+        assert a.voxel_size_m == b.voxel_size_m and a.n_voxels == b.n_voxels > 100
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_array_equal(a.counts, b.counts)
+        np.testing.assert_allclose(a.means, b.means, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.covariances, b.covariances, rtol=0, atol=1e-9)
+
+
+def test_pieces_at_other_levels_are_refused() -> None:
+    import pytest
+
+    from randt.core.errors import InvalidCloudError
+
+    xyz = _map().points_in_bbox((-1e4, -1e4), (1e4, 1e4)).xyz[:20000]
+    piece = IncrementalMatcher(MatcherSettings(voxel_sizes_m=(4.0, 2.0))).prepare_map_piece(xyz)
+    with pytest.raises(InvalidCloudError, match="levels"):
+        _matcher().join_map([piece])
+    with pytest.raises(InvalidCloudError, match="levels"):
+        _matcher().join_map([])

@@ -124,3 +124,83 @@ def test_a_localized_drive_adds_no_graph_keyframe_where_the_graph_has_one(tmp_pa
         assert np.linalg.norm(firsts - kf.live[:3, 3], axis=1).min() > KNOWN_PLACE_M or kf.index == 0, kf
     skipped = metrics.graph_keyframes.labels("known_place")._value.get()
     assert skipped >= len(first_kfs) - 2 - len(second_kfs), (skipped, len(first_kfs), len(second_kfs))
+
+
+def _street(x0: float, x1: float, rng: np.random.Generator) -> np.ndarray:
+    """Points of a street between two walls (ground, walls, posts) from x0 to x1."""
+    n = int(300 * (x1 - x0))
+    x = rng.uniform(x0, x1, n)
+    side = rng.integers(0, 3, n)
+    y = np.where(side == 0, rng.uniform(-8, 8, n), np.where(side == 1, -8.0, 8.0)) + rng.normal(0, 0.02, n)
+    z = np.where(side == 0, rng.normal(0, 0.02, n), rng.uniform(0, 4, n))
+    return np.stack([x, y, z], axis=1)
+
+
+def test_a_window_moved_sends_only_the_tiles_new_to_it(tmp_path: Path) -> None:
+    """The session sends a window's tiles once: cut again after the reload distance, only the tiles
+    the window before did not hold (or that grew by more than RESEND_GROWTH) carry points, and the
+    matcher joins the rest from what it kept: the same map as preparing every tile's points. A
+    matcher that lost its pieces (a new process) holds no such window: the sweep maps, and the
+    next window sends every tile again."""
+    from types import SimpleNamespace
+
+    from randt.core.odometry import IncrementalMatcher, MatcherSettings
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import RESEND_GROWTH, SessionLocalizer
+    from randt.service.matcher_io import MapWindows
+
+    rng = np.random.default_rng(5)
+    grid = TileGrid(20, 0.2, 2)
+    grid.insert(_street(0.0, 200.0, rng))
+    settings = ServiceSettings(
+        data_dir=tmp_path,
+        localize=True,
+        localize_radius_m=30.0,
+        localize_reload_m=20.0,
+        localize_min_map_points=1000,
+    )  # type: ignore[call-arg]
+    loc, windows = SessionLocalizer(settings), MapWindows()
+    matcher = IncrementalMatcher(MatcherSettings(voxel_sizes_m=(4.0, 2.0, 1.0)))
+    token = ("default", *grid.content_token)
+
+    def at(x: float) -> list[np.ndarray]:
+        T = np.eye(4)
+        T[0, 3] = x
+        return [T]
+
+    def same_map(ref, tiles) -> None:  # type: ignore[no-untyped-def]
+        whole = matcher.prepare_map(np.concatenate([grid.get(tid).points for tid, _ in tiles]))
+        assert ref.n_input_points == whole.n_input_points
+        for a, b in zip(ref.maps, whole.maps, strict=True):
+            np.testing.assert_array_equal(a.keys, b.keys)
+            np.testing.assert_allclose(a.means, b.means, atol=1e-9)
+
+    w1 = loc.window(grid, token, None, at(60.0), "map")
+    assert w1 is not None and w1.tiles is not None and set(w1.points) == {t for t, _ in w1.tiles}
+    same_map(windows.on_map(matcher, w1), w1.tiles)
+    held = loc.window(grid, token, None, at(75.0), "map")  # (within the reload distance: held)
+    assert held is not None and held.tiles is None and held.center_xy == w1.center_xy
+    w2 = loc.window(grid, token, None, at(85.0), "map")
+    assert w2 is not None and w2.tiles is not None
+    new = {t for t, _ in w2.tiles} - {t for t, _ in w1.tiles}
+    assert len(new) >= 2 and set(w2.points) == new
+    same_map(windows.on_map(matcher, w2), w2.tiles)
+    # a tile of the window grows by more than RESEND_GROWTH: sent again with the next window
+    grown = grid.get("5_0")
+    grid.insert(_street(100.0, 120.0, rng)[:, :] + (0.0, 0.0, 4.5))
+    assert grid.get("5_0").n_points > grown.n_points * (1 + RESEND_GROWTH)
+    w3 = loc.window(grid, token, None, at(110.0), "map")
+    assert w3 is not None and "5_0" in w3.points and "4_0" not in w3.points
+    ref3 = windows.on_map(matcher, w3)
+    assert ref3 is not None
+    # a matcher without the pieces holds no such window; the next one sends every tile
+    lost = MapWindows()
+    w4 = loc.window(grid, token, None, at(135.0), "map")
+    assert w4 is not None and lost.on_map(matcher, w4) is None
+    loc.answered(SimpleNamespace(localized=False))  # type: ignore[arg-type]
+    for _ in range(30):  # (it maps for a while, then tries again)
+        w5 = loc.window(grid, token, None, at(135.0), "map")
+        if w5 is not None:
+            break
+    assert w5 is not None and w5.tiles is not None and set(w5.points) == {t for t, _ in w5.tiles}
+    same_map(lost.on_map(matcher, w5), w5.tiles)
