@@ -169,6 +169,11 @@ GAP_TURN_CANDIDATES = 3
 #: (docs/mapping.md, step 4).
 REDESKEW_DEG = 0.05
 REDESKEW_M = 0.01
+#: The same on the map: a localized pose is absolute, so the motion between two of them carries
+#: both poses' centimetre of error, and below these the motion found is no better than the one
+#: used (at 1 cm and 0.05 deg every second localized sweep was matched twice, for no error less).
+REDESKEW_ON_MAP_DEG = 0.2
+REDESKEW_ON_MAP_M = 0.04
 #: The second sweep is matched again with the first keyframe deskewed anew until its velocity
 #: changes by less than this (``IncrementalMatcher._second_sweep_again``), at most
 #: ``SECOND_SWEEP_PASSES`` times. Finer than the redeskew's: it happens once a session, and a
@@ -527,6 +532,7 @@ class IncrementalMatcher:
         self.feature_voxel_m = 0.0
         self.model_voxel_m = 0.0
         self._state = MatcherState.empty(self.settings.max_keyframes)
+        self._on_map_now = False  # (this sweep is matched on the map: _matching_on)
 
     @property
     def state(self) -> MatcherState:
@@ -778,10 +784,12 @@ class IncrementalMatcher:
             return
         model, registration = self._state.model, self.registration
         self._state.model, self.registration = on_map, self._on_map_registration()
+        self._on_map_now = True
         try:
             yield
         finally:
             self._state.model, self.registration = model, registration
+            self._on_map_now = False
 
     def _restart_model(self, T: np.ndarray, points: np.ndarray) -> None:
         """Mapping again after localizing: the keyframe model starts from this sweep (its pose
@@ -1391,7 +1399,8 @@ class IncrementalMatcher:
         attempt, res, _, _, init = best
         used = self._per_period(invert(self._state.poses[-1]) @ init, gating.periods)
         found = self._per_period(invert(self._state.poses[-1]) @ res.T_target_source, gating.periods)
-        if not _motion_changed(used, found, REDESKEW_DEG, REDESKEW_M):
+        deg, m = (REDESKEW_ON_MAP_DEG, REDESKEW_ON_MAP_M) if self._on_map_now else (REDESKEW_DEG, REDESKEW_M)
+        if not _motion_changed(used, found, deg, m):
             return best
         cloud, feats = prepare(found)
         again = self._match_again(feats, res.T_target_source, gating)
