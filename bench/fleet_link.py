@@ -35,6 +35,8 @@ class Answers:
     #: each pose's status (``first``, ``ok``, ``fallback``)
     status_of: dict[Key, str] = field(default_factory=dict)
     statuses: dict[str, int] = field(default_factory=dict)
+    #: poses matched on the map around the vehicle (``mode: localizing``)
+    localized: int = 0
     errors: dict[str, int] = field(default_factory=dict)
     #: the first error other than ``dropped``, as "code: reason"
     example: str = ""
@@ -52,6 +54,7 @@ class Answers:
             self.got[(m.vehicle, m.seq)] = self.last_answer = t
             self.status_of[(m.vehicle, m.seq)] = m.status
             self.statuses[m.status] = self.statuses.get(m.status, 0) + 1
+            self.localized += getattr(m, "mode", None) == "localizing"
             if m.map == self.map_name:
                 self.pose_of[(m.vehicle, m.seq)] = np.reshape(m.pose, (4, 4))
             else:

@@ -62,6 +62,7 @@ import functools
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -85,7 +86,7 @@ ADDED_P95_TARGET_CM = 1.0
 CPU_RATIO_TARGET = 1.1
 
 
-def _encoder(link: str) -> Callable[..., bytes]:
+def _encoder(link: str, session: str = "bench") -> Callable[..., bytes]:
     """``f(vehicle, seq, stamp_ns, xyz, intensity, offsets, **prior) -> bytes``: the payload the
     vehicle library sends (``randt.clients.publisher.encode_sweep``), with its defaults (``default``) or
     every point as a v1 scan (``raw``)."""
@@ -103,7 +104,7 @@ def _encoder(link: str) -> Callable[..., bytes]:
         **prior: Any,
     ) -> bytes:
         return encode_sweep(
-            vehicle, "bench", seq, stamp_ns, xyz,
+            vehicle, session, seq, stamp_ns, xyz,
             intensity=intensity, time_offset_s=offsets, settings=settings, **prior,
         )  # fmt: skip
 
@@ -150,13 +151,27 @@ class Spool:
             self._file.close()
 
 
-def simulate(n_vehicles: int, n_scans: int, link: str, directory: Path) -> None:
+def simulate(
+    n_vehicles: int,
+    n_scans: int,
+    link: str,
+    directory: Path,
+    *,
+    noise_seed: int = 0,
+    rate_hz: float = RATE_HZ,
+    session: str = "bench",
+    plan_size: int | None = None,
+) -> None:
     """Simulate every vehicle's raw sweeps, encode them for ``link`` and write a :class:`Spool`.
 
     The fleet is :func:`randt.sim.drive.plan_fleet`'s for ``n_vehicles`` (town seed 1, fleet seed 3);
     a smaller fleet's run uses its first vehicles. The ground truth of each sweep is the sensor
     pose at mid-sweep (with per-point time offsets the matcher's pose refers to it,
     core/odometry.py); each vehicle's first sweep carries it as its prior, as GNSS/INS would.
+    ``noise_seed`` is added to each vehicle's sensor noise seed (another drive of the same routes:
+    the mapping drive of ``--mapped``, another day of bench/lifelong.py); ``rate_hz``: the sweeps'
+    rate (the vehicles drive 10 m/s); ``session``: the sessions' id; ``plan_size``: the fleet
+    planned (its first ``n_vehicles`` simulated: the routes of a larger fleet's spool).
     """
     from randt.sim.drive import Motion, plan_fleet
     from randt.sim.drive import simulate as drive
@@ -164,14 +179,14 @@ def simulate(n_vehicles: int, n_scans: int, link: str, directory: Path) -> None:
     from randt.sim.town import Town
 
     town = Town.generate(1)
-    encode = _encoder(link)
+    encode = _encoder(link, session)
     lidar = Lidar64()
-    half = 0.5 / RATE_HZ
+    half = 0.5 / rate_hz
     index: list[tuple[str, int, int, int]] = []
     truth: list[np.ndarray] = []
     end = 0
     with open(directory / "sweeps.bin", "wb") as out:
-        for v in plan_fleet(town, n_vehicles, seed=3):
+        for v in plan_fleet(town, plan_size or n_vehicles, seed=3)[:n_vehicles]:
             progress(f"simulating and encoding {n_scans} sweeps of {v.vehicle_id} ({link} link)")
             motion = Motion(
                 v.route, speed_mps=10.0, start_s_m=v.start_s_m, mount_height_m=lidar.mount_height_m
@@ -180,16 +195,17 @@ def simulate(n_vehicles: int, n_scans: int, link: str, directory: Path) -> None:
                 town,
                 v.route,
                 n_scans=n_scans,
-                rate_hz=RATE_HZ,
+                rate_hz=rate_hz,
                 speed_mps=10.0,
-                seed=v.seed,
+                seed=v.seed + noise_seed,
                 lidar=lidar,
                 deskewed=False,
                 start_s_m=v.start_s_m,
                 start_stamp_ns=v.stamp_offset_ns,
+                workers=2,  # (the same sweeps, cast on both cores)
             )
             for scan in scans:
-                T_mid = motion.sensor_poses_at(scan.index / RATE_HZ + half)[0]
+                T_mid = motion.sensor_poses_at(scan.index / rate_hz + half)[0]
                 prior: dict[str, Any] = {}
                 if scan.index == 0:
                     prior = dict(prior_pose=T_mid, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
@@ -240,6 +256,9 @@ if graph is not None:
         with open(f"/proc/{proc.pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
         stats["cpu_s"] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        with open(f"/proc/{proc.pid}/status") as f:
+            hwm = [line.split()[1] for line in f if line.startswith("VmHWM:")]
+        stats["rss_mib"] = int(hwm[0]) / 1024 if hwm else 0.0
     stats["keyframes"] = value("randt_graph_keyframes_total", {"result": "added"}) or 0
     stats["loops"] = value("randt_graph_loops_total", {"result": "accepted"}) or 0
     stats["verified"] = stats["loops"] + (value("randt_graph_loops_total", {"result": "refused"}) or 0)
@@ -248,6 +267,8 @@ if graph is not None:
     stats["held_s"] = gate.held_s if gate is not None else 0.0
     snap = graph.snapshot("default")  # sessions without priors it placed: T_map_session
     stats["joined"] = {f"{v}/{s}": T.tolist() for (v, s), T in getattr(snap, "joined", {}).items()}
+    stats["total_keyframes"] = sum(len(k) for k in snap.keyframes.values()) if snap is not None else 0
+    stats["total_loops"] = len(snap.loops) if snap is not None else 0
 service.stop()
 print(json.dumps({"received": int(received), "graph": stats}), flush=True)
 """
@@ -402,11 +423,18 @@ def run_one(
     timeline: Path | None = None,
     rate_hz: float = RATE_HZ,
     first: int = 0,
+    localize: bool | None = None,
+    data_from: Path | None = None,
+    keep_data: Path | None = None,
+    admission: bool = True,
 ) -> dict[str, Any]:
     """One fleet size, in this process (a fresh subprocess of :func:`main`), the service's pose
     graph on or off (``RANDT_GRAPH``), its matchers in local worker processes or Ray actors
     (``RANDT_EXECUTOR``); each vehicle publishes its 10 Hz sweeps at ``rate_hz``; the fleet is the
-    spool's ``n_vehicles`` vehicles from its ``first``."""
+    spool's ``n_vehicles`` vehicles from its ``first``. ``localize``: ``RANDT_LOCALIZE`` (``None``:
+    the service's default); ``data_from``: the service starts on a copy of this data directory (a
+    map made before); ``keep_data``: the data directory is copied there after the service stopped;
+    ``admission`` false: ``RANDT_CAPACITY_TARGET=0`` (every session admitted: a map made before)."""
     from randt.core.transforms import invert
     from randt.wire.codes import ErrorCode
 
@@ -420,6 +448,12 @@ def run_one(
         env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}  # the service sets its own
         env["RANDT_GRAPH"] = "true" if graph else "false"
         env["RANDT_EXECUTOR"] = executor
+        if localize is not None:
+            env["RANDT_LOCALIZE"] = "true" if localize else "false"
+        if not admission:
+            env["RANDT_CAPACITY_TARGET"] = "0"
+        if data_from is not None:
+            shutil.copytree(data_from, Path(tmp) / "data")
         service = subprocess.Popen(
             [sys.executable, "-c", SERVE_PROGRAM, str(service_repo), endpoint, str(Path(tmp) / "data")],
             stdin=subprocess.PIPE,
@@ -459,6 +493,9 @@ def run_one(
         service.wait(120)
         spool.close()
         quality = map_quality(Path(tmp) / "data")
+        if keep_data is not None:
+            shutil.rmtree(keep_data, ignore_errors=True)
+            shutil.copytree(Path(tmp) / "data", keep_data)
 
     sent, got, pose_of, errors = answers.sent, answers.got, answers.pose_of, answers.errors
     lat_ms = answers.latencies_ms()
@@ -518,6 +555,9 @@ def run_one(
         "graph_verified": int(graph_stats.get("verified", 0)),
         "graph_dropped": int(graph_stats.get("dropped", 0)),
         "graph_held_s": float(graph_stats.get("held_s", 0.0)),
+        "graph_total_keyframes": int(graph_stats.get("total_keyframes", 0)),
+        "graph_total_loops": int(graph_stats.get("total_loops", 0)),
+        "rss_graph_mib": float(graph_stats.get("rss_mib", 0.0)),
         "joins": joins,
         "cpu_graph_ms": 1e3 * graph_stats.get("cpu_s", 0.0) / poses,
         "mean_ms": float(lat_ms.mean()) if lat_ms.size else float("nan"),
@@ -527,6 +567,8 @@ def run_one(
         "received": received,
         "poses": len(got),
         "fallbacks": answers.statuses.get("fallback", 0),
+        "localized": answers.localized,
+        "localize": localize,
         "not_in_map": not_in_map,
         "dropped": dropped,
         "other_errors": other,
@@ -548,6 +590,7 @@ def run_one(
         "mbit_per_vehicle": float(sizes.mean()) * 8 * RATE_HZ / 1e6,
         "err_max_cm": err_max,
         "err_rmse_cm": float(np.sqrt(np.mean(pos**2))) if pos.size else float("nan"),
+        "err_p99_cm": float(np.percentile(pos, 99)) if pos.size else float("nan"),
         "rot_max_deg": float(max(rot_deg)) if rot_deg else float("nan"),
         "rss_main_mib": rss_main,
         "rss_matcher_mib": rss_matcher,
@@ -830,6 +873,73 @@ def _pooled(results: list[dict[str, Any]], what: str, repeat: int) -> None:
         )
 
 
+def _run(command: list[str], n: int) -> dict[str, Any]:
+    """One fleet size's run (``--one``) in a fresh subprocess: its result."""
+    out = subprocess.run(command, capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.stderr.write(out.stderr)
+        raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
+    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+#: The mapping drive of ``--mapped``: the seed added to each vehicle's sensor noise (another drive
+#: of the same routes).
+MAPPING_NOISE_SEED = 7919
+
+
+def _mapping_drive(
+    spool: Path, n_fleet: int, plan_size: int, args: argparse.Namespace, keep: Path
+) -> dict[str, Any]:
+    """``--mapped``: the fleet's routes driven once before (other noise, the 10 Hz sweeps published
+    at ``--map-rate``, every session admitted), the service's data directory kept in ``keep``."""
+    spool.mkdir(parents=True, exist_ok=True)
+    meta = {"vehicles": n_fleet, "scans": round(args.seconds * RATE_HZ), "link": args.link}
+    meta.update(routes="car-like", noise_seed=MAPPING_NOISE_SEED, plan_size=plan_size)
+    meta_path = spool / "meta.json"
+    if not _spool_fits(meta_path, meta):
+        meta_path.unlink(missing_ok=True)
+        simulate(
+            n_fleet,
+            meta["scans"],
+            args.link,
+            spool,
+            noise_seed=MAPPING_NOISE_SEED,
+            session="mapping",
+            plan_size=plan_size,
+        )
+        meta_path.write_text(json.dumps(meta))
+    progress(f"the mapping drive: {n_fleet} vehicle(s), {meta['scans']} sweeps each at {args.map_rate:g} Hz")
+    command = [sys.executable, __file__, "--one", str(n_fleet), "--spool", str(spool), "--link", args.link]
+    command += ["--service-repo", str(args.service_repo), "--graph", "on", "--rate", str(args.map_rate)]
+    command += ["--localize", "off", "--keep-data", str(keep), "--no-admission"]
+    return _run(command, n_fleet)
+
+
+def _mapped_summary(mapping_run: dict[str, Any] | None, results: list[dict[str, Any]]) -> None:
+    """``--mapped``: the mapping drive, then per fleet size localizing against mapping the same
+    streets again: CPU per sweep (the service's processes, the graph's beside), poses localized."""
+    if mapping_run is not None:
+        m = mapping_run
+        print(
+            f"\nThe map made before: {m['sent']} sweeps sent, {m['poses']} poses, {m['dropped']} dropped, "
+            f"{m['map_points']} map points ({m['map_off']} more than 0.3 m off the town's surfaces), "
+            f"{m['graph_keyframes']} graph keyframes"
+        )
+    print("\nOn the mapped streets, localizing (RANDT_LOCALIZE=true) against mapping them again (issue 57: "
+          "CPU per sweep at most a third):")  # fmt: skip
+    for off, on in zip(results[0::2], results[1::2], strict=True):
+        ratio = on["cpu_total_ms"] / off["cpu_total_ms"]
+        print(
+            f"- {on['vehicles']} vehicle(s): CPU per sweep {on['cpu_total_ms']:.1f} / "
+            f"{off['cpu_total_ms']:.1f} ms = {ratio:.2f}x (matchers {on['cpu_matchers_ms']:.1f} / "
+            f"{off['cpu_matchers_ms']:.1f}, graph {on['cpu_graph_ms']:.1f} / {off['cpu_graph_ms']:.1f}); "
+            f"localized {on['localized']} of {on['poses']} poses; p99 {on['p99_ms']:.0f} / "
+            f"{off['p99_ms']:.0f} ms; error max {on['err_max_cm']:.1f} / {off['err_max_cm']:.1f} cm; "
+            f"graph keyframes {on['graph_keyframes']} / {off['graph_keyframes']}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 6, 8])
@@ -903,17 +1013,48 @@ def main() -> None:
         help="the fleet's vehicles from this one on (0: sim000, the default): e.g. `--vehicles 1 --first 2` "
         "runs sim002 alone, the vehicle a run past capacity admitted, for a like-for-like reference",
     )
+    parser.add_argument(
+        "--mapped",
+        action="store_true",
+        help="the fleet on streets mapped beforehand (issue 57): a mapping drive of the same routes "
+        "(other sensor noise, published at --map-rate, every session admitted) makes the map first; "
+        "each fleet size then runs twice on a copy of it, RANDT_LOCALIZE off (it maps the streets "
+        "again) and on (it localizes on the map), and the ratio of their CPU per sweep is printed",
+    )
+    parser.add_argument(
+        "--map-rate", type=float, default=2.0, help="with --mapped: the mapping drive's publish rate (Hz)"
+    )
+    parser.add_argument("--localize", choices=["on", "off"], help=argparse.SUPPRESS)
+    parser.add_argument("--data-from", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--keep-data", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--no-admission", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--simulate-to", type=Path, help=argparse.SUPPRESS)  # (bench/lifelong.py's days)
+    parser.add_argument("--noise-seed", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--session", default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--spool", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.simulate_to:
+        args.simulate_to.mkdir(parents=True, exist_ok=True)
+        n_scans = round(args.seconds * RATE_HZ)
+        simulate(
+            max(args.vehicles),
+            n_scans,
+            args.link,
+            args.simulate_to,
+            noise_seed=args.noise_seed,
+            session=args.session,
+        )
+        return
     if args.one:
         timeline = None
         if args.timeline is not None:
             args.timeline.mkdir(parents=True, exist_ok=True)
             timeline = args.timeline / f"timeline-{args.one}-{args.graph}-{args.executor}.csv"
+        localize = None if args.localize is None else args.localize == "on"
         result = run_one(
             args.one, args.spool, args.link, args.service_repo, args.graph == "on", args.executor, timeline,
-            args.rate, args.first,
+            args.rate, args.first, localize, args.data_from, args.keep_data, not args.no_admission,
         )  # fmt: skip
         print(json.dumps(result))
         return
@@ -934,26 +1075,32 @@ def main() -> None:
             meta_path.write_text(json.dumps(meta))
         else:
             progress(f"reusing the sweeps in {spool}")
+        mapped, mapping_run = None, None
+        if args.mapped:
+            mapped = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="randt-mapped-"))) / "data"
+            plan_size = json.loads(meta_path.read_text())["vehicles"]  # (the routes of the spool's fleet)
+            mapping_run = _mapping_drive(spool / "mapping", n_fleet, plan_size, args, mapped)
         print(f"1-min load average at start: {os.getloadavg()[0]:.2f}")
         ref = None
-        if not args.no_offline:
+        if not args.no_offline and not args.mapped:
             ref = offline(spool, max(args.vehicles), graph=args.graph != "off", first=args.first)
         graphs = ["off", "on"] if args.graph == "both" else [args.graph]
         executors = ["local", "ray"] if args.executor == "both" else [args.executor]
-        pairs = [(g, e) for g in graphs for e in executors]
+        pairs: list[tuple[str, str, str | None]] = [(g, e, None) for g in graphs for e in executors]
+        if args.mapped:
+            pairs = [(g, e, loc) for g, e, _ in pairs for loc in ("off", "on")]
         for n in args.vehicles:
-            for graph, executor in pairs * (args.repeat if len(pairs) == 2 else 1):
-                progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}")
+            for graph, executor, loc in pairs * (args.repeat if len(pairs) == 2 else 1):
+                what = "" if loc is None else f", on the map made before, localize {loc}"
+                progress(f"{n} vehicle(s), {args.seconds:g} s, graph {graph}, matchers {executor}{what}")
                 command = [sys.executable, __file__, "--one", str(n), "--spool", str(spool)]
                 command += ["--link", args.link, "--service-repo", str(args.service_repo), "--graph", graph]
                 command += ["--executor", executor, "--rate", str(args.rate), "--first", str(args.first)]
+                if loc is not None:
+                    command += ["--localize", loc, "--data-from", str(mapped)]
                 if args.timeline is not None:
                     command += ["--timeline", str(args.timeline.resolve())]
-                out = subprocess.run(command, capture_output=True, text=True)
-                if out.returncode != 0:
-                    sys.stderr.write(out.stderr)
-                    raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
-                results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+                results.append(_run(command, n))
     title = f"{args.seconds:g} s of 10 Hz sweeps per vehicle, {args.link} link"
     if args.rate != RATE_HZ:
         title += f", published at {args.rate:g} Hz"
@@ -989,7 +1136,9 @@ def main() -> None:
                 f"poses/s {ray['poses_per_s']:.1f} / {local['poses_per_s']:.1f}"
             )
         _pooled(results, "Ray against local", args.repeat)
-    holding = [r["vehicles"] for r in results if r["holds"]]
+    if args.mapped:
+        _mapped_summary(mapping_run, results)
+    holding = [r["vehicles"] for r in results if r["holds"] and r.get("localize") is not False]
     error_rule = (
         f"every pose within {ERROR_TARGET_CM:g} cm"
         if ref is None
