@@ -831,7 +831,7 @@ class IncrementalMatcher:
         xyz, feats = prepare(self._velocity(periods))
         fell_back = self._state.fallback_run  # sweeps since the last match, before this one
         if index == 0:
-            if sweep.time_offset_s is not None:
+            if sweep.time_offset_s is not None and on_map is None:  # (on the map: no first keyframe)
                 self._state.first_raw = (xyz, sweep.time_offset_s)
             with self._matching_on(on_map):
                 T_first, message = self._first_in_map(feats, prior_T, prior, map_seed, on_map)
@@ -841,7 +841,12 @@ class IncrementalMatcher:
             has_times = sweep.time_offset_s is not None
             with self._matching_on(reference):
                 outcome = self._match(index, xyz, feats, has_times, prepare, T_pred, prior_T, prior, periods)
-                if index == 1 and self._state.first_raw is not None and outcome.status == "ok":
+                if (
+                    index == 1
+                    and self._state.first_raw is not None
+                    and self._state.keyframes
+                    and outcome.status == "ok"
+                ):
                     gating = _Gating(T_pred, prior_T, prior, periods)
                     outcome = self._second_sweep_again(outcome, prepare, gating)
             times["match"] = time.perf_counter() - t0

@@ -149,3 +149,22 @@ def test_pieces_at_other_levels_are_refused() -> None:
         _matcher().join_map([piece])
     with pytest.raises(InvalidCloudError, match="levels"):
         _matcher().join_map([])
+
+
+def test_a_drive_with_point_times_localizes_from_its_first_sweep() -> None:
+    """Sweeps with point times (as a real LiDAR gives them) localized from the first: the first
+    is no keyframe on the map, so the second sweep's deskew of a first keyframe is not done (it
+    raised IndexError on every second sweep in the service)."""
+    _, second = _drives()
+    matcher = _matcher()
+    T0 = second[0].T_world_sensor.copy()
+    T0[:2, 3] += (0.5, -0.5)
+    window = _window(matcher, T0[:2, 3])
+    for k, scan in enumerate(second[:5]):
+        tau = np.full(scan.points_xyz.shape[0], 0.05)  # (deskewed sweeps: every point at mid-sweep)
+        prior = PosePrior(T0, PRIOR_COV) if k == 0 else None
+        result = matcher.register_scan(
+            scan.points_xyz, time_offset_s=tau, prior=prior, stamp_s=scan.stamp_ns * 1e-9, on_map=window
+        )
+        assert result.localized, (k, result.status, result.message)
+        assert transform_error(result.T_world_sensor, scan.T_world_sensor)[0] < 0.05
