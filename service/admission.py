@@ -39,10 +39,11 @@ class Admission:
         if self.max_sessions < 0:
             self.max_sessions = SESSIONS_PER_CORE * (os.cpu_count() or 1)
 
-    def refusal_on_header(self, running: list[tuple[str, str]]) -> str | None:
+    def refusal_on_header(self, running: list[tuple[str, str]], *, localizing: bool = False) -> str | None:
         """Why the node cannot carry one more session now (measured capacity), judged on a scan's
-        header alone: a vehicle refused at 10 Hz must cost no body decoding."""
-        return None if self.capacity is None else self.capacity.refusal(running)
+        header alone: a vehicle refused at 10 Hz must cost no body decoding. ``localizing``: the
+        session is expected to localize on the map (service/localizing.py, ``expects_to_localize``)."""
+        return None if self.capacity is None else self.capacity.refusal(running, localizing=localizing)
 
     def admit(
         self,
@@ -50,9 +51,12 @@ class Admission:
         workers: Mapping[tuple[str, str], SessionWorker],
         opening: Collection[tuple[str, str]],
         closing: Collection[tuple[str, str]],
+        *,
+        localizing: bool = False,
     ) -> SessionWorker | Refused | None:
         """May ``key`` open a session? ``None``: yes; a worker: yes, after that idle session gives
-        up its slot; ``(code, reason, retry_after_s)``: refused."""
+        up its slot; ``(code, reason, retry_after_s)``: refused. ``localizing``: as
+        :meth:`refusal_on_header`."""
         s, vehicle = self.settings, key[0]
         evict: SessionWorker | None = None
         per_vehicle = s.max_sessions_per_vehicle
@@ -79,9 +83,11 @@ class Admission:
                     s.slot_idle_s,
                 )
         if self.capacity is not None:  # before the session costs anything
-            why = self.capacity.refusal([*workers, *opening], exclude=() if evict is None else (evict.key,))
+            excluded = () if evict is None else (evict.key,)
+            why = self.capacity.refusal([*workers, *opening], exclude=excluded, localizing=localizing)
             if why is not None:
                 return (ErrorCode.SESSIONS_FULL, why, self.capacity.retry_after_s)
+            self.capacity.opening(key, localizing=localizing)
         return evict
 
 

@@ -26,6 +26,10 @@ MIN_ARRIVALS = 5
 MIN_SWEEPS = 20
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
 MIN_SERVICE_SWEEPS = 10
+#: A session expected to localize on the map (service/localizing.py), before any localizing session
+#: was measured, is counted at this share of a mapping one's expected CPU per sweep: a localized
+#: sweep costs 0.35-0.5x a mapped one (docs/benchmarks.md, "A drive on mapped streets"); the larger.
+LOCALIZED_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,7 @@ class _Load:
     arrivals: int = 0
     cpu_s: float | None = None  # moving average of the matcher's CPU per sweep
     sweeps: int = 0
+    localizing: bool = False  # its last sweep was localized on the map (or it opened to)
 
 
 def _average(old: float | None, new: float) -> float:
@@ -104,7 +109,9 @@ class Capacity:
         self._clock = clock
         self._lock = threading.Lock()
         self._loads: dict[Hashable, _Load] = {}
-        self._last_cpu_s = sweep_cpu_s  # the mean of the last measured sessions (a prior at first)
+        #: per kind (localizing or not), the mean of the last measured sessions (mapping: a prior
+        #: at first; localizing: absent until one was measured)
+        self._last_cpu_s = {False: sweep_cpu_s}
         self._service_cpu_s = 0.0
         self._service_mark: tuple[float, int, float] | None = None  # process CPU, sweeps, local CPU
         self._sweeps = 0
@@ -121,12 +128,22 @@ class Capacity:
             load.last_arrival = now
             load.arrivals += 1
 
-    def matched(self, key: Hashable, cpu_s: float, *, in_process: bool = False) -> None:
-        """Session ``key``'s matcher spent ``cpu_s`` on one sweep (``in_process``: in this process)."""
+    def opening(self, key: Hashable, *, localizing: bool) -> None:
+        """Session ``key`` opens expecting to localize on the map or not: until measured it is
+        counted at the expected cost of its kind."""
+        with self._lock:
+            self._loads.setdefault(key, _Load()).localizing = localizing
+
+    def matched(
+        self, key: Hashable, cpu_s: float, *, in_process: bool = False, localized: bool = False
+    ) -> None:
+        """Session ``key``'s matcher spent ``cpu_s`` on one sweep (``in_process``: in this process;
+        ``localized``: on the map)."""
         with self._lock:
             load = self._loads.setdefault(key, _Load())
             load.cpu_s = _average(load.cpu_s, max(cpu_s, 0.0))
             load.sweeps += 1
+            load.localizing = localized
             self._sweeps += 1
             if in_process:
                 self._local_cpu_s += cpu_s
@@ -154,16 +171,21 @@ class Capacity:
                 del self._loads[key]
 
     # -- the model ------------------------------------------------------------------------------
-    def _expected_cpu_s(self) -> float:
+    def _expected_cpu_s(self, localizing: bool = False) -> float:
         """What a session not measured yet (young, or opening) is counted at: the measured
-        sessions' mean CPU per sweep, the last measured ones' when none runs, the prior
-        ``sweep_cpu_s`` before any."""
+        sessions' mean CPU per sweep among those of its kind (localizing on the map or mapping),
+        the last measured ones' when none runs, a prior before any (``sweep_cpu_s``, a localizing
+        one :data:`LOCALIZED_SHARE` of the mapping one's)."""
         measured = [
-            ld.cpu_s for ld in self._loads.values() if ld.cpu_s is not None and ld.sweeps >= MIN_SWEEPS
+            ld.cpu_s
+            for ld in self._loads.values()
+            if ld.cpu_s is not None and ld.sweeps >= MIN_SWEEPS and ld.localizing == localizing
         ]
         if measured:
-            self._last_cpu_s = sum(measured) / len(measured)
-        return self._last_cpu_s
+            self._last_cpu_s[localizing] = sum(measured) / len(measured)
+        elif localizing and localizing not in self._last_cpu_s:  # (none measured yet)
+            return self._expected_cpu_s() * LOCALIZED_SHARE
+        return self._last_cpu_s[localizing]
 
     def _rate_hz(self, load: _Load, now: float) -> float:
         """The session's measured scan rate; ``rate_hz`` until measured, 0 once idle ``idle_s``."""
@@ -186,9 +208,12 @@ class Capacity:
             return (matcher_cores + service_cores) / (cores * self.target)
         return max(matcher_cores / (cores * self.target), service_cores / self.target)
 
-    def _figures(self, running: Collection[Hashable], exclude: Collection[Hashable]) -> CapacityFigures:
+    def _figures(
+        self, running: Collection[Hashable], exclude: Collection[Hashable], localizing: bool = False
+    ) -> CapacityFigures:
         now, cores = self._clock(), self.cores
-        expected = self._expected_cpu_s()
+        expected = self._expected_cpu_s(localizing)  # (the new session's)
+        of_kind = {kind: self._expected_cpu_s(kind) for kind in (False, True)}
         matcher = service = 0.0
         measured = 0
         for key in running:
@@ -198,7 +223,7 @@ class Capacity:
             own = load.cpu_s is not None and load.sweeps >= MIN_SWEEPS
             measured += own
             rate = self._rate_hz(load, now)
-            matcher += rate * (load.cpu_s if own and load.cpu_s is not None else expected)
+            matcher += rate * (load.cpu_s if own and load.cpu_s is not None else of_kind[load.localizing])
             service += rate * self._service_cpu_s
         new = self._share(self.rate_hz * expected, self.rate_hz * self._service_cpu_s, cores)
         share = self._share(matcher, service, cores)
@@ -221,12 +246,15 @@ class Capacity:
         with self._lock:
             return self._figures(running, ())
 
-    def refusal(self, running: Collection[Hashable], exclude: Collection[Hashable] = ()) -> str | None:
+    def refusal(
+        self, running: Collection[Hashable], exclude: Collection[Hashable] = (), *, localizing: bool = False
+    ) -> str | None:
         """Why a new session cannot be admitted beside ``running`` (less ``exclude``: a session
         that gives up its slot for it), or ``None``: it fits. A node that carries nothing (no
-        session, or none sending) admits one whatever it is expected to cost."""
+        session, or none sending) admits one whatever it is expected to cost. ``localizing``: the
+        new session is expected to localize on the map (counted at a localizing session's cost)."""
         with self._lock:
-            f = self._figures(running, exclude)
+            f = self._figures(running, exclude, localizing)
         if f.load <= 0.0 or f.load + f.new_session_load <= 1.0 + 1e-9:
             return None
         return (

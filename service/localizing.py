@@ -7,9 +7,9 @@ within ``localize_radius_m``) and sends it with the sweep once, then again after
 ``localize_reload_m`` of travel or when the map's content changed (its token); the matcher holds
 it meanwhile (service/matcher_io.py, ``MapWindows``). A window cut again sends only the points of
 the tiles that are new to it or grew since (:data:`RESEND_GROWTH`): the matcher keeps the others
-prepared. A sweep the
-map does not hold (its answer comes back not localized: the map ends there, or changed) makes the
-session map for :data:`MAP_AFTER_MISS` sweeps before it tries again; its points extend the map
+prepared. A sweep the map does not hold (its answer comes back not localized: the match refused
+it, the map ends there, or changed) is tried again; :data:`MISSES_BEFORE_MAPPING` in a row make
+the session map for :data:`MAP_AFTER_MISS` sweeps before it tries again; its points extend the map
 meanwhile.
 """
 
@@ -23,15 +23,39 @@ from randt.service.matcher_io import MapWindow
 from randt.service.session_record import SessionFrame
 from randt.service.settings import ServiceSettings
 
-__all__ = ["MAP_AFTER_MISS", "RESEND_GROWTH", "SessionLocalizer"]
+__all__ = [
+    "MAP_AFTER_MISS",
+    "MISSES_BEFORE_MAPPING",
+    "RESEND_GROWTH",
+    "SessionLocalizer",
+    "expects_to_localize",
+]
 
-#: Sweeps a session maps after one that the map did not hold, before it localizes again.
+#: Sweeps a session maps after MISSES_BEFORE_MAPPING in a row that the map did not hold, before it
+#: localizes again.
 MAP_AFTER_MISS = 20
+#: Sweeps in a row asked to be localized and not, before the session maps: one refused match on
+#: mapped streets is no reason to map (20 sweeps of odometry drifted to 10 cm and folded their
+#: points beside the map's, which later windows then matched).
+MISSES_BEFORE_MAPPING = 3
 #: A tile the matcher holds is sent again with a new window when it has grown by more than this
 #: share since: inserts only add (a removal changes the map's token, and every tile is sent), and
 #: what a localized session folds is the little the map lacked around it, which changes no match;
 #: sending every tile whose version moved sent 40 of 60 tiles at each reload.
 RESEND_GROWTH = 0.05
+
+
+def expects_to_localize(settings: ServiceSettings, grid: TileGrid, prior_pose: object) -> bool:
+    """Whether a session opening with this prior pose (16 floats, row-major ``T_map_sensor``;
+    ``None``: none) will localize: ``localize`` on and the map's tiles around the prior holding
+    what :class:`SessionLocalizer` asks of a window (admission counts it at that cost)."""
+    if not settings.localize or prior_pose is None:
+        return False
+    T = np.asarray(prior_pose, dtype=np.float64).reshape(-1)
+    if T.shape != (16,) or not np.isfinite(T).all():
+        return False
+    tiles = grid.tiles_near(T[[3, 7]], settings.localize_radius_m)
+    return sum(t.n_points for t in tiles) >= settings.localize_min_map_points
 
 
 class SessionLocalizer:
@@ -47,6 +71,7 @@ class SessionLocalizer:
         self._held: tuple[tuple[str, int, int], tuple[float, float], dict[str, tuple[int, int]]] | None = None
         self._asked = False  # the last sweep asked to be localized
         self._mapping_for = 0  # sweeps to map before localizing again
+        self._misses = 0  # sweeps in a row asked to be localized that were not
 
     def window(
         self,
@@ -95,10 +120,18 @@ class SessionLocalizer:
         return MapWindow(token, center, tuple((tid, v) for tid, (v, _) in held.items()), points)
 
     def answered(self, result: ScanResult) -> None:
-        """A sweep's answer: one asked to be localized that was not (the map does not hold it
-        there, or the matcher lost the window) maps for a while, and the window is cut again when
-        it localizes next (the poses localized are counted as they go out: SessionInfo)."""
+        """A sweep's answer. One asked to be localized that was not (a sweep the match refused,
+        the map does not hold it there, or the matcher lost the window): the next sweep tries the
+        same window, the one after a window sent whole, and after :data:`MISSES_BEFORE_MAPPING`
+        in a row the session maps for :data:`MAP_AFTER_MISS` sweeps (the poses localized are
+        counted as they go out: SessionInfo)."""
         if result.localized:
+            self._misses = 0
             return
-        if self._asked:
-            self._held, self._mapping_for = None, MAP_AFTER_MISS
+        if not self._asked:
+            return
+        self._misses += 1
+        if self._misses >= MISSES_BEFORE_MAPPING:
+            self._held, self._mapping_for, self._misses = None, MAP_AFTER_MISS, 0
+        elif self._misses >= 2:
+            self._held = None

@@ -15,6 +15,7 @@ from randt.service.admission import Admission, Refused
 from randt.service.answers import Answers
 from randt.service.capacity import Capacity
 from randt.service.intake import Intake
+from randt.service.localizing import expects_to_localize
 from randt.service.opener import SessionOpener
 from randt.service.queueing import Job, drop_index, queue_label
 from randt.service.session_table import Opening, SessionTable
@@ -137,13 +138,21 @@ class ScanRouter:
         key, t = (scan.vehicle, scan.session), self.table
         if self.capacity is None or scan.vehicle != key_vehicle or key in t.workers or key in t.opening:
             return False
-        why = self.admission.refusal_on_header([*t.workers, *t.opening])
+        why = self.admission.refusal_on_header([*t.workers, *t.opening], localizing=self._localizing(scan))
         if why is None:
             return False
         self.reject(
             scan.vehicle, scan.session, scan.seq, ErrorCode.SESSIONS_FULL, why, self.capacity.retry_after_s
         )
         return True
+
+    def _localizing(self, scan: ScanHeader) -> bool:
+        """Whether a session opened by ``scan`` is expected to localize on the map (its prior in
+        the default map; admission counts it at a localizing session's cost)."""
+        if not self.settings.localize or scan.prior is None:
+            return False
+        grid = self.opener.services.maps.grid(self.settings.default_map)
+        return expects_to_localize(self.settings, grid, scan.prior.pose)
 
     def _route(self, job: Job) -> tuple[Job | None, tuple[str, str] | Refused | None]:
         """The job into its session's queue, the queue of the session being opened, or a new
@@ -172,7 +181,9 @@ class ScanRouter:
                 "publish under a new session id"
             )
             return None, (ErrorCode.SESSION_CLOSED, why)
-        admitted = self.admission.admit(key, t.workers, t.opening, t.closing)
+        admitted = self.admission.admit(
+            key, t.workers, t.opening, t.closing, localizing=self._localizing(scan)
+        )
         if isinstance(admitted, tuple):
             return None, admitted
         if admitted is not None:

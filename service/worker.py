@@ -357,7 +357,9 @@ class SessionWorker:
         except RandtError as exc:
             return Refusal(ErrorCode.REGISTRATION_FAILED, str(exc))
         if s.capacity is not None:
-            s.capacity.matched(self.key, registered.cpu_s, in_process=s.in_process)
+            s.capacity.matched(
+                self.key, registered.cpu_s, in_process=s.in_process, localized=registered.result.localized
+            )
         self.localizer.answered(registered.result)
         return registered
 

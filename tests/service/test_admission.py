@@ -104,6 +104,36 @@ def test_a_silent_session_costs_nothing_and_a_young_one_its_expected_cost() -> N
     assert cap.figures(["slow"]).used_cores == pytest.approx(0.1, rel=0.05)
 
 
+def test_a_session_expected_to_localize_is_counted_at_a_localizing_sessions_cost() -> None:
+    """Sessions opening on mapped streets (issue 57): before any localizing session is measured,
+    one counts LOCALIZED_SHARE of a mapping one's expected cost; once some are measured, their
+    mean. A mapping session's expectation stays its own."""
+    from randt.service.capacity import LOCALIZED_SHARE
+
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
+    running: list[str] = []
+    for key in "abcdefgh":
+        if cap.refusal(running, localizing=True) is None:
+            running.append(key)
+            cap.opening(key, localizing=True)
+            cap.arrived(key)
+    # each counts 10 Hz x 25 ms = 0.25 cores: 6 fit in 1.7 (3 mapping ones would)
+    assert LOCALIZED_SHARE == 0.5 and running == list("abcdef")
+    assert cap.refusal(running) is not None  # a mapping one (0.5 more) does not fit beside them
+    # measured: the localizing sessions at 15 ms a sweep
+    for _ in range(25):
+        for key in running:
+            cap.arrived(key)
+            cap.matched(key, 0.015, localized=True)
+        clock.t += 0.1
+    f = cap.figures(running)
+    assert f.measured_sessions == 6 and f.used_cores == pytest.approx(6 * 0.15, rel=0.05)
+    assert cap.refusal(running, localizing=True) is None  # 0.9 + 0.15 of 1.7
+    assert cap.refusal(running) is None  # a mapping one at its prior: 0.9 + 0.5 of 1.7
+    assert cap.refusal([*running, "x"]) is not None  # a young mapping one counted at 0.5, then another
+
+
 def test_a_matcher_process_measures_the_cpu_of_each_sweep() -> None:
     """:attr:`Registered.cpu_s` from a real worker process: positive, at most the wall time of the
     call, and including the keyframe model's rebuild after the previous sweep."""

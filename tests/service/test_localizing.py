@@ -140,8 +140,8 @@ def test_a_window_moved_sends_only_the_tiles_new_to_it(tmp_path: Path) -> None:
     """The session sends a window's tiles once: cut again after the reload distance, only the tiles
     the window before did not hold (or that grew by more than RESEND_GROWTH) carry points, and the
     matcher joins the rest from what it kept: the same map as preparing every tile's points. A
-    matcher that lost its pieces (a new process) holds no such window: the sweep maps, and the
-    next window sends every tile again."""
+    matcher that lost its pieces (a new process) holds no such window: the sweep maps, the next
+    one tries the same window, and after a second miss the window is sent whole."""
     from types import SimpleNamespace
 
     from randt.core.odometry import IncrementalMatcher, MatcherSettings
@@ -197,10 +197,37 @@ def test_a_window_moved_sends_only_the_tiles_new_to_it(tmp_path: Path) -> None:
     lost = MapWindows()
     w4 = loc.window(grid, token, None, at(135.0), "map")
     assert w4 is not None and lost.on_map(matcher, w4) is None
-    loc.answered(SimpleNamespace(localized=False))  # type: ignore[arg-type]
-    for _ in range(30):  # (it maps for a while, then tries again)
-        w5 = loc.window(grid, token, None, at(135.0), "map")
-        if w5 is not None:
-            break
+    miss = SimpleNamespace(localized=False)
+    loc.answered(miss)  # type: ignore[arg-type]
+    again = loc.window(grid, token, None, at(135.0), "map")  # (one miss: the same window again)
+    assert again is not None and again.tiles is None and lost.on_map(matcher, again) is None
+    loc.answered(miss)  # type: ignore[arg-type]
+    w5 = loc.window(grid, token, None, at(135.0), "map")  # (two: the window sent whole)
     assert w5 is not None and w5.tiles is not None and set(w5.points) == {t for t, _ in w5.tiles}
     same_map(lost.on_map(matcher, w5), w5.tiles)
+
+
+def test_a_session_maps_only_after_misses_in_a_row(tmp_path: Path) -> None:
+    """One sweep the map did not hold is tried again (on mapped streets a refused match is no
+    reason to map); MISSES_BEFORE_MAPPING in a row map for MAP_AFTER_MISS sweeps, then it tries
+    again; a localized sweep between misses starts the count over."""
+    from types import SimpleNamespace
+
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import MAP_AFTER_MISS, MISSES_BEFORE_MAPPING, SessionLocalizer
+
+    grid = TileGrid(20, 0.2, 2)
+    grid.insert(_street(0.0, 100.0, np.random.default_rng(1)))
+    settings = ServiceSettings(data_dir=tmp_path, localize=True, localize_min_map_points=1000)  # type: ignore[call-arg]
+    loc, token, pose = SessionLocalizer(settings), ("default", *grid.content_token), [np.eye(4)]
+    miss, hit = SimpleNamespace(localized=False), SimpleNamespace(localized=True)
+    asked = []
+    for answer in (
+        [miss, hit, miss, miss, hit] + [miss] * MISSES_BEFORE_MAPPING + [hit] * (MAP_AFTER_MISS + 2)
+    ):
+        asked.append(loc.window(grid, token, None, pose, "map") is not None)
+        if asked[-1]:
+            loc.answered(answer)  # type: ignore[arg-type]
+    assert MISSES_BEFORE_MAPPING == 3 and all(asked[: 5 + MISSES_BEFORE_MAPPING])
+    assert not any(asked[5 + MISSES_BEFORE_MAPPING : 5 + MISSES_BEFORE_MAPPING + MAP_AFTER_MISS])
+    assert asked[5 + MISSES_BEFORE_MAPPING + MAP_AFTER_MISS]
