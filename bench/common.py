@@ -20,12 +20,14 @@ THREAD_VARS = (
 for _var in THREAD_VARS:
     os.environ[_var] = "1"
 
+import json  # noqa: E402
 import platform  # noqa: E402
 import socket  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from importlib import metadata  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -103,6 +105,17 @@ def git_line() -> str:
         return "git: unknown"
     dirty = sorted(line[3:] for line in status.splitlines() if line.strip())
     return f"git: {sha}" + (f" + uncommitted changes to {', '.join(dirty)}" if dirty else " (core clean)")
+
+
+def run_json(command: list[str], what: str) -> dict[str, Any]:
+    """Run a benchmark's inner run in a fresh subprocess and return the JSON its last line prints;
+    its stderr and ``what`` failed on a non-zero exit."""
+    out = subprocess.run(command, capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.stderr.write(out.stderr)
+        raise SystemExit(f"{what} failed (exit {out.returncode})")
+    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
 
 
 def heading(text: str, markdown: bool) -> str:

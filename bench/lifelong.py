@@ -28,7 +28,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from common import git_line, machine_line, progress, table
+from common import git_line, machine_line, progress, run_json, table
 
 HERE = Path(__file__).resolve().parent
 SERVICE_BENCH = HERE / "service.py"
@@ -64,12 +64,7 @@ def _drive_day(spool: Path, before: Path | None, after: Path, args: argparse.Nam
     command += ["--link", args.link, "--graph", "on", "--localize", "on", "--keep-data", str(after)]
     if before is not None:
         command += ["--data-from", str(before)]
-    out = subprocess.run(command, capture_output=True, text=True)
-    if out.returncode != 0:
-        sys.stderr.write(out.stderr)
-        raise SystemExit(f"the day's run failed (exit {out.returncode})")
-    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
-    return result
+    return run_json(command, "the day's run")
 
 
 def _mb(path: Path) -> float:

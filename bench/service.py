@@ -72,7 +72,7 @@ from typing import IO, Any
 
 import common
 import numpy as np
-from common import REPO, THREAD_VARS, free_port, git_line, heading, machine_line, progress, table
+from common import REPO, THREAD_VARS, free_port, git_line, heading, machine_line, progress, run_json, table
 from fleet_link import RATE_HZ, Answers, drive_fleet, fleet_link
 
 del common
@@ -875,12 +875,7 @@ def _pooled(results: list[dict[str, Any]], what: str, repeat: int) -> None:
 
 def _run(command: list[str], n: int) -> dict[str, Any]:
     """One fleet size's run (``--one``) in a fresh subprocess: its result."""
-    out = subprocess.run(command, capture_output=True, text=True)
-    if out.returncode != 0:
-        sys.stderr.write(out.stderr)
-        raise SystemExit(f"the run with {n} vehicle(s) failed (exit {out.returncode})")
-    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
-    return result
+    return run_json(command, f"the run with {n} vehicle(s)")
 
 
 #: The mapping drive of ``--mapped``: the seed added to each vehicle's sensor noise (another drive
