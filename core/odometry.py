@@ -147,8 +147,8 @@ OBJECT_CHECK_POINTS = 2000
 #: (``register_scan``'s ``map_seed``) when there are at least this many.
 MAP_SEED_MIN_POINTS = 2000
 #: Sweep points matched against the map when localizing on it (a stratified subsample): the map
-#: is fixed, so 1,500 (Autoware's random_downsample_filter) drive Newton as well as all: 3,000 gave
-#: the same error (docs/mapping.md, "Localizing on the map").
+#: is fixed, so 1,500 (as Autoware's random_downsample_filter) drive Newton as well as all
+#: (docs/mapping.md, "Localizing on the map").
 ON_MAP_MATCH_POINTS = 1500
 #: Of a sweep localized on the map, every this many points are taken (features, match, the points
 #: it returns for the map): the map already holds its surroundings. Prime to a 64- or 32-ring
@@ -171,7 +171,7 @@ REDESKEW_DEG = 0.05
 REDESKEW_M = 0.01
 #: The same on the map: a localized pose is absolute, so the motion between two of them carries
 #: both poses' centimetre of error, and below these the motion found is no better than the one
-#: used (at 1 cm and 0.05 deg every second localized sweep was matched twice, for no error less).
+#: used (docs/mapping.md, "In the service").
 REDESKEW_ON_MAP_DEG = 0.2
 REDESKEW_ON_MAP_M = 0.04
 #: The second sweep is matched again with the first keyframe deskewed anew until its velocity

@@ -27,8 +27,8 @@ MIN_SWEEPS = 20
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
 MIN_SERVICE_SWEEPS = 10
 #: A session expected to localize on the map (service/localizing.py), before any localizing session
-#: was measured, is counted at this share of a mapping one's expected CPU per sweep: a localized
-#: sweep costs 0.35-0.5x a mapped one (docs/benchmarks.md, "A drive on mapped streets"); the larger.
+#: was measured, is counted at this share of a mapping one's expected CPU per sweep (the larger end
+#: of what docs/benchmarks.md, "A drive on mapped streets", measures).
 LOCALIZED_SHARE = 0.5
 
 

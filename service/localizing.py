@@ -35,13 +35,12 @@ __all__ = [
 #: localizes again.
 MAP_AFTER_MISS = 20
 #: Sweeps in a row asked to be localized and not, before the session maps: one refused match on
-#: mapped streets is no reason to map (20 sweeps of odometry drifted to 10 cm and folded their
-#: points beside the map's, which later windows then matched).
+#: mapped streets is no reason to map (its odometry would drift and fold points beside the map's).
 MISSES_BEFORE_MAPPING = 3
 #: A tile the matcher holds is sent again with a new window when it has grown by more than this
 #: share since: inserts only add (a removal changes the map's token, and every tile is sent), and
-#: what a localized session folds is the little the map lacked around it, which changes no match;
-#: sending every tile whose version moved sent 40 of 60 tiles at each reload.
+#: what a localized session folds is the little the map lacked around it, which changes no match
+#: (docs/mapping.md, "In the service").
 RESEND_GROWTH = 0.05
 
 
