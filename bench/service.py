@@ -243,11 +243,17 @@ if not service.sessions.wait_matchers(600):
     raise SystemExit("matcher processes not warm after 600 s")
 pool = service.sessions.pool
 pids = [p for p in pool.pids() if p] if hasattr(pool, "pids") else []  # (Ray: its actors' processes)
+graph = service.sessions.graph
+if graph is not None and hasattr(graph, "replaying"):  # ready as /readyz says: the log replayed
+    import time
+    while graph.replaying:
+        time.sleep(0.1)
+    graph.wait_idle(300)
+graph_cpu0 = graph.cpu_s() if graph is not None and hasattr(graph, "cpu_s") else 0.0
 print(json.dumps({"pid": os.getpid(), "matchers": pids}), flush=True)
 sys.stdin.read()
 value = service.metrics.registry.get_sample_value
 received = value("randt_scans_received_total") or 0
-graph = service.sessions.graph
 stats = {}
 if graph is not None:
     graph.wait_idle(300)
@@ -256,6 +262,8 @@ if graph is not None:
         with open(f"/proc/{proc.pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
         stats["cpu_s"] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        if hasattr(graph, "cpu_s"):  # (since the fleet started: not the log's replay)
+            stats["cpu_s"] = graph.cpu_s() - graph_cpu0
         with open(f"/proc/{proc.pid}/status") as f:
             hwm = [line.split()[1] for line in f if line.startswith("VmHWM:")]
         stats["rss_mib"] = int(hwm[0]) / 1024 if hwm else 0.0
@@ -894,6 +902,7 @@ def _mapping_drive(
     meta_path = spool / "meta.json"
     if not _spool_fits(meta_path, meta):
         meta_path.unlink(missing_ok=True)
+        (spool / "run.json").unlink(missing_ok=True)  # (a map kept by --reuse-map is of other sweeps)
         simulate(
             n_fleet,
             meta["scans"],
@@ -904,11 +913,22 @@ def _mapping_drive(
             plan_size=plan_size,
         )
         meta_path.write_text(json.dumps(meta))
+    kept, kept_run = spool / "data", spool / "run.json"
+    if args.reuse_map and kept_run.exists() and (kept / "maps").is_dir():
+        progress(f"reusing the map made before in {kept} (--reuse-map)")
+        shutil.rmtree(keep, ignore_errors=True)
+        shutil.copytree(kept, keep)
+        return dict(json.loads(kept_run.read_text()))
     progress(f"the mapping drive: {n_fleet} vehicle(s), {meta['scans']} sweeps each at {args.map_rate:g} Hz")
     command = [sys.executable, __file__, "--one", str(n_fleet), "--spool", str(spool), "--link", args.link]
     command += ["--service-repo", str(args.service_repo), "--graph", "on", "--rate", str(args.map_rate)]
     command += ["--localize", "off", "--keep-data", str(keep), "--no-admission"]
-    return _run(command, n_fleet)
+    run = _run(command, n_fleet)
+    if args.reuse_map:  # (kept beside the sweeps for the next run)
+        shutil.rmtree(kept, ignore_errors=True)
+        shutil.copytree(keep, kept)
+        kept_run.write_text(json.dumps(run))
+    return run
 
 
 def _mapped_summary(mapping_run: dict[str, Any] | None, results: list[dict[str, Any]]) -> None:
@@ -1018,6 +1038,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--map-rate", type=float, default=2.0, help="with --mapped: the mapping drive's publish rate (Hz)"
+    )
+    parser.add_argument(
+        "--reuse-map",
+        action="store_true",
+        help="with --mapped and --sweeps: keep the mapping drive's data directory beside the sweeps and "
+        "start from it again in a later run (the map as the code of that run made it)",
     )
     parser.add_argument("--localize", choices=["on", "off"], help=argparse.SUPPRESS)
     parser.add_argument("--data-from", type=Path, help=argparse.SUPPRESS)
