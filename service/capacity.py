@@ -148,14 +148,18 @@ class Capacity:
             if in_process:
                 self._local_cpu_s += cpu_s
 
-    def service_sample(self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0) -> None:
+    def service_sample(
+        self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0, settling: bool = False
+    ) -> None:
         """Sample the service's own CPU per sweep (the flusher, every flush): ``process_cpu_s`` is
         this process's CPU time so far (``time.process_time()``), ``graph_cpu_s`` the pose graph
-        process's (:meth:`randt.service.graph.ServiceGraph.cpu_s`)."""
+        process's (:meth:`randt.service.graph.ServiceGraph.cpu_s`). ``settling``: the CPU since
+        the last sample is the service's own start (the graph replaying its log), not what the
+        sweeps cost: it is not sampled, the next sample counts from here."""
         cpu = (time.process_time() if process_cpu_s is None else process_cpu_s) + graph_cpu_s
         with self._lock:
             mark = (cpu, self._sweeps, self._local_cpu_s)
-            if self._service_mark is None:
+            if self._service_mark is None or settling:
                 self._service_mark = mark
                 return
             d_cpu, d_sweeps, d_local = (a - b for a, b in zip(mark, self._service_mark, strict=True))

@@ -100,6 +100,7 @@ class SessionManager:
         #: The maps' pose graphs (service/graph.py); their process starts with the first keyframe.
         self.graph: ServiceGraph | None = self._pose_graph() if settings.graph else None
         self._tiles_saved_at = time.monotonic()  # the flusher saves tiles every tile_save_interval_s
+        self._graph_was_replaying = False  # (the flusher: the last capacity sample saw the graph replay)
         self.counters = Counters(store.data_dir, self.metrics)
         opener = SessionOpener(self._services(), self.saver, self.pool)
         self.router = ScanRouter(settings, self.table, self.answers, self.admission, self.capacity, opener)
@@ -263,7 +264,12 @@ class SessionManager:
         capacity's figures to ``/metrics`` (the flusher, every flush)."""
         if self.capacity is None:
             return
-        self.capacity.service_sample(graph_cpu_s=0.0 if self.graph is None else self.graph.cpu_s())
+        graph = self.graph
+        # (the graph replaying its log after a start: its CPU is not the sweeps'; nor that of the
+        # flush that saw it end)
+        replaying = graph is not None and graph.replaying
+        settling, self._graph_was_replaying = replaying or self._graph_was_replaying, replaying
+        self.capacity.service_sample(graph_cpu_s=0.0 if graph is None else graph.cpu_s(), settling=settling)
         running = self.table.keys()
         self.capacity.forget(running)
         f, m = self.capacity.figures(running), self.metrics

@@ -86,6 +86,28 @@ def test_the_service_processes_own_cpu_counts_and_a_cluster_is_measured_apart() 
     assert cluster.refusal(["a", "b", "c"]) is not None
 
 
+def test_the_graph_replaying_its_log_is_not_billed_to_the_sweeps() -> None:
+    """After a restart the graph process replays its log (seconds of CPU) while the first
+    sessions open: that CPU is the service's start, not what their sweeps cost (issue 57: two of
+    eight localizing vehicles were admitted, the rest refused on it)."""
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, clock=clock)
+    cap.service_sample(0.0, graph_cpu_s=0.0)
+    _drive(cap, clock, "a", hz=10.0, cpu_s=0.02, n=25)
+    # 6 s of replay and 25 sweeps at 4 ms of service CPU: not sampled while it settles
+    cap.service_sample(25 * 0.004, graph_cpu_s=6.0, settling=True)
+    assert cap.figures(["a"]).service_cpu_s == 0.0
+    _drive(cap, clock, "a", hz=10.0, cpu_s=0.02, n=25)
+    cap.service_sample(50 * 0.004, graph_cpu_s=6.0 + 25 * 0.002)
+    assert cap.figures(["a"]).service_cpu_s == pytest.approx(0.006)
+    # unsettled, the same replay would be billed at 240 ms a sweep and refuse a second session
+    other = Capacity(cores=2, shares_cores=True, target=0.85, clock=clock)
+    other.service_sample(0.0, graph_cpu_s=0.0)
+    _drive(other, clock, "a", hz=10.0, cpu_s=0.02, n=25)
+    other.service_sample(25 * 0.004, graph_cpu_s=6.0)
+    assert other.figures(["a"]).service_cpu_s == pytest.approx(0.244) and other.refusal(["a"]) is not None
+
+
 def test_a_silent_session_costs_nothing_and_a_young_one_its_expected_cost() -> None:
     clock = Clock()
     cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
