@@ -70,6 +70,13 @@ class FleetMapSettings(BaseModel):
     loop_gate_m: float = Field(
         default=15.0, gt=0, description="a loop between placed keyframes disagreeing more is refused"
     )
+    loop_max_anisotropy: float = Field(
+        default=6.0,
+        gt=1,
+        description="a loop or placement vote whose refinement holds one direction this many times "
+        "less well than the best (GlobalResult.anisotropy) is refused: NDT slid along a corridor "
+        "(0.8 m off at 46 inliers, seen at 13; good loops 1.5-3.5)",
+    )
     placement_max_distance: float = Field(
         default=0.6,
         gt=0,
@@ -124,6 +131,9 @@ class _Keyframe:
     descriptors: np.ndarray | None
     travel_m: float
     gnss: tuple[np.ndarray, np.ndarray] | None
+    #: a fix with attitude (GNSS/INS, a vehicle's prior pose): the whole pose and its (t, r)
+    #: covariance, a pose prior in the graph instead of the position alone
+    attitude: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -184,33 +194,24 @@ class FleetMapper:
         gnss: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Key:
         """The next keyframe of ``session``: its odometry pose, points, and an optional GNSS fix
-        ``(position_xyz, 3x3 covariance)`` of the sensor origin. Returns its key."""
+        of the sensor origin: ``(position_xyz, 3x3 covariance)``, or with attitude (GNSS/INS, a
+        vehicle's prior pose) ``(T_world_sensor 4x4, 6x6 (t, r) covariance)``, which enters the
+        graph as a whole-pose prior: a session whose only fix is its first keeps the heading it
+        gave, instead of turning about that fix to meet the loops (docs/mapping.md, "One map from
+        many sessions"). Returns its key."""
         T = np.asarray(T_session_sensor, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise InvalidRequestError(f"keyframe of {session!r}: a finite 4x4 pose is needed")
         # Everything is checked before anything is kept: a refused keyframe leaves no trace.
         xyz, _ = sanitize_points(points_sensor, name=f"keyframe of {session!r}", min_points=10)
-        if gnss is not None:
-            position = np.asarray(gnss[0], dtype=np.float64).reshape(-1)
-            cov = np.asarray(gnss[1], dtype=np.float64)
-            if position.shape != (3,) or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
-                raise InvalidRequestError(
-                    f"GNSS fix of {session!r}: a position (3,) and a 3x3 covariance are needed, got "
-                    f"{position.shape} and {cov.shape}"
-                )
-            if not np.all(np.isfinite(position)) or np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
-                raise InvalidRequestError(
-                    f"GNSS fix of {session!r}: the position must be finite and the covariance "
-                    "positive definite"
-                )
-            gnss = (position, cov)
+        gnss, attitude = _fix(session, gnss)
         s = self.sessions.setdefault(session, _Session(session))
         travel = 0.0
         if s.keyframes:
             prev = s.keyframes[-1]
             travel = prev.travel_m + float(np.linalg.norm(T[:3, 3] - prev.T_odom[:3, 3]))
         pts = voxel_downsample(xyz, self.settings.keyframe_voxel_m)
-        kf = _Keyframe(T, query_descriptors(pts, self.settings.place), travel, gnss)
+        kf = _Keyframe(T, query_descriptors(pts, self.settings.place), travel, gnss, attitude)
         key = (session, len(s.keyframes))
         self.points.put(key, pts)
         s.keyframes.append(kf)
@@ -290,7 +291,9 @@ class FleetMapper:
             st = max(self.settings.odometry_sigma_fraction * dist, self.settings.odometry_min_sigma_m)
             sr = np.radians(self.settings.odometry_sigma_deg_per_m * dist)
             self.graph.add_odometry((s.name, k - 1), key, rel, np.diag([st**2] * 3 + [sr**2] * 3))
-        if kf.gnss is not None:
+        if kf.attitude is not None:
+            self.graph.add_prior(key, kf.attitude[0], kf.attitude[1], robust=True)
+        elif kf.gnss is not None:
             self.graph.add_gnss(key, kf.gnss[0], kf.gnss[1])
         assert kf.descriptors is not None  # (dropped once it is in the index)
         self.index.add(key, kf.descriptors[0])
@@ -354,6 +357,12 @@ class FleetMapper:
         )
         reason = result.reason
         confident = result.confident
+        if confident and result.anisotropy > self.settings.loop_max_anisotropy:
+            confident = False
+            reason = (
+                f"the refinement holds one direction {result.anisotropy:.1f} times less well than the "
+                f"best (above {self.settings.loop_max_anisotropy:g}): it may slide along a corridor"
+            )
         if confident and gate:
             expected = invert(self.graph.pose(b)) @ self.graph.pose(a)
             off = float(np.linalg.norm(expected[:3, 3] - result.T_target_source[:3, 3]))
@@ -384,6 +393,30 @@ class FleetMapper:
 
     def placed_sessions(self) -> list[str]:
         return [name for name, s in self.sessions.items() if s.placed]
+
+
+def _fix(
+    session: str, gnss: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[tuple[np.ndarray, np.ndarray] | None, tuple[np.ndarray, np.ndarray] | None]:
+    """A keyframe's fix checked: ``(position, 3x3)``, and ``(pose, 6x6)`` when it has attitude."""
+    if gnss is None:
+        return None, None
+    value = np.asarray(gnss[0], dtype=np.float64)
+    cov = np.asarray(gnss[1], dtype=np.float64)
+    with_attitude = value.shape == (4, 4)
+    size = 6 if with_attitude else 3
+    if (not with_attitude and value.reshape(-1).shape != (3,)) or cov.shape != (size, size):
+        raise InvalidRequestError(
+            f"GNSS fix of {session!r}: a position (3,) and a 3x3 covariance, or a pose (4, 4) and a "
+            f"6x6 covariance are needed, got {value.shape} and {cov.shape}"
+        )
+    if not np.all(np.isfinite(value)) or not np.all(np.isfinite(cov)):
+        raise InvalidRequestError(f"GNSS fix of {session!r}: the fix and its covariance must be finite")
+    if np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
+        raise InvalidRequestError(f"GNSS fix of {session!r}: the covariance must be positive definite")
+    if not with_attitude:
+        return (value.reshape(-1), cov), None
+    return (value[:3, 3].copy(), cov[:3, :3].copy()), (value, cov)
 
 
 def level(T: np.ndarray) -> np.ndarray:

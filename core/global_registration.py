@@ -118,6 +118,10 @@ class GlobalResult:
     refined: bool
     time_s: float
     stage_times_s: dict[str, float] = field(default_factory=dict)
+    #: the kept refinement's translation uncertainty, its largest sigma over its smallest (1: as
+    #: well held along every direction; large: NDT could slide along one, a corridor); nan
+    #: without a refinement kept
+    anisotropy: float = float("nan")
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready: matrices as nested lists (``randt register --global --json``)."""
@@ -133,6 +137,7 @@ class GlobalResult:
             "n_inliers": self.n_inliers,
             "overlap": self.overlap,
             "refined": self.refined,
+            "anisotropy": self.anisotropy,
             "time_s": self.time_s,
             "stage_times_s": dict(self.stage_times_s),
         }
@@ -391,7 +396,7 @@ def register_global(
 
     reason = ""
     overlap = overlap_of(T_coarse)
-    refined_kept = False
+    refined_kept, anisotropy = False, float("nan")
     if inliers.size < s.min_inliers:
         reason = f"{inliers.size} consistent correspondences, fewer than {s.min_inliers}"
     elif s.refine:
@@ -421,6 +426,7 @@ def register_global(
                 r2 = np.sum((transform_points(T_ref, a[inliers]) - b[inliers]) ** 2, axis=1)
                 if np.count_nonzero(r2 <= noise**2) >= KEPT_INLIER_FRACTION * inliers.size:
                     T, overlap, refined_kept = T_ref, refined_overlap, True
+                    anisotropy = _anisotropy(refined.covariance)
     t0 = lap("refine", t0)
     if not reason and overlap < s.min_overlap:
         reason = f"overlap {overlap:.2f} below {s.min_overlap:g}"
@@ -437,6 +443,16 @@ def register_global(
         n_inliers=int(inliers.size),
         overlap=overlap,
         refined=refined_kept,
+        anisotropy=anisotropy,
         time_s=time.perf_counter() - t_start,
         stage_times_s=times,
     )
+
+
+def _anisotropy(covariance: np.ndarray) -> float:
+    """Largest over smallest translation sigma of a (t, r) covariance; nan when it is not finite."""
+    c = np.asarray(covariance, dtype=np.float64)[:3, :3]
+    if not np.all(np.isfinite(c)):
+        return float("nan")
+    ev = np.linalg.eigvalsh(0.5 * (c + c.T))
+    return float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")

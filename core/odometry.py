@@ -350,6 +350,10 @@ class ScanResult:
     stage_times_s: dict[str, float] = field(default_factory=dict)
     #: matched on the map (``register_scan``'s ``on_map``), not on the session's keyframes
     localized: bool = False
+    #: ``deskewed_xyz`` is deskewed by a known motion; False for a first sweep with point times,
+    #: matched before any motion is known: its points carry the sweep's own motion (a metre at
+    #: 10 m/s and 10 Hz), so a map or a pose graph keeps none of them (docs/mapping.md)
+    deskewed: bool = True
 
 
 def _same(a: object, b: object) -> bool:
@@ -883,6 +887,7 @@ class IncrementalMatcher:
             message=outcome.message,
             stage_times_s=times,
             localized=localized,
+            deskewed=index > 0 or sweep.time_offset_s is None,
         )
 
     # -- the stages of one sweep ------------------------------------------------------------------

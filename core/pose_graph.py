@@ -171,14 +171,21 @@ class PoseGraph:
         self._pending.add(g.GPSFactor(self._id(key), g.Point3(*p), g.noiseModel.Robust.Create(kernel, noise)))
         self.n_gnss += 1
 
-    def add_prior(self, key: Hashable, T_world_sensor: np.ndarray, covariance: np.ndarray) -> None:
-        """A whole-pose prior (GNSS/INS with attitude), (t, r) covariance."""
+    def add_prior(
+        self, key: Hashable, T_world_sensor: np.ndarray, covariance: np.ndarray, *, robust: bool = False
+    ) -> None:
+        """A whole-pose prior (GNSS/INS with attitude), (t, r) covariance; ``robust``: with the
+        GNSS factors' Huber kernel (a fix can be wrong; a session's anchor is not)."""
         g = self._gtsam
         T = _check_pose(T_world_sensor, f"prior on {key!r}")
         noise = g.noiseModel.Gaussian.Covariance(
             _gtsam_order(_covariance(covariance, 6, f"prior on {key!r}"))
         )
+        if robust:
+            kernel = g.noiseModel.mEstimator.Huber.Create(self.settings.gnss_kernel_width)
+            noise = g.noiseModel.Robust.Create(kernel, noise)
         self._pending.add(g.PriorFactorPose3(self._id(key), g.Pose3(T), noise))
+        self.n_gnss += robust  # (a robust prior is a fix)
 
     def anchor(self, key: Hashable) -> None:
         """A session's anchor on its first keyframe (module docstring): where it is, give or take

@@ -197,7 +197,9 @@ class Registered:
         correction), cut to those the map could keep when its sizes are known (``grid``): to the
         voxels not sent before under the frame's token (``sent``, with a ``frame``), else to the
         candidates (:meth:`TileGrid.candidate_mask`); and the keyframe's points when
-        ``keyframe_voxel_m`` is given. A fallback keeps no points."""
+        ``keyframe_voxel_m`` is given. A fallback keeps no points, nor a sweep not deskewed
+        (``ScanResult.deskewed``: a first sweep with point times) for the map; the agreement
+        check still reads its keyframe points."""
         if result.status == "fallback":
             return cls(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
         keyframe = keyframe_index = None
@@ -206,6 +208,13 @@ class Registered:
             _, first = np.unique(keys, return_index=True)
             keyframe = result.deskewed_xyz[first].astype(np.float32)
             keyframe_index = result.map_index[first]
+        if not result.deskewed:
+            kept = (
+                result
+                if grid is None
+                else replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
+            )
+            return cls(kept, np.empty((0, 3), np.float32), np.empty(0, np.intp), keyframe, keyframe_index)
         C = None if frame is None else frame.correction
         T = result.T_world_sensor if C is None else C @ result.T_world_sensor
         world = transform_points(T, result.deskewed_xyz)

@@ -404,7 +404,12 @@ class SessionWorker:
         """A matched sweep the matcher returned points of becomes the session's resume sweep,
         which the flusher saves (a reference: nothing is copied on this path)."""
         result, points = registered.result, registered.keyframe_xyz
-        if points is None or result.status == "fallback" or len(points) < MIN_RESUME_POINTS:
+        if (
+            points is None
+            or result.status == "fallback"
+            or not result.deskewed
+            or len(points) < MIN_RESUME_POINTS
+        ):
             return
         self.resume_sweep = ResumeSweep(result.index, result.T_world_sensor, points)
 
@@ -441,11 +446,11 @@ class SessionWorker:
             self.out.first(answer, job.received_ns, lambda: self.services.save(self))
 
     def _offer_keyframe(self, scan: ScanHeader, registered: Registered, prior: PosePrior | None) -> None:
-        """A keyframe's points to the pose graph of the session's map, with its prior's position
-        as GNSS; a session without priors may join the shared map."""
+        """A keyframe's points to the pose graph of the session's map, with its prior pose as a
+        GNSS/INS fix; a session without priors may join the shared map."""
         s, kf = self.services, registered.keyframe_xyz
-        if s.graph is None or kf is None or len(kf) < 10:
-            return
+        if s.graph is None or kf is None or len(kf) < 10 or not registered.result.deskewed:
+            return  # (a sweep not deskewed: the next one is the session's first keyframe)
         info, result = self.info, registered.result
         s.graph.offer(
             scan.vehicle,
@@ -494,11 +499,12 @@ class SessionWorker:
         return cloud.xyz.astype(np.float32) if len(cloud.xyz) >= MAP_SEED_MIN_POINTS else None
 
     def _gnss(self, scan: ScanHeader, prior: PosePrior | None) -> tuple[np.ndarray, np.ndarray] | None:
-        """A keyframe's GNSS for the pose graph: its prior's position (in the session's map), or
-        a ROS 2 robot's NavSatFix in the shared map's frame, which the session may join (the graph
-        places it there by its fixes); ``None`` when the fix cannot be placed (logged once)."""
+        """A keyframe's GNSS for the pose graph: its prior pose with its covariance (in the
+        session's map; the graph keeps the heading it gives, core/fleet_map.py), or a ROS 2
+        robot's NavSatFix position in the shared map's frame, which the session may join (the
+        graph places it there by its fixes); ``None`` when the fix cannot be placed (logged once)."""
         if prior is not None:
-            return prior.T_world_sensor[:3, 3], prior.covariance[:3, :3]
+            return prior.T_world_sensor, prior.covariance
         if scan.gnss_fix is None:
             return None
         s = self.services

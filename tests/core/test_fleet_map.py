@@ -68,6 +68,31 @@ def test_a_session_placed_where_its_frame_is_known_enters_the_graph_at_once() ->
     assert "b" not in mapper.sessions
 
 
+def test_a_fix_with_attitude_holds_the_sessions_heading() -> None:
+    """A vehicle's prior pose (GNSS/INS) with its 6x6 covariance is a whole-pose prior: a session
+    whose only fix is its first keyframe's keeps the heading it gave (2 deg here: its keyframe 20 m
+    on lies 0.70 m to the side), where a position alone leaves the heading to the odometry and the
+    loops (issue 57: sessions turned about their first fix by up to 0.67 deg to meet the loops)."""
+    points = pairs.kitti00_loops_velodyne(120)
+    yaw = np.radians(2.0)
+    fix = np.eye(4)
+    fix[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    cov = np.diag([1e-4] * 3 + [np.radians(0.1) ** 2] * 3)
+    side = {}
+    for how, gnss in (("pose", (fix, cov)), ("position", (fix[:3, 3], cov[:3, :3]))):
+        mapper = FleetMapper()
+        mapper.place("a", np.eye(4))
+        for k in range(3):
+            T = np.eye(4)
+            T[0, 3] = 10.0 * k
+            mapper.add_keyframe("a", T, points, gnss=gnss if k == 0 else None)
+        side[how] = float(mapper.poses()[("a", 2)][1, 3])
+    assert side["pose"] == pytest.approx(20.0 * np.sin(yaw), abs=0.02)
+    assert abs(side["position"]) < 0.01
+    with pytest.raises(InvalidRequestError, match="6x6 covariance"):
+        FleetMapper().add_keyframe("b", np.eye(4), points, gnss=(fix, np.eye(3)))
+
+
 def test_every_kitti_revisit_at_keyframe_resolution_is_a_placement_vote() -> None:
     """The placement's own bar (randt.core.fleet_map.placement_vote: refined, 30 consistent
     correspondences, overlap 0.6) refuses no true registration of the 21 KITTI 00 revisits at the

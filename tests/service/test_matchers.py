@@ -19,6 +19,7 @@ from randt.core.scenes import synthetic_room
 from randt.core.tiles import TileGrid
 from randt.core.transforms import invert, make_transform, transform_points
 from randt.service.matcher_host import _Sessions, portable_error
+from randt.service.matcher_io import Registered
 from randt.service.matchers import (
     LocalMatcher,
     MapFrame,
@@ -420,3 +421,22 @@ def test_the_first_match_tries_every_hypothesis_and_keeps_the_best() -> None:
     assert np.linalg.norm(T_first[:3, 3] - T_second[:3, 3]) == pytest.approx(0.8, abs=0.01)
     assert second.status == "ok" and second.inlier_ratio > 0.45, second.inlier_ratio
     assert np.linalg.norm(second.T_world_sensor[:3, 3] - T_second[:3, 3]) < 0.05
+
+
+def test_a_sweep_not_deskewed_gives_the_map_nothing_but_keeps_its_check_points() -> None:
+    """A first sweep with point times (``ScanResult.deskewed`` false) carries the sweep's own
+    motion: none of its points go to the map, with a grid or without; its thinned points still
+    come back for the map agreement check (the worker offers the pose graph none of them)."""
+    rng = np.random.default_rng(5)
+    pts = synthetic_room(rng, 3000)
+    tau = rng.uniform(0, 0.1, len(pts))
+    matcher = IncrementalMatcher()
+    first = matcher.register_scan(pts, time_offset_s=tau)
+    second = matcher.register_scan(pts, time_offset_s=tau)
+    grid = TileGrid(tile_size_m=20, voxel_size_m=0.2)
+    for g in (None, grid):
+        skewed = Registered.of(first, g, keyframe_voxel_m=0.5)
+        assert skewed.map_xyz.shape == (0, 3) and skewed.map_index.shape == (0,)
+        assert skewed.keyframe_xyz is not None and len(skewed.keyframe_xyz) > 100
+        kept = Registered.of(second, g, keyframe_voxel_m=0.5)
+        assert len(kept.map_xyz) > 1000

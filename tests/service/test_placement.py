@@ -17,7 +17,7 @@ import pytest
 from bench.offline import matcher_process
 from randt.clients.publisher import PublisherSettings, encode_sweep
 from randt.core import fleet_map
-from randt.core.fleet_map import FleetMapper
+from randt.core.fleet_map import FleetMapper, FleetMapSettings
 from randt.sim.drive import Motion, plan_fleet, simulate
 from randt.sim.lidar import Lidar64
 from randt.sim.town import Town
@@ -71,9 +71,9 @@ def keyframes():
     return out, T_map_session
 
 
-def _placement_error_m(keyframes, T_map_session) -> float | None:
+def _placement_error_m(keyframes, T_map_session, settings: FleetMapSettings | None = None) -> float | None:
     """Where the mapper placed sim002 against the truth (m), or None: not placed."""
-    mapper = FleetMapper()
+    mapper = FleetMapper(settings)
     mapper.place("sim000", np.eye(4))  # its poses are in the map's frame (its first scan's prior)
     for seq, name, T, xyz in keyframes:
         mapper.add_keyframe(name, T, xyz)
@@ -86,12 +86,15 @@ def _placement_error_m(keyframes, T_map_session) -> float | None:
 def test_a_street_that_looks_like_another_does_not_place_a_session_there(keyframes, monkeypatch) -> None:
     frames, T_map_session = keyframes
     assert sum(name == "sim002" for _, name, _, _ in frames) >= 8
-    # Every confident registration a vote (as before placement_vote): two of them agree on a
-    # place 71.8 m from the truth (measured), and the session is placed there.
+    # Every confident registration a vote (as before placement_vote and loop_max_anisotropy): two
+    # of them agree on a place 71.8 m from the truth (measured), and the session is placed there.
     with monkeypatch.context() as m:
         m.setattr(fleet_map, "placement_vote", lambda result, settings: (True, "any confident one"))
-        wrong = _placement_error_m(frames, T_map_session)
-    assert wrong is not None and wrong > 50.0, wrong
+        wrong = _placement_error_m(frames, T_map_session, FleetMapSettings(loop_max_anisotropy=1e9))
+        assert wrong is not None and wrong > 50.0, wrong
+        # those votes slid along the street: the anisotropy bar alone refuses them too
+        alone = _placement_error_m(frames, T_map_session)
+    assert alone is None or alone < 0.5, alone
     # With the placement's bar: not placed on this street (nothing true to match), never placed wrong.
     right = _placement_error_m(frames, T_map_session)
     assert right is None or right < 0.5, right
