@@ -225,6 +225,15 @@ class VoxelGaussianMap:
     def n_voxels(self) -> int:
         return int(self.keys.size)
 
+    def contains(self, points_xyz: np.ndarray) -> np.ndarray:
+        """(N,) bool: the point falls in a voxel of this map (one that holds a Gaussian)."""
+        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        if not pts.shape[0] or not self.keys.size:
+            return np.zeros(pts.shape[0], dtype=bool)
+        keys = pack_keys(voxel_coords(pts, self.voxel_size_m))
+        at = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
+        return np.asarray(self.keys[at] == keys)
+
     @cached_property
     def hash_table(self) -> tuple[np.ndarray, np.ndarray]:
         """Open-addressing table over :attr:`keys` for the compiled kernels (built on first use)."""

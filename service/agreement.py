@@ -96,6 +96,16 @@ class AgreementGate:
             self.held = []
             self.disagreeing, self.agreeing_checks = True, 0
             return []
+        return self._agreed()
+
+    def localized(self) -> list[Held]:
+        """A sweep localized on the map: its match was with the map (its inlier ratio reached the
+        localizer's bar), a check that agreed, at no cost; returns the held points that may now
+        be folded, as :meth:`check`."""
+        self.since_check = 0
+        return self._agreed()
+
+    def _agreed(self) -> list[Held]:
         if self.disagreeing:
             self.agreeing_checks += 1
             if self.agreeing_checks < AGREEING_CHECKS:

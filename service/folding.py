@@ -74,12 +74,16 @@ class MapPoints:
         gate, info = self.gate, self._session.info
         vehicle, session_id, own_map = info.vehicle, info.session, info.map_name
         checked = gate.enabled and registered.keyframe_xyz is not None
-        if gate.disagreeing and not checked:
+        on_map = gate.enabled and not checked and registered.result.localized
+        if gate.disagreeing and not checked and not on_map:
             gate.matched()
             return gate.lost_reason(own_map), None
         if registered.map_xyz.shape[0]:
             points = (fold_map, registered.map_points_under(correction), registered.map_intensity)
             self._waiting.extend(gate.hold(points))
+        if on_map:  # (the match on the map was the check)
+            self._waiting.extend(gate.localized())
+            return (gate.lost_reason(own_map) if gate.disagreeing else None), None
         if not gate.enabled or not checked:
             if gate.enabled:
                 gate.matched()

@@ -187,9 +187,7 @@ class ServiceGraph:
         dropped (counted, logged). A ``localized`` sweep (matched on the map) at a place the
         graph holds (:data:`KNOWN_PLACE_M`, :data:`KNOWN_PLACE_DEG`) adds nothing: the graph grows
         with the area, not with the distance driven (counted ``known_place``)."""
-        if localized and self.view.known_place(map_name, T_live, KNOWN_PLACE_M, KNOWN_PLACE_DEG):
-            self.view.passed((vehicle, session), T_live)
-            self.view.metrics.graph_keyframes.labels("known_place").inc()
+        if localized and self.passes_known_place(vehicle, session, map_name, T_live):
             return
         map_name = self.view.offered(
             (vehicle, session), map_name, Keyframe(seq, index, stamp_s, T_live.copy())
@@ -200,6 +198,17 @@ class ServiceGraph:
         if not self.queue.closed:
             self.supervisor.start()
         self.queue.offer(item, logged=self.journal.durable)
+
+    def passes_known_place(self, vehicle: str, session: str, map_name: str, T_live: np.ndarray) -> bool:
+        """A localizing session about to reach its next keyframe's spacing at ``T_live``: True
+        when the graph holds a keyframe there (:data:`KNOWN_PLACE_M`, :data:`KNOWN_PLACE_DEG`),
+        which :meth:`offer` would not add (counted ``known_place``; the next one's spacing counts
+        from here): the matcher need not return the sweep's points for it."""
+        if not self.view.known_place(map_name, T_live, KNOWN_PLACE_M, KNOWN_PLACE_DEG):
+            return False
+        self.view.passed((vehicle, session), T_live)
+        self.view.metrics.graph_keyframes.labels("known_place").inc()
+        return True
 
     # -- reads (the service's view of the graphs: graph_state.GraphView) ---------------------
     def wants_keyframe(self, vehicle: str, session: str, poses: list[np.ndarray]) -> bool:

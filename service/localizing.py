@@ -71,6 +71,8 @@ class SessionLocalizer:
         self._asked = False  # the last sweep asked to be localized
         self._mapping_for = 0  # sweeps to map before localizing again
         self._misses = 0  # sweeps in a row asked to be localized that were not
+        #: the last sweep was localized on the map (the next is likely to be)
+        self.localizing = False
 
     def window(
         self,
@@ -94,7 +96,7 @@ class SessionLocalizer:
         held = self._held
         if held is not None and held[0] == token and np.hypot(*(xy - held[1])) <= self.reload_m:
             self._asked = True
-            return MapWindow(token, held[1])
+            return MapWindow(token, held[1], radius_m=self.radius_m)
         return self._cut(grid, token, xy)
 
     def _cut(self, grid: TileGrid, token: tuple[str, int, int], xy: np.ndarray) -> MapWindow | None:
@@ -116,7 +118,9 @@ class SessionLocalizer:
                 held[t.id], points[t.id] = (t.version, t.n_points), t.points
         center = (float(xy[0]), float(xy[1]))
         self._held, self._asked = (token, center, held), True
-        return MapWindow(token, center, tuple((tid, v) for tid, (v, _) in held.items()), points)
+        return MapWindow(
+            token, center, tuple((tid, v) for tid, (v, _) in held.items()), points, self.radius_m
+        )
 
     def answered(self, result: ScanResult) -> None:
         """A sweep's answer. One asked to be localized that was not (a sweep the match refused,
@@ -124,6 +128,7 @@ class SessionLocalizer:
         same window, the one after a window sent whole, and after :data:`MISSES_BEFORE_MAPPING`
         in a row the session maps for :data:`MAP_AFTER_MISS` sweeps (the poses localized are
         counted as they go out: SessionInfo)."""
+        self.localizing = result.localized
         if result.localized:
             self._misses = 0
             return

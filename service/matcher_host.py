@@ -213,7 +213,9 @@ class _Sessions:
         )
         if rebuild and matcher.model_pending:  # (it and Registered.of only read the sweep's points)
             self.rebuilds.start(key, matcher)
-        registered = Registered.of(result, self.grids.get(key), keyframe_voxel_m, frame, self.sent.get(key))
+        registered = Registered.of(
+            result, self.grids.get(key), keyframe_voxel_m, frame, self.sent.get(key), self.windows[key]
+        )
         return registered.with_intensity(intensity)
 
     def state(self, key: Key) -> dict[str, np.ndarray]:

@@ -97,6 +97,8 @@ class MapWindow:
     center_xy: tuple[float, float]
     tiles: tuple[tuple[str, int], ...] | None = None
     points: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the map's tiles within this of the centre make it (the service's ``localize_radius_m``)
+    radius_m: float = 0.0
 
 
 class MapWindows:
@@ -123,6 +125,19 @@ class MapWindows:
         if self._held is None or self._held[0] != key:
             return None
         return self._held[1]
+
+    def lacking(self, window: MapWindow | None, world_xyz: np.ndarray) -> np.ndarray | None:
+        """Of a localized sweep's points (map frame), those the map lacks: within the window's
+        radius of its centre (where the map's tiles are all in it) and in no voxel of its finest
+        NDT level. ``None`` without the window held: nothing is known of the map here. What lies
+        in the map's voxels is the map's surfaces seen again (folded, it would grow the map with
+        the distance driven: docs/mapping.md, "In the service")."""
+        if window is None or self._held is None or self._held[0] != (window.token, window.center_xy):
+            return None
+        reference = self._held[1]
+        xy = np.asarray(world_xyz, dtype=np.float64)[:, :2] - np.asarray(window.center_xy)
+        inside = np.einsum("ij,ij->i", xy, xy) <= window.radius_m**2
+        return inside & ~reference.maps[-1].contains(world_xyz)
 
     def _join(self, matcher: IncrementalMatcher, window: MapWindow) -> PreparedReference:
         """The window's tiles, the new ones prepared and the others taken from the last window
@@ -192,6 +207,7 @@ class Registered:
         keyframe_voxel_m: float | None = None,
         frame: MapFrame | None = None,
         sent: SentVoxels | None = None,
+        windows: MapWindows | None = None,
     ) -> Registered:
         """The answer for ``result``: its points in the map frame (float32, moved by the frame's
         correction), cut to those the map could keep when its sizes are known (``grid``): to the
@@ -199,7 +215,8 @@ class Registered:
         candidates (:meth:`TileGrid.candidate_mask`); and the keyframe's points when
         ``keyframe_voxel_m`` is given. A fallback keeps no points, nor a sweep not deskewed
         (``ScanResult.deskewed``: a first sweep with point times) for the map; the agreement
-        check still reads its keyframe points."""
+        check still reads its keyframe points. A sweep localized on the window ``windows`` holds
+        keeps for the map only what the map lacks (:meth:`MapWindows.lacking`)."""
         if result.status == "fallback":
             return cls(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
         keyframe = keyframe_index = None
@@ -218,13 +235,20 @@ class Registered:
         C = None if frame is None else frame.correction
         T = result.T_world_sensor if C is None else C @ result.T_world_sensor
         world = transform_points(T, result.deskewed_xyz)
+        lacking = None
+        if result.localized and windows is not None and frame is not None:
+            lacking = windows.lacking(frame.window, world)
         if grid is None:
-            return cls(
-                result, world.astype(np.float32), result.map_index, keyframe, keyframe_index, correction=C
-            )
+            if lacking is not None:
+                world, index = world[lacking], result.map_index[lacking]
+            else:
+                index = result.map_index
+            return cls(result, world.astype(np.float32), index, keyframe, keyframe_index, correction=C)
         keep = (
             grid.candidate_mask(world) if frame is None or sent is None else sent.admitted(world, frame.token)
         )
+        if lacking is not None:
+            keep &= lacking
         slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
         return cls(
             slim,

@@ -307,9 +307,18 @@ class SessionWorker:
         s, info = self.services, self.info
         if info.n_scans == 0:
             self._fix_frame(prior is not None)
-        graph = s.graph
-        if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, self.matcher.poses):
-            return True, min(graph.settings.keyframe_voxel_m, s.settings.map_voxel_m)
+        graph, poses = s.graph, self.matcher.poses
+        # a localizing session: no points for a keyframe the graph would not add, nor for the
+        # agreement check (its match on the map is the check: service/folding.py)
+        localizing = self.localizer.localizing and not info.lost and info.last_status != "fallback"
+        if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, poses):
+            known = localizing and graph.passes_known_place(
+                scan.vehicle, scan.session, info.map_name, poses[-1]
+            )
+            if not known:
+                return True, min(graph.settings.keyframe_voxel_m, s.settings.map_voxel_m)
+        if localizing:
+            return False, None
         if self.gate.due() or (self.gate.enabled and (info.lost or info.last_status == "fallback")):
             return False, s.settings.map_voxel_m
         return False, None

@@ -317,3 +317,17 @@ def test_the_gate_holds_points_until_a_check_and_needs_two_agreeing_checks_after
     assert [len(x) for _, x, _ in gate.check(grid, far, walls)] == [2] and gate.last.checked == 0
     off = AgreementGate(min_share=0.0, every=3, min_points=100)
     assert not off.due() and [len(x) for _, x, _ in off.hold(pts(4))] == [4]
+
+
+def test_a_sweep_localized_on_the_map_is_an_agreeing_check() -> None:
+    """A localized sweep's match was with the map (issue 57): it releases what the gate holds as
+    an agreeing check does, with no points checked; after a disagreement it counts as one of the
+    AGREEING_CHECKS."""
+    gate = AgreementGate(min_share=0.5, every=10, min_points=10)
+    a, b = ("m", np.zeros((3, 3), np.float32), None), ("m", np.ones((2, 3), np.float32), None)
+    assert gate.hold(a) == []
+    assert gate.localized() == [a] and gate.held == [] and gate.since_check == 0
+    gate.disagreeing = True
+    assert gate.hold(b) == [] and gate.localized() == []  # the first of AGREEING_CHECKS: dropped
+    assert gate.n_dropped_points == 2 and gate.disagreeing
+    assert gate.hold(b) == [] and gate.localized() == [b] and not gate.disagreeing
