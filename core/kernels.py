@@ -44,6 +44,7 @@ __all__ = [
     "group_weighted_moments",
     "grouped_fence_mask",
     "in_marked_cells",
+    "in_voxels",
     "isolated_points",
     "mahalanobis_to_assigned",
     "masked_group_centroids",
@@ -125,6 +126,23 @@ def _find(table_key: np.ndarray, table_idx: np.ndarray, key: int) -> int:
         if tk == -1:
             return -1
         h = (h + 1) & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def in_voxels(
+    points: np.ndarray, voxel_size: float, table_key: np.ndarray, table_idx: np.ndarray, out: np.ndarray
+) -> None:
+    """``out[i]``: point ``i`` falls in a voxel of a :func:`build_hash` table (cells as
+    :func:`randt.core.voxel.voxel_coords` computes them).
+
+    Reference: numpy:searchsorted
+    Test: tests/core/test_kernels.py::test_in_voxels_is_the_sorted_lookup
+    """
+    for i in range(points.shape[0]):
+        cx = int(math.floor(points[i, 0] / voxel_size))
+        cy = int(math.floor(points[i, 1] / voxel_size))
+        cz = int(math.floor(points[i, 2] / voxel_size))
+        out[i] = _find(table_key, table_idx, _pack(cx, cy, cz)) >= 0
 
 
 @nb.njit(cache=True, inline="always")

@@ -227,12 +227,13 @@ class VoxelGaussianMap:
 
     def contains(self, points_xyz: np.ndarray) -> np.ndarray:
         """(N,) bool: the point falls in a voxel of this map (one that holds a Gaussian)."""
-        pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
-        if not pts.shape[0] or not self.keys.size:
-            return np.zeros(pts.shape[0], dtype=bool)
-        keys = pack_keys(voxel_coords(pts, self.voxel_size_m))
-        at = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
-        return np.asarray(self.keys[at] == keys)
+        from randt.core.kernels import in_voxels
+
+        pts = np.ascontiguousarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(pts.shape[0], dtype=bool)
+        if pts.shape[0] and self.keys.size:
+            in_voxels(pts, self.voxel_size_m, *self.hash_table, out)
+        return out
 
     @cached_property
     def hash_table(self) -> tuple[np.ndarray, np.ndarray]:

@@ -57,10 +57,10 @@ READY = (True, "ready")
 def warm_up() -> None:
     """Load (or compile) the numba kernels before the first sweep arrives: an incremental matcher
     fed three sweeps of a small synthetic room (registration, Algorithm 1, feature extraction and
-    the map's candidate mask) and one pairwise registration with the default settings (moving-point
-    selection and the SVD step, which a matcher configured so would use), so a vehicle's first scan
-    does not pay for it. A cold numba cache makes this a compile (docs/architecture.md gives how
-    long each takes)."""
+    the map's candidate mask) and a fourth localized on a window of the room's map, and one
+    pairwise registration with the default settings (moving-point selection and the SVD step,
+    which a matcher configured so would use), so a vehicle's first scan does not pay for it. A
+    cold numba cache makes this a compile (docs/architecture.md gives how long each takes)."""
     from randt.core.registration import register
     from randt.core.scenes import synthetic_room
 
@@ -71,6 +71,10 @@ def warm_up() -> None:
     for i in range(3):
         result = matcher.register_scan(room - [0.1 * i, 0.0, 0.0])
         grid.candidate_mask(transform_points(result.T_world_sensor, result.deskewed_xyz))
+    # localizing on the map: a window joined from pieces, a sweep matched on it, what it lacks
+    window = matcher.join_map([matcher.prepare_map_piece(room)])
+    matcher.register_scan(room - [0.3, 0.0, 0.0], on_map=window)
+    window.maps[-1].contains(room)
 
 
 def portable_error(exc: Exception) -> Exception:

@@ -244,16 +244,18 @@ class Registered:
             else:
                 index = result.map_index
             return cls(result, world.astype(np.float32), index, keyframe, keyframe_index, correction=C)
+        if lacking is not None:  # (only what the map lacks is offered, and recorded as sent)
+            world, index = world[lacking], result.map_index[lacking]
+        else:
+            index = result.map_index
         keep = (
             grid.candidate_mask(world) if frame is None or sent is None else sent.admitted(world, frame.token)
         )
-        if lacking is not None:
-            keep &= lacking
         slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
         return cls(
             slim,
             world[keep].astype(np.float32),
-            result.map_index[keep],
+            index[keep],
             keyframe,
             keyframe_index,
             correction=C,

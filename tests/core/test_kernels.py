@@ -92,6 +92,23 @@ def test_hash_table_finds_every_key_and_no_other(kitti_problem) -> None:
     assert (expected[: len(cells)] >= 0).all()
 
 
+def test_in_voxels_is_the_sorted_lookup(kitti_problem) -> None:
+    """A point is in the map's voxels exactly where the sorted keys hold its cell (voxel centres,
+    cells beside them, points far outside the keys' range)."""
+    _, gmap, _, _ = kitti_problem
+    cells = voxel_coords(gmap.means, gmap.voxel_size_m)
+    probe = np.concatenate([cells, cells + [0, 0, 1], cells + [3, -2, 0]])
+    pts = np.concatenate([(probe + 0.5) * gmap.voxel_size_m, [[1e9, 0.0, 0.0], [-1e9, 5.0, 2.0]]])
+    keys = pack_keys(probe)
+    at = np.minimum(np.searchsorted(gmap.keys, keys), gmap.n_voxels - 1)
+    expected = np.concatenate([gmap.keys[at] == keys, [False, False]])
+    got = np.empty(len(pts), dtype=bool)
+    kernels.in_voxels(pts, gmap.voxel_size_m, *gmap.hash_table, got)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(gmap.contains(pts), expected)
+    assert expected[: len(cells)].all() and not expected[len(cells) :].all()
+
+
 def test_pivoted_derivatives_match_numpy_and_finite_differences(kitti_problem) -> None:
     """Derivatives w.r.t. a rotation about a pivot (the Newton solver's parametrization)."""
     source, gmap, consts, T = kitti_problem
