@@ -37,7 +37,7 @@ from randt.core.features import Features, extract_features
 from randt.core.global_registration import GlobalSettings, register_global
 from randt.core.kernels import deskew_points
 from randt.core.model import KeyframeModel
-from randt.core.ndt import ndt_constants, ndt_cost
+from randt.core.ndt import NdtConstants, ndt_constants, ndt_cost, ndt_newton
 from randt.core.place import query_descriptors, scan_context, scan_context_distance
 from randt.core.registration import (
     PreparedReference,
@@ -63,7 +63,7 @@ from randt.core.transforms import (
     so3_log,
     transform_points,
 )
-from randt.core.voxel import voxel_downsample
+from randt.core.voxel import VoxelGaussianMap, voxel_downsample
 
 __all__ = [
     "MATCHER_REGISTRATION",
@@ -156,6 +156,14 @@ ON_MAP_MATCH_POINTS = 1500
 ON_MAP_STRIDE = 5
 #: The message of a first sweep placed by its match to the map, not at its prior.
 MATCHED_TO_MAP = "matched to the map from the prior"
+#: A first sweep matched on its map is deskewed with the motion its points fit the map best with
+#: (``_motion_on_map``: forward and sideways metres and yaw degrees per period, a pattern search
+#: from these steps), on this many of its points, once with each step scale, matched again after
+#: each (``IncrementalMatcher._first_deskewed_on_map``).
+FIRST_MOTION_STEPS = (0.25, 0.25, 2.0)
+FIRST_MOTION_POINTS = 800
+FIRST_MOTION_STEP_SCALES = (1.0, 0.5, 0.25)
+FIRST_MOTION_ITERATIONS = 6
 
 #: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
 #: of the best are matched (``IncrementalMatcher._hypotheses``).
@@ -519,6 +527,63 @@ def deskew_reference(
     return np.array([T[:3, :3] @ p + T[:3, 3] for T, p in zip(moved, points_xyz, strict=True)])
 
 
+def _planar_motion(motion: np.ndarray) -> np.ndarray:
+    """The motion over one period ``(forward m, sideways m, yaw deg)`` as a 4x4 (``T_start_end``)."""
+    a = np.radians(motion[2])
+    M = np.eye(4)
+    M[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    M[:2, 3] = motion[:2]
+    return M
+
+
+def _motion_on_map(
+    xyz: np.ndarray,
+    tau: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    period_s: float,
+    start: np.ndarray,
+    scale: float,
+) -> np.ndarray:
+    """The motion over one period ``(forward m, sideways m, yaw deg)`` with which the sweep's
+    points (sensor frame, with their times ``tau``), deskewed to mid-sweep and matched on the map
+    from ``T`` (a few Newton steps: pose and motion go together, a sweep matched as it came sits
+    a third of its travel off), fit it best (least NDT cost): a pattern search from ``start``,
+    its steps :data:`FIRST_MOTION_STEPS` times ``scale``, halved where no step helps, down to an
+    quarter."""
+    step = np.asarray(FIRST_MOTION_STEPS) * scale
+    smallest = step / 4.0
+
+    def cost(m: np.ndarray) -> float:
+        cloud = deskew(xyz, tau, _planar_motion(m), period_s, reference_fraction=MID_SWEEP)
+        fit = ndt_newton(
+            cloud,
+            gmap,
+            consts,
+            T,
+            max_iterations=FIRST_MOTION_ITERATIONS,
+            translation_eps_m=0.005,
+            rotation_eps_rad=1e-4,
+        )
+        return ndt_cost(cloud, fit.T, gmap, consts)
+
+    best_m, best = np.asarray(start, dtype=np.float64).copy(), cost(start)
+    while np.all(step >= smallest):
+        moved = False
+        for axis in range(3):
+            for sign in (1.0, -1.0):
+                m = best_m.copy()
+                m[axis] += sign * step[axis]
+                c = cost(m)
+                if c < best:
+                    best_m, best, moved = m, c, True
+                    break
+        if not moved:
+            step = step / 2.0
+    return best_m
+
+
 class IncrementalMatcher:
     """Algorithm 2 for one session (module docstring). Feed sweeps in order with :meth:`register_scan`."""
 
@@ -834,11 +899,17 @@ class IncrementalMatcher:
         prepare = self._preparer(sweep.xyz, sweep.time_offset_s if index > 0 else None, times)
         xyz, feats = prepare(self._velocity(periods))
         fell_back = self._state.fallback_run  # sweeps since the last match, before this one
+        velocity = None  # (a first sweep deskewed on the map: the motion measured within it)
         if index == 0:
             if sweep.time_offset_s is not None and on_map is None:  # (on the map: no first keyframe)
                 self._state.first_raw = (xyz, sweep.time_offset_s)
             with self._matching_on(on_map):
-                T_first, message = self._first_in_map(feats, prior_T, prior, map_seed, on_map)
+                T_first, message, matched_on = self._first_in_map(feats, prior_T, prior, map_seed, on_map)
+                if matched_on is not None and sweep.time_offset_s is not None:
+                    timed = self._preparer(sweep.xyz, sweep.time_offset_s, times)  # (it deskews)
+                    T_first, xyz, feats, velocity = self._first_deskewed_on_map(
+                        sweep, T_first, xyz, feats, timed, matched_on
+                    )
             outcome = _Outcome(T_first, "first", message, True, 0.0, np.full((6, 6), np.nan), 1.0, xyz, feats)
         else:
             t0 = time.perf_counter()
@@ -857,6 +928,8 @@ class IncrementalMatcher:
         T = orthonormalize(outcome.T)
         matched = outcome.status == "ok"
         self._advance(T, index, periods, stamp_s, fell_back if matched else 0, matched)
+        if index == 0 and velocity is not None:  # (the second sweep's prediction moves with it)
+            self._state.delta = velocity
         self._keep_prior_offset(T, prior_T, outcome.status)
         keep_map = ~outcome.feats.noise_mask
         mapped_xyz = np.compress(keep_map, outcome.xyz, axis=0)  # not xyz[keep_map]: see _sanitize
@@ -887,7 +960,7 @@ class IncrementalMatcher:
             message=outcome.message,
             stage_times_s=times,
             localized=localized,
-            deskewed=index > 0 or sweep.time_offset_s is None,
+            deskewed=index > 0 or sweep.time_offset_s is None or velocity is not None,
         )
 
     # -- the stages of one sweep ------------------------------------------------------------------
@@ -940,14 +1013,15 @@ class IncrementalMatcher:
         prior: PosePrior | None,
         map_seed: np.ndarray | None,
         on_map: PreparedReference | None = None,
-    ) -> tuple[np.ndarray, str]:
+    ) -> tuple[np.ndarray, str, PreparedReference | None]:
         """The first sweep's pose and message: matched to its map's points around its prior
         (``register_scan``'s ``map_seed``, or the map prepared: ``on_map``) when that match
-        passes, else the prior (or the identity)."""
+        passes, else the prior (or the identity); and the map it was matched on (``None``: it
+        was not)."""
         if prior_T is None or prior is None:
-            return np.eye(4), ""
+            return np.eye(4), "", None
         if on_map is None and (map_seed is None or len(map_seed) < MAP_SEED_MIN_POINTS):
-            return prior_T, ""
+            return prior_T, "", None
         levels = self.registration.voxel_sizes_m or ()
         try:
             reference = on_map
@@ -958,7 +1032,7 @@ class IncrementalMatcher:
             res = register(feats.matching_xyz, None, prior_T, settings=self.registration, reference=reference)
         except RandtError as exc:
             log.info("first sweep: its match to the map failed (%s): placed at its prior", exc)
-            return prior_T, ""
+            return prior_T, "", None
         if (
             res.inlier_ratio < self.settings.min_inlier_ratio
             or not self._agrees(res.T_target_source, prior)
@@ -970,8 +1044,54 @@ class IncrementalMatcher:
                 res.inlier_ratio,
                 float(np.linalg.norm(res.T_target_source[:3, 3] - prior_T[:3, 3])),
             )
-            return prior_T, ""
-        return res.T_target_source, MATCHED_TO_MAP
+            return prior_T, "", None
+        return res.T_target_source, MATCHED_TO_MAP, reference
+
+    def _first_deskewed_on_map(
+        self,
+        sweep: _Sweep,
+        T: np.ndarray,
+        xyz: np.ndarray,
+        feats: Features,
+        prepare: Callable[[np.ndarray], tuple[np.ndarray, Features]],
+        on_map: PreparedReference,
+    ) -> tuple[np.ndarray, np.ndarray, Features, np.ndarray | None]:
+        """A first sweep matched on its map's points as it came (``T``), deskewed with the motion
+        during it and matched again: ``(pose, sweep, features, velocity)``, or what it got with
+        no velocity when the sweep matched deskewed does not agree with the map.
+
+        No velocity is known before a second sweep, and at 10 m/s a sweep spans a metre of travel
+        (in a corner, degrees of turn): matched as it came, its pose is tens of centimetres and
+        half a degree off. On a fixed map the motion shows in the sweep itself: deskewed with the
+        right one, its points fit the map best (:func:`_motion_on_map`, then matched again, twice:
+        docs/mapping.md, "Localizing on the map")."""
+        assert sweep.time_offset_s is not None
+        levels = self.registration.voxel_sizes_m or ()
+        fine = levels[min(1, len(levels) - 1)] if levels else None
+        gmap = on_map.maps[-1]
+        consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
+        rows = np.unique(np.linspace(0, len(sweep.xyz) - 1, FIRST_MOTION_POINTS).astype(np.intp))
+        sample, tau = sweep.xyz[rows], sweep.time_offset_s[rows]
+        motion, velocity = np.zeros(3), None
+        for scale in FIRST_MOTION_STEP_SCALES:
+            motion = _motion_on_map(sample, tau, T, gmap, consts, self.period_s, motion, scale)
+            velocity = _planar_motion(motion)
+            cloud, deskewed = prepare(velocity)
+            try:
+                res = register(
+                    deskewed.matching_xyz,
+                    None,
+                    T,
+                    settings=self._on_map_registration(),
+                    reference=on_map,
+                    coarsest_voxel_m=fine,
+                )
+            except RandtError:
+                return T, xyz, feats, None
+            if res.inlier_ratio < self.settings.min_inlier_ratio:
+                return T, xyz, feats, None
+            T, xyz, feats = res.T_target_source, cloud, deskewed
+        return T, xyz, feats, velocity
 
     def _predict(self, index: int, prior_T: np.ndarray | None, periods: float) -> np.ndarray:
         """``T_last`` moved by the predicted velocity (:meth:`_velocity`) over ``periods``; the

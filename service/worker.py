@@ -493,8 +493,9 @@ class SessionWorker:
         C, fold_map = self._fold_target()
         grid = self.grid if fold_map == self.info.map_name else self.services.maps.grid(fold_map)
         token = (fold_map, *grid.content_token)
-        seed = self._map_seed(prior) if self.info.n_scans == 0 else None
         window = self.localizer.window(grid, token, prior, self.matcher.poses, self.info.frame)
+        # (a first sweep with a window is placed on it: the seed's points would go twice)
+        seed = self._map_seed(prior) if self.info.n_scans == 0 and window is None else None
         return MapFrame(token, C, seed, prior if scan.geo_prior is not None else None, window)
 
     def _map_seed(self, prior: PosePrior | None) -> np.ndarray | None:
