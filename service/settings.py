@@ -395,7 +395,10 @@ class ServiceSettings(BaseSettings):
         default=80.0, gt=0, description="the map around the vehicle it localizes on"
     )
     localize_reload_m: float = Field(
-        default=20.0, gt=0, description="travel from the window's centre before the window is cut again"
+        default=40.0,
+        gt=0,
+        description="travel from the window's centre before the window is cut again (half the radius: "
+        "the sensor's reach is still inside it)",
     )
     localize_min_map_points: int = Field(
         default=20000, ge=1, description="fewer map points around the vehicle: the session maps there"

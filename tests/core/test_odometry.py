@@ -21,6 +21,7 @@ from randt.core.odometry import (
     MatcherSettings,
     PosePrior,
     deskew,
+    on_map_stride,
 )
 from randt.core.scenes import synthetic_room
 from randt.core.transforms import invert, make_transform, scale_motion, transform_error, transform_points
@@ -796,6 +797,23 @@ def test_after_a_gap_every_level_runs_again(kitti00, monkeypatch) -> None:
     resumed.load_state_dict(matcher.state_dict())
     assert list(resumed._state.recent_corrections) == list(matcher._state.recent_corrections)
     assert len(matcher._state.recent_corrections) == 2  # sweeps 9 and 10
+
+
+@pytest.mark.parametrize("n", [1000, 2500, 2501, 36_000, 120_000, 190_000])
+def test_a_sweep_localized_on_the_map_is_taken_at_a_prime_stride(n: int) -> None:
+    """At most ON_MAP_SWEEP_POINTS rows of a localized sweep are looked at (about 2,500: 2,118 of a
+    36,000-point reduced sweep, 2,264 of a raw HDL-64E sweep), at the smallest stride that leaves
+    so few, one prime to every ring count of 16 to 128, so every ring keeps points."""
+    import math
+
+    from randt.core.odometry import ON_MAP_STRIDES, ON_MAP_SWEEP_POINTS
+
+    k = on_map_stride(n)
+    assert math.ceil(n / k) <= ON_MAP_SWEEP_POINTS + 1
+    smaller = [s for s in ON_MAP_STRIDES if s < k]
+    assert not smaller or math.ceil(n / smaller[-1]) > ON_MAP_SWEEP_POINTS
+    assert all(math.gcd(k, rings) == 1 for rings in (16, 32, 64, 128))
+    assert (on_map_stride(1000), on_map_stride(36_000), on_map_stride(120_000)) == (1, 17, 53)
 
 
 def _gnss_like(T: np.ndarray, offset_m, yaw_deg: float = 0.0) -> np.ndarray:
