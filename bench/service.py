@@ -161,6 +161,7 @@ def simulate(
     rate_hz: float = RATE_HZ,
     session: str = "bench",
     plan_size: int | None = None,
+    gnss: str = "first",
 ) -> None:
     """Simulate every vehicle's raw sweeps, encode them for ``link`` and write a :class:`Spool`.
 
@@ -171,8 +172,12 @@ def simulate(
     ``noise_seed`` is added to each vehicle's sensor noise seed (another drive of the same routes:
     the mapping drive of ``--mapped``, another day of bench/lifelong.py); ``rate_hz``: the sweeps'
     rate (the vehicles drive 10 m/s); ``session``: the sessions' id; ``plan_size``: the fleet
-    planned (its first ``n_vehicles`` simulated: the routes of a larger fleet's spool).
+    planned (its first ``n_vehicles`` simulated: the routes of a larger fleet's spool); ``gnss``:
+    ``first`` (the true pose on each vehicle's first sweep only, a survey's start) or ``noisy``
+    (every sweep carries a fix of the vehicle library's ``noisy`` GNSS, 0.5 m noise and a 1 m bias,
+    no outage: a vehicle refused at its first scans still has a prior on the scan admitted).
     """
+    from randt.clients.fleet import FleetSettings, VehicleGnss
     from randt.sim.drive import Motion, plan_fleet
     from randt.sim.drive import simulate as drive
     from randt.sim.lidar import Lidar64
@@ -188,6 +193,9 @@ def simulate(
     with open(directory / "sweeps.bin", "wb") as out:
         for v in plan_fleet(town, plan_size or n_vehicles, seed=3)[:n_vehicles]:
             progress(f"simulating and encoding {n_scans} sweeps of {v.vehicle_id} ({link} link)")
+            receiver = VehicleGnss(
+                "noisy", FleetSettings(duration_s=n_scans / rate_hz, gnss_outage_s=0.0), v.seed + noise_seed
+            )
             motion = Motion(
                 v.route, speed_mps=10.0, start_s_m=v.start_s_m, mount_height_m=lidar.mount_height_m
             )
@@ -207,7 +215,11 @@ def simulate(
             for scan in scans:
                 T_mid = motion.sensor_poses_at(scan.index / rate_hz + half)[0]
                 prior: dict[str, Any] = {}
-                if scan.index == 0:
+                if gnss == "noisy":
+                    fix = receiver.prior(scan.index / rate_hz + half, T_mid)
+                    if fix is not None:
+                        prior = dict(prior_pose=fix[0], prior_covariance=fix[1])
+                elif scan.index == 0:
                     prior = dict(prior_pose=T_mid, prior_covariance=np.diag([1e-4] * 3 + [1e-5] * 3))
                 payload = encode(
                     v.vehicle_id,
@@ -988,6 +1000,14 @@ def main() -> None:
         "(off, on, off, on...), and report the ratio of the mean latencies over all of them beside "
         "each pair's (one run's ratio moves by about 5 %%)",
     )
+    parser.add_argument(
+        "--gnss",
+        choices=["first", "noisy"],
+        default="first",
+        help="the vehicles' priors: first, the true pose on each one's first sweep only; noisy, a fix "
+        "on every sweep (0.5 m noise, 1 m bias: the vehicle library's noisy GNSS). A --mapped run's "
+        "mapping drive has first",
+    )
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--plot", type=Path, help="latency and drops against fleet size (PNG; CSV beside it)")
     parser.add_argument(
@@ -1089,10 +1109,12 @@ def main() -> None:
         n_fleet = args.first + max(args.vehicles)
         meta = {"vehicles": n_fleet, "scans": round(args.seconds * RATE_HZ), "link": args.link}
         meta["routes"] = "car-like"  # randt.sim.drive since 2026-11-26: clothoids, slower in corners
+        if args.gnss != "first":
+            meta["gnss"] = args.gnss
         meta_path = spool / "meta.json"
         if not _spool_fits(meta_path, meta):
             meta_path.unlink(missing_ok=True)
-            simulate(meta["vehicles"], meta["scans"], args.link, spool)
+            simulate(meta["vehicles"], meta["scans"], args.link, spool, gnss=args.gnss)
             meta_path.write_text(json.dumps(meta))
         else:
             progress(f"reusing the sweeps in {spool}")

@@ -38,6 +38,7 @@ __all__ = [
     "GnssMode",
     "GraphVehicle",
     "VehicleErrors",
+    "VehicleGnss",
     "VehicleRun",
     "ate_m",
     "evaluate",
@@ -126,8 +127,9 @@ class FleetSettings:
         return self.gnss[vehicle % len(self.gnss)]
 
 
-class _Gnss:
-    """One vehicle's prior poses as its GNSS mode gives them (docs/clients.md)."""
+class VehicleGnss:
+    """One vehicle's prior poses as its GNSS mode gives them (docs/clients.md); the service bench's
+    vehicles use it too (bench/service.py ``--gnss``)."""
 
     def __init__(self, mode: GnssMode, fleet: FleetSettings, seed: int) -> None:
         self.mode = mode
@@ -326,7 +328,7 @@ def _drive(
     """One vehicle's thread: wait for its turn (``leader``: the vehicle it follows out of the
     depot, :attr:`FleetSettings.shared_routes`), simulate each sweep, publish it (with its GNSS
     prior), keep the flow-control window."""
-    gnss = _Gnss(run.gnss, fleet, plan.seed)
+    gnss = VehicleGnss(run.gnss, fleet, plan.seed)
     if leader is not None:
         deadline = time.monotonic() + answer_timeout_s
         while len(leader.poses) < min(fleet.start_gap_scans, fleet.n_scans) and not leader.done.is_set():
