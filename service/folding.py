@@ -73,6 +73,8 @@ class MapPoints:
         None when none ran)``."""
         gate, info = self.gate, self._session.info
         vehicle, session_id, own_map = info.vehicle, info.session, info.map_name
+        if registered.result.localized:  # (its pose is the map's: no session correction moves it)
+            correction = None
         checked = gate.enabled and registered.keyframe_xyz is not None
         on_map = gate.enabled and not checked and registered.result.localized
         if gate.disagreeing and not checked and not on_map:

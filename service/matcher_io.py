@@ -232,7 +232,8 @@ class Registered:
                 else replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
             )
             return cls(kept, np.empty((0, 3), np.float32), np.empty(0, np.intp), keyframe, keyframe_index)
-        C = None if frame is None else frame.correction
+        # (a localized pose is the map's already: the session's graph correction is not for it)
+        C = None if frame is None or result.localized else frame.correction
         T = result.T_world_sensor if C is None else C @ result.T_world_sensor
         world = transform_points(T, result.deskewed_xyz)
         lacking = None

@@ -299,3 +299,13 @@ def test_a_localized_sweep_keeps_for_the_map_only_what_the_map_lacks(tmp_path: P
     # the same sweep mapped (not localized) keeps every point
     mapped = Registered.of(replace(result, localized=False), None, frame=frame, windows=windows)
     assert len(mapped.map_index) == len(sweep)
+    # a graph correction of the session moves a mapped sweep's points, never a localized one's:
+    # its pose is the map's already (a corrected localized fold put points metres off)
+    C = np.eye(4)
+    C[:3, 3] = (0.0, 0.0, -2.0)
+    moved = MapFrame(token, C, window=window)
+    corrected = Registered.of(result, None, frame=moved, windows=windows)
+    np.testing.assert_array_equal(corrected.map_xyz, kept.map_xyz)
+    assert corrected.correction is None
+    remapped = Registered.of(replace(result, localized=False), None, frame=moved, windows=windows)
+    np.testing.assert_allclose(remapped.map_xyz[:, 2], mapped.map_xyz[:, 2] - 2.0, atol=1e-5)
