@@ -311,9 +311,14 @@ class SessionWorker:
         # a localizing session: no points for a keyframe the graph would not add, nor for the
         # agreement check (its match on the map is the check: service/folding.py)
         localizing = self.localizer.localizing and not info.lost and info.last_status != "fallback"
+        # (a first sweep in the map's frame goes with a window: its place is judged at its prior)
+        first = info.n_scans == 0 and prior is not None and self.localizer.enabled and info.frame == "map"
         if graph is not None and graph.wants_keyframe(scan.vehicle, scan.session, poses):
-            known = localizing and graph.passes_known_place(
-                scan.vehicle, scan.session, info.map_name, poses[-1]
+            here = poses[-1] if poses else None if prior is None else prior.T_world_sensor
+            known = (
+                (localizing or first)
+                and here is not None
+                and graph.passes_known_place(scan.vehicle, scan.session, info.map_name, here)
             )
             if not known:
                 return True, min(graph.settings.keyframe_voxel_m, s.settings.map_voxel_m)
