@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from randt.core.errors import BadMessageError, RandtError
-from randt.core.odometry import MAP_SEED_MIN_POINTS, PosePrior, ScanResult
+from randt.core.odometry import MAP_SEED_MIN_POINTS, MATCHED_TO_MAP, PosePrior, ScanResult
 from randt.core.tiles import TileGrid
 from randt.service.agreement import AgreementGate
 from randt.service.answers import Answers
@@ -63,6 +63,9 @@ log = logging.getLogger(__name__)
 #: A session's first sweep with a prior is placed against its map's points within this many
 #: metres (x and y) of the prior (:meth:`SessionWorker._map_seed`), beyond the matcher's reach.
 MAP_SEED_REACH_M = 60.0
+#: The covariance a keyframe placed on the map enters the pose graph with (``_on_map_fix``): 5 cm
+#: and 0.2 deg, what a match on the map is good to (docs/mapping.md, "In the service").
+ON_MAP_FIX_COVARIANCE = np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)
 #: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
 MIN_RESUME_POINTS = 100
 #: A session whose queue holds at least this many scans is behind: on a node past its capacity its
@@ -476,7 +479,7 @@ class SessionWorker:
             T_live=result.T_world_sensor,
             points=kf,
             intensity=registered.keyframe_intensity,
-            gnss=self._gnss(scan, prior),
+            gnss=self._on_map_fix(result) or self._gnss(scan, prior),
             join=s.settings.default_map if info.frame == "session" else None,
             localized=result.localized,
         )
@@ -512,6 +515,16 @@ class SessionWorker:
         xy = np.asarray(prior.T_world_sensor, dtype=np.float64)[:2, 3]
         cloud = self.grid.points_in_bbox(xy - MAP_SEED_REACH_M, xy + MAP_SEED_REACH_M)
         return cloud.xyz.astype(np.float32) if len(cloud.xyz) >= MAP_SEED_MIN_POINTS else None
+
+    @staticmethod
+    def _on_map_fix(result: ScanResult) -> tuple[np.ndarray, np.ndarray] | None:
+        """A keyframe placed on the map (a first sweep matched to it, a localized sweep): its pose
+        there, with :data:`ON_MAP_FIX_COVARIANCE`, as the graph's prior instead of the scan's fix.
+        The map match is centimetres; a GNSS fix metres of noise and bias, which pulled a
+        session mapping on mapped streets off the map until its sweeps disagreed with it."""
+        if not (result.localized or result.message == MATCHED_TO_MAP):
+            return None
+        return result.T_world_sensor, ON_MAP_FIX_COVARIANCE
 
     def _gnss(self, scan: ScanHeader, prior: PosePrior | None) -> tuple[np.ndarray, np.ndarray] | None:
         """A keyframe's GNSS for the pose graph: its prior pose with its covariance (in the
