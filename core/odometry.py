@@ -154,9 +154,8 @@ ON_MAP_MATCH_POINTS = 1500
 #: Of a sweep localized on the map, every k-th point is taken (features, match, the points it
 #: returns for the map): the map already holds its surroundings. k is the smallest of
 #: ON_MAP_STRIDES leaving at most ON_MAP_SWEEP_POINTS (:func:`on_map_stride`): primes, so a sweep
-#: stored column by column keeps points of every ring of a 16- to 128-ring sensor. About 2,500 keep
-#: the 1,500 matched as accurate as every fifth point of a reduced sweep did, at two thirds of the
-#: matcher's time (docs/mapping.md, "In the service").
+#: stored column by column keeps points of every ring of a 16- to 128-ring sensor; about 2,500 feed
+#: the 1,500 matched (docs/mapping.md, "In the service", gives what it saves).
 ON_MAP_SWEEP_POINTS = 2500
 ON_MAP_STRIDES = (1, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73, 79)
 #: The message of a first sweep placed by its match to the map, not at its prior.
@@ -565,7 +564,7 @@ def _motion_on_map(
     points (sensor frame, with their times ``tau``), deskewed to mid-sweep and matched on the map
     from ``T`` (a few Newton steps: pose and motion go together, a sweep matched as it came sits
     a third of its travel off), fit it best (least NDT cost): a pattern search from ``start``,
-    its steps :data:`FIRST_MOTION_STEPS` times ``scale``, halved where no step helps, down to an
+    its steps :data:`FIRST_MOTION_STEPS` times ``scale``, halved where no step helps, down to a
     quarter."""
     step = np.asarray(FIRST_MOTION_STEPS) * scale
     smallest = step / 4.0
@@ -1079,11 +1078,12 @@ class IncrementalMatcher:
         No velocity is known before a second sweep, and at 10 m/s a sweep spans a metre of travel
         (in a corner, degrees of turn): matched as it came, its pose is tens of centimetres and
         half a degree off. On a fixed map the motion shows in the sweep itself: deskewed with the
-        right one, its points fit the map best (:func:`_motion_on_map`, then matched again, twice:
-        docs/mapping.md, "Localizing on the map")."""
+        right one, its points fit the map best (:func:`_motion_on_map`, one round per step scale of
+        :data:`FIRST_MOTION_STEP_SCALES`, the sweep matched again after each: docs/mapping.md, "In
+        the service")."""
         assert sweep.time_offset_s is not None
         levels = self.registration.voxel_sizes_m or ()
-        fine = levels[min(1, len(levels) - 1)] if levels else None
+        below_coarsest = levels[min(1, len(levels) - 1)] if levels else None  # (T is near already)
         gmap = on_map.maps[-1]
         consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
         rows = np.unique(np.linspace(0, len(sweep.xyz) - 1, FIRST_MOTION_POINTS).astype(np.intp))
@@ -1100,7 +1100,7 @@ class IncrementalMatcher:
                     T,
                     settings=self._on_map_registration(),
                     reference=on_map,
-                    coarsest_voxel_m=fine,
+                    coarsest_voxel_m=below_coarsest,
                 )
             except RandtError:
                 return T, xyz, feats, None
