@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from randt.core.errors import NotFoundError
 from randt.core.odometry import PosePrior, ScanResult
 from randt.core.tiles import TileGrid
 from randt.service.matcher_io import MapWindow
@@ -73,6 +74,9 @@ class SessionLocalizer:
         self._misses = 0  # sweeps in a row asked to be localized that were not
         #: the last sweep was localized on the map (the next is likely to be)
         self.localizing = False
+        #: per map, the points each tile ``(ix, iy)`` held before this session's first points near
+        #: it: what it may localize on (not its own trail)
+        self._before: dict[str, dict[tuple[int, int], int]] = {}
 
     def window(
         self,
@@ -100,11 +104,13 @@ class SessionLocalizer:
         return self._cut(grid, token, xy)
 
     def _cut(self, grid: TileGrid, token: tuple[str, int, int], xy: np.ndarray) -> MapWindow | None:
-        """A new window: the tiles within ``localize_radius_m``. The matcher keeps the tiles of the
-        window before: only the points of the new ones, and of those that grew by more than
-        :data:`RESEND_GROWTH` since they were sent, go with it."""
+        """A new window: the tiles within ``localize_radius_m``, when they hold at least
+        ``localize_min_map_points`` that were not this session's (:meth:`folding`). The matcher
+        keeps the tiles of the window before: only the points of the new ones, and of those that
+        grew by more than :data:`RESEND_GROWTH` since they were sent, go with it."""
         tiles = grid.tiles_near(xy, self.radius_m)
-        if sum(t.n_points for t in tiles) < self.min_points:
+        before = self._before.get(token[0], {})
+        if sum(min(t.n_points, before.get((t.ix, t.iy), t.n_points)) for t in tiles) < self.min_points:
             self._held = None
             return None
         sent = self._held[2] if self._held is not None and self._held[0] == token else {}
@@ -121,6 +127,27 @@ class SessionLocalizer:
         return MapWindow(
             token, center, tuple((tid, v) for tid, (v, _) in held.items()), points, self.radius_m
         )
+
+    def folding(self, map_name: str, grid: TileGrid, xyz: np.ndarray) -> None:
+        """A sweep's points about to be folded into ``map_name`` (``grid``): each tile around them,
+        one beyond their box, that none of the session's points came near before keeps what it
+        holds now as what it held before the session. A session mapping a new street does not
+        localize on the trail it leaves (its window would end where its trail does), whichever
+        way its points reach the tiles (its folds, the pose graph's re-folds)."""
+        if not self.enabled or not len(xyz):
+            return
+        size = float(grid.tile_size_m)
+        xy = xyz[:, :2]
+        lo = np.floor(xy.min(axis=0) / size).astype(np.int64) - 1
+        hi = np.floor(xy.max(axis=0) / size).astype(np.int64) + 1
+        before = self._before.setdefault(map_name, {})
+        for ix in range(int(lo[0]), int(hi[0]) + 1):
+            for iy in range(int(lo[1]), int(hi[1]) + 1):
+                if (ix, iy) not in before:
+                    try:
+                        before[ix, iy] = grid.tile(ix, iy).n_points
+                    except NotFoundError:
+                        before[ix, iy] = 0
 
     def answered(self, result: ScanResult) -> None:
         """A sweep's answer. One asked to be localized that was not (a sweep the match refused,

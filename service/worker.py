@@ -412,6 +412,8 @@ class SessionWorker:
         session's newest correction (the map follows the pose graph), after the map agreement
         check; lost when the session's sweeps disagree with its map."""
         C, fold_map = self._fold_target()
+        grid = self.grid if fold_map == self.info.map_name else self.services.maps.grid(fold_map)
+        self.localizer.folding(fold_map, grid, registered.map_xyz)
         why, share = self.points.take(registered, C, fold_map)
         if share is not None:
             self.info.map_agreement, self.info.map_disagrees = share, self.gate.disagreeing

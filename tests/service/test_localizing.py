@@ -138,6 +138,8 @@ def test_a_localized_drive_adds_no_graph_keyframe_where_the_graph_has_one(tmp_pa
     finally:
         mgr.stop()
     assert state is not None
+    # the first maps its new streets from first to last sweep (never localized on its own trail)
+    assert {m.mode for m in out if isinstance(m, PoseMessage) and m.vehicle == "mapper"} == {"mapping"}
     first_kfs = state.session_keyframes(("mapper", "d1"))
     travel = np.linalg.norm(mapper[-1].T_world_sensor[:3, 3] - mapper[0].T_world_sensor[:3, 3])
     assert len(first_kfs) >= travel // 10  # the first drive left one every 10 m
@@ -255,6 +257,32 @@ def test_a_session_maps_only_after_misses_in_a_row(tmp_path: Path) -> None:
     assert MISSES_BEFORE_MAPPING == 3 and all(asked[: 5 + MISSES_BEFORE_MAPPING])
     assert not any(asked[5 + MISSES_BEFORE_MAPPING : 5 + MISSES_BEFORE_MAPPING + MAP_AFTER_MISS])
     assert asked[5 + MISSES_BEFORE_MAPPING + MAP_AFTER_MISS]
+
+
+def test_a_session_does_not_localize_on_the_trail_it_leaves(tmp_path: Path) -> None:
+    """A session mapping a new street folds more than ``localize_min_map_points`` around it: it
+    still maps (what its points reach, by its folds or the graph's re-folds, is not map to it);
+    where the map held points before it came, and for the next session on its street, it
+    localizes."""
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import SessionLocalizer
+
+    rng = np.random.default_rng(2)
+    grid = TileGrid(20, 0.2, 2)
+    settings = ServiceSettings(data_dir=tmp_path, localize=True, localize_min_map_points=1000)  # type: ignore[call-arg]
+    mapper, pose = SessionLocalizer(settings), [np.eye(4)]
+    for x0 in range(0, 100, 10):  # its sweeps, each about to be folded, then folded
+        sweep = _street(float(x0), x0 + 10.0, rng)
+        mapper.folding("default", grid, sweep)
+        grid.insert(sweep)
+        pose[0][0, 3] = x0 + 5.0
+        assert grid.n_points > 1000
+        assert mapper.window(grid, ("default", *grid.content_token), None, pose, "map") is None
+    grid.insert(_street(120.0, 160.0, rng))  # another's street ahead of it
+    pose[0][0, 3] = 140.0
+    assert mapper.window(grid, ("default", *grid.content_token), None, pose, "map") is not None
+    pose[0][0, 3] = 50.0
+    assert SessionLocalizer(settings).window(grid, ("default", *grid.content_token), None, pose, "map")
 
 
 def test_a_localized_sweep_keeps_for_the_map_only_what_the_map_lacks(tmp_path: Path) -> None:
