@@ -135,15 +135,17 @@ def test_hostile_payloads_over_zenoh_do_not_delay_another_vehicles_scan(router, 
 
 
 def test_status_and_other_vehicles_do_not_wait_for_a_stuck_session_open(tmp_path, monkeypatch) -> None:
-    """A session whose opening hangs (a slow store read or a cold matcher warm-up, here 6 s):
-    /status and /sessions answer within 0.5 s and another vehicle's scan gets its pose meanwhile;
-    the stuck session's scan is answered once it is open."""
+    """A session whose opening hangs (a slow store read or a cold matcher warm-up, here until the
+    test lets it go, at most 30 s): /status and /sessions answer within 2 s and another vehicle's
+    scan gets its pose meanwhile; the stuck session's scan is answered once it is open. (The bound
+    is far above the 15 ms they take and far below the hang: in a long test run on 2 loaded cores
+    a request took 0.65 s.)"""
     original = SessionOpener.open
     release = threading.Event()
 
     def slow_open(self: SessionOpener, scan):  # type: ignore[no-untyped-def]
         if scan.vehicle == "slow":
-            release.wait(6.0)
+            release.wait(30.0)
         return original(self, scan)
 
     monkeypatch.setattr(SessionOpener, "open", slow_open)
@@ -165,7 +167,7 @@ def test_status_and_other_vehicles_do_not_wait_for_a_stuck_session_open(tmp_path
                 r = client.get(path)
                 took = time.monotonic() - t0
                 assert r.status_code == 200, r.text
-                assert took < 0.5, f"{path} took {took:.2f} s while a session open was stuck"
+                assert took < 2.0, f"{path} took {took:.2f} s while a session open was stuck"
             t0 = time.monotonic()
             threading.Thread(
                 target=svc._on_scan, args=("quick", good("quick", 0), time.time_ns()), daemon=True
