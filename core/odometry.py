@@ -165,7 +165,7 @@ MATCHED_TO_MAP = "matched to the map from the prior"
 #: from these steps), on this many of its points, once with each step scale, matched again after
 #: each (``IncrementalMatcher._first_deskewed_on_map``).
 FIRST_MOTION_STEPS = (0.25, 0.25, 2.0)
-FIRST_MOTION_POINTS = 800
+FIRST_MOTION_POINTS = 400
 FIRST_MOTION_STEP_SCALES = (1.0, 0.5, 0.25)
 FIRST_MOTION_ITERATIONS = 6
 
