@@ -65,10 +65,14 @@ class SessionLocalizer:
         self.enabled = settings.localize
         self.radius_m = settings.localize_radius_m
         self.reload_m = settings.localize_reload_m
+        self.first_radius_m = min(settings.localize_first_radius_m, self.radius_m)
         self.min_points = settings.localize_min_map_points
-        #: the window the matcher holds (token, centre; its tiles' versions and sizes as sent), as
-        #: this side sent it
-        self._held: tuple[tuple[str, int, int], tuple[float, float], dict[str, tuple[int, int]]] | None = None
+        #: the window the matcher holds (token, centre; its tiles' versions and sizes as sent;
+        #: its radius), as this side sent it
+        self._held: (
+            tuple[tuple[str, int, int], tuple[float, float], dict[str, tuple[int, int]], float] | None
+        ) = None
+        self._cut_before = False  # a window was cut for this session before (its first is smaller)
         self._asked = False  # the last sweep asked to be localized
         self._mapping_for = 0  # sweeps to map before localizing again
         self._misses = 0  # sweeps in a row asked to be localized that were not
@@ -98,17 +102,24 @@ class SessionLocalizer:
         near = prior.T_world_sensor if prior is not None else poses[-1]
         xy = np.asarray(near, dtype=np.float64)[:2, 3]
         held = self._held
-        if held is not None and held[0] == token and np.hypot(*(xy - held[1])) <= self.reload_m:
+        # (a first window, smaller, is cut again sooner: as much map ahead of the vehicle)
+        if (
+            held is not None
+            and held[0] == token
+            and np.hypot(*(xy - held[1])) <= self.reload_m - (self.radius_m - held[3])
+        ):
             self._asked = True
-            return MapWindow(token, held[1], radius_m=self.radius_m)
+            return MapWindow(token, held[1], radius_m=held[3])
         return self._cut(grid, token, xy)
 
     def _cut(self, grid: TileGrid, token: tuple[str, int, int], xy: np.ndarray) -> MapWindow | None:
-        """A new window: the tiles within ``localize_radius_m``, when they hold at least
+        """A new window: the tiles within ``localize_radius_m`` (the session's first:
+        ``localize_first_radius_m``, which costs its start less), when they hold at least
         ``localize_min_map_points`` that were not this session's (:meth:`folding`). The matcher
         keeps the tiles of the window before: only the points of the new ones, and of those that
         grew by more than :data:`RESEND_GROWTH` since they were sent, go with it."""
-        tiles = grid.tiles_near(xy, self.radius_m)
+        radius = self.radius_m if self._cut_before else self.first_radius_m
+        tiles = grid.tiles_near(xy, radius)
         before = self._before.get(token[0], {})
         if sum(min(t.n_points, before.get((t.ix, t.iy), t.n_points)) for t in tiles) < self.min_points:
             self._held = None
@@ -123,10 +134,8 @@ class SessionLocalizer:
             else:
                 held[t.id], points[t.id] = (t.version, t.n_points), t.points
         center = (float(xy[0]), float(xy[1]))
-        self._held, self._asked = (token, center, held), True
-        return MapWindow(
-            token, center, tuple((tid, v) for tid, (v, _) in held.items()), points, self.radius_m
-        )
+        self._held, self._asked, self._cut_before = (token, center, held, radius), True, True
+        return MapWindow(token, center, tuple((tid, v) for tid, (v, _) in held.items()), points, radius)
 
     def folding(self, map_name: str, grid: TileGrid, xyz: np.ndarray) -> None:
         """A sweep's points about to be folded into ``map_name`` (``grid``): each tile around them,

@@ -394,6 +394,13 @@ class ServiceSettings(BaseSettings):
     localize_radius_m: float = Field(
         default=80.0, gt=0, description="the map around the vehicle it localizes on"
     )
+    localize_first_radius_m: float = Field(
+        default=50.0,
+        gt=0,
+        description="the radius of a session's first window (at most localize_radius_m): a session's "
+        "start prepares fewer tiles; the whole window follows after localize_reload_m less the "
+        "difference of the radii of travel",
+    )
     localize_reload_m: float = Field(
         default=40.0,
         gt=0,

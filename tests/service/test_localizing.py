@@ -233,6 +233,43 @@ def test_a_window_moved_sends_only_the_tiles_new_to_it(tmp_path: Path) -> None:
     same_map(lost.on_map(matcher, w5), w5.tiles)
 
 
+def test_a_sessions_first_window_is_smaller_and_the_whole_one_follows(tmp_path: Path) -> None:
+    """A session's first window holds the tiles within localize_first_radius_m (its start prepares
+    fewer); it is cut again once the vehicle has as little map ahead as a whole window leaves at
+    its reload (after localize_reload_m less the difference of the radii, 10 m), then whole, with
+    only the tiles the first did not hold, and held for localize_reload_m."""
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import SessionLocalizer
+
+    grid = TileGrid(20, 0.2, 2)
+    grid.insert(_street(0.0, 400.0, np.random.default_rng(6)))
+    settings = ServiceSettings(data_dir=tmp_path, localize=True, localize_min_map_points=1000)  # type: ignore[call-arg]
+    assert (settings.localize_first_radius_m, settings.localize_radius_m, settings.localize_reload_m) == (
+        50,
+        80,
+        40,
+    )
+    loc, token = SessionLocalizer(settings), ("default", *grid.content_token)
+
+    def at(x: float):  # type: ignore[no-untyped-def]
+        T = np.eye(4)
+        T[0, 3] = x
+        return loc.window(grid, token, None, [T], "map")
+
+    first = at(200.0)
+    assert first is not None and first.tiles is not None and first.radius_m == 50.0
+    assert {t for t, _ in first.tiles} == {t.id for t in grid.tiles_near((200.0, 0.0), 50.0)}
+    held = at(209.0)
+    assert held is not None and held.tiles is None and held.radius_m == 50.0
+    whole = at(211.0)
+    assert whole is not None and whole.tiles is not None and whole.radius_m == 80.0
+    assert {t for t, _ in whole.tiles} == {t.id for t in grid.tiles_near((211.0, 0.0), 80.0)}
+    assert set(whole.points) == {t for t, _ in whole.tiles} - {t for t, _ in first.tiles}
+    kept = at(250.0)
+    assert kept is not None and kept.tiles is None and kept.radius_m == 80.0
+    assert at(252.0).tiles is not None  # type: ignore[union-attr]
+
+
 def test_a_session_maps_only_after_misses_in_a_row(tmp_path: Path) -> None:
     """One sweep the map did not hold is tried again (on mapped streets a refused match is no
     reason to map); MISSES_BEFORE_MAPPING in a row map for MAP_AFTER_MISS sweeps, then it tries
