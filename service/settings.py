@@ -398,8 +398,8 @@ class ServiceSettings(BaseSettings):
         default=50.0,
         gt=0,
         description="the radius of a session's first window (at most localize_radius_m): a session's "
-        "start prepares fewer tiles; the whole window follows after localize_reload_m less the "
-        "difference of the radii of travel",
+        "start prepares fewer tiles; the whole window follows after a travel of localize_reload_m less "
+        "the difference of the radii",
     )
     localize_reload_m: float = Field(
         default=40.0,

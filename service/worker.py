@@ -412,8 +412,8 @@ class SessionWorker:
         session's newest correction (the map follows the pose graph), after the map agreement
         check; lost when the session's sweeps disagree with its map."""
         C, fold_map = self._fold_target()
-        grid = self.grid if fold_map == self.info.map_name else self.services.maps.grid(fold_map)
-        self.localizer.folding(fold_map, grid, registered.map_xyz)
+        if self.localizer.enabled:
+            self.localizer.folding(fold_map, self._grid_of(fold_map), registered.map_xyz)
         why, share = self.points.take(registered, C, fold_map)
         if share is not None:
             self.info.map_agreement, self.info.map_disagrees = share, self.gate.disagreeing
@@ -495,13 +495,17 @@ class SessionWorker:
             return None, info.map_name
         return graph.fold_target(info.vehicle, info.session, info.map_name)
 
+    def _grid_of(self, map_name: str) -> TileGrid:
+        """The tiles of ``map_name``: the session's own handle when it is the session's map."""
+        return self.grid if map_name == self.info.map_name else self.services.maps.grid(map_name)
+
     def _map_frame(self, scan: ScanHeader, prior: PosePrior | None) -> MapFrame:
         """Where this sweep's map points go (:class:`~randt.service.matchers.MapFrame`): the matcher
         moves them by the correction and sends only voxels it has not sent to this map's content;
         a first sweep's map seed (:meth:`_map_seed`), a WGS84 prior placed in the map (the payload
         has none), and the map around the vehicle to localize on (service/localizing.py)."""
         C, fold_map = self._fold_target()
-        grid = self.grid if fold_map == self.info.map_name else self.services.maps.grid(fold_map)
+        grid = self._grid_of(fold_map)
         token = (fold_map, *grid.content_token)
         window = self.localizer.window(grid, token, prior, self.matcher.poses, self.info.frame)
         # (a first sweep with a window is placed on it: the seed's points would go twice)
