@@ -552,6 +552,95 @@ def ndt_scores(
 
 
 @nb.njit(cache=True, nogil=True)
+def ndt_point_derivatives(
+    points: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    table_key: np.ndarray,
+    table_idx: np.ndarray,
+    means: np.ndarray,
+    inv_cov: np.ndarray,
+    voxel_size: float,
+    offsets: np.ndarray,
+    d1: float,
+    d2: float,
+    m_max: float,
+    out_grad: np.ndarray,
+    out_hess: np.ndarray,
+    cache_cell: np.ndarray,
+    cache_vox: np.ndarray,
+) -> float:
+    """Per point, the NDT cost's gradient and Hessian w.r.t. the moved point ``q = R p + t``
+    (the terms of :func:`ndt_accumulate` before any parameter's Jacobian): ``out_grad[i] = sum
+    w a`` (3) and ``out_hess[i] = sum w (Sigma^-1 - d2 a a^T)`` (the upper triangle: xx, xy, xz,
+    yy, yz, zz) over the point's pairs, weighted trilinearly with 8 ``offsets`` as there. A
+    caller with its own parameters (a motion during the sweep, say) chains them by its point
+    Jacobians. Returns the cost. ``cache_cell``/``cache_vox`` as in :func:`ndt_accumulate`.
+
+    Reference: randt.core.ndt:ndt_point_derivatives_numpy
+    Test: tests/core/test_kernels.py::test_point_derivatives_kernel_matches_numpy
+    """
+    inv_v = 1.0 / voxel_size
+    n_off = offsets.shape[0]
+    shift = cell_shift(n_off)
+    trilinear = n_off == 8
+    use_cache = cache_cell.shape[0] == points.shape[0] and cache_vox.shape[1] == n_off
+    vk = np.empty(n_off, dtype=np.int64)
+    cost = 0.0
+    for i in range(points.shape[0]):
+        q0, q1, q2, cx, cy, cz = _moved_and_cell(points, i, R, t, inv_v, shift)
+        if use_cache and cache_cell[i, 0] == cx and cache_cell[i, 1] == cy and cache_cell[i, 2] == cz:
+            for k in range(n_off):
+                vk[k] = cache_vox[i, k]
+        else:
+            for k in range(n_off):
+                vk[k] = _find(
+                    table_key, table_idx, _pack(cx + offsets[k, 0], cy + offsets[k, 1], cz + offsets[k, 2])
+                )
+            if use_cache:
+                cache_cell[i, 0], cache_cell[i, 1], cache_cell[i, 2] = cx, cy, cz
+                for k in range(n_off):
+                    cache_vox[i, k] = vk[k]
+        fx = q0 * inv_v - shift - cx
+        fy = q1 * inv_v - shift - cy
+        fz = q2 * inv_v - shift - cz
+        g0 = g1 = g2 = 0.0
+        h00 = h01 = h02 = h11 = h12 = h22 = 0.0
+        for k in range(n_off):
+            v = vk[k]
+            if v < 0:
+                continue
+            x0 = q0 - means[v, 0]
+            x1 = q1 - means[v, 1]
+            x2 = q2 - means[v, 2]
+            a0 = inv_cov[v, 0, 0] * x0 + inv_cov[v, 0, 1] * x1 + inv_cov[v, 0, 2] * x2
+            a1 = inv_cov[v, 1, 0] * x0 + inv_cov[v, 1, 1] * x1 + inv_cov[v, 1, 2] * x2
+            a2 = inv_cov[v, 2, 0] * x0 + inv_cov[v, 2, 1] * x1 + inv_cov[v, 2, 2] * x2
+            m = x0 * a0 + x1 * a1 + x2 * a2
+            if m >= m_max:
+                continue
+            e = math.exp(-0.5 * d2 * m)
+            if trilinear:
+                e *= _trilinear_weight(offsets, k, fx, fy, fz)
+            cost += d1 * e
+            w = -d1 * d2 * e
+            wd2 = w * d2
+            g0 += w * a0
+            g1 += w * a1
+            g2 += w * a2
+            h00 += w * inv_cov[v, 0, 0] - wd2 * a0 * a0
+            h01 += w * inv_cov[v, 0, 1] - wd2 * a0 * a1
+            h02 += w * inv_cov[v, 0, 2] - wd2 * a0 * a2
+            h11 += w * inv_cov[v, 1, 1] - wd2 * a1 * a1
+            h12 += w * inv_cov[v, 1, 2] - wd2 * a1 * a2
+            h22 += w * inv_cov[v, 2, 2] - wd2 * a2 * a2
+        out_grad[i, 0], out_grad[i, 1], out_grad[i, 2] = g0, g1, g2
+        out_hess[i, 0], out_hess[i, 1], out_hess[i, 2] = h00, h01, h02
+        out_hess[i, 3], out_hess[i, 4], out_hess[i, 5] = h11, h12, h22
+    return cost
+
+
+@nb.njit(cache=True, nogil=True)
 def best_voxel(
     points: np.ndarray,
     R: np.ndarray,

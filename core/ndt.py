@@ -33,6 +33,7 @@ from randt.core.voxel import NEIGHBOR_OFFSETS, VoxelGaussianMap
 __all__ = [
     "NdtConstants",
     "NdtEvaluation",
+    "PointDerivatives",
     "apply_update_about",
     "ndt_constants",
     "ndt_cost",
@@ -40,6 +41,8 @@ __all__ = [
     "ndt_derivatives",
     "ndt_derivatives_numpy",
     "ndt_newton",
+    "ndt_point_derivatives",
+    "ndt_point_derivatives_numpy",
     "ndt_point_scores",
     "ndt_point_scores_numpy",
 ]
@@ -316,6 +319,69 @@ def ndt_derivatives(
     return NdtEvaluation(
         cost=float(cost), gradient=grad, hessian=hess, gauss_newton_hessian=gn, n_pairs=int(n_pairs)
     )
+
+
+@dataclass(frozen=True)
+class PointDerivatives:
+    """The NDT cost and, per point, its gradient (N,3) and Hessian (N,3,3) w.r.t. the moved
+    point ``q = T p`` (:func:`ndt_point_derivatives`)."""
+
+    cost: float
+    gradient: np.ndarray
+    hessian: np.ndarray
+
+
+def ndt_point_derivatives(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+    cache: NeighborCache | None = None,
+) -> PointDerivatives:
+    """Per point, the derivatives of the NDT cost w.r.t. the moved point (compiled kernel):
+    ``sum w a`` and ``sum w (Sigma^-1 - d2 a a^T)`` over its pairs (module docstring). A pose's
+    derivatives are these chained by ``J = [I, -[q]x]`` (plus the rotation's second-order term,
+    which :func:`ndt_derivatives` adds); other parameters that move the points (a motion during
+    the sweep) chain by their own Jacobians."""
+    cache = cache or _NO_CACHE
+    n = points_xyz.shape[0]
+    grad, upper = np.empty((n, 3)), np.empty((n, 6))
+    cost = kernels.ndt_point_derivatives(
+        *_kernel_args(points_xyz, T, gmap, n_neighbors),
+        consts.d1,
+        consts.d2,
+        2.0 * _PRUNE / consts.d2,
+        grad,
+        upper,
+        cache.cells,
+        cache.voxels,
+    )
+    hess = upper[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(n, 3, 3)
+    return PointDerivatives(float(cost), grad, hess)
+
+
+def ndt_point_derivatives_numpy(
+    points_xyz: np.ndarray,
+    T: np.ndarray,
+    gmap: VoxelGaussianMap,
+    consts: NdtConstants,
+    n_neighbors: int = 7,
+) -> PointDerivatives:
+    """Vectorized numpy reference of :func:`ndt_point_derivatives` (one row per pair)."""
+    q = transform_points(T, points_xyz)
+    pidx, W, y, m, weight = _pairs(q, gmap, n_neighbors, consts.d2)
+    e = weight * np.exp(-0.5 * consts.d2 * m)
+    w = -consts.d1 * consts.d2 * e
+    a = np.einsum("pji,pj->pi", W, y)  # Sigma^-1 x = W^T y
+    inv_cov = np.einsum("pki,pkj->pij", W, W)
+    n = points_xyz.shape[0]
+    grad = np.zeros((n, 3))
+    np.add.at(grad, pidx, w[:, None] * a)
+    hess = np.zeros((n, 3, 3))
+    terms = inv_cov - consts.d2 * np.einsum("pi,pj->pij", a, a)
+    np.add.at(hess, pidx, w[:, None, None] * terms)
+    return PointDerivatives(float(consts.d1 * e.sum()), grad, hess)
 
 
 def ndt_point_scores(

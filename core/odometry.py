@@ -37,7 +37,7 @@ from randt.core.features import Features, extract_features
 from randt.core.global_registration import GlobalSettings, register_global
 from randt.core.kernels import deskew_points
 from randt.core.model import KeyframeModel
-from randt.core.ndt import NdtConstants, ndt_constants, ndt_cost, ndt_newton
+from randt.core.ndt import ndt_constants, ndt_cost
 from randt.core.place import query_descriptors, scan_context, scan_context_distance
 from randt.core.registration import (
     PreparedReference,
@@ -51,6 +51,7 @@ from randt.core.registration import (
     register,
     sanitize_points,
 )
+from randt.core.sweep_motion import pose_and_motion_on_map
 from randt.core.transforms import (
     as_transform,
     invert,
@@ -63,7 +64,7 @@ from randt.core.transforms import (
     so3_log,
     transform_points,
 )
-from randt.core.voxel import VoxelGaussianMap, voxel_downsample
+from randt.core.voxel import voxel_downsample
 
 __all__ = [
     "MATCHER_REGISTRATION",
@@ -160,14 +161,17 @@ ON_MAP_SWEEP_POINTS = 2500
 ON_MAP_STRIDES = (1, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73, 79)
 #: The message of a first sweep placed by its match to the map, not at its prior.
 MATCHED_TO_MAP = "matched to the map from the prior"
-#: A first sweep matched on its map is deskewed with the motion its points fit the map best with
-#: (``_motion_on_map``: forward and sideways metres and yaw degrees per period, a pattern search
-#: from these steps), on this many of its points, once with each step scale, matched again after
-#: each (``IncrementalMatcher._first_deskewed_on_map``).
-FIRST_MOTION_STEPS = (0.25, 0.25, 2.0)
+#: A first sweep matched on its map is deskewed with the motion during it (forward and sideways
+#: metres and yaw degrees a period) found with its pose in one Newton solve
+#: (:func:`randt.core.sweep_motion.pose_and_motion_on_map`) on this many of its points, on the
+#: map's two finest levels in turn (the coarser one's basin is wider), then matched again
+#: (``IncrementalMatcher._first_deskewed_on_map``). The motion's steps in an iteration are at most
+#: FIRST_MOTION_STEPS at the finest level (the coarser level's scaled by its voxel), converged
+#: below FIRST_MOTION_EPS.
 FIRST_MOTION_POINTS = 400
-FIRST_MOTION_STEP_SCALES = (1.0, 0.5, 0.25)
-FIRST_MOTION_ITERATIONS = 6
+FIRST_MOTION_STEPS = (0.25, 0.25, 2.0)
+FIRST_MOTION_EPS = (0.002, 0.002, 0.02)
+FIRST_MOTION_ITERATIONS = 20
 
 #: Turns (degrees over the whole gap) scored when a gap's predicted match fails, and how many
 #: of the best are matched (``IncrementalMatcher._hypotheses``).
@@ -548,54 +552,6 @@ def _planar_motion(motion: np.ndarray) -> np.ndarray:
     M[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
     M[:2, 3] = motion[:2]
     return M
-
-
-def _motion_on_map(
-    xyz: np.ndarray,
-    tau: np.ndarray,
-    T: np.ndarray,
-    gmap: VoxelGaussianMap,
-    consts: NdtConstants,
-    period_s: float,
-    start: np.ndarray,
-    scale: float,
-) -> np.ndarray:
-    """The motion over one period ``(forward m, sideways m, yaw deg)`` with which the sweep's
-    points (sensor frame, with their times ``tau``), deskewed to mid-sweep and matched on the map
-    from ``T`` (a few Newton steps: pose and motion go together, a sweep matched as it came sits
-    a third of its travel off), fit it best (least NDT cost): a pattern search from ``start``,
-    its steps :data:`FIRST_MOTION_STEPS` times ``scale``, halved where no step helps, down to a
-    quarter."""
-    step = np.asarray(FIRST_MOTION_STEPS) * scale
-    smallest = step / 4.0
-
-    def cost(m: np.ndarray) -> float:
-        cloud = deskew(xyz, tau, _planar_motion(m), period_s, reference_fraction=MID_SWEEP)
-        fit = ndt_newton(
-            cloud,
-            gmap,
-            consts,
-            T,
-            max_iterations=FIRST_MOTION_ITERATIONS,
-            translation_eps_m=0.005,
-            rotation_eps_rad=1e-4,
-        )
-        return ndt_cost(cloud, fit.T, gmap, consts)
-
-    best_m, best = np.asarray(start, dtype=np.float64).copy(), cost(start)
-    while np.all(step >= smallest):
-        moved = False
-        for axis in range(3):
-            for sign in (1.0, -1.0):
-                m = best_m.copy()
-                m[axis] += sign * step[axis]
-                c = cost(m)
-                if c < best:
-                    best_m, best, moved = m, c, True
-                    break
-        if not moved:
-            step = step / 2.0
-    return best_m
 
 
 class IncrementalMatcher:
@@ -1078,36 +1034,50 @@ class IncrementalMatcher:
         No velocity is known before a second sweep, and at 10 m/s a sweep spans a metre of travel
         (in a corner, degrees of turn): matched as it came, its pose is tens of centimetres and
         half a degree off. On a fixed map the motion shows in the sweep itself: deskewed with the
-        right one, its points fit the map best (:func:`_motion_on_map`, one round per step scale of
-        :data:`FIRST_MOTION_STEP_SCALES`, the sweep matched again after each: docs/mapping.md, "In
-        the service")."""
+        right one, its points fit the map best. Pose and motion are found together (a sweep matched
+        as it came sits a third of its travel off: :func:`~randt.core.sweep_motion.pose_and_motion_on_map`
+        on :data:`FIRST_MOTION_POINTS` of its points, on the map's second finest level and then
+        its finest), and the whole sweep deskewed with that motion is matched once more
+        (docs/mapping.md, "In the service")."""
         assert sweep.time_offset_s is not None
         levels = self.registration.voxel_sizes_m or ()
         below_coarsest = levels[min(1, len(levels) - 1)] if levels else None  # (T is near already)
-        gmap = on_map.maps[-1]
-        consts = ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio)
         rows = np.unique(np.linspace(0, len(sweep.xyz) - 1, FIRST_MOTION_POINTS).astype(np.intp))
         sample, tau = sweep.xyz[rows], sweep.time_offset_s[rows]
-        motion, velocity = np.zeros(3), None
-        for scale in FIRST_MOTION_STEP_SCALES:
-            motion = _motion_on_map(sample, tau, T, gmap, consts, self.period_s, motion, scale)
-            velocity = _planar_motion(motion)
-            cloud, deskewed = prepare(velocity)
-            try:
-                res = register(
-                    deskewed.matching_xyz,
-                    None,
-                    T,
-                    settings=self._on_map_registration(),
-                    reference=on_map,
-                    coarsest_voxel_m=below_coarsest,
-                )
-            except RandtError:
-                return T, xyz, feats, None
-            if res.inlier_ratio < self.settings.min_inlier_ratio:
-                return T, xyz, feats, None
-            T, xyz, feats = res.T_target_source, cloud, deskewed
-        return T, xyz, feats, velocity
+
+        def deskewed_sample(motion: np.ndarray) -> np.ndarray:
+            return deskew(sample, tau, _planar_motion(motion), self.period_s, reference_fraction=MID_SWEEP)
+
+        motion, T_found = np.zeros(3), T
+        for gmap in on_map.maps[-2:]:
+            scale = gmap.voxel_size_m / on_map.maps[-1].voxel_size_m
+            found = pose_and_motion_on_map(
+                deskewed_sample,
+                motion,
+                np.asarray(FIRST_MOTION_STEPS) * scale,
+                np.asarray(FIRST_MOTION_EPS),
+                T_found,
+                gmap,
+                ndt_constants(gmap.voxel_size_m, self.registration.outlier_ratio),
+                max_iterations=FIRST_MOTION_ITERATIONS,
+            )
+            motion, T_found = found.motion, found.T
+        velocity = _planar_motion(motion)
+        cloud, deskewed = prepare(velocity)
+        try:
+            res = register(
+                deskewed.matching_xyz,
+                None,
+                T_found,
+                settings=self._on_map_registration(),
+                reference=on_map,
+                coarsest_voxel_m=below_coarsest,
+            )
+        except RandtError:
+            return T, xyz, feats, None
+        if res.inlier_ratio < self.settings.min_inlier_ratio:
+            return T, xyz, feats, None
+        return res.T_target_source, cloud, deskewed, velocity
 
     def _predict(self, index: int, prior_T: np.ndarray | None, periods: float) -> np.ndarray:
         """``T_last`` moved by the predicted velocity (:meth:`_velocity`) over ``periods``; the

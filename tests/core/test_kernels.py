@@ -16,6 +16,8 @@ from randt.core.ndt import (
     ndt_cost_numpy,
     ndt_derivatives,
     ndt_derivatives_numpy,
+    ndt_point_derivatives,
+    ndt_point_derivatives_numpy,
     ndt_point_scores,
     ndt_point_scores_numpy,
 )
@@ -69,6 +71,30 @@ def test_point_scores_kernel_matches_numpy(kitti_problem, n_neighbors: int) -> N
         ok = np.isfinite(b)
         np.testing.assert_allclose(a[ok], b[ok], rtol=1e-10, atol=1e-12)
     assert np.isfinite(ref[2]).sum() > 1000  # most points have a voxel near
+
+
+@pytest.mark.parametrize("n_neighbors", [7, 8])
+def test_point_derivatives_kernel_matches_numpy(kitti_problem, n_neighbors: int) -> None:
+    """Per point, the gradient and Hessian w.r.t. the moved point match the numpy reference, and
+    chained by the pose's Jacobian they give :func:`ndt_derivatives`' gradient (its Hessian less
+    the rotation's second-order term)."""
+    source, gmap, consts, T = kitti_problem
+    fast = ndt_point_derivatives(source, T, gmap, consts, n_neighbors)
+    ref = ndt_point_derivatives_numpy(source, T, gmap, consts, n_neighbors)
+    assert fast.cost == pytest.approx(ref.cost, rel=1e-10)
+    np.testing.assert_allclose(fast.gradient, ref.gradient, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.hessian, ref.hessian, rtol=1e-9, atol=1e-12)
+    assert (np.abs(ref.gradient).sum(axis=1) > 0).sum() > 1000  # most points have a pair
+    q = transform_points(T, source)
+    J = np.zeros((len(q), 3, 6))
+    J[:, :, :3] = np.eye(3)
+    J[:, :, 3:] = -np.array([[np.zeros(len(q)), -q[:, 2], q[:, 1]], [q[:, 2], np.zeros(len(q)), -q[:, 0]],
+                             [-q[:, 1], q[:, 0], np.zeros(len(q))]]).transpose(2, 0, 1)  # fmt: skip
+    pose = ndt_derivatives(source, T, gmap, consts, n_neighbors)
+    np.testing.assert_allclose(np.einsum("nij,ni->j", J, fast.gradient), pose.gradient, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(
+        np.einsum("nki,nkl,nlj->ij", J, fast.hessian, J)[:3], pose.hessian[:3], rtol=1e-8, atol=1e-8
+    )
 
 
 def test_hash_table_finds_every_key_and_no_other(kitti_problem) -> None:
