@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from randt.core.config import RegistrationSettings
 from randt.core.errors import DegenerateProblemError, InvalidCloudError, RegistrationFailedError
 from randt.core.registration import PreparedReference, RegistrationResult, prepare_reference, register
-from randt.core.transforms import as_transform
+from randt.core.transforms import as_transform, yawed
 
 __all__ = ["Localized", "LocalizerSettings", "MapLocalizer", "MapWindow"]
 
@@ -102,13 +102,6 @@ class Localized:
         return self.result.inlier_ratio
 
 
-def _yawed(T: np.ndarray, yaw_deg: float) -> np.ndarray:
-    a = np.radians(yaw_deg)
-    R = np.eye(4)
-    R[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    return T @ R
-
-
 class MapLocalizer:
     """Localizes sweeps on the map's points around the vehicle (module docstring)."""
 
@@ -164,7 +157,7 @@ class MapLocalizer:
         if not predicted and (best is None or best.inlier_ratio < self.settings.min_inlier_ratio):
             for yaw in self.settings.retry_yaw_deg:
                 retried += 1
-                other = self._far_match(sweep_xyz, _yawed(T0, yaw), None)
+                other = self._far_match(sweep_xyz, yawed(T0, yaw), None)
                 if other is not None and (best is None or other.inlier_ratio > best.inlier_ratio):
                     best = other
                 if best is not None and best.inlier_ratio >= self.settings.min_inlier_ratio:

@@ -30,6 +30,7 @@ __all__ = [
     "transform_error",
     "transform_points",
     "umeyama",
+    "yawed",
 ]
 
 
@@ -224,6 +225,15 @@ def scale_motion(T: np.ndarray, k: float) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = so3_exp(k * w)
     out[:3, 3] = _se3_left_jacobian(k * w) @ (k * u)
+    return out
+
+
+def yawed(T: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """``T`` turned by ``yaw_deg`` about its own z axis (a pose's heading changed in place)."""
+    a = math.radians(yaw_deg)
+    R = np.eye(4)
+    R[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+    out: np.ndarray = T @ R
     return out
 
 
