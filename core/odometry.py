@@ -799,6 +799,19 @@ class IncrementalMatcher:
             np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), self.map_levels()
         )
 
+    def map_preparation(self) -> tuple[RegistrationSettings, tuple[float, ...]]:
+        """The settings and levels :meth:`prepare_map_piece` and :meth:`join_map` prepare the map
+        with (:func:`~randt.core.registration.reference_piece`, ``join_reference``), for a caller
+        that prepares it on another thread; fixed once the session's first sweep is matched.
+
+        Raises
+        ------
+        InvalidCloudError
+            The session's levels are not known yet (before its first sweep).
+        """
+        levels = self.map_levels()
+        return self._on_map_registration(), levels
+
     def join_map(self, pieces: list[ReferencePiece]) -> PreparedReference:
         """The map around the vehicle from its pieces (:meth:`prepare_map_piece`, prepared at the
         session's current levels: :meth:`map_levels`), for :meth:`register_scan`'s ``on_map``.

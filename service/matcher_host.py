@@ -107,6 +107,12 @@ class CpuLedger:
         finally:
             self._carried[key] = self._carried.get(key, 0.0) + time.thread_time() - t0
 
+    def add(self, key: Key, cpu_s: float) -> None:
+        """CPU time spent for ``key`` on another thread (a map window joined behind its sweeps),
+        billed to its next answer."""
+        if cpu_s:
+            self._carried[key] = self._carried.get(key, 0.0) + cpu_s
+
     def bill(self, op: str, key: Key, value: Any, spent_s: float) -> Any:
         """Request ``op``'s value: a :class:`Registered` with the request's CPU (``spent_s``) and
         what was carried in ``cpu_s``; any other value as it is (``drop`` forgets the carry)."""
@@ -215,6 +221,7 @@ class _Sessions:
             map_seed=None if frame is None else frame.seed_xyz,
             on_map=self.windows[key].on_map(matcher, None if frame is None else frame.window),
         )
+        self.ledger.add(key, self.windows[key].take_cpu_s())  # (a window joined behind)
         if rebuild and matcher.model_pending:  # (it and Registered.of only read the sweep's points)
             self.rebuilds.start(key, matcher)
         registered = Registered.of(

@@ -9,18 +9,24 @@ both sides import these classes from this module.
 
 from __future__ import annotations
 
+import logging
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from randt.core.errors import FormatError, InvalidCloudError, RandtError
 from randt.core.odometry import IncrementalMatcher, PosePrior, ScanResult
-from randt.core.registration import PreparedReference, ReferencePiece
+from randt.core.registration import PreparedReference, ReferencePiece, join_reference, reference_piece
 from randt.core.tiles import SentVoxels, TileGrid
 from randt.core.transforms import invert, transform_points
 from randt.core.voxel import pack_keys, voxel_coords
 from randt.wire.messages import ScanHeader, ScanMessage, WireLimits, decode_scan, encode, scan_from_arrays
 from randt.wire.ros2 import Ros2Scan, sweep_arrays
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "TRAJECTORY_LENGTH_KEY",
@@ -101,60 +107,158 @@ class MapWindow:
     radius_m: float = 0.0
 
 
+_Key = tuple[tuple[str, int, int], tuple[float, float]]
+_Pieces = dict[str, tuple[tuple[str, int, int], int, ReferencePiece]]
+
+
+@dataclass(frozen=True)
+class _Held:
+    """A window a matcher holds: its key (token, centre), radius, pieces and prepared map."""
+
+    key: _Key
+    radius_m: float
+    pieces: _Pieces
+    reference: PreparedReference
+
+
+class _Join:
+    """A window joined on a thread of its own (:meth:`MapWindows.on_map`): what it holds once
+    done (``None``: it could not be joined), and the thread CPU time it took."""
+
+    def __init__(self, work: Callable[[], _Held]) -> None:
+        self._work = work
+        self._value: _Held | None = None
+        self.cpu_s = 0.0
+        self._thread = threading.Thread(target=self._run, name="randt-window", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t0 = time.thread_time()
+        try:
+            self._value = self._work()
+        except InvalidCloudError:
+            pass  # (too sparse, or a tile not held: the sweep that waits for it maps)
+        except Exception:  # a bug, not bad input: the sweep that waits for it maps
+            log.exception("map window join failed")
+        finally:
+            self.cpu_s = time.thread_time() - t0
+
+    def result(self) -> _Held | None:
+        self._thread.join()
+        return self._value
+
+
 class MapWindows:
     """The window a matcher holds for one session, joined from its tiles' pieces; each tile is
-    prepared once while it stays in the windows sent (:meth:`IncrementalMatcher.prepare_map_piece`)."""
+    prepared once while it stays in the windows sent (:meth:`IncrementalMatcher.prepare_map_piece`).
+
+    A window cut again around a vehicle that moved (the same map content, its token, and some of
+    its tiles held already) is joined on a thread beside the requests of the matcher's other
+    sessions: the sweep it came with is localized on the window held, the next one waits for the
+    join and is localized on the new window. So a window's new tiles (tens of milliseconds) do not
+    hold up the other sessions' sweeps queued behind it, and the poses do not depend on timing
+    (docs/mapping.md, "In the service"). A session's first window, one of other map content, and
+    one sent whole (after misses) are joined before the sweep they came with."""
 
     def __init__(self) -> None:
-        self._held: tuple[tuple[object, ...], PreparedReference] | None = None
-        #: tile id -> (token, version, piece) of the tiles of the last window joined
-        self._pieces: dict[str, tuple[tuple[str, int, int], int, ReferencePiece]] = {}
+        self._held: _Held | None = None
+        self._pending: tuple[_Key, _Join] | None = None
+        #: the window this request's sweep is localized on
+        self._used: _Held | None = None
+        self._cpu_s = 0.0
 
     def on_map(self, matcher: IncrementalMatcher, window: MapWindow | None) -> PreparedReference | None:
         """The prepared map to match this sweep on (``register_scan``'s ``on_map``), or ``None``:
         no window asked for, one too sparse to prepare, or one this matcher does not hold (the
         sweep is mapped then, and its answer says so: ``ScanResult.localized``)."""
+        self._used = None
         if window is None:
             return None
         key = (window.token, window.center_xy)
+        self._adopt_pending()
         if window.tiles is not None:
-            try:
-                self._held = (key, self._join(matcher, window))
-            except InvalidCloudError:
-                self._held, self._pieces = None, {}
-        if self._held is None or self._held[0] != key:
+            if self._joins_behind(window):
+                work = self._work(matcher, window, self._held.pieces if self._held else {})
+                self._pending = (key, _Join(work))
+            else:
+                try:
+                    self._held = self._work(matcher, window, self._held.pieces if self._held else {})()
+                except InvalidCloudError:
+                    self._held = None
+        held = self._held
+        behind = self._pending is not None and self._pending[0] == key
+        if held is None or (held.key != key and not behind):
             return None
-        return self._held[1]
+        self._used = held
+        return held.reference
+
+    def take_cpu_s(self) -> float:
+        """The thread CPU time of the joins adopted since last asked (billed to the session)."""
+        cpu, self._cpu_s = self._cpu_s, 0.0
+        return cpu
 
     def lacking(self, window: MapWindow | None, world_xyz: np.ndarray) -> np.ndarray | None:
-        """Of a localized sweep's points (map frame), those the map lacks: within the window's
-        radius of its centre (where the map's tiles are all in it) and in no voxel of its finest
-        NDT level. ``None`` without the window held: nothing is known of the map here. What lies
-        in the map's voxels is the map's surfaces seen again (folded, it would grow the map with
-        the distance driven: docs/mapping.md, "In the service")."""
-        if window is None or self._held is None or self._held[0] != (window.token, window.center_xy):
+        """Of a localized sweep's points (map frame), those the map lacks: within the radius of
+        the window it was localized on (where the map's tiles are all in it) and in no voxel of
+        its finest NDT level. ``None`` without a window used: nothing is known of the map here.
+        What lies in the map's voxels is the map's surfaces seen again (folded, it would grow the
+        map with the distance driven: docs/mapping.md, "In the service")."""
+        used = self._used
+        if window is None or used is None:
             return None
-        reference = self._held[1]
-        xy = np.asarray(world_xyz, dtype=np.float64)[:, :2] - np.asarray(window.center_xy)
-        inside = np.einsum("ij,ij->i", xy, xy) <= window.radius_m**2
-        return inside & ~reference.maps[-1].contains(world_xyz)
+        xy = np.asarray(world_xyz, dtype=np.float64)[:, :2] - np.asarray(used.key[1])
+        inside = np.einsum("ij,ij->i", xy, xy) <= used.radius_m**2
+        return inside & ~used.reference.maps[-1].contains(world_xyz)
 
-    def _join(self, matcher: IncrementalMatcher, window: MapWindow) -> PreparedReference:
-        """The window's tiles, the new ones prepared and the others taken from the last window
-        (a tile sent without its points that is not held at that version: InvalidCloudError)."""
-        levels = matcher.map_levels()
-        pieces: dict[str, tuple[tuple[str, int, int], int, ReferencePiece]] = {}
-        for tid, version in window.tiles or ():
-            xyz = window.points.get(tid)
-            held = self._pieces.get(tid)
-            if xyz is not None:
-                pieces[tid] = (window.token, version, matcher.prepare_map_piece(xyz))
-            elif held is not None and held[:2] == (window.token, version) and held[2].voxel_sizes_m == levels:
-                pieces[tid] = held
-            else:
-                raise InvalidCloudError(f"map tile {tid} (version {version}) is not held")
-        self._pieces = pieces
-        return matcher.join_map([p for _, _, p in pieces.values()])
+    def _joins_behind(self, window: MapWindow) -> bool:
+        """A window cut again on the same map content, some of its tiles held: joined behind."""
+        held = self._held
+        return (
+            held is not None
+            and held.key[0] == window.token
+            and any(tid not in window.points for tid, _ in window.tiles or ())
+        )
+
+    def _adopt_pending(self) -> None:
+        """The window joined behind becomes the one held (waited for: the next sweep uses it)."""
+        if self._pending is None:
+            return
+        join = self._pending[1]
+        self._pending = None
+        self._held = join.result()
+        self._cpu_s += join.cpu_s
+
+    @staticmethod
+    def _work(matcher: IncrementalMatcher, window: MapWindow, before: _Pieces) -> Callable[[], _Held]:
+        """The join of the window's tiles: the new ones prepared and the others taken from the
+        window before (``before``; a tile sent without its points that is not held at that
+        version: InvalidCloudError). The matcher's map settings are read here, on the request's
+        thread: the join itself touches no matcher (it may run beside the session's sweep)."""
+        registration, levels = matcher.map_preparation()
+        key = (window.token, window.center_xy)
+
+        def join() -> _Held:
+            pieces: _Pieces = {}
+            for tid, version in window.tiles or ():
+                xyz = window.points.get(tid)
+                held = before.get(tid)
+                if xyz is not None:
+                    piece = reference_piece(np.asarray(xyz, dtype=np.float64), registration, levels)
+                    pieces[tid] = (window.token, version, piece)
+                elif (
+                    held is not None
+                    and held[:2] == (window.token, version)
+                    and held[2].voxel_sizes_m == levels
+                ):
+                    pieces[tid] = held
+                else:
+                    raise InvalidCloudError(f"map tile {tid} (version {version}) is not held")
+            if not pieces:
+                raise InvalidCloudError("the map window has no tile")
+            reference = join_reference([p for _, _, p in pieces.values()], registration)
+            return _Held(key, window.radius_m, pieces, reference)
+
+        return join
 
 
 @dataclass(frozen=True)

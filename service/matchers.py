@@ -179,6 +179,7 @@ class LocalMatcher(IncrementalMatcher):
             map_seed=None if frame is None else frame.seed_xyz,
             on_map=self._windows.on_map(self, None if frame is None else frame.window),
         )
+        self._carried_cpu_s += self._windows.take_cpu_s()  # (a window joined behind)
         registered = Registered.of(result, None, keyframe_voxel_m, frame, windows=self._windows)
         registered = registered.with_intensity(intensity)
         cpu_s, self._carried_cpu_s = time.thread_time() - t0 + self._carried_cpu_s, 0.0

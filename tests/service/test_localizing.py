@@ -203,22 +203,30 @@ def test_a_window_moved_sends_only_the_tiles_new_to_it(tmp_path: Path) -> None:
 
     w1 = loc.window(grid, token, None, at(60.0), "map")
     assert w1 is not None and w1.tiles is not None and set(w1.points) == {t for t, _ in w1.tiles}
-    same_map(windows.on_map(matcher, w1), w1.tiles)
+    ref1 = windows.on_map(matcher, w1)
+    same_map(ref1, w1.tiles)
     held = loc.window(grid, token, None, at(75.0), "map")  # (within the reload distance: held)
     assert held is not None and held.tiles is None and held.center_xy == w1.center_xy
     w2 = loc.window(grid, token, None, at(85.0), "map")
     assert w2 is not None and w2.tiles is not None
     new = {t for t, _ in w2.tiles} - {t for t, _ in w1.tiles}
     assert len(new) >= 2 and set(w2.points) == new
-    same_map(windows.on_map(matcher, w2), w2.tiles)
+    # joined behind: the sweep it came with is matched on the window held, the next on the new one
+    assert windows.on_map(matcher, w2) is ref1
+    after = loc.window(grid, token, None, at(86.0), "map")
+    assert after is not None and after.tiles is None and after.center_xy == w2.center_xy
+    same_map(windows.on_map(matcher, after), w2.tiles)
+    assert windows.take_cpu_s() > 0 and windows.take_cpu_s() == 0  # (its CPU, billed once)
     # a tile of the window grows by more than RESEND_GROWTH: sent again with the next window
     grown = grid.get("5_0")
     grid.insert(_street(100.0, 120.0, rng)[:, :] + (0.0, 0.0, 4.5))
     assert grid.get("5_0").n_points > grown.n_points * (1 + RESEND_GROWTH)
     w3 = loc.window(grid, token, None, at(110.0), "map")
     assert w3 is not None and "5_0" in w3.points and "4_0" not in w3.points
-    ref3 = windows.on_map(matcher, w3)
+    assert windows.on_map(matcher, w3) is not None
+    ref3 = windows.on_map(matcher, loc.window(grid, token, None, at(111.0), "map"))
     assert ref3 is not None
+    same_map(ref3, w3.tiles)
     # a matcher without the pieces holds no such window; the next one sends every tile
     lost = MapWindows()
     w4 = loc.window(grid, token, None, at(135.0), "map")
