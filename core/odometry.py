@@ -70,6 +70,7 @@ from randt.core.voxel import voxel_downsample
 __all__ = [
     "MATCHER_REGISTRATION",
     "IncrementalMatcher",
+    "MapPreparation",
     "MatcherSettings",
     "MatcherState",
     "PosePrior",
@@ -572,6 +573,26 @@ def _planar_motion(motion: np.ndarray) -> np.ndarray:
     return M
 
 
+@dataclass(frozen=True)
+class MapPreparation:
+    """How a session prepares the map it localizes on (:meth:`IncrementalMatcher.map_preparation`):
+    its tiles' points as they are (the map's tiles equalize their density already), their moments
+    at the finest of ``levels``, and the window's pyramid joined from them."""
+
+    registration: RegistrationSettings
+    levels: tuple[float, ...]
+
+    def piece(self, map_xyz: np.ndarray) -> ReferencePiece:
+        """One tile's points (world frame) made ready to be joined."""
+        return reference_piece(np.asarray(map_xyz), self.registration, self.levels, downsample=False)
+
+    def join(self, pieces: list[ReferencePiece]) -> PreparedReference:
+        """The window of these pieces (InvalidCloudError: none, at other levels, too sparse)."""
+        if not pieces or any(p.voxel_sizes_m != self.levels for p in pieces):
+            raise InvalidCloudError("the map's pieces were not prepared at this session's levels")
+        return join_reference(pieces, self.registration)
+
+
 class IncrementalMatcher:
     """Algorithm 2 for one session (module docstring). Feed sweeps in order with :meth:`register_scan`."""
 
@@ -795,22 +816,19 @@ class IncrementalMatcher:
         InvalidCloudError
             The session's levels are not known yet (before its first sweep).
         """
-        return reference_piece(
-            np.asarray(map_xyz, dtype=np.float64), self._on_map_registration(), self.map_levels()
-        )
+        return self.map_preparation().piece(map_xyz)
 
-    def map_preparation(self) -> tuple[RegistrationSettings, tuple[float, ...]]:
-        """The settings and levels :meth:`prepare_map_piece` and :meth:`join_map` prepare the map
-        with (:func:`~randt.core.registration.reference_piece`, ``join_reference``), for a caller
-        that prepares it on another thread; fixed once the session's first sweep is matched.
+    def map_preparation(self) -> MapPreparation:
+        """How :meth:`prepare_map_piece` and :meth:`join_map` prepare the map (the session's
+        on-map settings and levels, fixed once its first sweep is matched), for a caller that
+        prepares it on another thread: it touches no matcher.
 
         Raises
         ------
         InvalidCloudError
             The session's levels are not known yet (before its first sweep).
         """
-        levels = self.map_levels()
-        return self._on_map_registration(), levels
+        return MapPreparation(self._on_map_registration(), self.map_levels())
 
     def join_map(self, pieces: list[ReferencePiece]) -> PreparedReference:
         """The map around the vehicle from its pieces (:meth:`prepare_map_piece`, prepared at the
@@ -821,9 +839,7 @@ class IncrementalMatcher:
         InvalidCloudError
             No piece, pieces at other levels, or too few points or too sparse for the levels.
         """
-        if not pieces or any(p.voxel_sizes_m != self.map_levels() for p in pieces):
-            raise InvalidCloudError("the map's pieces were not prepared at this session's levels")
-        return join_reference(pieces, self._on_map_registration())
+        return self.map_preparation().join(pieces)
 
     def map_levels(self) -> tuple[float, ...]:
         """The NDT levels the map is prepared at (the session's: from the settings, else from its

@@ -392,13 +392,21 @@ class ReferencePiece:
 
 
 def reference_piece(
-    target_xyz: np.ndarray, settings: RegistrationSettings, voxel_sizes_m: tuple[float, ...]
+    target_xyz: np.ndarray,
+    settings: RegistrationSettings,
+    voxel_sizes_m: tuple[float, ...],
+    *,
+    downsample: bool = True,
 ) -> ReferencePiece:
     """One piece of a reference for :func:`join_reference` (no outlier removal: the pieces' points
     are judged nowhere, as ``outlier_removal="none"`` has them). Pieces cut on boundaries that are
     multiples of the downsampling voxel and of the finest NDT voxel join into exactly the
     reference :func:`prepare_reference` makes of them all; elsewhere a voxel cut by a boundary
-    keeps a centroid on each side and its moments are combined (:func:`~randt.core.voxel.merge_moments`)."""
+    keeps a centroid on each side and its moments are combined (:func:`~randt.core.voxel.merge_moments`).
+
+    ``downsample`` false: the points are taken as they are (a map's tiles, whose density is
+    equalized already: the downsample was three quarters of a piece's cost) and kept in float32
+    (a prepared reference's points serve its counts, and the baselines'; NDT reads its moments)."""
     sizes = tuple(float(v) for v in voxel_sizes_m)
     finest = min(sizes)
     if np.asarray(target_xyz).shape[0] == 0:
@@ -406,10 +414,14 @@ def reference_piece(
             sizes, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
             np.zeros((0, 3, 3)), 0,
         )  # fmt: skip
-    pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
+    if downsample:
+        pts = voxel_downsample(target_xyz, finest * settings.target_voxel_fraction)
+    else:
+        pts = np.ascontiguousarray(target_xyz, dtype=np.float64)
     inverse, keys, _ = voxel_groups(pts, finest)
     counts, means, scatter = group_moments(pts, inverse, keys.size)
-    return ReferencePiece(sizes, pts, keys, counts, means, scatter, pts.shape[0])
+    kept = pts if downsample else np.asarray(target_xyz, dtype=np.float32)
+    return ReferencePiece(sizes, kept, keys, counts, means, scatter, pts.shape[0])
 
 
 def join_reference(pieces: list[ReferencePiece], settings: RegistrationSettings) -> PreparedReference:

@@ -19,7 +19,7 @@ import numpy as np
 
 from randt.core.errors import FormatError, InvalidCloudError, RandtError
 from randt.core.odometry import IncrementalMatcher, PosePrior, ScanResult
-from randt.core.registration import PreparedReference, ReferencePiece, join_reference, reference_piece
+from randt.core.registration import PreparedReference, ReferencePiece
 from randt.core.tiles import SentVoxels, TileGrid
 from randt.core.transforms import invert, transform_points
 from randt.core.voxel import pack_keys, voxel_coords
@@ -234,7 +234,7 @@ class MapWindows:
         window before (``before``; a tile sent without its points that is not held at that
         version: InvalidCloudError). The matcher's map settings are read here, on the request's
         thread: the join itself touches no matcher (it may run beside the session's sweep)."""
-        registration, levels = matcher.map_preparation()
+        prep = matcher.map_preparation()
         key = (window.token, window.center_xy)
 
         def join() -> _Held:
@@ -243,19 +243,16 @@ class MapWindows:
                 xyz = window.points.get(tid)
                 held = before.get(tid)
                 if xyz is not None:
-                    piece = reference_piece(np.asarray(xyz, dtype=np.float64), registration, levels)
-                    pieces[tid] = (window.token, version, piece)
+                    pieces[tid] = (window.token, version, prep.piece(xyz))
                 elif (
                     held is not None
                     and held[:2] == (window.token, version)
-                    and held[2].voxel_sizes_m == levels
+                    and held[2].voxel_sizes_m == prep.levels
                 ):
                     pieces[tid] = held
                 else:
                     raise InvalidCloudError(f"map tile {tid} (version {version}) is not held")
-            if not pieces:
-                raise InvalidCloudError("the map window has no tile")
-            reference = join_reference([p for _, _, p in pieces.values()], registration)
+            reference = prep.join([p for _, _, p in pieces.values()])
             return _Held(key, window.radius_m, pieces, reference)
 
         return join
