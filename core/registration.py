@@ -405,8 +405,10 @@ def reference_piece(
     keeps a centroid on each side and its moments are combined (:func:`~randt.core.voxel.merge_moments`).
 
     ``downsample`` false: the points are taken as they are (a map's tiles, whose density is
-    equalized already: the downsample was three quarters of a piece's cost) and kept in float32
-    (a prepared reference's points serve its counts, and the baselines'; NDT reads its moments)."""
+    equalized already: the downsample was three quarters of a piece's cost), and the piece keeps
+    their finest voxels' means as its points (float32): a prepared reference's points serve its
+    counts and the baselines, NDT reads its moments, and a piece crosses to a matcher process
+    (a tenth of the tile's points)."""
     sizes = tuple(float(v) for v in voxel_sizes_m)
     finest = min(sizes)
     if np.asarray(target_xyz).shape[0] == 0:
@@ -420,7 +422,7 @@ def reference_piece(
         pts = np.ascontiguousarray(target_xyz, dtype=np.float64)
     inverse, keys, _ = voxel_groups(pts, finest)
     counts, means, scatter = group_moments(pts, inverse, keys.size)
-    kept = pts if downsample else np.asarray(target_xyz, dtype=np.float32)
+    kept = pts if downsample else means.astype(np.float32)
     return ReferencePiece(sizes, kept, keys, counts, means, scatter, pts.shape[0])
 
 

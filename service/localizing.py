@@ -15,11 +15,15 @@ meanwhile.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 
-from randt.core.errors import NotFoundError
-from randt.core.odometry import PosePrior, ScanResult
-from randt.core.tiles import TileGrid
+from randt.core.errors import InvalidCloudError, NotFoundError
+from randt.core.odometry import IncrementalMatcher, MapPreparation, PosePrior, ScanResult
+from randt.core.registration import ReferencePiece
+from randt.core.tiles import Tile, TileGrid
 from randt.service.matcher_io import MapWindow
 from randt.service.session_record import SessionFrame
 from randt.service.settings import ServiceSettings
@@ -28,6 +32,7 @@ __all__ = [
     "MAP_AFTER_MISS",
     "MISSES_BEFORE_MAPPING",
     "RESEND_GROWTH",
+    "MapPieces",
     "SessionLocalizer",
     "expects_to_localize",
 ]
@@ -43,6 +48,58 @@ MISSES_BEFORE_MAPPING = 3
 #: what a localized session folds is the little the map lacked around it, which changes no match
 #: (docs/mapping.md, "In the service").
 RESEND_GROWTH = 0.05
+
+
+#: Tiles' pieces the service keeps prepared for its sessions' windows (:class:`MapPieces`), the
+#: least recently used leaving beyond: about 100 KB each (the bench town's 432 tiles: 43 MB).
+MAX_PIECES = 2048
+
+
+class MapPieces:
+    """The map's tiles prepared once for every session's windows (:class:`MapPreparation`: their
+    moments at the finest NDT voxel), in the service process: eight vehicles in one town cut
+    windows of 534 tiles where 227 are distinct, and each was prepared in each session's matcher.
+    A tile is prepared again once it has grown by more than :data:`RESEND_GROWTH` since (the same
+    rule a window resends by); a window gets the piece and the version it was prepared at."""
+
+    def __init__(self, preparation: MapPreparation) -> None:
+        self.preparation = preparation
+        self._lock = threading.Lock()
+        self._pieces: OrderedDict[tuple[tuple[str, int, int], str], tuple[int, int, ReferencePiece]] = (
+            OrderedDict()
+        )
+
+    @classmethod
+    def for_settings(cls, settings: ServiceSettings) -> MapPieces | None:
+        """The service's, when it localizes and its NDT levels are fixed (else each matcher
+        prepares the tiles it is sent, at the levels of its session's first sweep)."""
+        if not settings.localize:
+            return None
+        matcher = IncrementalMatcher(settings.session_matcher(), settings.registration)
+        try:
+            return cls(matcher.map_preparation())
+        except InvalidCloudError:
+            return None
+
+    def get(self, token: tuple[str, int, int], tile: Tile) -> tuple[int, int, ReferencePiece]:
+        """``(version, points, piece)`` of ``tile`` of the map ``token`` names, prepared now or
+        before (while the tile grew by at most :data:`RESEND_GROWTH` since)."""
+        key = (token, tile.id)
+        with self._lock:
+            kept = self._pieces.get(key)
+            if kept is not None and tile.n_points <= kept[1] * (1.0 + RESEND_GROWTH):
+                self._pieces.move_to_end(key)
+                return kept
+        made = (tile.version, tile.n_points, self.preparation.piece(tile.points))
+        with self._lock:
+            self._pieces[key] = made
+            self._pieces.move_to_end(key)
+            while len(self._pieces) > MAX_PIECES:
+                self._pieces.popitem(last=False)
+        return made
+
+    def __len__(self) -> int:
+        return len(self._pieces)
 
 
 def expects_to_localize(settings: ServiceSettings, grid: TileGrid, prior_pose: object) -> bool:
@@ -61,8 +118,9 @@ def expects_to_localize(settings: ServiceSettings, grid: TileGrid, prior_pose: o
 class SessionLocalizer:
     """One session's localizing or mapping (module docstring)."""
 
-    def __init__(self, settings: ServiceSettings) -> None:
+    def __init__(self, settings: ServiceSettings, pieces: MapPieces | None = None) -> None:
         self.enabled = settings.localize
+        self.pieces = pieces  # (the service's tiles prepared for every session; None: send points)
         self.radius_m = settings.localize_radius_m
         self.reload_m = settings.localize_reload_m
         self.first_radius_m = min(settings.localize_first_radius_m, self.radius_m)
@@ -127,15 +185,20 @@ class SessionLocalizer:
         sent = self._held[2] if self._held is not None and self._held[0] == token else {}
         held: dict[str, tuple[int, int]] = {}
         points: dict[str, np.ndarray] = {}
+        pieces: dict[str, ReferencePiece] = {}
         for t in tiles:
             was = sent.get(t.id)
             if was is not None and t.n_points <= was[1] * (1.0 + RESEND_GROWTH):
                 held[t.id] = was
+            elif self.pieces is not None:
+                version, n_points, pieces[t.id] = self.pieces.get(token, t)
+                held[t.id] = (version, n_points)
             else:
                 held[t.id], points[t.id] = (t.version, t.n_points), t.points
         center = (float(xy[0]), float(xy[1]))
         self._held, self._asked, self._cut_before = (token, center, held, radius), True, True
-        return MapWindow(token, center, tuple((tid, v) for tid, (v, _) in held.items()), points, radius)
+        listed = tuple((tid, v) for tid, (v, _) in held.items())
+        return MapWindow(token, center, listed, points, radius, pieces=pieces)
 
     def folding(self, map_name: str, grid: TileGrid, xyz: np.ndarray) -> None:
         """A sweep's points about to be folded into ``map_name`` (``grid``): each tile around them,

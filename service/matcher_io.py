@@ -97,7 +97,8 @@ class MapWindow:
     its centre, and the tiles it is made of, ``(id, version)`` each, when the matcher is to join it
     anew (``None``: the one it holds, cut with the same token and centre). ``points``: the points
     (world frame, float32) of those tiles the matcher does not hold at that version (the others it
-    kept from the windows before)."""
+    kept from the windows before), or, prepared by the service once for every session
+    (``pieces``, :class:`randt.service.localizing.MapPieces`), their pieces."""
 
     token: tuple[str, int, int]
     center_xy: tuple[float, float]
@@ -105,6 +106,7 @@ class MapWindow:
     points: dict[str, np.ndarray] = field(default_factory=dict)
     #: the map's tiles within this of the centre make it (the service's ``localize_radius_m``)
     radius_m: float = 0.0
+    pieces: dict[str, ReferencePiece] = field(default_factory=dict)
 
 
 _Key = tuple[tuple[str, int, int], tuple[float, float]]
@@ -216,7 +218,7 @@ class MapWindows:
         return (
             held is not None
             and held.key[0] == window.token
-            and any(tid not in window.points for tid, _ in window.tiles or ())
+            and any(tid not in window.points and tid not in window.pieces for tid, _ in window.tiles or ())
         )
 
     def _adopt_pending(self) -> None:
@@ -240,9 +242,13 @@ class MapWindows:
         def join() -> _Held:
             pieces: _Pieces = {}
             for tid, version in window.tiles or ():
-                xyz = window.points.get(tid)
+                xyz, given = window.points.get(tid), window.pieces.get(tid)
                 held = before.get(tid)
-                if xyz is not None:
+                if given is not None:
+                    if given.voxel_sizes_m != prep.levels:
+                        raise InvalidCloudError(f"map tile {tid} was prepared at other levels")
+                    pieces[tid] = (window.token, version, given)
+                elif xyz is not None:
                     pieces[tid] = (window.token, version, prep.piece(xyz))
                 elif (
                     held is not None

@@ -30,6 +30,7 @@ from randt.service.graph import ServiceGraph
 from randt.service.graph_log import GRAPH_DIRNAME
 from randt.service.graph_process import MapGeometry
 from randt.service.live_maps import LiveMaps
+from randt.service.localizing import MapPieces
 from randt.service.matchers import MatcherExecutor, MatcherPool
 from randt.service.metrics import ServiceMetrics
 from randt.service.opener import SessionOpener
@@ -86,6 +87,7 @@ class SessionManager:
             store, settings, self.metrics, {k: loaded.record for k, loaded in contents.sessions.items()}
         )
         self.table = SessionTable(self.saver, self.metrics)
+        self.pieces = MapPieces.for_settings(settings)  # (tiles prepared once for every window)
         self.maps = LiveMaps(
             store,
             dict(contents.maps),
@@ -142,6 +144,7 @@ class SessionManager:
             map_in_use=self.table.map_in_use,
             save=self.saver.save,
             leave=self.table.leave,
+            pieces=self.pieces,
         )
 
     # -- the scan's way in (service/routing.py) ------------------------------------------------------

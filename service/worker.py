@@ -28,7 +28,7 @@ from randt.service.folding import MapPoints
 from randt.service.georef import MapProjections
 from randt.service.graph import ServiceGraph
 from randt.service.live_maps import LiveMaps
-from randt.service.localizing import SessionLocalizer
+from randt.service.localizing import MapPieces, SessionLocalizer
 from randt.service.matchers import (
     MapFrame,
     MatcherProcessDiedError,
@@ -114,6 +114,8 @@ class WorkerServices:
     save: Callable[[SessionWorker], bool]
     #: Take a broken session out of the running set.
     leave: Callable[[SessionWorker], None]
+    #: The map's tiles prepared for every session's windows (None: each matcher prepares them).
+    pieces: MapPieces | None = None
 
 
 class SessionWorker:
@@ -139,7 +141,7 @@ class SessionWorker:
         s = services.settings
         gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self.points = MapPoints(self, gate, self.lock, services.maps, services.metrics)
-        self.localizer = SessionLocalizer(s)  # (localizing on the map or mapping, sweep by sweep)
+        self.localizer = SessionLocalizer(s, services.pieces)  # (localizing or mapping, sweep by sweep)
         self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionSaver.save_resume_sweeps).

@@ -406,3 +406,48 @@ def test_a_keyframe_placed_on_the_map_enters_the_graph_with_its_map_pose_not_the
         np.testing.assert_array_equal(fix[1], ON_MAP_FIX_COVARIANCE)
         assert np.sqrt(fix[1][0, 0]) == 0.05
     assert SessionWorker._on_map_fix(replace(result, index=7, status="ok", message="")) is None
+
+
+def test_the_services_tile_pieces_serve_every_sessions_window(tmp_path: Path) -> None:
+    """With its NDT levels fixed, the service prepares each tile once for every session's windows
+    (``MapPieces``): two sessions cutting windows over the same tiles send the same pieces, which
+    the matcher joins into the map it prepares from the points; a tile grown by more than
+    RESEND_GROWTH is prepared again, one grown less keeps its piece and the version it had."""
+    from randt.core.odometry import IncrementalMatcher
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import RESEND_GROWTH, MapPieces, SessionLocalizer
+    from randt.service.matcher_io import MapWindows
+
+    rng = np.random.default_rng(8)
+    grid = TileGrid(20, 0.2, 2)
+    grid.insert(_street(0.0, 200.0, rng))
+    settings = ServiceSettings(
+        data_dir=tmp_path, localize=True, localize_radius_m=30.0, localize_min_map_points=1000
+    )  # type: ignore[call-arg]
+    pieces = MapPieces.for_settings(settings)
+    assert pieces is not None and pieces.preparation.levels == settings.session_matcher().voxel_sizes_m
+    assert MapPieces.for_settings(settings.model_copy(update={"localize": False})) is None
+    token = ("default", *grid.content_token)
+    T = np.eye(4)
+    T[0, 3] = 60.0
+    a, b = SessionLocalizer(settings, pieces), SessionLocalizer(settings, pieces)
+    wa, wb = a.window(grid, token, None, [T], "map"), b.window(grid, token, None, [T], "map")
+    assert wa is not None and wb is not None and wa.tiles is not None and not wa.points
+    assert set(wa.pieces) == {tid for tid, _ in wa.tiles} and len(pieces) == len(wa.pieces)
+    assert all(wa.pieces[tid] is wb.pieces[tid] for tid in wa.pieces)  # (prepared once)
+    matcher = IncrementalMatcher(settings.session_matcher(), settings.registration)
+    joined = MapWindows().on_map(matcher, wa)
+    whole = matcher.prepare_map(np.concatenate([grid.get(tid).points for tid, _ in wa.tiles]))
+    assert joined is not None and joined.n_input_points == whole.n_input_points
+    for x, y in zip(joined.maps, whole.maps, strict=True):
+        np.testing.assert_array_equal(x.keys, y.keys)
+        np.testing.assert_allclose(x.covariances, y.covariances, atol=1e-9)
+    # a tile that grows: by less than RESEND_GROWTH its piece stays, by more it is prepared again
+    tile = grid.get("3_0")
+    before = pieces.get(token, tile)
+    few = int(tile.n_points * RESEND_GROWTH / 2)
+    grid.insert(rng.uniform((61.0, -5.0, 3.0), (79.0, 5.0, 3.5), (few, 3)))
+    assert pieces.get(token, grid.get("3_0")) is before
+    grid.insert(rng.uniform((61.0, -5.0, 3.6), (79.0, 5.0, 6.0), (tile.n_points, 3)))
+    again = pieces.get(token, grid.get("3_0"))
+    assert again is not before and again[0] == grid.get("3_0").version and again[1] > before[1]
