@@ -24,12 +24,24 @@ ALPHA = 0.2
 #: sessions would look cheaper than they are).
 MIN_ARRIVALS = 5
 MIN_SWEEPS = 20
+#: A localizing session's CPU is its own after this many sweeps past its first: it grows no
+#: keyframe model, so its cost is what its next sweeps cost (its first, a window prepared and
+#: joined and its motion found, is not counted: docs/architecture.md, "Admission").
+MIN_LOCALIZED_SWEEPS = 5
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
 MIN_SERVICE_SWEEPS = 10
+#: Sessions expected to localize that may be starting at once, per core: a start joins the map
+#: around the vehicle and finds its motion (50-100 ms of a matcher's CPU, its whole window joined
+#: behind a second later), and eight admitted together made the 20 s fleet run's p99 252 ms (103
+#: one a core at a time; docs/benchmarks.md). A session is starting until its first sweep is
+#: answered, STARTING_S at most; one refused for it is told to send again in STARTING_RETRY_S.
+STARTING_PER_CORE = 1
+STARTING_S = 2.0
+STARTING_RETRY_S = 0.2
 #: A session expected to localize on the map (service/localizing.py), before any localizing session
 #: was measured, is counted at this share of a mapping one's expected CPU per sweep (the larger end
-#: of what docs/benchmarks.md, "A drive on mapped streets", measures).
-LOCALIZED_SHARE = 0.5
+#: of what docs/benchmarks.md, "The fleet on mapped streets", measures: 0.25-0.35).
+LOCALIZED_SHARE = 0.35
 
 
 @dataclass(frozen=True)
@@ -76,6 +88,14 @@ class _Load:
     cpu_s: float | None = None  # moving average of the matcher's CPU per sweep
     sweeps: int = 0
     localizing: bool = False  # its last sweep was localized on the map (or it opened to)
+    opened_at: float | None = None  # when it was admitted expecting to localize
+    answered: int = 0  # sweeps matched
+
+
+def _measured(load: _Load) -> bool:
+    """Whether the session is counted at its own CPU per sweep (enough of its sweeps measured)."""
+    least = MIN_LOCALIZED_SWEEPS if load.localizing else MIN_SWEEPS
+    return load.cpu_s is not None and load.sweeps >= least
 
 
 def _average(old: float | None, new: float) -> float:
@@ -132,21 +152,33 @@ class Capacity:
         """Session ``key`` opens expecting to localize on the map or not: until measured it is
         counted at the expected cost of its kind."""
         with self._lock:
-            self._loads.setdefault(key, _Load()).localizing = localizing
+            load = self._loads.setdefault(key, _Load())
+            load.localizing = localizing
+            load.opened_at = self._clock() if localizing else None
 
     def matched(
-        self, key: Hashable, cpu_s: float, *, in_process: bool = False, localized: bool = False
+        self,
+        key: Hashable,
+        cpu_s: float,
+        *,
+        in_process: bool = False,
+        localized: bool = False,
+        first: bool = False,
     ) -> None:
         """Session ``key``'s matcher spent ``cpu_s`` on one sweep (``in_process``: in this process;
-        ``localized``: on the map)."""
+        ``localized``: on the map; ``first``: the session's first sweep, which a localizing
+        session's expected cost leaves out: :data:`MIN_LOCALIZED_SWEEPS`)."""
         with self._lock:
             load = self._loads.setdefault(key, _Load())
-            load.cpu_s = _average(load.cpu_s, max(cpu_s, 0.0))
-            load.sweeps += 1
-            load.localizing = localized
+            load.answered += 1
             self._sweeps += 1
             if in_process:
                 self._local_cpu_s += cpu_s
+            load.localizing = localized
+            if first and localized:
+                return
+            load.cpu_s = _average(load.cpu_s, max(cpu_s, 0.0))
+            load.sweeps += 1
 
     def service_sample(
         self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0, settling: bool = False
@@ -183,7 +215,7 @@ class Capacity:
         measured = [
             ld.cpu_s
             for ld in self._loads.values()
-            if ld.cpu_s is not None and ld.sweeps >= MIN_SWEEPS and ld.localizing == localizing
+            if ld.cpu_s is not None and _measured(ld) and ld.localizing == localizing
         ]
         if measured:
             self._last_cpu_s[localizing] = sum(measured) / len(measured)
@@ -224,7 +256,7 @@ class Capacity:
             if key in exclude:
                 continue
             load = self._loads.get(key) or _Load()
-            own = load.cpu_s is not None and load.sweeps >= MIN_SWEEPS
+            own = _measured(load)
             measured += own
             rate = self._rate_hz(load, now)
             matcher += rate * (load.cpu_s if own and load.cpu_s is not None else of_kind[load.localizing])
@@ -249,6 +281,32 @@ class Capacity:
         """The capacity as measured now, over the running (and opening) sessions ``running``."""
         with self._lock:
             return self._figures(running, ())
+
+    def starting_refusal(
+        self, running: Collection[Hashable], exclude: Collection[Hashable] = ()
+    ) -> str | None:
+        """Why a new session expected to localize waits (``None``: it need not): as many as
+        :data:`STARTING_PER_CORE` per core are starting already (admitted to localize, no sweep
+        answered yet, for :data:`STARTING_S` at most). Sent again :data:`STARTING_RETRY_S` later,
+        it opens once one of them has its first answer: starts follow each other instead of
+        stalling every vehicle's scans together (docs/architecture.md, "Admission")."""
+        now, most = self._clock(), max(1, round(STARTING_PER_CORE * self.cores))
+        with self._lock:
+            starting = [
+                key
+                for key in running
+                if key not in exclude
+                and (load := self._loads.get(key)) is not None
+                and load.opened_at is not None
+                and load.answered == 0
+                and now - load.opened_at < STARTING_S
+            ]
+        if len(starting) < most:
+            return None
+        return (
+            f"{len(starting)} sessions are starting on the map ({most} at a time: a start prepares the map "
+            f"around its vehicle): send again in {STARTING_RETRY_S:g} s"
+        )
 
     def refusal(
         self, running: Collection[Hashable], exclude: Collection[Hashable] = (), *, localizing: bool = False

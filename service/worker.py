@@ -377,7 +377,11 @@ class SessionWorker:
             return Refusal(ErrorCode.REGISTRATION_FAILED, str(exc))
         if s.capacity is not None:
             s.capacity.matched(
-                self.key, registered.cpu_s, in_process=s.in_process, localized=registered.result.localized
+                self.key,
+                registered.cpu_s,
+                in_process=s.in_process,
+                localized=registered.result.localized,
+                first=registered.result.index == 0,
             )
         self.localizer.answered(registered.result)
         return registered

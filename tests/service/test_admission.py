@@ -128,32 +128,81 @@ def test_a_silent_session_costs_nothing_and_a_young_one_its_expected_cost() -> N
 
 def test_a_session_expected_to_localize_is_counted_at_a_localizing_sessions_cost() -> None:
     """Sessions opening on mapped streets (issue 57): before any localizing session is measured,
-    one counts LOCALIZED_SHARE of a mapping one's expected cost; once some are measured, their
-    mean. A mapping session's expectation stays its own."""
-    from randt.service.capacity import LOCALIZED_SHARE
+    one counts LOCALIZED_SHARE of a mapping one's expected cost; once some are measured (five
+    sweeps past their first, which prepares a window and is not counted), their mean. A mapping
+    session's expectation stays its own."""
+    from randt.service.capacity import LOCALIZED_SHARE, MIN_LOCALIZED_SWEEPS
 
     clock = Clock()
     cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
     running: list[str] = []
-    for key in "abcdefgh":
+    for key in "abcdefghij":
         if cap.refusal(running, localizing=True) is None:
             running.append(key)
             cap.opening(key, localizing=True)
             cap.arrived(key)
-    # each counts 10 Hz x 25 ms = 0.25 cores: 6 fit in 1.7 (3 mapping ones would)
-    assert LOCALIZED_SHARE == 0.5 and running == list("abcdef")
+    # each counts 10 Hz x 17.5 ms = 0.175 cores: 9 fit in 1.7 (3 mapping ones would)
+    assert LOCALIZED_SHARE == 0.35 and running == list("abcdefghi")
     assert cap.refusal(running) is not None  # a mapping one (0.5 more) does not fit beside them
-    # measured: the localizing sessions at 15 ms a sweep
-    for _ in range(25):
+    # measured: each session's first sweep (a window prepared: 150 ms) left out, the next at 15 ms
+    for k in range(25):
         for key in running:
             cap.arrived(key)
-            cap.matched(key, 0.015, localized=True)
+            cap.matched(key, 0.15 if k == 0 else 0.015, localized=True, first=k == 0)
         clock.t += 0.1
     f = cap.figures(running)
-    assert f.measured_sessions == 6 and f.used_cores == pytest.approx(6 * 0.15, rel=0.05)
-    assert cap.refusal(running, localizing=True) is None  # 0.9 + 0.15 of 1.7
-    assert cap.refusal(running) is None  # a mapping one at its prior: 0.9 + 0.5 of 1.7
-    assert cap.refusal([*running, "x"]) is not None  # a young mapping one counted at 0.5, then another
+    assert f.measured_sessions == 9 and f.used_cores == pytest.approx(9 * 0.15, rel=0.05)
+    assert cap.refusal(running, localizing=True) is None  # 1.35 + 0.15 of 1.7
+    assert cap.refusal(running) is not None  # a mapping one at its prior: 1.35 + 0.5 of 1.7
+    assert cap.refusal(running[:7]) is None  # 1.05 + 0.5
+    # a young one: its first sweep (150 ms) is not what it costs; measured from five after it
+    young = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
+    young.opening("a", localizing=True)
+    for k in range(1 + MIN_LOCALIZED_SWEEPS):
+        assert young.figures(["a"]).measured_sessions == 0  # (the prior until then)
+        young.arrived("a")
+        young.matched("a", 0.15 if k == 0 else 0.015, localized=True, first=k == 0)
+        clock.t += 0.1
+    f = young.figures(["a"])
+    assert f.measured_sessions == 1 and f.used_cores == pytest.approx(10 * 0.015)
+
+
+def test_sessions_expected_to_localize_start_one_a_core_at_a_time() -> None:
+    """A start joins the map around its vehicle and finds its motion: eight admitted together
+    stalled every vehicle's scans. While a core's worth of sessions are starting (admitted to
+    localize, no sweep answered yet), another is told to send again in STARTING_RETRY_S; one
+    answered frees its slot, and one that never sends a sweep holds it STARTING_S at most. A
+    mapping session does not wait for them."""
+    from randt.service.admission import Admission
+    from randt.service.capacity import STARTING_RETRY_S, STARTING_S
+
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.01, clock=clock)
+    for key in "ab":
+        assert cap.starting_refusal(list("ab"[: "ab".index(key)])) is None
+        cap.opening(key, localizing=True)
+    why = cap.starting_refusal(["a", "b"])
+    assert why is not None and "2 sessions are starting" in why
+    assert cap.starting_refusal(["a", "b"], exclude=["b"]) is None  # (a slot given up)
+    cap.matched("a", 0.1, localized=True, first=True)
+    assert cap.starting_refusal(["a", "b"]) is None  # a answered: its slot is free
+    cap.opening("c", localizing=True)
+    assert cap.starting_refusal(["a", "b", "c"]) is not None
+    clock.t += STARTING_S
+    assert cap.starting_refusal(["a", "b", "c"]) is None  # (b and c never answered: they expired)
+    # through admission: the code, the reason and the retry a vehicle is told
+    from randt.wire.codes import ErrorCode
+
+    fresh = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.01, clock=clock)
+    admission = Admission(ServiceSettings(max_sessions=0), fresh)  # type: ignore[call-arg]
+    starting = [("d", "s"), ("e", "s")]
+    for key in starting:
+        fresh.opening(key, localizing=True)
+    refused = admission.admit(("f", "s"), {}, starting, (), localizing=True)
+    assert isinstance(refused, tuple) and refused[0] == ErrorCode.SESSIONS_FULL
+    assert "starting" in refused[1] and refused[2] == STARTING_RETRY_S
+    assert admission.refusal_on_header(starting, localizing=True) is not None
+    assert admission.admit(("g", "s"), {}, starting, ()) is None  # (a mapping one)
 
 
 def test_a_matcher_process_measures_the_cpu_of_each_sweep() -> None:
