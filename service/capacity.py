@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Collection, Hashable
 from dataclasses import dataclass
 
-__all__ = ["Capacity", "CapacityFigures"]
+__all__ = ["Capacity", "CapacityFigures", "MeasuredCosts"]
 
 #: Weight of the newest sample in the moving averages.
 ALPHA = 0.2
@@ -80,6 +80,18 @@ class CapacityFigures:
     running_sessions: int
 
 
+@dataclass(frozen=True)
+class MeasuredCosts:
+    """What the node's sessions were measured to cost (:meth:`Capacity.measured`), kept across
+    restarts (service/capacity_record.py): the last measured sessions' mean CPU per sweep of each
+    kind (``None``: only the prior so far) and the service process's per sweep, on ``cores``."""
+
+    cores: float
+    mapping_sweep_cpu_s: float | None
+    localizing_sweep_cpu_s: float | None
+    service_cpu_s: float
+
+
 @dataclass
 class _Load:
     interval_s: float | None = None  # moving average of the intervals between arrivals
@@ -132,6 +144,7 @@ class Capacity:
         #: per kind (localizing or not), the mean of the last measured sessions (mapping: a prior
         #: at first; localizing: absent until one was measured)
         self._last_cpu_s = {False: sweep_cpu_s}
+        self._measured_kinds: set[bool] = set()  # (kinds whose _last_cpu_s was measured, not the prior)
         self._service_cpu_s = 0.0
         self._service_mark: tuple[float, int, float] | None = None  # process CPU, sweeps, local CPU
         self._sweeps = 0
@@ -206,6 +219,29 @@ class Capacity:
             for key in [k for k in self._loads if k not in keep]:
                 del self._loads[key]
 
+    def measured(self) -> MeasuredCosts:
+        """What the sessions measured so far cost (for :meth:`start_from` after a restart)."""
+        with self._lock:
+            for kind in (False, True):
+                self._expected_cpu_s(kind)  # (the running sessions' mean, kept as the last)
+            last = {k: v for k, v in self._last_cpu_s.items() if k in self._measured_kinds}
+            return MeasuredCosts(self.cores, last.get(False), last.get(True), self._service_cpu_s)
+
+    def start_from(self, costs: MeasuredCosts) -> bool:
+        """Count new sessions at what the sessions before a restart were measured to cost, and the
+        service process at its measured CPU per sweep, instead of the priors, until measured anew;
+        not when they were measured on another number of cores (``False``: not taken)."""
+        if abs(costs.cores - self.cores) > 1e-9:
+            return False
+        with self._lock:
+            for kind, cpu in ((False, costs.mapping_sweep_cpu_s), (True, costs.localizing_sweep_cpu_s)):
+                if cpu is not None and cpu > 0:
+                    self._last_cpu_s[kind] = cpu
+                    self._measured_kinds.add(kind)
+            if costs.service_cpu_s > 0:
+                self._service_cpu_s = costs.service_cpu_s
+        return True
+
     # -- the model ------------------------------------------------------------------------------
     def _expected_cpu_s(self, localizing: bool = False) -> float:
         """What a session not measured yet (young, or opening) is counted at: the measured
@@ -219,6 +255,7 @@ class Capacity:
         ]
         if measured:
             self._last_cpu_s[localizing] = sum(measured) / len(measured)
+            self._measured_kinds.add(localizing)
         elif localizing and localizing not in self._last_cpu_s:  # (none measured yet)
             return self._expected_cpu_s() * LOCALIZED_SHARE
         return self._last_cpu_s[localizing]

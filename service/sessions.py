@@ -23,7 +23,8 @@ from randt.core.errors import ConflictError, NotFoundError, RandtError, Unavaila
 from randt.core.geo import GeoOrigin
 from randt.service.admission import Admission
 from randt.service.answers import Answers, Outbox
-from randt.service.capacity import Capacity, CapacityFigures, saturated
+from randt.service.capacity import Capacity, CapacityFigures, MeasuredCosts, saturated
+from randt.service.capacity_record import load_costs, save_costs
 from randt.service.counters import Counters
 from randt.service.georef import MapProjections
 from randt.service.graph import ServiceGraph
@@ -78,6 +79,10 @@ class SessionManager:
         self._flush_lock = threading.Lock()  # one flush at a time; map deletion waits for it
         self.pool: MatcherExecutor | None = executor if executor is not None else _executor(settings)
         self.capacity: Capacity | None = _capacity(settings, self.pool)
+        self._costs_saved: tuple[MeasuredCosts, float] | None = None  # (what, when: monotonic)
+        costs = None if self.capacity is None else load_costs(Path(settings.data_dir))
+        if self.capacity is not None and costs is not None and self.capacity.start_from(costs):
+            self._costs_saved = (costs, time.monotonic())
         self.admission = Admission(settings, self.capacity)
         self.max_sessions = self.admission.max_sessions
         contents = store.load_all()  # a damaged map or session is reported and skipped, not fatal
@@ -275,12 +280,32 @@ class SessionManager:
         self.capacity.service_sample(graph_cpu_s=0.0 if graph is None else graph.cpu_s(), settling=settling)
         running = self.table.keys()
         self.capacity.forget(running)
+        self._save_costs()
         f, m = self.capacity.figures(running), self.metrics
         m.capacity_cores.set(f.cores)
         m.capacity_load.set(f.load)
         m.capacity_sessions_more.set(f.sessions_more)
         m.capacity_sweep_cpu_seconds.set(f.sweep_cpu_s)
         m.capacity_service_cpu_seconds.set(f.service_cpu_s)
+
+    def _save_costs(self) -> None:
+        """What the sessions were measured to cost, to ``DATA/capacity.json`` when it changed by
+        more than :data:`COSTS_CHANGE` since last written, :data:`COSTS_EVERY_S` apart at most
+        (a restarted node admits from it: service/capacity_record.py)."""
+        assert self.capacity is not None
+        costs, now = self.capacity.measured(), time.monotonic()
+        if costs.mapping_sweep_cpu_s is None and costs.localizing_sweep_cpu_s is None:
+            return
+        if self._costs_saved is not None:
+            before, at = self._costs_saved
+            if now - at < COSTS_EVERY_S or not _costs_changed(before, costs):
+                return
+        try:
+            save_costs(Path(self.settings.data_dir), costs)
+        except RandtError as exc:
+            log.warning("the measured session costs could not be saved: %s", exc)
+            return
+        self._costs_saved = (costs, now)
 
     def saturated(self) -> bool:
         """Whether the node is past what admission may fill (:func:`randt.service.capacity.saturated`)."""
@@ -414,6 +439,24 @@ def _executor(settings: ServiceSettings) -> MatcherExecutor | None:
         cores = os.cpu_count() or 1
         n_procs = cores if cores > 1 else 0
     return MatcherPool(n_procs) if n_procs > 0 else None
+
+
+#: The measured session costs are written again when one changed by more than this share, at most
+#: every COSTS_EVERY_S (SessionManager._save_costs).
+COSTS_CHANGE = 0.1
+COSTS_EVERY_S = 30.0
+
+
+def _costs_changed(before: MeasuredCosts, now: MeasuredCosts) -> bool:
+    pairs = (
+        (before.mapping_sweep_cpu_s, now.mapping_sweep_cpu_s),
+        (before.localizing_sweep_cpu_s, now.localizing_sweep_cpu_s),
+        (before.service_cpu_s, now.service_cpu_s),
+    )
+    return any(
+        (a is None) != (b is None) or (a is not None and b is not None and abs(b - a) > COSTS_CHANGE * a)
+        for a, b in pairs
+    )
 
 
 def _capacity(settings: ServiceSettings, pool: MatcherExecutor | None) -> Capacity | None:

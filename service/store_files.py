@@ -18,6 +18,7 @@ from typing import Literal
 
 from randt.core.errors import RandtError
 from randt.core.io.atomic import fsync_directory
+from randt.service.capacity_record import CAPACITY_FILENAME
 from randt.service.counter_totals import COUNTERS_FILENAME
 
 __all__ = [
@@ -69,8 +70,8 @@ def report_problem(problems: list[StoreProblem], kind: ProblemKind, name: str, p
 
 
 def remove_temp_files(root: Path, maps: Path, trees: Iterable[Path]) -> int:
-    """Delete leftover ``.<name>.<random>.tmp`` files in ``root`` (``DATA``: ``counters.json``)
-    and under ``trees`` (``maps/``, ``sessions/`` and ``map-versions/``), and the
+    """Delete leftover ``.<name>.<random>.tmp`` files in ``root`` (``DATA``: ``counters.json``,
+    ``capacity.json``) and under ``trees`` (``maps/``, ``sessions/`` and ``map-versions/``), and the
     ``maps/.deleted-*`` directories of an interrupted :meth:`Store.delete_map
     <randt.service.store.Store.delete_map>` (or map-name migration). Returns how many."""
     removed = 0
@@ -78,9 +79,9 @@ def remove_temp_files(root: Path, maps: Path, trees: Iterable[Path]) -> int:
         if entry.name.startswith(DELETED_PREFIX) and entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry, ignore_errors=True)
             removed += 1
-    # The data directory's own file (counters.json) is written atomically too: its leftovers
-    # sit in DATA itself, among files that may not be ours (only its own are removed).
-    ours = f".{COUNTERS_FILENAME}."
+    # The data directory's own files (counters.json, capacity.json) are written atomically too:
+    # their leftovers sit in DATA itself, among files that may not be ours (only ours are removed).
+    ours = (f".{COUNTERS_FILENAME}.", f".{CAPACITY_FILENAME}.")
     top_level = [(str(root), [e.name for e in root.iterdir() if e.name.startswith(ours)])]
     walks = [(d, f) for top in trees for d, _, f in os.walk(top)]
     for dirpath, filenames in top_level + walks:  # os.walk does not follow symlinks

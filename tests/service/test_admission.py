@@ -337,3 +337,49 @@ def test_a_session_behind_lets_its_model_lag_only_on_a_node_past_its_capacity(
     else:
         assert gap > 1e-6, gap  # (measured: 0.9 mm)
     assert saturated is (capacity_target == 0.0)
+
+
+def test_a_restarted_node_admits_from_what_its_sessions_were_measured_to_cost(tmp_path) -> None:
+    """``DATA/capacity.json``: the sessions' measured CPU per sweep of each kind and the service
+    process's, written atomically and read at the start. From it, eight sessions expected to
+    localize at 10 ms a sweep fit a 2-core node at once (at the priors, 31.5 ms each, three); a
+    damaged file or one from a node of other cores is not taken (the priors, as before)."""
+    from randt.service.capacity import MeasuredCosts
+    from randt.service.capacity_record import CAPACITY_FILENAME, load_costs, save_costs
+
+    clock = Clock()
+    before = Capacity(cores=2, shares_cores=True, target=0.6, sweep_cpu_s=0.09, clock=clock)
+    assert before.measured() == MeasuredCosts(2.0, None, None, 0.0)  # (nothing measured: the priors)
+    for key in "ab":
+        before.opening(key, localizing=True)
+    for _ in range(25):
+        for key in "ab":
+            before.arrived(key)
+            before.matched(key, 0.01, localized=True)
+        clock.t += 0.1
+    costs = before.measured()
+    assert costs.localizing_sweep_cpu_s == pytest.approx(0.01) and costs.mapping_sweep_cpu_s is None
+    save_costs(tmp_path, costs)
+    assert load_costs(tmp_path) == costs
+
+    def admitted(cap: Capacity) -> int:
+        running: list[str] = []
+        for key in "cdefghijkl":
+            if cap.refusal(running, localizing=True) is None:
+                running.append(key)
+                cap.opening(key, localizing=True)
+                cap.arrived(key)
+        return len(running)
+
+    restarted = Capacity(cores=2, shares_cores=True, target=0.6, sweep_cpu_s=0.09, clock=clock)
+    assert restarted.start_from(load_costs(tmp_path))  # type: ignore[arg-type]
+    assert admitted(restarted) >= 8
+    assert admitted(Capacity(cores=2, shares_cores=True, target=0.6, sweep_cpu_s=0.09, clock=clock)) == 3
+    other = Capacity(cores=4, shares_cores=True, target=0.6, sweep_cpu_s=0.09, clock=clock)
+    assert not other.start_from(costs)  # (measured on 2 cores)
+    (tmp_path / CAPACITY_FILENAME).write_text('{"version": 1, "cores": 2, "service_cpu_s": -3}')
+    assert load_costs(tmp_path) is None
+    (tmp_path / CAPACITY_FILENAME).write_text("{not json")
+    assert load_costs(tmp_path) is None
+    (tmp_path / CAPACITY_FILENAME).unlink()
+    assert load_costs(tmp_path) is None
