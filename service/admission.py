@@ -14,7 +14,7 @@ import os
 import time
 from collections.abc import Collection, Mapping
 
-from randt.service.capacity import STARTING_RETRY_S, Capacity
+from randt.service.capacity import Capacity
 from randt.service.settings import ServiceSettings
 from randt.service.worker import SessionWorker
 from randt.wire.codes import ErrorCode
@@ -43,11 +43,7 @@ class Admission:
         """Why the node cannot carry one more session now (measured capacity), judged on a scan's
         header alone: a vehicle refused at 10 Hz must cost no body decoding. ``localizing``: the
         session is expected to localize on the map (service/localizing.py, ``expects_to_localize``)."""
-        if self.capacity is None:
-            return None
-        if localizing and (why := self.capacity.starting_refusal(running)) is not None:
-            return why
-        return self.capacity.refusal(running, localizing=localizing)
+        return None if self.capacity is None else self.capacity.refusal(running, localizing=localizing)
 
     def admit(
         self,
@@ -88,10 +84,6 @@ class Admission:
                 )
         if self.capacity is not None:  # before the session costs anything
             excluded = () if evict is None else (evict.key,)
-            if localizing:
-                why = self.capacity.starting_refusal([*workers, *opening], exclude=excluded)
-                if why is not None:
-                    return (ErrorCode.SESSIONS_FULL, why, STARTING_RETRY_S)
             why = self.capacity.refusal([*workers, *opening], exclude=excluded, localizing=localizing)
             if why is not None:
                 return (ErrorCode.SESSIONS_FULL, why, self.capacity.retry_after_s)

@@ -33,11 +33,10 @@ MIN_SERVICE_SWEEPS = 10
 #: Sessions expected to localize that may be starting at once, per core: a start joins the map
 #: around the vehicle and finds its motion (50-100 ms of a matcher's CPU, its whole window joined
 #: behind a second later), and eight admitted together made the 20 s fleet run's p99 252 ms (103
-#: one a core at a time; docs/benchmarks.md). A session is starting until its first sweep is
-#: answered, STARTING_S at most; one refused for it is told to send again in STARTING_RETRY_S.
+#: one a core at a time; docs/benchmarks.md). A session is starting from when it may start
+#: (:meth:`Capacity.try_start`) until its first sweep is answered, STARTING_S at most.
 STARTING_PER_CORE = 1
 STARTING_S = 2.0
-STARTING_RETRY_S = 0.2
 #: A session expected to localize on the map (service/localizing.py), before any localizing session
 #: was measured, is counted at this share of a mapping one's expected CPU per sweep (the larger end
 #: of what docs/benchmarks.md, "The fleet on mapped streets", measures: 0.25-0.35).
@@ -163,11 +162,12 @@ class Capacity:
 
     def opening(self, key: Hashable, *, localizing: bool) -> None:
         """Session ``key`` opens expecting to localize on the map or not: until measured it is
-        counted at the expected cost of its kind."""
+        counted at the expected cost of its kind (one expected to localize starts when
+        :meth:`try_start` lets it)."""
         with self._lock:
             load = self._loads.setdefault(key, _Load())
             load.localizing = localizing
-            load.opened_at = self._clock() if localizing else None
+            load.opened_at = None
 
     def matched(
         self,
@@ -319,31 +319,27 @@ class Capacity:
         with self._lock:
             return self._figures(running, ())
 
-    def starting_refusal(
-        self, running: Collection[Hashable], exclude: Collection[Hashable] = ()
-    ) -> str | None:
-        """Why a new session expected to localize waits (``None``: it need not): as many as
-        :data:`STARTING_PER_CORE` per core are starting already (admitted to localize, no sweep
-        answered yet, for :data:`STARTING_S` at most). Sent again :data:`STARTING_RETRY_S` later,
-        it opens once one of them has its first answer: starts follow each other instead of
-        stalling every vehicle's scans together (docs/architecture.md, "Admission")."""
+    def try_start(self, key: Hashable, running: Collection[Hashable]) -> bool:
+        """Whether session ``key``, admitted expecting to localize, may start now: fewer than
+        :data:`STARTING_PER_CORE` per core of ``running`` are starting (started, no sweep
+        answered yet, for :data:`STARTING_S` at most). If so it is starting from now. Its
+        opener waits meanwhile, its scans queued: starts follow each other instead of stalling
+        every vehicle's scans together (docs/architecture.md, "Admission")."""
         now, most = self._clock(), max(1, round(STARTING_PER_CORE * self.cores))
         with self._lock:
-            starting = [
-                key
-                for key in running
-                if key not in exclude
-                and (load := self._loads.get(key)) is not None
+            starting = sum(
+                1
+                for other in running
+                if other != key
+                and (load := self._loads.get(other)) is not None
                 and load.opened_at is not None
                 and load.answered == 0
                 and now - load.opened_at < STARTING_S
-            ]
-        if len(starting) < most:
-            return None
-        return (
-            f"{len(starting)} sessions are starting on the map ({most} at a time: a start prepares the map "
-            f"around its vehicle): send again in {STARTING_RETRY_S:g} s"
-        )
+            )
+            if starting >= most:
+                return False
+            self._loads.setdefault(key, _Load()).opened_at = now
+            return True
 
     def refusal(
         self, running: Collection[Hashable], exclude: Collection[Hashable] = (), *, localizing: bool = False

@@ -32,6 +32,11 @@ __all__ = ["ScanRouter"]
 
 log = logging.getLogger(__name__)
 
+#: A session expected to localize waits this long at most for a start slot (one start a core at
+#: a time, service/capacity.py), checking every START_POLL_S.
+START_WAIT_S = 1.0
+START_POLL_S = 0.01
+
 
 class ScanRouter:
     """Takes each scan from the transport to its session's queue; answers the ones it refuses."""
@@ -181,9 +186,8 @@ class ScanRouter:
                 "publish under a new session id"
             )
             return None, (ErrorCode.SESSION_CLOSED, why)
-        admitted = self.admission.admit(
-            key, t.workers, t.opening, t.closing, localizing=self._localizing(scan)
-        )
+        localizing = self._localizing(scan)
+        admitted = self.admission.admit(key, t.workers, t.opening, t.closing, localizing=localizing)
         if isinstance(admitted, tuple):
             return None, admitted
         if admitted is not None:
@@ -192,7 +196,7 @@ class ScanRouter:
                 *admitted.key, *key, time.monotonic() - admitted.info.last_activity,
             )  # fmt: skip
             t.detach(admitted.key)
-        opening = t.opening[key] = Opening(scan, deque([job]), evict=admitted)
+        opening = t.opening[key] = Opening(scan, deque([job]), evict=admitted, localizing=localizing)
         opener = threading.Thread(
             target=self._open, args=(key, opening), name=f"open-{key[0]}-{key[1]}", daemon=True
         )
@@ -234,6 +238,8 @@ class ScanRouter:
         try:
             if opening.evict is not None:
                 t.finish_close(opening.evict, "expired")
+            if opening.localizing:
+                self._wait_to_start(key)
             worker: SessionWorker | None = None
             error: tuple[str, str] | None = None
             try:
@@ -262,6 +268,20 @@ class ScanRouter:
             opening.done.set()
             with t.lock:
                 t.openers.discard(threading.current_thread())
+
+    def _wait_to_start(self, key: tuple[str, str]) -> None:
+        """Until the session may start (:meth:`Capacity.try_start`: one start a core at a time),
+        :data:`START_WAIT_S` at most; its scans wait in its opening's queue meanwhile, answered
+        late rather than refused (docs/architecture.md, "Admission")."""
+        if self.capacity is None:
+            return
+        deadline = time.monotonic() + START_WAIT_S
+        while True:
+            with self.table.lock:
+                running = [*self.table.workers, *self.table.opening]
+            if self.capacity.try_start(key, running) or time.monotonic() >= deadline:
+                return
+            time.sleep(START_POLL_S)
 
     def reject(
         self,

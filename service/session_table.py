@@ -33,6 +33,8 @@ class Opening:
     jobs: deque[Job] = field(default_factory=deque)
     #: A running session that gave up its slot (admission): saved and closed before the open.
     evict: SessionWorker | None = None
+    #: Expected to localize: the opener waits for a start slot (Capacity.try_start) first.
+    localizing: bool = False
     done: threading.Event = field(default_factory=threading.Event)
 
 

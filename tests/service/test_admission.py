@@ -168,41 +168,38 @@ def test_a_session_expected_to_localize_is_counted_at_a_localizing_sessions_cost
 
 
 def test_sessions_expected_to_localize_start_one_a_core_at_a_time() -> None:
-    """A start joins the map around its vehicle and finds its motion: eight admitted together
-    stalled every vehicle's scans. While a core's worth of sessions are starting (admitted to
-    localize, no sweep answered yet), another is told to send again in STARTING_RETRY_S; one
-    answered frees its slot, and one that never sends a sweep holds it STARTING_S at most. A
-    mapping session does not wait for them."""
+    """A start joins the map around its vehicle and finds its motion: eight started together
+    stalled every vehicle's scans. While a core's worth of sessions are starting (started, no
+    sweep answered yet), another waits (its opener, its scans queued; not refused); one answered
+    frees its slot, and one that never sends a sweep holds it STARTING_S at most."""
     from randt.service.admission import Admission
-    from randt.service.capacity import STARTING_RETRY_S, STARTING_S
+    from randt.service.capacity import STARTING_S
 
     clock = Clock()
     cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.01, clock=clock)
-    for key in "ab":
-        assert cap.starting_refusal(list("ab"[: "ab".index(key)])) is None
+    running = list("abc")
+    for key in running:
         cap.opening(key, localizing=True)
-    why = cap.starting_refusal(["a", "b"])
-    assert why is not None and "2 sessions are starting" in why
-    assert cap.starting_refusal(["a", "b"], exclude=["b"]) is None  # (a slot given up)
+    assert cap.try_start("a", running) and cap.try_start("b", running)
+    assert not cap.try_start("c", running)  # (two cores: two at a time)
+    assert cap.try_start("c", ["a", "c"])  # (one that is no longer running holds no slot)
     cap.matched("a", 0.1, localized=True, first=True)
-    assert cap.starting_refusal(["a", "b"]) is None  # a answered: its slot is free
-    cap.opening("c", localizing=True)
-    assert cap.starting_refusal(["a", "b", "c"]) is not None
+    assert not cap.try_start("d", [*running, "d"])  # (b and c are starting)
+    cap.matched("b", 0.1, localized=True, first=True)
+    assert cap.try_start("d", [*running, "d"])  # b answered: its slot is free
+    assert not cap.try_start("e", [*running, "d", "e"])
     clock.t += STARTING_S
-    assert cap.starting_refusal(["a", "b", "c"]) is None  # (b and c never answered: they expired)
-    # through admission: the code, the reason and the retry a vehicle is told
-    from randt.wire.codes import ErrorCode
-
+    assert cap.try_start("e", [*running, "d", "e"])  # (c and d never answered: they expired)
+    # admission itself no longer refuses them for it: they queue behind the starts
     fresh = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.01, clock=clock)
     admission = Admission(ServiceSettings(max_sessions=0), fresh)  # type: ignore[call-arg]
-    starting = [("d", "s"), ("e", "s")]
-    for key in starting:
+    keys = [("d", "s"), ("e", "s")]
+    for key in keys:
         fresh.opening(key, localizing=True)
-    refused = admission.admit(("f", "s"), {}, starting, (), localizing=True)
-    assert isinstance(refused, tuple) and refused[0] == ErrorCode.SESSIONS_FULL
-    assert "starting" in refused[1] and refused[2] == STARTING_RETRY_S
-    assert admission.refusal_on_header(starting, localizing=True) is not None
-    assert admission.admit(("g", "s"), {}, starting, ()) is None  # (a mapping one)
+        assert fresh.try_start(key, keys)
+    assert admission.admit(("f", "s"), {}, keys, (), localizing=True) is None
+    assert admission.refusal_on_header(keys, localizing=True) is None
+    assert not fresh.try_start(("f", "s"), [*keys, ("f", "s")])
 
 
 def test_a_matcher_process_measures_the_cpu_of_each_sweep() -> None:
