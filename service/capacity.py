@@ -96,8 +96,9 @@ class _Load:
     interval_s: float | None = None  # moving average of the intervals between arrivals
     last_arrival: float | None = None
     arrivals: int = 0
-    cpu_s: float | None = None  # moving average of the matcher's CPU per sweep
-    sweeps: int = 0
+    cpu_s: float | None = None  # the matcher's CPU per sweep (of its kind: see Capacity.matched)
+    sweeps: int = 0  # sweeps of its kind measured
+    cpu_sum_s: float = 0.0  # (localizing: the CPU of those sweeps)
     localizing: bool = False  # its last sweep was localized on the map (or it opened to)
     opened_at: float | None = None  # when it was admitted expecting to localize
     answered: int = 0  # sweeps matched
@@ -180,18 +181,31 @@ class Capacity:
     ) -> None:
         """Session ``key``'s matcher spent ``cpu_s`` on one sweep (``in_process``: in this process;
         ``localized``: on the map; ``first``: the session's first sweep, which a localizing
-        session's expected cost leaves out: :data:`MIN_LOCALIZED_SWEEPS`)."""
+        session's expected cost leaves out: :data:`MIN_LOCALIZED_SWEEPS`).
+
+        A mapping session's cost is a moving average (its keyframe model grows); a localizing
+        one's the mean since it began to localize: a window joined every 20 m of travel costs
+        tens of milliseconds once, its share of the sweeps it serves a few (a moving average
+        counted that at 30 ms a sweep for a second and refused the vehicles behind it). A session
+        that changes kind is measured anew, counted at its new kind's expected cost meanwhile."""
+        cpu_s = max(cpu_s, 0.0)
         with self._lock:
             load = self._loads.setdefault(key, _Load())
             load.answered += 1
             self._sweeps += 1
             if in_process:
                 self._local_cpu_s += cpu_s
+            if localized != load.localizing:
+                load.cpu_s, load.sweeps, load.cpu_sum_s = None, 0, 0.0
             load.localizing = localized
             if first and localized:
                 return
-            load.cpu_s = _average(load.cpu_s, max(cpu_s, 0.0))
             load.sweeps += 1
+            if localized:
+                load.cpu_sum_s += cpu_s
+                load.cpu_s = load.cpu_sum_s / load.sweeps
+            else:
+                load.cpu_s = _average(load.cpu_s, cpu_s)
 
     def service_sample(
         self, process_cpu_s: float | None = None, *, graph_cpu_s: float = 0.0, settling: bool = False

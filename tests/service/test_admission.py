@@ -380,3 +380,31 @@ def test_a_restarted_node_admits_from_what_its_sessions_were_measured_to_cost(tm
     assert load_costs(tmp_path) is None
     (tmp_path / CAPACITY_FILENAME).unlink()
     assert load_costs(tmp_path) is None
+
+
+def test_a_localizing_sessions_cost_is_its_mean_and_a_change_of_kind_is_measured_anew() -> None:
+    """A window joined every 20 m costs a localizing session tens of milliseconds once: its cost
+    is its mean since it began to localize (the spike's share of the sweeps it serves), where a
+    moving average counted it at several times that for a second. Mapping again, it is measured
+    anew (counted at a mapping session's expected cost until then)."""
+    from randt.service.capacity import MIN_SWEEPS
+
+    clock = Clock()
+    cap = Capacity(cores=2, shares_cores=True, target=0.85, sweep_cpu_s=0.05, clock=clock)
+    cap.opening("a", localizing=True)
+
+    def sweeps(n: int, cpu_s: float, localized: bool) -> None:
+        for _ in range(n):
+            cap.arrived("a")
+            cap.matched("a", cpu_s, localized=localized)
+            clock.t += 0.1
+
+    sweeps(9, 0.01, True)
+    sweeps(1, 0.11, True)  # (a window joined behind, billed to this sweep)
+    f = cap.figures(["a"])
+    assert f.measured_sessions == 1 and f.used_cores == pytest.approx(10 * 0.02, rel=0.05)  # the mean
+    sweeps(1, 0.02, False)  # mapping now: not measured as a mapping session yet
+    assert cap.figures(["a"]).measured_sessions == 0
+    sweeps(MIN_SWEEPS, 0.04, False)
+    f = cap.figures(["a"])
+    assert f.measured_sessions == 1 and f.used_cores == pytest.approx(10 * 0.04, rel=0.1)
