@@ -260,7 +260,7 @@ class MatcherSettings(BaseModel):
         ge=0,
         le=1,
         description="the same for a sweep matched on the map (localizing): the right match on a fixed "
-        "map keeps 0.9-0.99 of its points, a first sweep matched as it came 0.7-0.8 (docs/mapping.md)",
+        "map keeps nearly all its points, a wrong one far fewer (docs/mapping.md)",
     )
     min_object_inlier_ratio: float = Field(
         default=0.1,
@@ -273,8 +273,8 @@ class MatcherSettings(BaseModel):
         default=0.5,
         ge=0,
         le=1,
-        description="the same for a sweep matched on the map: the right match keeps 0.8-0.95 of its "
-        "object points, one turned 10-20 deg off keeps the ground (0.55-0.6 in all) and 0.02-0.05 of them",
+        description="the same for a sweep matched on the map: the right match keeps most of its "
+        "object points, one turned off keeps the ground and few of them (docs/mapping.md)",
     )
     max_correction_m: float = Field(
         default=2.0,
@@ -1070,9 +1070,8 @@ class IncrementalMatcher:
         """What a first sweep is matched with and from, in turn until one passes: its features
         from the prior, from the prior turned by each of :data:`FIRST_RETRY_YAW_DEG`, and on the
         map its points from the prior (the ground whole, where the features keep little of it;
-        a mapping session's sweep is not taken at its stride, and costs too much). Measured
-        on 232 first sweeps of the service bench from a noisy GNSS fix: 7 placed at the prior with
-        the features alone, 1 with these (docs/mapping.md, "In the service")."""
+        a mapping session's sweep is not taken at its stride, and costs too much): docs/mapping.md,
+        "In the service"."""
         yield feats.matching_xyz, prior_T
         for yaw in FIRST_RETRY_YAW_DEG:
             yield feats.matching_xyz, yawed(prior_T, yaw)

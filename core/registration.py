@@ -405,7 +405,7 @@ def reference_piece(
     keeps a centroid on each side and its moments are combined (:func:`~randt.core.voxel.merge_moments`).
 
     ``downsample`` false: the points are taken as they are (a map's tiles, whose density is
-    equalized already: the downsample was three quarters of a piece's cost), and the piece keeps
+    equalized already: the downsample was most of a piece's cost), and the piece keeps
     their finest voxels' means as its points (float32): a prepared reference's points serve its
     counts and the baselines, NDT reads its moments, and a piece crosses to a matcher process
     (a tenth of the tile's points)."""

@@ -31,15 +31,14 @@ MIN_LOCALIZED_SWEEPS = 5
 #: The service process's CPU per sweep is sampled over at least this many sweeps.
 MIN_SERVICE_SWEEPS = 10
 #: Sessions expected to localize that may be starting at once, per core: a start joins the map
-#: around the vehicle and finds its motion (50-100 ms of a matcher's CPU, its whole window joined
-#: behind a second later), and eight admitted together made the 20 s fleet run's p99 252 ms (103
-#: one a core at a time; docs/benchmarks.md). A session is starting from when it may start
+#: around the vehicle and finds its motion, and many starting together stall every vehicle's scans
+#: (docs/architecture.md, "Admission"). A session is starting from when it may start
 #: (:meth:`Capacity.try_start`) until its first sweep is answered, STARTING_S at most.
 STARTING_PER_CORE = 1
 STARTING_S = 2.0
 #: A session expected to localize on the map (service/localizing.py), before any localizing session
 #: was measured, is counted at this share of a mapping one's expected CPU per sweep (the larger end
-#: of what docs/benchmarks.md, "The fleet on mapped streets", measures: 0.25-0.35).
+#: of what docs/benchmarks.md, "The fleet on mapped streets", measures).
 LOCALIZED_SHARE = 0.35
 
 
@@ -184,9 +183,8 @@ class Capacity:
         session's expected cost leaves out: :data:`MIN_LOCALIZED_SWEEPS`).
 
         A mapping session's cost is a moving average (its keyframe model grows); a localizing
-        one's the mean since it began to localize: a window joined every 20 m of travel costs
-        tens of milliseconds once, its share of the sweeps it serves a few (a moving average
-        counted that at 30 ms a sweep for a second and refused the vehicles behind it). A session
+        one's the mean since it began to localize: a window joined now and then costs much once
+        and little per sweep it serves, which a moving average overstates for a while. A session
         that changes kind is measured anew, counted at its new kind's expected cost meanwhile."""
         cpu_s = max(cpu_s, 0.0)
         with self._lock:

@@ -50,8 +50,8 @@ __all__ = [
 #: keyframe: the graph has that view of the place (three quarters of the keyframe spacing; another
 #: heading sees other faces), so repeated drives add none and a place keeps a few views, one per
 #: heading. The check is made every keyframe spacing of travel, so it keeps the phase it started at:
-#: at half the spacing a vehicle passing the graph's keyframes midway (5 m from both) was never
-#: within reach, and 60 s of 8 localizing vehicles added 18-32 keyframes (docs/benchmarks.md).
+#: at half the spacing a vehicle passing the graph's keyframes midway was never within reach
+#: (docs/benchmarks.md, "The fleet on mapped streets").
 KNOWN_PLACE_M = 7.5
 KNOWN_PLACE_DEG = 30.0
 

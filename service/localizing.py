@@ -51,14 +51,14 @@ RESEND_GROWTH = 0.05
 
 
 #: Tiles' pieces the service keeps prepared for its sessions' windows (:class:`MapPieces`), the
-#: least recently used leaving beyond: about 100 KB each (the bench town's 432 tiles: 43 MB).
+#: least recently used leaving beyond (a piece is its tile's voxel moments: about 100 KB).
 MAX_PIECES = 2048
 
 
 class MapPieces:
     """The map's tiles prepared once for every session's windows (:class:`MapPreparation`: their
-    moments at the finest NDT voxel), in the service process: eight vehicles in one town cut
-    windows of 534 tiles where 227 are distinct, and each was prepared in each session's matcher.
+    moments at the finest NDT voxel), in the service process: vehicles in one town cut windows
+    of many of the same tiles, which each session's matcher prepared again (docs/mapping.md).
     A tile is prepared again once it has grown by more than :data:`RESEND_GROWTH` since (the same
     rule a window resends by); a window gets the piece and the version it was prepared at."""
 
