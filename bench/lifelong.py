@@ -7,9 +7,13 @@ Run from the repository root::
 Each day is a fresh service process (bench/service.py's ``--one``: a real
 :class:`~randt.service.runtime.Service`, the vehicles on Zenoh over loopback at 10 Hz, the pose
 graph on) started on the data directory the day before left, ``RANDT_LOCALIZE=true``. The fleet
-is bench/service.py's (town seed 1, fleet seed 3, each first sweep with an exact prior as GNSS/INS
-gives it): every day the same routes, with other sensor noise (``noise seed = 1000 (day - 1)``)
-and that day's session ids. Day 1 finds no map and maps; the days after localize on it.
+is bench/service.py's (town seed 1, fleet seed 3): every day the same routes, with other sensor
+noise (``noise seed = 1000 (day - 1)``) and that day's session ids. Day 1 finds no map and maps
+it, a survey: each vehicle's first sweep with the exact prior of a surveyed start, every session
+admitted (a session refused at its first scan would open on a later one without a prior, in its
+own frame). The days after, the fleet as it drives every day: a GNSS fix on every sweep
+(``--gnss``: bench/service.py's ``noisy``, 0.5 m noise and a 1 m bias), admission on; they
+localize on the map.
 
 Printed per day: poses, localized, shed; the graph's keyframes and loops (totals); the data
 directory on disk (MB: the graph's log and keyframe spill, the sessions' records, the map's
@@ -37,7 +41,8 @@ SERVICE_BENCH = HERE / "service.py"
 def _day_sweeps(sweeps: Path, day: int, args: argparse.Namespace) -> Path:
     """Day ``day``'s spool (simulated once, kept in ``sweeps``)."""
     spool = sweeps / f"day{day:02d}"
-    meta = {"vehicles": args.vehicles, "seconds": args.seconds, "link": args.link, "day": day}
+    gnss = "first" if day == 1 else args.gnss
+    meta = {"vehicles": args.vehicles, "seconds": args.seconds, "link": args.link, "day": day, "gnss": gnss}
     meta_path = spool / "lifelong.json"
     if meta_path.exists() and json.loads(meta_path.read_text()) == meta:
         return spool
@@ -51,19 +56,21 @@ def _day_sweeps(sweeps: Path, day: int, args: argparse.Namespace) -> Path:
         str(args.vehicles),
     ]
     command += ["--seconds", str(args.seconds), "--link", args.link, "--noise-seed", str(1000 * (day - 1))]
-    command += ["--session", f"day{day:02d}"]
+    command += ["--session", f"day{day:02d}", "--gnss", gnss]
     subprocess.run(command, check=True)
     meta_path.write_text(json.dumps(meta))
     return spool
 
 
 def _drive_day(spool: Path, before: Path | None, after: Path, args: argparse.Namespace) -> dict[str, Any]:
-    """One day's drive on a fresh service started on ``before`` (none: an empty one), its data
-    directory kept in ``after``."""
+    """One day's drive on a fresh service started on ``before`` (none: an empty one, the survey
+    with every session admitted), its data directory kept in ``after``."""
     command = [sys.executable, str(SERVICE_BENCH), "--one", str(args.vehicles), "--spool", str(spool)]
     command += ["--link", args.link, "--graph", "on", "--localize", "on", "--keep-data", str(after)]
     if before is not None:
         command += ["--data-from", str(before)]
+    else:
+        command += ["--no-admission"]
     return run_json(command, "the day's run")
 
 
@@ -87,6 +94,12 @@ def main() -> None:
         "--seconds", type=float, default=30.0, help="each vehicle's drive a day (10 Hz, 10 m/s)"
     )
     parser.add_argument("--link", choices=["default", "raw"], default="default")
+    parser.add_argument(
+        "--gnss",
+        choices=["first", "noisy"],
+        default="noisy",
+        help="the priors of days 2 to N (bench/service.py's --gnss); day 1 has first",
+    )
     parser.add_argument("--sweeps", type=Path, help="keep each day's simulated sweeps here and reuse them")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
@@ -113,7 +126,7 @@ def main() -> None:
                     str(day),
                     f"{r['poses']} / {r['sent']}",
                     str(r["localized"]),
-                    str(r["dropped"]),
+                    f"{r['dropped']} / {r['refused']} / {r['other_errors'] - r['refused']}",
                     f"{r['graph_total_keyframes']} / {r['graph_total_loops']}",
                     f"{d['total']:.0f} ({d['graph']:.0f} / {d['sessions']:.0f} / {d['maps']:.0f})",
                     f"{d['tiles']:.0f} / {r['map_points']:,}",
@@ -127,7 +140,7 @@ def main() -> None:
         "day",
         "poses / sent",
         "localized",
-        "shed",
+        "shed / refused / other errors",
         "graph keyframes / loops",
         "data dir MB (graph / sessions / maps)",
         "tiles / map points",
@@ -159,6 +172,13 @@ def _growth(days: list[dict[str, Any]]) -> None:
         worst = max(float(of(r)) for r in later)
         ratio = worst / base if base else float("nan")
         print(f"- {name}: day 1 {base:.1f}, days 2-{len(days)} at most {worst:.1f} = {ratio:.2f}x")
+    grown = (later[-1]["disk"]["sessions"] - first["disk"]["sessions"]) * 1e6
+    poses = sum(r["poses"] for r in later)
+    points = later[-1]["map_points"] / first["map_points"] - 1.0
+    print(
+        f"- the sessions' records: +{grown / 1e6:.1f} MB over days 2-{len(days)} for their {poses:,} poses, "
+        f"{grown / max(poses, 1):.0f} B a pose; the map's points +{100 * points:.2f} % (what the map lacked)"
+    )
 
 
 if __name__ == "__main__":

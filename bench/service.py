@@ -1085,6 +1085,7 @@ def main() -> None:
             args.simulate_to,
             noise_seed=args.noise_seed,
             session=args.session,
+            gnss=args.gnss,
         )
         return
     if args.one:
