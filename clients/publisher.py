@@ -230,6 +230,7 @@ def encode_sweep(
     prior_pose: np.ndarray | None = None,
     prior_covariance: np.ndarray | None = None,
     geo_prior: GeoPrior | None = None,
+    localize_only: bool = False,
     settings: PublisherSettings | None = None,
 ) -> bytes:
     """The payload :meth:`VehiclePublisher.publish` sends for one sweep.
@@ -247,6 +248,8 @@ def encode_sweep(
         (N, 3) x, y, z or (N, 4) x, y, z, intensity, metres, sensor frame.
     intensity, time_offset_s, prior_pose, prior_covariance, geo_prior:
         As :meth:`VehiclePublisher.publish`.
+    localize_only:
+        As :class:`VehiclePublisher`.
     settings:
         The link settings; ``None``: ``PublisherSettings()`` (the defaults, or ``RANDT_VEHICLE_*``).
 
@@ -287,6 +290,7 @@ def encode_sweep(
             prior_pose=prior_pose,
             prior_covariance=prior_covariance,
             geo_prior=geo_prior,
+            localize_only=localize_only,
             limits=limits,
         )
 
@@ -344,6 +348,11 @@ class VehiclePublisher:
     first_seq:
         Sequence number of the first scan (the service requires strictly increasing ``seq`` per
         session; resume a session with the next number).
+    localize_only:
+        The session only localizes on the shared map and never adds to it (docs/clients.md, "A
+        session that only localizes"): its scans carry ``localize_only`` and need a prior pose
+        until the vehicle is on the map; where the map holds too little the service answers
+        ``not_on_map``.
     """
 
     def __init__(
@@ -360,7 +369,9 @@ class VehiclePublisher:
         on_pose: Callable[[PoseMessage], Any] | None = None,
         on_error: Callable[[ErrorMessage], Any] | None = None,
         first_seq: int = 0,
+        localize_only: bool = False,
     ) -> None:
+        self.localize_only = localize_only
         self.settings = _settings_with(
             settings,
             mode=mode,
@@ -468,6 +479,7 @@ class VehiclePublisher:
             prior_pose=prior_pose,
             prior_covariance=prior_covariance,
             geo_prior=geo_prior,
+            localize_only=self.localize_only,
             settings=self.settings,
         )
         with self._cond:

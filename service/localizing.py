@@ -102,11 +102,14 @@ class MapPieces:
         return len(self._pieces)
 
 
-def expects_to_localize(settings: ServiceSettings, grid: TileGrid, prior_pose: object) -> bool:
+def expects_to_localize(
+    settings: ServiceSettings, grid: TileGrid, prior_pose: object, *, only: bool = False
+) -> bool:
     """Whether a session opening with this prior pose (16 floats, row-major ``T_map_sensor``;
-    ``None``: none) will localize: ``localize`` on and the map's tiles around the prior holding
-    what :class:`SessionLocalizer` asks of a window (admission counts it at that cost)."""
-    if not settings.localize or prior_pose is None:
+    ``None``: none) will localize: ``localize`` on (or the session localizes ``only``) and the
+    map's tiles around the prior holding what :class:`SessionLocalizer` asks of a window
+    (admission counts it at that cost)."""
+    if not (settings.localize or only) or prior_pose is None:
         return False
     T = np.asarray(prior_pose, dtype=np.float64).reshape(-1)
     if T.shape != (16,) or not np.isfinite(T).all():
@@ -118,8 +121,12 @@ def expects_to_localize(settings: ServiceSettings, grid: TileGrid, prior_pose: o
 class SessionLocalizer:
     """One session's localizing or mapping (module docstring)."""
 
-    def __init__(self, settings: ServiceSettings, pieces: MapPieces | None = None) -> None:
-        self.enabled = settings.localize
+    def __init__(
+        self, settings: ServiceSettings, pieces: MapPieces | None = None, *, only: bool = False
+    ) -> None:
+        #: a session that only localizes (``localize_only``): it never maps, whatever ``localize``
+        self.only = only
+        self.enabled = settings.localize or only
         self.pieces = pieces  # (the service's tiles prepared for every session; None: send points)
         self.radius_m = settings.localize_radius_m
         self.reload_m = settings.localize_reload_m
@@ -169,6 +176,27 @@ class SessionLocalizer:
             self._asked = True
             return MapWindow(token, held[1], radius_m=held[3])
         return self._cut(grid, token, xy)
+
+    def not_on_map(
+        self, map_name: str, grid: TileGrid, prior: PosePrior | None, poses: list[np.ndarray]
+    ) -> str:
+        """Why a session that only localizes got no window for this sweep (:meth:`window`
+        returned ``None``): its place is not known, or the map holds too little around it."""
+        if prior is None and not poses:
+            return (
+                "this session only localizes (localize_only) and the vehicle's place is not known: "
+                "send its scans with a prior pose (GNSS/INS); relocalization on the map without one "
+                "is not available yet"
+            )
+        near = prior.T_world_sensor if prior is not None else poses[-1]
+        x, y = (float(v) for v in np.asarray(near, dtype=np.float64)[:2, 3])
+        radius = self.radius_m if self._cut_before else self.first_radius_m
+        held = sum(t.n_points for t in grid.tiles_near(np.array([x, y]), radius))
+        return (
+            f"this session only localizes (localize_only) and map {map_name!r} holds {held:,} points "
+            f"within {radius:g} m of ({x:.1f}, {y:.1f}) m, fewer than the {self.min_points:,} it "
+            "localizes on: no pose here"
+        )
 
     def _cut(self, grid: TileGrid, token: tuple[str, int, int], xy: np.ndarray) -> MapWindow | None:
         """A new window: the tiles within ``localize_radius_m`` (the session's first:
@@ -235,6 +263,7 @@ class SessionLocalizer:
             return
         self._misses += 1
         if self._misses >= MISSES_BEFORE_MAPPING:
-            self._held, self._mapping_for, self._misses = None, MAP_AFTER_MISS, 0
+            self._held, self._misses = None, 0
+            self._mapping_for = 0 if self.only else MAP_AFTER_MISS
         elif self._misses >= 2:
             self._held = None

@@ -81,6 +81,9 @@ class MapFrame:
     window:
         The map around the vehicle, to localize the sweep on (:class:`MapWindow`); ``None``: the
         sweep is mapped (matched on the session's keyframes).
+    for_map:
+        Whether the sweep's points may go into the map (``False``: a session that only localizes;
+        the answer carries none, :class:`Registered`).
     """
 
     token: tuple[str, int, int]
@@ -88,6 +91,7 @@ class MapFrame:
     seed_xyz: np.ndarray | None = None
     prior: PosePrior | None = None
     window: MapWindow | None = None
+    for_map: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -323,9 +327,13 @@ class Registered:
         ``keyframe_voxel_m`` is given. A fallback keeps no points, nor a sweep not deskewed
         (``ScanResult.deskewed``: a first sweep with point times) for the map; the agreement
         check still reads its keyframe points. A sweep localized on the window ``windows`` holds
-        keeps for the map only what the map lacks (:meth:`MapWindows.lacking`)."""
+        keeps for the map only what the map lacks (:meth:`MapWindows.lacking`); a sweep of a
+        frame not ``for_map``, nothing."""
         if result.status == "fallback":
             return cls(result, np.empty((0, 3), np.float32), np.empty(0, np.intp))
+        if frame is not None and not frame.for_map:  # (nor its sweep back from a matcher process)
+            slim = replace(result, deskewed_xyz=np.empty((0, 3)), map_index=np.empty(0, np.intp))
+            return cls(slim, np.empty((0, 3), np.float32), np.empty(0, np.intp))
         keyframe = keyframe_index = None
         if keyframe_voxel_m is not None and len(result.deskewed_xyz):
             keys = pack_keys(voxel_coords(result.deskewed_xyz, keyframe_voxel_m))

@@ -12,6 +12,7 @@ from randt.core.errors import BadMessageError
 from randt.core.odometry import extend_state_dict, with_keyframe
 from randt.service.matchers import LocalMatcher, MatcherExecutor, SessionMatcher, with_trajectory
 from randt.service.session_info import SessionInfo
+from randt.service.session_record import SessionFrame
 from randt.service.snapshots import SessionSaver
 from randt.service.store import SessionRecord
 from randt.service.worker import SessionWorker, WorkerServices
@@ -62,7 +63,8 @@ def open_session(
         services.store.reset_pose_log(*key)
         in_map = scan.prior_pose() is not None or scan.geo_prior is not None
         map_name = services.settings.default_map if in_map else session_map_name(scan.vehicle, scan.session)
-        info = SessionInfo(scan.vehicle, scan.session, map_name, "map" if in_map else "session")
+        frame: SessionFrame = "map" if in_map else "session"
+        info = SessionInfo(scan.vehicle, scan.session, map_name, frame, localize_only=scan.localize_only)
     grid = services.maps.grid(info.map_name)
     settings = services.settings
     matcher: SessionMatcher
@@ -103,6 +105,7 @@ def _resumed(
         stamps_s=list(np.asarray(stamps, dtype=float)),
         saved_scans=len(poses),  # every one of them on disk
         snapshot_xyz=np.array(poses[-1][:3, 3]) if len(poses) else None,
+        localize_only=record.localize_only,
     )
     log.info("session %s/%s resumed at seq %d (%d poses)", *key, info.last_seq, len(poses))
     return info, state

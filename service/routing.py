@@ -154,10 +154,10 @@ class ScanRouter:
     def _localizing(self, scan: ScanHeader) -> bool:
         """Whether a session opened by ``scan`` is expected to localize on the map (its prior in
         the default map; admission counts it at a localizing session's cost)."""
-        if not self.settings.localize or scan.prior is None:
+        if not (self.settings.localize or scan.localize_only) or scan.prior is None:
             return False
         grid = self.opener.services.maps.grid(self.settings.default_map)
-        return expects_to_localize(self.settings, grid, scan.prior.pose)
+        return expects_to_localize(self.settings, grid, scan.prior.pose, only=scan.localize_only)
 
     def _route(self, job: Job) -> tuple[Job | None, tuple[str, str] | Refused | None]:
         """The job into its session's queue, the queue of the session being opened, or a new

@@ -59,3 +59,6 @@ class SessionInfo:
     #: lost because its sweeps disagree with it (service/agreement.py).
     map_agreement: float = float("nan")
     map_disagrees: bool = False
+    #: The session only localizes on the shared map, never adds to it (its first scan's
+    #: ``localize_only``; docs/mapping.md, "A session that only localizes").
+    localize_only: bool = False

@@ -57,6 +57,8 @@ class SessionRecord(BaseModel):
     frame:
         ``"map"`` if the poses are in the map's frame, ``"session"`` if in the session's own
         (its first scan's) frame.
+    localize_only:
+        The session only localizes on the shared map (its first scan asked), never adds to it.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -71,6 +73,7 @@ class SessionRecord(BaseModel):
     n_scans: int = Field(default=0, ge=0)
     n_fallbacks: int = Field(default=0, ge=0)
     frame: SessionFrame = "session"
+    localize_only: bool = False
 
     @property
     def key(self) -> tuple[str, str]:

@@ -92,6 +92,7 @@ class SessionSaver:
                 n_scans=info.n_scans,
                 n_fallbacks=info.n_fallbacks,
                 frame=info.frame,
+                localize_only=info.localize_only,
             )
             if w.broken:
                 return False  # its matcher died, or its log failed: the store keeps the truth

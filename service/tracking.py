@@ -38,7 +38,8 @@ def track(info: SessionInfo, scan: ScanHeader, result: ScanResult, horizon_s: fl
         if not info.lost:
             log.warning("session %s/%s lost its track at scan %d", *key, scan.seq)
         info.lost = True
-        gap = "since it resumed" if since_ns is None else f"for {since_ns * 1e-9:.2f} s"
+        began = "since it began" if info.n_scans == 0 else "since it resumed"
+        gap = began if since_ns is None else f"for {since_ns * 1e-9:.2f} s"
         return (
             f"lost: no match {gap} (a prediction is answered for {horizon:g} s at most); "
             f"poses resume after {VERIFY_MATCHES} consecutive matches"

@@ -14,7 +14,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -66,6 +66,8 @@ MAP_SEED_REACH_M = 60.0
 #: The covariance a keyframe placed on the map enters the pose graph with (``_on_map_fix``): 5 cm
 #: and 0.2 deg, what a match on the map is good to (docs/mapping.md, "In the service").
 ON_MAP_FIX_COVARIANCE = np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)
+#: The message of a first sweep of a session that only localizes which did not match the map.
+NOT_MATCHED_FIRST = "the first sweep did not match the map around its prior"
 #: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
 MIN_RESUME_POINTS = 100
 #: A session whose queue holds at least this many scans is behind: on a node past its capacity its
@@ -141,8 +143,11 @@ class SessionWorker:
         s = services.settings
         gate = AgreementGate(s.map_agreement_min, s.map_agreement_every, s.map_agreement_min_points)
         self.points = MapPoints(self, gate, self.lock, services.maps, services.metrics)
-        self.localizer = SessionLocalizer(s, services.pieces)  # (localizing or mapping, sweep by sweep)
+        # (localizing or mapping, sweep by sweep; or only localizing)
+        self.localizer = SessionLocalizer(s, services.pieces, only=info.localize_only)
         self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
+        # A pose was answered (a resumed session's were): the first waits for the first snapshot.
+        self._posed = info.n_scans > 0
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionSaver.save_resume_sweeps).
         self.resume_sweep: ResumeSweep | None = None
@@ -312,6 +317,8 @@ class SessionWorker:
         s, info = self.services, self.info
         if info.n_scans == 0:
             self._fix_frame(prior is not None)
+        if info.localize_only:  # (nothing of its sweeps goes to the map or the graph)
+            return False, None
         graph, poses = s.graph, self.matcher.poses
         # a localizing session: no points for a keyframe the graph would not add, nor for the
         # agreement check (its match on the map is the check: service/folding.py)
@@ -357,6 +364,10 @@ class SessionWorker:
         rebuilt after the pose is out). A matcher process that died breaks the session."""
         scan, s = job.scan, self.services
         frame = self._map_frame(scan, prior)
+        if self.info.localize_only and frame.window is None:
+            name = frame.token[0]
+            why = self.localizer.not_on_map(name, self._grid_of(name), prior, self.matcher.poses)
+            return Refusal(ErrorCode.NOT_ON_MAP, why)
         try:
             registered = self.matcher.register_payload(
                 job.payload,
@@ -384,7 +395,17 @@ class SessionWorker:
                 first=registered.result.index == 0,
             )
         self.localizer.answered(registered.result)
-        return registered
+        return self._unplaced_first(registered)
+
+    def _unplaced_first(self, registered: Registered) -> Registered:
+        """A session that only localizes answers no pose the map did not give: its first sweep,
+        placed at its prior when it did not match the map there, is a ``fallback`` (the session is
+        lost until its sweeps match the map: service/tracking.py)."""
+        result = registered.result
+        if not self.info.localize_only or result.localized or result.status != "first":
+            return registered
+        unplaced = replace(result, status="fallback", message=NOT_MATCHED_FIRST)
+        return replace(registered, result=unplaced)
 
     def _log_pose(self, scan: ScanHeader, result: ScanResult) -> Refusal | None:
         """Durable before acknowledged: the pose into the session's fsync'd log before it is
@@ -417,6 +438,8 @@ class SessionWorker:
         """The sweep's map points wait to be folded, into the map they go to and moved by the
         session's newest correction (the map follows the pose graph), after the map agreement
         check; lost when the session's sweeps disagree with its map."""
+        if self.info.localize_only:
+            return None  # (it holds none: service/matcher_io.py, MapFrame.for_map)
         C, fold_map = self._fold_target()
         if self.localizer.enabled:
             self.localizer.folding(fold_map, self._grid_of(fold_map), registered.map_xyz)
@@ -465,9 +488,10 @@ class SessionWorker:
         result = outcome.result
         answer = pose_message(scan, result, self.info.map_name)
         self.services.metrics.registration_seconds.observe(result.time_s)
-        if result.index != 0:
+        if self._posed:
             self.out.publish(answer, job.received_ns)
-        else:
+        else:  # (a session that only localizes may answer its first sweeps without a pose)
+            self._posed = True
             self.out.first(answer, job.received_ns, lambda: self.services.save(self))
 
     def _offer_keyframe(self, scan: ScanHeader, registered: Registered, prior: PosePrior | None) -> None:
@@ -515,8 +539,10 @@ class SessionWorker:
         token = (fold_map, *grid.content_token)
         window = self.localizer.window(grid, token, prior, self.matcher.poses, self.info.frame)
         # (a first sweep with a window is placed on it: the seed's points would go twice)
-        seed = self._map_seed(prior) if self.info.n_scans == 0 and window is None else None
-        return MapFrame(token, C, seed, prior if scan.geo_prior is not None else None, window)
+        only = self.info.localize_only
+        seed = self._map_seed(prior) if self.info.n_scans == 0 and window is None and not only else None
+        placed = prior if scan.geo_prior is not None else None
+        return MapFrame(token, C, seed, placed, window, for_map=not only)
 
     def _map_seed(self, prior: PosePrior | None) -> np.ndarray | None:
         """For a session's first sweep with a prior: its map's points within

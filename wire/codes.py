@@ -51,6 +51,7 @@ class ErrorCode(StrEnum):
     VEHICLE_SESSIONS_FULL = "vehicle_sessions_full"
     REGISTRATION_FAILED = "registration_failed"
     LOST = "lost"
+    NOT_ON_MAP = "not_on_map"
     STORAGE_ERROR = "storage_error"
     INTERNAL_ERROR = "internal_error"
 
@@ -92,6 +93,9 @@ SERVICE_CODES: Final[dict[ErrorCode, str]] = {
     "trusted, fallback_horizon_s; or a relocalization not yet verified) or its sweeps do not agree "
     "with the map they fold into (map_agreement_min), so no pose and nothing folded; it answers "
     "poses again once two consecutive matches (two map checks) agree (keep sending; a prior helps)",
+    ErrorCode.NOT_ON_MAP: "the session only localizes (localize_only) and the shared map holds too little "
+    "around the vehicle to localize on, or the vehicle's place is not known (no prior pose yet): no pose, "
+    "nothing folded; it answers poses again where the map holds its surroundings (keep sending)",
     ErrorCode.STORAGE_ERROR: "the scan's pose could not be made durable (disk full, read-only): no pose "
     "was published for it; the session resumes from its stored state",
     ErrorCode.INTERNAL_ERROR: "the service failed on this scan (a bug, logged) or its matcher process died",

@@ -393,6 +393,10 @@ class ScanMessage(_Message):
         ``stamp_ns``, or the sweep's middle (``stamp_ns`` + period / 2) with ``time_offsets``.
     geo_prior:
         Optional :class:`GeoPrior`: the same in WGS84 (not with ``prior``).
+    localize_only:
+        Optional, ``true``: the session only localizes on the shared map, never adds to it
+        (docs/clients.md, "A session that only localizes"); its first scan decides for the whole
+        session. Absent: ``false``.
 
     A compact (v2) payload decodes to this same model, its bodies expanded to these float32 buffers,
     with :attr:`encoding` telling how it travelled (``None`` for a v1 payload).
@@ -408,6 +412,7 @@ class ScanMessage(_Message):
     prior: Prior | None = None
     # (absent rather than nil when not given: a scan without one is the same bytes as before)
     geo_prior: GeoPrior | None = Field(default=None, exclude_if=lambda v: v is None)
+    localize_only: bool = Field(default=False, exclude_if=lambda v: not v)
 
     _encoding: ScanEncoding | None = PrivateAttr(default=None)
 
@@ -574,6 +579,7 @@ class CompactScanMessage(BaseModel):
     intensity: bytes | None = None
     prior: Prior | None = None
     geo_prior: GeoPrior | None = None
+    localize_only: bool = False
 
     @field_validator("vehicle", "session")
     @classmethod
@@ -620,6 +626,7 @@ def _expand(compact: CompactScanMessage, limits: WireLimits) -> ScanMessage:
         "time_offsets": offsets,
         "prior": compact.prior,
         "geo_prior": compact.geo_prior,
+        "localize_only": compact.localize_only,
     }
     scan = _validate(ScanMessage, obj, limits)
     scan._encoding = enc
@@ -712,6 +719,8 @@ def encode_scan_v2(
     }
     if scan.geo_prior is not None:
         obj["geo_prior"] = scan.geo_prior.model_dump()
+    if scan.localize_only:  # (absent when false: the same bytes as before)
+        obj["localize_only"] = True
     return msgpack.packb(obj, use_bin_type=True)
 
 
@@ -1331,6 +1340,9 @@ class ScanHeader:
     geo_prior: GeoPrior | None = None
     #: a ROS 2 robot's NavSatFix at the scan (randt.wire.ros2; our own scans carry none)
     gnss_fix: GnssFix | None = None
+    #: the session only localizes on the shared map (:attr:`ScanMessage.localize_only`; a ROS 2
+    #: robot's from the service's settings)
+    localize_only: bool = False
 
     def prior_pose(self) -> np.ndarray | None:
         """(4, 4) float64 ``T_map_sensor`` of the prior, or ``None``."""
@@ -1355,9 +1367,15 @@ def decode_scan_header(payload: bytes, limits: WireLimits | None = None) -> Scan
         obj = _unpack(payload, limits, SCAN_VERSIONS)
         if obj["v"] == SCAN_V2:
             c = _validate(CompactScanMessage, obj, limits)
-            return ScanHeader(c.v, c.vehicle, c.session, c.seq, c.stamp_ns, c.n_points, c.prior, c.geo_prior)
+            return ScanHeader(
+                c.v, c.vehicle, c.session, c.seq, c.stamp_ns, c.n_points, c.prior, c.geo_prior,
+                localize_only=c.localize_only,
+            )  # fmt: skip
         m = _validate(ScanMessage, obj, limits)
-        return ScanHeader(m.v, m.vehicle, m.session, m.seq, m.stamp_ns, m.n_points, m.prior, m.geo_prior)
+        return ScanHeader(
+            m.v, m.vehicle, m.session, m.seq, m.stamp_ns, m.n_points, m.prior, m.geo_prior,
+            localize_only=m.localize_only,
+        )  # fmt: skip
     except BadMessageError:
         raise
     except Exception as exc:  # a decoder bug must not take down a transport callback
@@ -1498,6 +1516,7 @@ def scan_from_arrays(
     prior_covariance: np.ndarray | None = None,
     *,
     geo_prior: GeoPrior | None = None,
+    localize_only: bool = False,
     limits: WireLimits | None = None,
 ) -> ScanMessage:
     """Build a validated scan from arrays (points and offsets converted to little-endian float32).
@@ -1516,6 +1535,8 @@ def scan_from_arrays(
         (4, 4) ``T_map_sensor`` and its (6, 6) covariance (tx ty tz rx ry rz), both or neither.
     geo_prior:
         The prior in WGS84 instead (:class:`GeoPrior`, e.g. :func:`geo_prior`).
+    localize_only:
+        The session only localizes on the shared map (:attr:`ScanMessage.localize_only`).
     limits:
         Limits to validate against (the defaults when ``None``).
 
@@ -1574,6 +1595,7 @@ def scan_from_arrays(
         "time_offsets": offsets,
         "prior": prior,
         "geo_prior": geo_prior,
+        "localize_only": localize_only,
     }
     return _validate(ScanMessage, obj, limits)
 

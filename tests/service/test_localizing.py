@@ -504,3 +504,88 @@ def test_vehicles_opening_together_on_the_map_start_one_a_core_at_a_time(tmp_pat
     assert all(isinstance(m, PoseMessage) and m.mode == "localizing" for m in answers), answers
     for k, m in enumerate(sorted(answers, key=lambda m: m.vehicle)):
         assert transform_error(m.matrix(), second[10 * k].T_world_sensor)[0] < 0.05
+
+
+def _send_only(
+    mgr: SessionManager,
+    out: list,
+    vehicle: str,
+    scans: list[SimScan],
+    first_T: np.ndarray | None,
+    shift: np.ndarray | None = None,
+) -> list[PoseMessage | ErrorMessage]:
+    """``scans`` as a session that only localizes (``localize_only``), the first with a GNSS prior
+    at ``first_T`` (``None``: none), or with ``shift`` every scan with one at its true pose moved
+    by ``shift``: its answers, in order."""
+    for k, scan in enumerate(scans):
+        extra = {"prior_pose": first_T, "prior_covariance": GNSS} if k == 0 and first_T is not None else {}
+        if shift is not None:
+            extra = {"prior_pose": shift @ scan.T_world_sensor, "prior_covariance": GNSS}
+        msg = scan_from_arrays(vehicle, "d1", k, scan.stamp_ns, scan.points_xyz, localize_only=True, **extra)
+        mgr.submit(vehicle, encode(msg))
+        deadline = time.monotonic() + 60
+        while sum(isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == vehicle for m in list(out)) <= k:
+            assert time.monotonic() < deadline, "the service stopped answering"
+            time.sleep(0.002)
+    return sorted(
+        (m for m in out if isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == vehicle),
+        key=lambda m: m.seq,
+    )
+
+
+def _keyframes(mgr: SessionManager) -> int:
+    assert mgr.graph is not None
+    state = mgr.graph.snapshot("default")
+    return 0 if state is None else sum(len(kfs) for kfs in state.keyframes.values())
+
+
+def test_a_session_that_only_localizes_never_adds_to_the_map(tmp_path: Path) -> None:
+    """``localize_only`` (with the service's ``localize`` off): on the first drive's streets every
+    answer is localized on its map, within 5 cm, and the map's points and the graph's keyframes
+    stay as they were; far from any tile, or with no prior to find the map by, each scan is
+    answered ``not_on_map`` saying why, and nothing reaches the map; a first prior 50 m off is
+    never answered as a good pose."""
+    mapper, second = _drive(1), _drive(2)
+    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, localize=False)  # type: ignore[call-arg]
+    out: list = []
+    metrics = ServiceMetrics()
+    mgr = SessionManager(settings, Store(tmp_path), out.append, metrics)
+    try:
+        assert mgr.wait_matchers(300) and mgr.graph is not None
+        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
+        mgr.close("mapper", "d1")
+        assert mgr.graph.wait_idle(120)
+        mapped, keyframes = _map_points(mgr), _keyframes(mgr)
+        T0 = second[0].T_world_sensor.copy()
+        T0[:2, 3] += (1.5, -1.0)  # the GNSS fix's error
+        answers = _send_only(mgr, out, "second", second, T0)
+        far = np.eye(4)
+        far[:2, 3] = (500.0, 0.0)
+        away = _send_only(mgr, out, "far", second[:5], None, far)  # (GNSS on every scan)
+        blind = _send_only(mgr, out, "blind", second[:3], None)
+        off = second[0].T_world_sensor.copy()
+        off[:2, 3] += second[-1].T_world_sensor[:2, 3] - second[0].T_world_sensor[:2, 3]  # the drive's end
+        assert np.linalg.norm(off[:2, 3] - T0[:2, 3]) > 40.0
+        off_answers = _send_only(mgr, out, "off", second[:20], off)
+        assert mgr.graph.wait_idle(120)
+        after, keyframes_after = _map_points(mgr), _keyframes(mgr)
+        record = mgr.saver.record(("second", "d1"))
+    finally:
+        mgr.stop()
+    poses = [a for a in answers if isinstance(a, PoseMessage)]
+    assert len(poses) == len(answers) and [a.mode for a in poses] == ["localizing"] * N_SCANS, answers
+    errors = np.array(
+        [transform_error(a.matrix(), s.T_world_sensor) for a, s in zip(poses, second, strict=True)]
+    )
+    assert errors[:, 0].max() < 0.05 and errors[:, 1].max() < 0.3, errors.max(axis=0)
+    assert (after, keyframes_after) == (mapped, keyframes)  # nothing folded, no keyframe offered
+    assert record is not None and record.localize_only and record.frame == "map"
+    for got, says in ((away, "points within 50 m"), (blind, "place is not known")):
+        assert all(isinstance(m, ErrorMessage) and m.code == "not_on_map" for m in got), got
+        reasons = [m.reason for m in got if isinstance(m, ErrorMessage)]
+        assert len(reasons) == len(got) and all(says in r for r in reasons), reasons
+    good = [m for m in off_answers if isinstance(m, PoseMessage) and m.status in ("ok", "first")]
+    truth = {k: s.T_world_sensor for k, s in enumerate(second)}
+    assert all(transform_error(m.matrix(), truth[m.seq])[0] < 0.3 for m in good), [
+        (m.seq, m.status, transform_error(m.matrix(), truth[m.seq])[0]) for m in good
+    ]

@@ -1188,3 +1188,25 @@ def test_a_geo_prior_travels_in_v1_and_v2_and_in_the_header() -> None:
     with pytest.raises(BadMessageError, match="latitude") as info:
         geo_prior(95.0, 139.0, 0.0, R, cov)
     assert info.value.code == "invalid_prior"
+
+
+def test_localize_only_travels_in_v1_and_v2_and_in_the_header() -> None:
+    """``localize_only`` (issue 57): true back from a v1 and a v2 payload and from the header
+    alone; absent when false (a scan without it is the same bytes as before); not a bool:
+    ``invalid_field``."""
+    from randt.wire.messages import decode_scan_header, encode_scan_v2
+
+    xyz = np.random.default_rng(2).normal(size=(50, 3))
+    only = scan_from_arrays("car", "s", 0, 17, xyz, localize_only=True)
+    for payload in (encode(only), encode_scan_v2(only)):
+        assert decode_scan(payload).localize_only and decode_scan_header(payload).localize_only
+    plain = scan_from_arrays("car", "s", 0, 17, xyz)
+    for payload in (encode(plain), encode_scan_v2(plain)):
+        assert b"localize_only" not in payload
+        assert not decode_scan(payload).localize_only and not decode_scan_header(payload).localize_only
+    for payload in (encode(only), encode_scan_v2(only)):
+        bad = msgpack.unpackb(payload, raw=False)
+        bad["localize_only"] = "yes"
+        with pytest.raises(BadMessageError, match="localize_only") as info:
+            decode_scan_header(msgpack.packb(bad, use_bin_type=True))
+        assert info.value.code == "invalid_field"
