@@ -6,6 +6,7 @@
     ├── InvalidCloudError           empty, too few points, wrong shape or dtype
     ├── DegenerateProblemError      the geometry does not constrain all 6 DoF (e.g. one plane)
     ├── RegistrationFailedError     the optimiser diverged or produced a non-finite pose
+    │   └── NotRelocalizedError     a sweep did not match the map at the place guessed for it
     ├── FormatError                 a file could not be read or written in the named format
     │   └── NoScansError            a sequence folder holds no scan files (randt.core.datasets)
     ├── BadMessageError             a wire message failed to decode or validate (service)
@@ -48,6 +49,7 @@ __all__ = [
     "InvalidCloudError",
     "InvalidRequestError",
     "NotFoundError",
+    "NotRelocalizedError",
     "RandtError",
     "RegistrationFailedError",
     "UnavailableError",
@@ -97,6 +99,11 @@ class DegenerateProblemError(RandtError):
 
 class RegistrationFailedError(RandtError):
     """The optimiser could not produce a usable transform (diverged, non-finite)."""
+
+
+class NotRelocalizedError(RegistrationFailedError):
+    """A sweep relocalized on the map (``IncrementalMatcher.register_scan``'s ``relocalize``)
+    did not match it at the place guessed for it: the matcher is left as it was."""
 
 
 class FormatError(RandtError, ValueError):

@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from randt.core.config import RegistrationSettings
-from randt.core.errors import InvalidCloudError, RandtError
+from randt.core.errors import InvalidCloudError, NotRelocalizedError, RandtError
 from randt.core.features import Features, extract_features
 from randt.core.global_registration import GlobalSettings, register_global
 from randt.core.kernels import deskew_points
@@ -611,6 +611,7 @@ class IncrementalMatcher:
         self.model_voxel_m = 0.0
         self._state = MatcherState.empty(self.settings.max_keyframes)
         self._on_map_now = False  # (this sweep is matched on the map: _matching_on)
+        self._first_why = ""  # why the first sweep's match to the map was not taken
 
     @property
     def state(self) -> MatcherState:
@@ -747,6 +748,7 @@ class IncrementalMatcher:
         defer_model: bool = False,
         map_seed: np.ndarray | None = None,
         on_map: PreparedReference | None = None,
+        relocalize: bool = False,
     ) -> ScanResult:
         """Register one sweep (sensor frame) and return its :class:`ScanResult`.
 
@@ -773,9 +775,19 @@ class IncrementalMatcher:
         is extrapolated over the time since the previous sweep instead of one period. Without
         stamps every sweep is taken to follow the previous one by ``period_s``.
 
-        All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model), the
-        matcher is left exactly as it was, so the session's poses and stamps stay in step.
+        ``relocalize``: the session's first sweep, its ``prior`` a place guessed for it on the map
+        ``on_map`` (place recognition: docs/mapping.md, "Relocalization"), not a fix: it is
+        matched there as a first sweep is, and when no match passes it raises
+        :class:`~randt.core.errors.NotRelocalizedError` instead of being placed at the guess.
+
+        All or nothing: when it raises (an invalid sweep, a keyframe too sparse to model, a sweep
+        not relocalized), the matcher is left exactly as it was, so the session's poses and stamps
+        stay in step.
         """
+        if relocalize and (prior is None or self._state.poses):
+            raise ValueError("relocalize: a session's first sweep, with a prior (the place guessed)")
+        if relocalize and on_map is None:
+            raise NotRelocalizedError("relocalization: no map around the place guessed was prepared")
         if len(self._state.pending) > MAX_PENDING_KEYFRAMES:
             self.update_model()
         saved = self._state.snapshot()
@@ -788,6 +800,7 @@ class IncrementalMatcher:
                 defer_model=defer_model,
                 map_seed=map_seed,
                 on_map=on_map,
+                relocalize=relocalize,
             )
         except BaseException:
             self._state = saved
@@ -897,6 +910,7 @@ class IncrementalMatcher:
         defer_model: bool = False,
         map_seed: np.ndarray | None = None,
         on_map: PreparedReference | None = None,
+        relocalize: bool = False,
     ) -> ScanResult:
         """One sweep, the stages of the module docstring; :meth:`register_scan` restores the state
         if it raises."""
@@ -924,6 +938,8 @@ class IncrementalMatcher:
             with self._matching_on(on_map):
                 first = self._first_in_map(xyz, feats, prior_T, prior, map_seed, on_map)
                 T_first, message, matched_on = first
+                if relocalize and matched_on is None:
+                    raise NotRelocalizedError(f"relocalization: {self._first_why}")
                 if matched_on is not None and sweep.time_offset_s is not None:
                     timed = self._preparer(sweep.xyz, sweep.time_offset_s, times)  # (it deskews)
                     T_first, xyz, feats, velocity = self._first_deskewed_on_map(
@@ -1062,6 +1078,7 @@ class IncrementalMatcher:
         except RandtError as exc:
             why = f"it failed ({exc})"
         log.info("first sweep: its match to the map is not taken (%s): placed at its prior", why)
+        self._first_why = f"the sweep's match to the map is not taken ({why})"
         return prior_T, "", None
 
     def _first_candidates(

@@ -250,6 +250,10 @@ class PlaceIndex:
         """The stored keys, in the order added."""
         return list(self._keys)
 
+    def descriptor(self, key: Hashable) -> np.ndarray:
+        """The descriptor stored as ``key`` (a copy); :class:`KeyError` when none is."""
+        return np.array(self._descriptors[self._rows[key]])
+
     def add(self, key: Hashable, descriptor: npt.ArrayLike) -> None:
         """Store ``descriptor`` (:func:`scan_context` with this index's settings) as ``key``.
 

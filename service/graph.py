@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from randt.core.fleet_map import FleetMapSettings
+from randt.core.odometry import PosePrior
 from randt.service.graph_journal import GraphJournal
 from randt.service.graph_priority import GRAPH_NICE, YieldGate
 from randt.service.graph_process import MOVE_TOL_DEG, MOVE_TOL_M, MapGeometry
@@ -31,6 +32,7 @@ from randt.service.graph_state import (
 )
 from randt.service.graph_supervisor import GraphSupervisor
 from randt.service.metrics import ServiceMetrics
+from randt.service.places import MapPlaces
 from randt.wire.messages import CorrectionMessage
 
 __all__ = [
@@ -80,7 +82,7 @@ class ServiceGraph:
         self.geometry = geometry or MapGeometry(20, 0.2, 1)
         self.keyframe_m = keyframe_m
         #: What the service knows of the graphs (the receiver writes it, the reads read it).
-        self.view = GraphView(metrics, outbox, on_refold, on_join, keyframe_m)
+        self.view = GraphView(metrics, outbox, on_refold, on_join, keyframe_m, MapPlaces(settings.place))
         self.queue = GraphQueue(metrics, self._forget_keyframe, queue_size)
         #: The keyframes the graph took, durable (service/graph_log.py): every (re)started process
         #: takes them again first. No ``log_dir``: the graph lives in memory only.
@@ -193,7 +195,7 @@ class ServiceGraph:
         if localized and self.passes_known_place(vehicle, session, map_name, T_live):
             return
         map_name = self.view.offered(
-            (vehicle, session), map_name, Keyframe(seq, index, stamp_s, T_live.copy())
+            (vehicle, session), map_name, Keyframe(seq, index, stamp_s, T_live.copy()), points
         )
         if map_name == join:
             join = None
@@ -201,6 +203,11 @@ class ServiceGraph:
         if not self.queue.closed:
             self.supervisor.start()
         self.queue.offer(item, logged=self.journal.durable)
+
+    def relocalize(self, map_name: str, xyz: np.ndarray) -> list[PosePrior]:
+        """Guesses of the pose on ``map_name`` of a sweep without a prior (``xyz``, sensor frame),
+        from the places of its graph's keyframes (service/places.py), nearest first."""
+        return self.view.guesses(map_name, xyz)
 
     def passes_known_place(self, vehicle: str, session: str, map_name: str, T_live: np.ndarray) -> bool:
         """A localizing session about to reach its next keyframe's spacing at ``T_live``: True

@@ -12,7 +12,9 @@ from typing import Any, cast
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from randt.core.odometry import PosePrior
 from randt.service.metrics import ServiceMetrics
+from randt.service.places import MapPlaces, PlaceKey
 from randt.wire.messages import CorrectionMessage, correction_from_arrays
 
 __all__ = [
@@ -145,9 +147,12 @@ class GraphView:
         on_refold: Callable[[str, list[str], np.ndarray, np.ndarray], None] | None,
         on_join: Callable[[str, str, str, np.ndarray], None] | None,
         keyframe_m: float,
+        places: MapPlaces | None = None,
     ) -> None:
         self.metrics, self.outbox, self.on_refold, self.on_join = metrics, outbox, on_refold, on_join
         self.keyframe_m = keyframe_m
+        #: Each map's keyframes as places to relocalize on (service/places.py): own lock.
+        self.places = places or MapPlaces()
         self.lock = threading.Lock()  # guards what follows but ``last``
         self.states: dict[str, GraphState] = {}
         self.session_map: dict[SessionKey, str] = {}
@@ -175,6 +180,10 @@ class GraphView:
                 st = self.states.get(map_name) or self.states.setdefault(map_name, GraphState(map_name))
                 st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
                 self.last[key] = T_live
+        for _, item in records:  # (described outside the lock: about a millisecond a keyframe)
+            _, map_name, vehicle, session, _seq, index, _T, points = item[:8]
+            home = self.session_map.get((vehicle, session), map_name)
+            self.places.add(home, (vehicle, session, index), points)
 
     def rebase(self, *, empty: bool) -> list[tuple[Any, ...]]:
         """The graph process died: the loops shown so far stay counted; when the next one starts
@@ -189,16 +198,39 @@ class GraphView:
             self.placed_before = {name: set(st.placed) for name, st in self.states.items()}
             return [("place", map_name, key[0], key[1], T) for key, (map_name, T) in self.joins.items()]
 
-    def offered(self, key: SessionKey, map_name: str, keyframe: Keyframe) -> str:
-        """A session's keyframe offered to the graph of ``map_name``; the map it goes to (the one
-        the session joined, if it did)."""
+    def offered(
+        self, key: SessionKey, map_name: str, keyframe: Keyframe, points: np.ndarray | None = None
+    ) -> str:
+        """A session's keyframe offered to the graph of ``map_name`` (with its ``points``: a place
+        of that map); the map it goes to (the one the session joined, if it did)."""
         self.last[key] = keyframe.live
         with self.lock:
             map_name = self.joins.get(key, (map_name, None))[0]  # it lives in the map it joined
             self.session_map[key] = map_name
             st = self.states.get(map_name) or self.states.setdefault(map_name, GraphState(map_name))
             st.keyframes.setdefault(key, {})[keyframe.index] = keyframe
+        if points is not None:
+            self.places.add(map_name, (*key, keyframe.index), points)
         return map_name
+
+    def place_pose(self, map_name: str, key: PlaceKey) -> np.ndarray | None:
+        """The pose in ``map_name`` of the keyframe ``(vehicle, session, index)`` as a place: its
+        optimized pose, or its live one while the session lives in the map it was offered to
+        (``None``: the graph holds no such keyframe there)."""
+        vehicle, session, index = key
+        with self.lock:
+            st = self.states.get(map_name)
+            kf = None if st is None else st.keyframes.get((vehicle, session), {}).get(index)
+            if kf is None:
+                return None
+            if kf.optimized is not None:
+                return kf.optimized
+            lives_here = self.session_map.get((vehicle, session)) == map_name
+            return kf.live if lives_here and (vehicle, session) not in self.joins else None
+
+    def guesses(self, map_name: str, xyz: np.ndarray) -> list[PosePrior]:
+        """Guesses of the pose of a sweep without a prior on ``map_name`` (:meth:`MapPlaces.guesses`)."""
+        return self.places.guesses(map_name, xyz, lambda key: self.place_pose(map_name, key))
 
     def stamp_of(self, map_name: str, key: SessionKey, index: int) -> float:
         """The stamp of a session's keyframe ``index`` (0.0 if the graph holds none)."""
@@ -223,6 +255,7 @@ class GraphView:
             self.bases[map_name] = (revision, 0)
             self.counted_loops.pop(map_name, None)
             self.placed_before.pop(map_name, None)
+            self.places.forget(map_name)
             for key in [k for k, name in self.session_map.items() if name == map_name]:
                 del self.session_map[key]
                 self.corrections.pop(key, None)

@@ -185,8 +185,8 @@ class SessionLocalizer:
         if prior is None and not poses:
             return (
                 "this session only localizes (localize_only) and the vehicle's place is not known: "
-                "send its scans with a prior pose (GNSS/INS); relocalization on the map without one "
-                "is not available yet"
+                "send its scans with a prior pose (GNSS/INS); without one it is relocalized on the "
+                "map only where the service runs its pose graph (the graph's keyframes are the places)"
             )
         near = prior.T_world_sensor if prior is not None else poses[-1]
         x, y = (float(v) for v in np.asarray(near, dtype=np.float64)[:2, 3])

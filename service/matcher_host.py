@@ -220,6 +220,7 @@ class _Sessions:
             defer_model=True,
             map_seed=None if frame is None else frame.seed_xyz,
             on_map=self.windows[key].on_map(matcher, None if frame is None else frame.window),
+            relocalize=frame is not None and frame.relocalize,
         )
         self.ledger.add(key, self.windows[key].take_cpu_s())  # (a window joined behind)
         if rebuild and matcher.model_pending:  # (it and Registered.of only read the sweep's points)

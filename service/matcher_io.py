@@ -82,8 +82,13 @@ class MapFrame:
         The map around the vehicle, to localize the sweep on (:class:`MapWindow`); ``None``: the
         sweep is mapped (matched on the session's keyframes).
     for_map:
-        Whether the sweep's points may go into the map (``False``: a session that only localizes;
-        the answer carries none, :class:`Registered`).
+        Whether the sweep's points may go into the map (``False``: a session that only localizes,
+        a sweep relocalized; the answer carries none, :class:`Registered`).
+    relocalize:
+        ``prior`` is a place guessed for a session's first sweep (service/places.py), not a fix:
+        the matcher verifies it on ``window`` and raises
+        :class:`~randt.core.errors.NotRelocalizedError` when the sweep does not match the map there
+        (``IncrementalMatcher.register_scan``'s ``relocalize``).
     """
 
     token: tuple[str, int, int]
@@ -92,6 +97,7 @@ class MapFrame:
     prior: PosePrior | None = None
     window: MapWindow | None = None
     for_map: bool = True
+    relocalize: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -178,6 +178,7 @@ class LocalMatcher(IncrementalMatcher):
             defer_model=True,
             map_seed=None if frame is None else frame.seed_xyz,
             on_map=self._windows.on_map(self, None if frame is None else frame.window),
+            relocalize=frame is not None and frame.relocalize,
         )
         self._carried_cpu_s += self._windows.take_cpu_s()  # (a window joined behind)
         registered = Registered.of(result, None, keyframe_voxel_m, frame, windows=self._windows)

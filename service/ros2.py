@@ -320,7 +320,8 @@ class Ros2Bridge:
                 self._routes.move_to_end((vehicle, session))
         self._listen_soon(topic, parsed.type_hash)
         self._count(topic, "accepted")
-        scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix)
+        only = vehicle in self.settings.localize_only or "*" in self.settings.localize_only
+        scan = Ros2Scan(cdr, topic, vehicle, session, att.sequence_number, fix, localize_only=only)
         self._on_scan(vehicle, scan, time.time_ns())
 
     def _on_publisher(self, sample: zenoh.Sample) -> None:

@@ -144,6 +144,13 @@ class Ros2Settings(BaseModel):
         "as one sensor_msgs/PointCloud2 on map_topic (docs/ros2.md)",
     )
     map_topic: str = Field(default="randt/map", pattern=_ROS_NAME)
+    localize_only: frozenset[str] = Field(
+        default=frozenset(),
+        description='vehicle ids ("*": every robot) whose sessions only localize on the shared map and '
+        "never add to it (docs/clients.md, a session that only localizes): a robot sends no prior, so it "
+        "is relocalized on the map (docs/mapping.md); until then, and off the map, its scans are "
+        "answered not_on_map on its status topic",
+    )
     map_radius_m: float = Field(
         default=100.0, gt=0, le=1000.0, description="the map tiles within this of the requested point"
     )

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from randt.core.errors import BadMessageError, RandtError
+from randt.core.errors import BadMessageError, NotRelocalizedError, RandtError
 from randt.core.odometry import MAP_SEED_MIN_POINTS, MATCHED_TO_MAP, PosePrior, ScanResult
 from randt.core.tiles import TileGrid
 from randt.service.agreement import AgreementGate
@@ -35,6 +35,7 @@ from randt.service.matchers import (
     MatcherProcessError,
     Registered,
     SessionMatcher,
+    decoded_sweep,
     prior_of,
 )
 from randt.service.metrics import ServiceMetrics
@@ -68,6 +69,14 @@ MAP_SEED_REACH_M = 60.0
 ON_MAP_FIX_COVARIANCE = np.diag([0.05**2] * 3 + [np.radians(0.2) ** 2] * 3)
 #: The message of a first sweep of a session that only localizes which did not match the map.
 NOT_MATCHED_FIRST = "the first sweep did not match the map around its prior"
+#: A session that only localizes, without a prior, tries to relocalize at most this often (its
+#: scans' stamps): each try decodes the sweep here and matches it on the map at each place guessed.
+RELOCALIZE_EVERY_S = 1.0
+#: What its scans between two tries are answered.
+NOT_RELOCALIZED_YET = (
+    "this session only localizes (localize_only), its scans carry no prior pose and it was not "
+    f"relocalized on the map yet (it tries again at most every {RELOCALIZE_EVERY_S:g} s)"
+)
 #: A sweep with fewer points than this is no resume sweep (it would not make a keyframe).
 MIN_RESUME_POINTS = 100
 #: A session whose queue holds at least this many scans is behind: on a node past its capacity its
@@ -148,6 +157,7 @@ class SessionWorker:
         self._fix_refused = False  # a NavSatFix could not be placed in the shared map (logged once)
         # A pose was answered (a resumed session's were): the first waits for the first snapshot.
         self._posed = info.n_scans > 0
+        self._relocalize_after_ns = 0  # (a session that only localizes, without a prior: next try)
         # The newest matched sweep that came with its points, and where the saved one is: the
         # flusher saves it for a resume after a crash (SessionSaver.save_resume_sweeps).
         self.resume_sweep: ResumeSweep | None = None
@@ -361,13 +371,76 @@ class SessionWorker:
         self, job: Job, prior: PosePrior | None, behind: bool, points_voxel_m: float | None
     ) -> Registered | Refusal:
         """The scan's payload to the matcher, which decodes and matches it (the keyframe model is
-        rebuilt after the pose is out). A matcher process that died breaks the session."""
-        scan, s = job.scan, self.services
-        frame = self._map_frame(scan, prior)
+        rebuilt after the pose is out); a session's first sweep without a prior is relocalized on
+        the shared map first (:meth:`_relocalized`). A matcher process that died breaks the
+        session."""
+        relocalized = self._relocalized(job, prior, behind, points_voxel_m)
+        if relocalized is not None:
+            return relocalized
+        frame = self._map_frame(job.scan, prior)
         if self.info.localize_only and frame.window is None:
             name = frame.token[0]
             why = self.localizer.not_on_map(name, self._grid_of(name), prior, self.matcher.poses)
             return Refusal(ErrorCode.NOT_ON_MAP, why)
+        registered = self._match(job, frame, behind, points_voxel_m)
+        return registered if isinstance(registered, Refusal) else self._unplaced_first(registered)
+
+    def _relocalized(
+        self, job: Job, prior: PosePrior | None, behind: bool, points_voxel_m: float | None
+    ) -> Registered | Refusal | None:
+        """A session's first sweep without a prior, where the service localizes (``localize``,
+        or the session only localizes) and has a pose graph: placed on the shared map where its
+        places (service/places.py) say it was taken, if the matcher verifies one of the guesses
+        on the map around it (:class:`MapFrame`'s ``relocalize``); the session then lives in the
+        map's frame from this answer on. ``None``: not relocalized, the sweep maps in the session's
+        own frame as before; a session that only localizes is answered ``not_on_map`` instead
+        (and tries again at most every :data:`RELOCALIZE_EVERY_S` of its scans' time)."""
+        s, info, scan = self.services, self.info, job.scan
+        if prior is not None or info.n_scans or s.graph is None:
+            return None
+        if not (s.settings.localize or info.localize_only) or info.frame != "session":
+            return None
+        if info.localize_only and scan.stamp_ns < self._relocalize_after_ns:
+            return Refusal(ErrorCode.NOT_ON_MAP, NOT_RELOCALIZED_YET)
+        self._relocalize_after_ns = scan.stamp_ns + int(RELOCALIZE_EVERY_S * 1e9)
+        name = s.settings.default_map
+        grid = s.maps.grid(name)
+        try:
+            xyz = decoded_sweep(job.payload, s.answers.limits)[0]
+        except BadMessageError as exc:
+            return Refusal(exc.code, str(exc))
+        tried = 0
+        for guess in s.graph.relocalize(name, np.asarray(xyz, dtype=np.float64)):
+            token = (name, *grid.content_token)
+            window = self.localizer.window(grid, token, guess, [], "map")
+            if window is None:
+                continue
+            tried += 1
+            frame = MapFrame(token, None, None, guess, window, for_map=False, relocalize=True)
+            try:
+                registered = self._match(job, frame, behind, points_voxel_m)
+            except NotRelocalizedError as exc:
+                log.info("session %s/%s: a place guessed is not verified: %s", *self.key, exc)
+                continue
+            if not isinstance(registered, Refusal):
+                log.info("session %s/%s relocalized on map %s at its first sweep", *self.key, name)
+                self._fix_frame(True)
+            return registered
+        if not info.localize_only:
+            return None
+        why = f"none of {tried} places guessed matched" if tried else "no place of the map is like its sweep"
+        return Refusal(
+            ErrorCode.NOT_ON_MAP,
+            f"this session only localizes (localize_only), its scans carry no prior pose and it was not "
+            f"relocalized on map {name!r}: {why}; it tries again in {RELOCALIZE_EVERY_S:g} s",
+        )
+
+    def _match(
+        self, job: Job, frame: MapFrame, behind: bool, points_voxel_m: float | None
+    ) -> Registered | Refusal:
+        """The sweep matched in ``frame`` (:meth:`_register`); a sweep not relocalized raises
+        :class:`NotRelocalizedError` (its matcher as before)."""
+        s = self.services
         try:
             registered = self.matcher.register_payload(
                 job.payload,
@@ -376,6 +449,8 @@ class SessionWorker:
                 keyframe_voxel_m=points_voxel_m,
                 frame=frame,
             )
+        except NotRelocalizedError:
+            raise
         except MatcherProcessDiedError as exc:  # (a RandtError too: caught first)
             log.error("session %s/%s: %s; it resumes from its last saved state", *self.key, exc)
             self.broken = True

@@ -95,6 +95,8 @@ class Ros2Scan:
     seq: int
     #: the robot's NavSatFix nearest the scan's stamp, when it publishes one (service/ros2.py)
     fix: GnssFix | None = None
+    #: its session only localizes on the map (``Ros2Settings.localize_only``)
+    localize_only: bool = False
 
     def __len__(self) -> int:
         return len(self.cdr)
@@ -154,7 +156,14 @@ def scan_header(scan: Ros2Scan, limits: WireLimits) -> ScanHeader:
             code=ErrorCode.TOO_MANY_POINTS,
         )
     return ScanHeader(
-        SCHEMA_VERSION, scan.vehicle, scan.session, scan.seq, _stamp_ns(msg), n, gnss_fix=scan.fix
+        SCHEMA_VERSION,
+        scan.vehicle,
+        scan.session,
+        scan.seq,
+        _stamp_ns(msg),
+        n,
+        gnss_fix=scan.fix,
+        localize_only=scan.localize_only,
     )
 
 

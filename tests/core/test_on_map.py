@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import pytest
 
 from randt.core.odometry import IncrementalMatcher, MatcherSettings, PosePrior
 from randt.core.tiles import TileGrid
@@ -223,3 +224,33 @@ def test_a_sweep_that_keeps_few_inliers_on_the_map_is_not_localized() -> None:
     assert run(MatcherSettings(**levels)) == [True, True, True, False]
     odometry_bars = dict(on_map_min_inlier_ratio=0.3, on_map_min_object_inlier_ratio=0.1)
     assert run(MatcherSettings(**levels, **odometry_bars)) == [True, True, True, True]
+
+
+def test_a_relocalized_first_sweep_is_placed_on_the_map_or_raises_leaving_the_matcher_as_it_was() -> None:
+    """``register_scan(relocalize=True)``: from a place guessed 2.5 m and 3 deg off the sweep is
+    placed on the map (``localized``, within 5 cm); from a guess 25 m off it raises
+    :class:`NotRelocalizedError` instead of being placed at the guess, and the matcher has no pose,
+    so the same sweep is then placed from a better guess."""
+    from randt.core.errors import NotRelocalizedError
+    from randt.core.transforms import make_transform
+
+    _, second = _drives()
+    scan = second[20]
+    turned = make_transform([0.0, 0.0, np.radians(3.0)], [0.0, 0.0, 0.0])
+    near, far = scan.T_world_sensor @ turned, scan.T_world_sensor.copy()
+    near[:2, 3] += (2.0, -1.5)
+    far[:2, 3] += (25.0, 0.0)
+    cov = np.diag([3.0**2, 3.0**2, 1.0] + [np.radians(3.0) ** 2] * 2 + [np.radians(6.0) ** 2])
+    matcher = _matcher()
+    window = _window(matcher, scan.T_world_sensor[:2, 3])
+    with pytest.raises(NotRelocalizedError, match="not taken"):
+        matcher.register_scan(scan.points_xyz, prior=PosePrior(far, cov), on_map=window, relocalize=True)
+    assert not matcher.poses
+    result = matcher.register_scan(
+        scan.points_xyz, prior=PosePrior(near, cov), on_map=window, relocalize=True
+    )
+    assert result.localized and result.status == "first"
+    err = transform_error(result.T_world_sensor, scan.T_world_sensor)
+    assert err[0] < 0.05 and err[1] < 0.3, err
+    with pytest.raises(ValueError, match="first sweep"):  # (a session with poses has a place)
+        matcher.register_scan(scan.points_xyz, prior=PosePrior(near, cov), on_map=window, relocalize=True)

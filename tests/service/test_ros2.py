@@ -639,3 +639,46 @@ def test_a_pointcloud2_topic_not_taken_is_named_once_with_the_setting_that_takes
         f"RANDT_ROS2__TOPICS='{json.dumps([*topics, '/scan_cloud'])}' "
         """RANDT_ROS2__VEHICLES='{"/scan_cloud": "<vehicle id>"}'"""
     )
+
+
+def test_the_robots_named_in_localize_only_send_scans_that_only_localize() -> None:
+    """``ros2.localize_only``: the scans of the robots named there (``"*"``: every robot) carry
+    ``localize_only`` into the service's header, the others' do not. Fed through the bridge's Zenoh
+    callback with samples as rmw_zenoh sends them."""
+    from types import SimpleNamespace
+
+    from rosbags.typesys import Stores, get_typestore
+
+    from randt.service.metrics import ServiceMetrics
+    from randt.service.ros2 import Ros2Bridge
+    from randt.wire.messages import WireLimits
+    from randt.wire.rmw_zenoh import Attachment, encode_attachment, topic_key
+    from randt.wire.ros2 import POINTCLOUD2, Ros2Scan, scan_header
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    rows = np.zeros(3, np.float32)
+    msg = types[POINTCLOUD2](
+        header=_header(types, STAMP0_NS), **_cloud(types, np.eye(3, dtype=np.float32), rows, rows)
+    )
+    cdr = bytes(store.serialize_cdr(msg, POINTCLOUD2))
+    key = topic_key(0, "/robot7/lidar/points", POINTCLOUD2, store.hash_rihs01(POINTCLOUD2))
+    other = topic_key(0, "/robot8/lidar/points", POINTCLOUD2, store.hash_rihs01(POINTCLOUD2))
+    att = encode_attachment(Attachment(0, 0, bytes(range(16))))
+    for named, expected in ((frozenset({"robot7"}), (True, False)), (frozenset({"*"}), (True, True))):
+        got: list[Ros2Scan] = []
+        bridge = Ros2Bridge(
+            Ros2Settings(enabled=True, localize_only=named),
+            lambda v, scan, t, got=got: got.append(scan),
+            ServiceMetrics(),
+        )
+        for k in (key, other):
+            bridge._on_sample(
+                SimpleNamespace(
+                    key_expr=k,
+                    payload=SimpleNamespace(to_bytes=lambda: cdr),
+                    attachment=SimpleNamespace(to_bytes=lambda: att),
+                )
+            )
+        assert [s.vehicle for s in got] == ["robot7", "robot8"]
+        assert tuple(scan_header(s, WireLimits()).localize_only for s in got) == expected
