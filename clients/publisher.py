@@ -39,15 +39,17 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from randt.core.errors import BadMessageError
 from randt.wire.codes import ErrorCode
-from randt.wire.keys import error_key, pose_key, scan_key
+from randt.wire.keys import error_key, pose_key, scan_key, tiles_near_selector
 from randt.wire.messages import (
     ErrorMessage,
     GeoPrior,
     PoseMessage,
     ScanMessage,
+    TileUpdateMessage,
     WireLimits,
     decode_error,
     decode_pose,
+    decode_tile_update,
     encode,
     encode_scan_v2,
     scan_from_arrays,
@@ -61,6 +63,7 @@ __all__ = [
     "default_session_id",
     "encode_sweep",
     "first_per_voxel",
+    "map_tiles_near",
 ]
 
 log = logging.getLogger(__name__)
@@ -547,6 +550,25 @@ class VehiclePublisher:
                 self._cond.wait(0.1 if left is None else min(left, 0.1))
         return True
 
+    def map_tiles(
+        self,
+        x: float,
+        y: float,
+        radius_m: float,
+        *,
+        map_name: str = "default",
+        have: dict[str, int] | None = None,
+        timeout: float = 10.0,
+    ) -> list[TileUpdateMessage]:
+        """The map's tiles around ``(x, y)`` as the service last saved them (:func:`map_tiles_near`
+        on this publisher's session): what a vehicle localizing on board loads; ``have`` (tile id
+        -> version) leaves out the tiles it holds at their current version. Raises
+        :class:`RuntimeError` while the session is not open."""
+        zs = self._zsession
+        if zs is None:
+            raise RuntimeError("the publisher's Zenoh session is not open")
+        return map_tiles_near(zs, map_name, x, y, radius_m, have=have, timeout=timeout)
+
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every published scan is answered (and its callback has returned), dropped
         or lost; False on timeout. Not to be called from a callback."""
@@ -736,3 +758,41 @@ class VehiclePublisher:
             log.warning("%s: scan %d got no answer in %.0f s, counted as lost", self.vehicle, seq, timeout)
         if old:
             self._cond.notify_all()
+
+
+def map_tiles_near(
+    session: zenoh.Session,
+    map_name: str,
+    x: float,
+    y: float,
+    radius_m: float,
+    *,
+    have: dict[str, int] | None = None,
+    timeout: float = 10.0,
+) -> list[TileUpdateMessage]:
+    """The tiles of ``map_name`` whose cell comes within ``radius_m`` of ``(x, y)`` (map frame, m),
+    each with its version and digest, by a get on the service's tile queryable
+    (:func:`randt.wire.keys.tiles_near_selector`; docs/wire-format.md): the tiles a vehicle holds at
+    their current version (``have``) are left out, so asking again after driving on fetches only the
+    new and the changed ones. Sorted by tile id; empty when the map has none there (or no service
+    answered within ``timeout``).
+
+    Raises
+    ------
+    BadMessageError
+        The service refused the query (its code first in the message, e.g. ``invalid_field`` for a
+        radius beyond 1 km), or a reply did not decode.
+    """
+    selector = tiles_near_selector(map_name, x, y, radius_m, have)
+    tiles: dict[str, TileUpdateMessage] = {}
+    for reply in session.get(selector, timeout=timeout):
+        if reply.ok is None:
+            assert reply.err is not None
+            text = reply.err.payload.to_bytes().decode(errors="replace")
+            code = text.split(":", 1)[0]
+            raise BadMessageError(
+                f"tiles near ({x}, {y}): {text}", code=code if code.isidentifier() else "error"
+            )
+        tile = decode_tile_update(reply.ok.payload.to_bytes())
+        tiles[tile.tile] = tile
+    return [tiles[k] for k in sorted(tiles)]

@@ -21,6 +21,7 @@ from randt.service.sessions import SessionManager
 from randt.service.settings import ServiceSettings
 from randt.service.store import Store
 from randt.service.transport import ZenohTransport
+from randt.wire.keys import TilesNear
 from randt.wire.messages import WireMessage, encode
 from randt.wire.ros2 import Ros2Scan
 
@@ -61,7 +62,7 @@ class Service:
         self.store = Store(s.data_dir)
         outbox: Callable[[WireMessage], None]
         if self._with_zenoh:
-            self.transport = ZenohTransport(s, self._on_scan, self.tile_payload)
+            self.transport = ZenohTransport(s, self._on_scan, self.tile_payload, tiles_near=self.tiles_near)
             outbox = self.transport.send
             if s.ros2.enabled:
                 self.ros2 = Ros2Bridge(s.ros2, self._on_scan, self.metrics, map_near=self.map_near)
@@ -96,6 +97,20 @@ class Service:
         if tile is None:
             return None
         return encode(self.sessions.maps.tile_message(map_name, tile))
+
+    def tiles_near(self, map_name: str, near: TilesNear) -> list[tuple[str, bytes]]:
+        """The tile update messages of the tiles around a point as last saved (the Zenoh
+        tiles-near query's answer), but those the asker holds at their saved version: ``(tile id,
+        payload)`` by tile; none for a map that does not exist."""
+        saved = None if self.sessions is None else self.sessions.maps.durable(map_name)
+        if saved is None or self.sessions is None:
+            return []
+        out = []
+        for tile_id in saved.grid.tiles_within_radius((near.x, near.y), near.radius_m):
+            tile = saved.by_id.get(tile_id)
+            if tile is not None and near.have.get(tile_id) != tile.version:
+                out.append((tile_id, encode(self.sessions.maps.tile_message(map_name, tile))))
+        return out
 
     def map_near(
         self, vehicle: str, session: str, x: float, y: float, radius_m: float

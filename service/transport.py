@@ -3,8 +3,11 @@
 A scan subscriber whose callback only hands the payload to ``SessionManager.submit`` (the
 vehicle's intake queue: service/intake.py), one sender thread publishing everything outbound from
 a bounded queue (answers before tile updates), a liveliness token ``randt/service/<instance>`` and
-a tile queryable. Keys come from :mod:`randt.wire.keys`, the session's config from
-:mod:`randt.wire.zenoh_config` (docs/architecture.md, "Packages"; docs/security.md).
+a tile queryable: one tile by its key, or every tile around a point
+(``randt/map/<map>/tile/*?x=..;y=..;radius=..``, :func:`randt.wire.keys.parse_tiles_near`), answered on
+a thread of its own (at most :data:`TILES_NEAR_AT_ONCE` at once). Keys come from
+:mod:`randt.wire.keys`, the session's config from :mod:`randt.wire.zenoh_config`
+(docs/architecture.md, "Packages"; docs/security.md).
 """
 
 from __future__ import annotations
@@ -18,14 +21,29 @@ from collections.abc import Callable
 
 import zenoh
 
+from randt.core.errors import BadMessageError
 from randt.service.settings import ServiceSettings
-from randt.wire.keys import ALL_SCANS, ALL_TILES, key_for, service_token_key, tile_of_key, vehicle_of_scan_key
+from randt.wire.keys import (
+    ALL_SCANS,
+    ALL_TILES,
+    TilesNear,
+    key_for,
+    parse_tiles_near,
+    service_token_key,
+    tile_key,
+    tile_of_key,
+    vehicle_of_scan_key,
+)
 from randt.wire.messages import ErrorMessage, PoseMessage, WireMessage, encode
 from randt.wire.zenoh_config import zenoh_config
 
-__all__ = ["ZenohTransport"]
+__all__ = ["TILES_NEAR_AT_ONCE", "ZenohTransport"]
 
 log = logging.getLogger(__name__)
+
+#: Tiles-near queries answered at once (each on a thread of its own: a reply of many tiles is
+#: encoded there, not on Zenoh's callback thread); one more is answered with an error.
+TILES_NEAR_AT_ONCE = 4
 
 
 class ZenohTransport:
@@ -37,11 +55,14 @@ class ZenohTransport:
         on_scan: Callable[[str, bytes, int], None],
         tile_provider: Callable[[str, str], bytes | None],
         *,
+        tiles_near: Callable[[str, TilesNear], list[tuple[str, bytes]]] | None = None,
         max_outbound: int = 10_000,
     ) -> None:
         self.settings = settings
         self._on_scan = on_scan
         self._tile_provider = tile_provider
+        self._tiles_near = tiles_near
+        self._near_slots = threading.BoundedSemaphore(TILES_NEAR_AT_ONCE)
         # (rank, order, item): answers (rank 0) before tile updates (1), each in order, so a pose
         # never waits behind a flush's burst of tile updates; the stop mark (2) after everything
         # queued before it.
@@ -90,11 +111,43 @@ class ZenohTransport:
     def _tile_query(self, query: zenoh.Query) -> None:
         try:
             tile = tile_of_key(str(query.key_expr))
+            parameters = str(query.parameters)
+            if tile is not None and tile[1] == "*" and parameters and self._tiles_near is not None:
+                return self._start_tiles_near(query, tile[0], parameters)
             payload = None if tile is None else self._tile_provider(*tile)
             if payload is not None:
                 query.reply(query.key_expr, payload)
         except Exception:
             log.exception("tile query %s failed", query.key_expr)
+        return None
+
+    def _start_tiles_near(self, query: zenoh.Query, map_name: str, parameters: str) -> None:
+        """A tiles-near query to a thread of its own, or refused when :data:`TILES_NEAR_AT_ONCE`
+        are being answered."""
+        try:
+            near = parse_tiles_near(parameters)
+        except BadMessageError as exc:
+            query.reply_err(f"{exc.code}: {exc}".encode())
+            return
+        if not self._near_slots.acquire(blocking=False):
+            query.reply_err(
+                f"busy: {TILES_NEAR_AT_ONCE} tiles-near queries are being answered; ask again".encode()
+            )
+            return
+        threading.Thread(
+            target=self._answer_tiles_near, args=(query, map_name, near), name="randt-tiles-near", daemon=True
+        ).start()
+
+    def _answer_tiles_near(self, query: zenoh.Query, map_name: str, near: TilesNear) -> None:
+        try:
+            assert self._tiles_near is not None
+            for tile_id, payload in self._tiles_near(map_name, near):
+                query.reply(tile_key(map_name, tile_id), payload)
+        except Exception:
+            log.exception("tiles-near query %s?%s failed", query.key_expr, query.parameters)
+        finally:
+            query.drop()  # (the reply is complete: the asker's get ends here, not at its timeout)
+            self._near_slots.release()
 
     def send(self, message: WireMessage) -> None:
         """Queue a message for publication (drops it, counted, if the outbound queue is full)."""

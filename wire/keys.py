@@ -7,7 +7,9 @@
 - ``randt/fleet/<vehicle>/correction``: service → all, the pose graph's corrections of a vehicle's
   keyframes, :func:`correction_key` (:data:`ALL_CORRECTIONS`);
 - ``randt/map/<map>/tile/<ix>_<iy>``: service → all, and a get answered by the service's queryable
-  on :data:`ALL_TILES`, :func:`tile_key` (:func:`map_tiles_key` for one map's tiles);
+  on :data:`ALL_TILES`, :func:`tile_key` (:func:`map_tiles_key` for one map's tiles); a get on
+  ``randt/map/<map>/tile/*?x=..;y=..;radius=..`` is answered with every tile around the point
+  (:func:`tiles_near_selector`, :func:`parse_tiles_near`: a vehicle loads the map it localizes on);
 - ``randt/service/<instance>``: the liveliness token of a running service, :func:`service_token_key`.
 
 ``<vehicle>``, ``<map>`` and ``<instance>`` are ids (:mod:`randt.wire.ids`), so they are single chunks
@@ -18,8 +20,12 @@ This module does not import Zenoh: key expressions are strings.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
 from typing import Final
 
+from randt.core.errors import BadMessageError
+from randt.wire.codes import ErrorCode
 from randt.wire.messages import (
     CorrectionMessage,
     ErrorMessage,
@@ -35,16 +41,20 @@ __all__ = [
     "ALL_POSES",
     "ALL_SCANS",
     "ALL_TILES",
+    "MAX_TILES_NEAR_RADIUS_M",
     "ROOT",
+    "TilesNear",
     "correction_key",
     "error_key",
     "key_for",
     "map_tiles_key",
+    "parse_tiles_near",
     "pose_key",
     "scan_key",
     "service_token_key",
     "tile_key",
     "tile_of_key",
+    "tiles_near_selector",
     "vehicle_of_scan_key",
 ]
 
@@ -151,3 +161,77 @@ def tile_of_key(key: str) -> tuple[str, str] | None:
     if len(parts) != 5 or f"{parts[0]}/{parts[1]}" != _MAP or parts[3] != "tile":
         return None
     return parts[2], parts[4]
+
+
+#: The largest radius a tiles-near query may ask for (a reply is every tile within it: 1 km is
+#: about 8,000 tiles of 20 m, a few hundred MB).
+MAX_TILES_NEAR_RADIUS_M: Final = 1000.0
+
+
+@dataclass(frozen=True)
+class TilesNear:
+    """A tiles-near query (:func:`parse_tiles_near`): the tiles whose cell comes within
+    ``radius_m`` of ``(x, y)`` (map frame, metres; the cylinder of Autoware's partial map loading,
+    as HTTP's ``GET /maps/{map}/tiles?x=&y=&radius=``), but those the asker holds at the version it
+    names (``have``: tile id -> version)."""
+
+    x: float
+    y: float
+    radius_m: float
+    have: dict[str, int] = field(default_factory=dict)
+
+
+def tiles_near_selector(
+    map_name: str, x: float, y: float, radius_m: float, have: dict[str, int] | None = None
+) -> str:
+    """The selector of a get for the tiles of ``map_name`` around ``(x, y)``:
+    ``randt/map/<map>/tile/*?x=..;y=..;radius=..[;have=<tile>@<version>,...]``."""
+    params = f"x={float(x)!r};y={float(y)!r};radius={float(radius_m)!r}"
+    if have:
+        params += ";have=" + ",".join(f"{tile}@{int(version)}" for tile, version in sorted(have.items()))
+    return f"{map_tiles_key(map_name)}?{params}"
+
+
+def parse_tiles_near(parameters: str) -> TilesNear:
+    """The query of a selector's parameters (``x=..;y=..;radius=..[;have=..]``,
+    :func:`tiles_near_selector`). Raises :class:`~randt.core.errors.BadMessageError`
+    ``invalid_field`` naming the parameter: missing, not a finite number, a radius outside
+    ``[0, MAX_TILES_NEAR_RADIUS_M]``, a ``have`` entry not ``<ix>_<iy>@<version>``."""
+    values: dict[str, str] = {}
+    for part in parameters.split(";"):
+        if part:
+            name, _, value = part.partition("=")
+            values[name] = value
+
+    def number(name: str) -> float:
+        try:
+            value = float(values[name])
+        except KeyError:
+            raise BadMessageError(
+                f"{name}: a tiles-near query needs x, y and radius", code=ErrorCode.INVALID_FIELD
+            ) from None
+        except ValueError:
+            raise BadMessageError(
+                f"{name}: {values[name]!r} is not a number", code=ErrorCode.INVALID_FIELD
+            ) from None
+        if not math.isfinite(value):
+            raise BadMessageError(f"{name}: {value} is not finite", code=ErrorCode.INVALID_FIELD)
+        return value
+
+    x, y, radius = number("x"), number("y"), number("radius")
+    if not 0.0 <= radius <= MAX_TILES_NEAR_RADIUS_M:
+        raise BadMessageError(
+            f"radius: {radius:g} m is outside [0, {MAX_TILES_NEAR_RADIUS_M:g}]", code=ErrorCode.INVALID_FIELD
+        )
+    have: dict[str, int] = {}
+    for entry in filter(None, values.get("have", "").split(",")):
+        tile, _, version = entry.partition("@")
+        ix, _, iy = tile.partition("_")
+        try:
+            int(ix), int(iy)
+            have[tile] = int(version)
+        except ValueError:
+            raise BadMessageError(
+                f"have: {entry!r} is not <ix>_<iy>@<version>", code=ErrorCode.INVALID_FIELD
+            ) from None
+    return TilesNear(x, y, radius, have)

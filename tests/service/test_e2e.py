@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import zenoh
 
+from randt.clients.publisher import map_tiles_near
+from randt.core.errors import BadMessageError
 from randt.core.transforms import transform_error
 from randt.service.runtime import Service
 from randt.service.settings import ServiceSettings
@@ -150,6 +152,22 @@ def test_three_vehicles_get_one_answer_per_scan_and_share_one_map(router, tmp_pa
         replies = list(listener.get(f"randt/map/default/tile/{tid}"))
         got = decode_tile_update(replies[0].ok.payload.to_bytes())
         assert got.tile == tid and got.n_points == grid.get(tid).n_points
+        # the tiles around a point, as a vehicle loads the map it localizes on: each saved tile
+        # within the radius once, at its saved version; asked again holding them, none
+        x, y = next(iter(fleet_scans.values()))[0].T_world_sensor[:2, 3]
+        saved = service.sessions.maps.durable("default")
+        assert saved is not None
+        wanted = {t for t in grid.tiles_within_radius((x, y), 40.0) if t in saved.by_id}
+        near = map_tiles_near(listener, "default", x, y, 40.0)
+        assert {t.tile for t in near} == wanted and len(near) == len(wanted) > 3
+        assert all(t.version == saved.by_id[t.tile].version and t.digest for t in near)
+        held = {t.tile: t.version for t in near}
+        assert map_tiles_near(listener, "default", x, y, 40.0, have=held) == []
+        del held[near[0].tile]
+        assert [t.tile for t in map_tiles_near(listener, "default", x, y, 40.0, have=held)] == [near[0].tile]
+        with pytest.raises(BadMessageError, match="radius") as info:
+            map_tiles_near(listener, "default", x, y, 5000.0)
+        assert info.value.code == "invalid_field"
         assert (tmp_path / "data/maps/default/pointcloud_map_metadata.yaml").is_file()
     finally:
         for s in subs:

@@ -43,6 +43,7 @@ TEMPLATES = {
     "error_key": error_key("<vehicle>"),
     "correction_key": correction_key("<vehicle>"),
     "tile_key": tile_key("<map>", "<ix>_<iy>"),
+    "map_tiles_key": map_tiles_key("<map>"),  # (a get with the tiles-near parameters)
     "service_token_key": service_token_key("<instance>"),
 }
 
@@ -66,6 +67,7 @@ def test_every_documented_key_has_its_helper_and_back() -> None:
         "error_key": "randt/fleet/<vehicle>/error",
         "correction_key": "randt/fleet/<vehicle>/correction",
         "tile_key": "randt/map/<map>/tile/<ix>_<iy>",
+        "map_tiles_key": "randt/map/<map>/tile/*",
         "service_token_key": "randt/service/<instance>",
     }
 
@@ -137,3 +139,29 @@ def test_reading_received_keys_back() -> None:
         "randt/map/a/tile/0/0",
     ):
         assert tile_of_key(key) is None
+
+
+def test_a_tiles_near_selector_reads_back_and_bad_parameters_are_named() -> None:
+    """The tiles-near query (docs/wire-format.md): what a selector says reads back the same; a
+    parameter missing, not a number, not finite, a radius out of range or a bad ``have`` entry is
+    ``invalid_field`` naming it."""
+    from randt.core.errors import BadMessageError
+    from randt.wire.keys import TilesNear, parse_tiles_near, tiles_near_selector
+
+    selector = tiles_near_selector("default", 12.5, -3.0, 150.0, {"3_-4": 7, "0_0": 1})
+    key, _, params = selector.partition("?")
+    assert key == "randt/map/default/tile/*"
+    assert parse_tiles_near(params) == TilesNear(12.5, -3.0, 150.0, {"3_-4": 7, "0_0": 1})
+    assert parse_tiles_near("x=1;y=2;radius=0") == TilesNear(1.0, 2.0, 0.0)
+    for bad, name in (
+        ("x=1;y=2", "radius"),
+        ("x=a;y=2;radius=3", "x"),
+        ("x=1;y=nan;radius=3", "y"),
+        ("x=1;y=2;radius=1001", "radius"),
+        ("x=1;y=2;radius=-1", "radius"),
+        ("x=1;y=2;radius=3;have=3_4", "have"),
+        ("x=1;y=2;radius=3;have=a_4@2", "have"),
+    ):
+        with pytest.raises(BadMessageError, match=f"^{name}:") as info:
+            parse_tiles_near(bad)
+        assert info.value.code == "invalid_field"
