@@ -30,6 +30,8 @@ from randt.service.settings import ServiceSettings
 
 __all__ = [
     "MAP_AFTER_MISS",
+    "MAP_SHARE_RADIUS_M",
+    "MIN_MAP_SHARE",
     "MISSES_BEFORE_MAPPING",
     "RESEND_GROWTH",
     "MapPieces",
@@ -43,6 +45,12 @@ MAP_AFTER_MISS = 20
 #: Sweeps in a row asked to be localized and not, before the session maps: one refused match on
 #: mapped streets is no reason to map (its odometry would drift and fold points beside the map's).
 MISSES_BEFORE_MAPPING = 3
+#: A window is cut only where at least this share of the points of the tiles within
+#: MAP_SHARE_RADIUS_M of the vehicle (what most of a sweep's matched points fall on) were there
+#: before the session's own came near them: a session that mapped up to the map's edge would
+#: otherwise localize on its own trail and the little the map saw from afar, and slide with it.
+MIN_MAP_SHARE = 0.75
+MAP_SHARE_RADIUS_M = 30.0
 #: A tile the matcher holds is sent again with a new window when it has grown by more than this
 #: share since: inserts only add (a removal changes the map's token, and every tile is sent), and
 #: what a localized session folds is the little the map lacked around it, which changes no match
@@ -207,7 +215,9 @@ class SessionLocalizer:
         radius = self.radius_m if self._cut_before else self.first_radius_m
         tiles = grid.tiles_near(xy, radius)
         before = self._before.get(token[0], {})
-        if sum(min(t.n_points, before.get((t.ix, t.iy), t.n_points)) for t in tiles) < self.min_points:
+        if sum(self._others(t, before) for t in tiles) < self.min_points or not self._mostly_others(
+            grid, xy, before
+        ):
             self._held = None
             return None
         sent = self._held[2] if self._held is not None and self._held[0] == token else {}
@@ -227,6 +237,18 @@ class SessionLocalizer:
         self._held, self._asked, self._cut_before = (token, center, held, radius), True, True
         listed = tuple((tid, v) for tid, (v, _) in held.items())
         return MapWindow(token, center, listed, points, radius, pieces=pieces)
+
+    @staticmethod
+    def _others(tile: Tile, before: dict[tuple[int, int], int]) -> int:
+        """The points of ``tile`` that were there before the session's came near it."""
+        return min(tile.n_points, before.get((tile.ix, tile.iy), tile.n_points))
+
+    def _mostly_others(self, grid: TileGrid, xy: np.ndarray, before: dict[tuple[int, int], int]) -> bool:
+        """Whether the tiles within :data:`MAP_SHARE_RADIUS_M` of the vehicle hold at least
+        :data:`MIN_MAP_SHARE` of points that were there before the session's came near them."""
+        near = grid.tiles_near(xy, MAP_SHARE_RADIUS_M)
+        total = sum(t.n_points for t in near)
+        return total == 0 or sum(self._others(t, before) for t in near) >= MIN_MAP_SHARE * total
 
     def folding(self, map_name: str, grid: TileGrid, xyz: np.ndarray) -> None:
         """A sweep's points about to be folded into ``map_name`` (``grid``): each tile around them,

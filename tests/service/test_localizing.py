@@ -674,3 +674,28 @@ def test_the_places_come_back_from_the_graphs_log_and_guess_where_a_sweep_was_ta
         assert err[0] < 3.0 and err[1] < 3.0, (k, err)
     view.forget("default", 1)
     assert not view.guesses("default", second[12].points_xyz) and not len(view.places)
+
+
+def test_a_window_mostly_of_the_sessions_own_points_is_not_localized_on(tmp_path: Path) -> None:
+    """MIN_MAP_SHARE: where the map held a street before the session came, and the session's own
+    points (a stretch it mapped, what it saw from afar) came to make more than a quarter of the
+    window's, it maps; where they are fewer, it localizes."""
+    from randt.core.tiles import TileGrid
+    from randt.service.localizing import MIN_MAP_SHARE, SessionLocalizer
+
+    rng = np.random.default_rng(3)
+    settings = ServiceSettings(data_dir=tmp_path, localize=True, localize_min_map_points=1000)  # type: ignore[call-arg]
+    pose = [np.eye(4)]
+    pose[0][0, 3] = 50.0
+    for own_share, localizes in ((0.1, True), (0.4, False)):
+        grid = TileGrid(20, 0.2, 2)
+        grid.insert(_street(0.0, 100.0, rng))  # another's street
+        before = grid.n_points
+        loc = SessionLocalizer(settings)
+        own = _street(0.0, 100.0, rng)[: int(own_share / (1 - own_share) * before)] + [0.0, 0.0, 0.05]
+        loc.folding("default", grid, own)
+        grid.insert(own)
+        share = before / grid.n_points
+        assert (share >= MIN_MAP_SHARE) == localizes, share
+        window = loc.window(grid, ("default", *grid.content_token), None, pose, "map")
+        assert (window is not None) == localizes, (own_share, share)
