@@ -277,8 +277,8 @@ class SessionWorker:
         """One scan through its stages: its prior -> the matcher -> the pose log -> the track and
         the map agreement -> the session's figures -> the fold -> its one answer -> the pose graph
         -> the keyframe model. A stage that refuses the scan returns a :class:`Refusal`, which
-        :meth:`_answer` sends instead of the pose. (A localizing session would take another
-        matcher in :meth:`_register`; every other stage stays.)"""
+        :meth:`_answer` sends instead of the pose. (Localizing on the map, relocalizing and only
+        localizing are choices of :meth:`_register`'s frame; every other stage stays.)"""
         scan = job.scan
         prior = self._prior(scan)
         if isinstance(prior, Refusal):

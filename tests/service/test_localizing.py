@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -54,6 +55,25 @@ def _send(
         while sum(isinstance(m, PoseMessage | ErrorMessage) for m in list(out)) < n + 1:
             assert time.monotonic() < deadline, "the service stopped answering"
             time.sleep(0.002)
+
+
+def _mapped(
+    tmp_path: Path, out: list, metrics: ServiceMetrics, mapper: list[SimScan], **settings: Any
+) -> SessionManager:
+    """A service (``settings`` over these tests' own) whose first vehicle drove ``mapper`` with
+    an exact first prior and closed its session: the graph idle (when on), the map saved."""
+    full = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, **settings)  # type: ignore[call-arg]
+    mgr = SessionManager(full, Store(tmp_path), out.append, metrics)
+    try:
+        assert mgr.wait_matchers(300)
+        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
+        mgr.close("mapper", "d1")
+        assert mgr.graph is None or mgr.graph.wait_idle(120)
+        mgr.flush()
+    except BaseException:
+        mgr.stop()
+        raise
+    return mgr
 
 
 @pytest.mark.parametrize("localize", [True, False])
@@ -121,15 +141,11 @@ def test_a_localized_drive_adds_no_graph_keyframe_where_the_graph_has_one(tmp_pa
     from randt.service.graph import KNOWN_PLACE_M
 
     mapper, second = _drive(1), _drive(2)
-    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, localize=True)  # type: ignore[call-arg]
     out: list = []
     metrics = ServiceMetrics()
-    mgr = SessionManager(settings, Store(tmp_path), out.append, metrics)
+    mgr = _mapped(tmp_path, out, metrics, mapper, localize=True)
     try:
-        assert mgr.wait_matchers(300) and mgr.graph is not None
-        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
-        mgr.close("mapper", "d1")
-        mgr.flush()
+        assert mgr.graph is not None
         T0 = second[0].T_world_sensor.copy()
         T0[:2, 3] += (1.5, -1.0)
         _send(mgr, out, "second", second, T0, GNSS)
@@ -513,15 +529,17 @@ def _send_only(
     scans: list[SimScan],
     first_T: np.ndarray | None,
     shift: np.ndarray | None = None,
+    *,
+    only: bool = True,
 ) -> list[PoseMessage | ErrorMessage]:
-    """``scans`` as a session that only localizes (``localize_only``), the first with a GNSS prior
-    at ``first_T`` (``None``: none), or with ``shift`` every scan with one at its true pose moved
-    by ``shift``: its answers, in order."""
+    """``scans`` as a session that only localizes (``localize_only``; ``only`` false: one that
+    maps too), the first with a GNSS prior at ``first_T`` (``None``: none), or with ``shift`` every
+    scan with one at its true pose moved by ``shift``: its answers, in order."""
     for k, scan in enumerate(scans):
         extra = {"prior_pose": first_T, "prior_covariance": GNSS} if k == 0 and first_T is not None else {}
         if shift is not None:
             extra = {"prior_pose": shift @ scan.T_world_sensor, "prior_covariance": GNSS}
-        msg = scan_from_arrays(vehicle, "d1", k, scan.stamp_ns, scan.points_xyz, localize_only=True, **extra)
+        msg = scan_from_arrays(vehicle, "d1", k, scan.stamp_ns, scan.points_xyz, localize_only=only, **extra)
         mgr.submit(vehicle, encode(msg))
         deadline = time.monotonic() + 60
         while sum(isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == vehicle for m in list(out)) <= k:
@@ -546,15 +564,10 @@ def test_a_session_that_only_localizes_never_adds_to_the_map(tmp_path: Path) -> 
     nothing reaches the map; a first prior 45 m off is never answered as a good pose. (Without a
     prior: relocalized, the test below.)"""
     mapper, second = _drive(1), _drive(2)
-    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, localize=False)  # type: ignore[call-arg]
     out: list = []
-    metrics = ServiceMetrics()
-    mgr = SessionManager(settings, Store(tmp_path), out.append, metrics)
+    mgr = _mapped(tmp_path, out, ServiceMetrics(), mapper, localize=False)
     try:
-        assert mgr.wait_matchers(300) and mgr.graph is not None
-        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
-        mgr.close("mapper", "d1")
-        assert mgr.graph.wait_idle(120)
+        assert mgr.graph is not None
         mapped, keyframes = _map_points(mgr), _keyframes(mgr)
         T0 = second[0].T_world_sensor.copy()
         T0[:2, 3] += (1.5, -1.0)  # the GNSS fix's error
@@ -603,20 +616,16 @@ def test_a_session_without_a_prior_is_relocalized_on_the_map_from_its_first_swee
             town, plan.route, n_scans=3, seed=3, lidar=Lidar64(n_azimuth=1000, max_range_m=70.0), workers=2
         )
     )
-    settings = ServiceSettings(data_dir=tmp_path, flush_interval_s=0.3, capacity_target=0, localize=True)  # type: ignore[call-arg]
     out: list = []
-    mgr = SessionManager(settings, Store(tmp_path), out.append, ServiceMetrics())
+    mgr = _mapped(tmp_path, out, ServiceMetrics(), mapper, localize=True)
     try:
-        assert mgr.wait_matchers(300) and mgr.graph is not None
-        _send(mgr, out, "mapper", mapper, mapper[0].T_world_sensor, EXACT)
-        mgr.close("mapper", "d1")
-        assert mgr.graph.wait_idle(120)
+        assert mgr.graph is not None
         kfs = [kf.live[:3, 3] for kf in mgr.graph.snapshot("default").session_keyframes(("mapper", "d1"))]
         start = 5
         assert min(np.linalg.norm(np.array(kfs) - second[start].T_world_sensor[:3, 3], axis=1)) > 3.0
-        blind = _send_plain(mgr, out, "blind", second[start:])
+        blind = _send_only(mgr, out, "blind", second[start:], None, only=False)
         only = _send_only(mgr, out, "only", second[start:], None)
-        lost = _send_plain(mgr, out, "lost", elsewhere)
+        lost = _send_only(mgr, out, "lost", elsewhere, None, only=False)
         lost_only = _send_only(mgr, out, "lostonly", elsewhere, None)
     finally:
         mgr.stop()
@@ -633,22 +642,6 @@ def test_a_session_without_a_prior_is_relocalized_on_the_map_from_its_first_swee
         assert errors[:, 0].max() < 0.05 and errors[:, 1].max() < 0.3, errors.max(axis=0)
     assert all(isinstance(a, PoseMessage) and a.map == "lost.d1" and a.mode == "mapping" for a in lost), lost
     assert all(isinstance(a, ErrorMessage) and a.code == "not_on_map" for a in lost_only), lost_only
-
-
-def _send_plain(
-    mgr: SessionManager, out: list, vehicle: str, scans: list[SimScan]
-) -> list[PoseMessage | ErrorMessage]:
-    """``scans`` as a session without priors (no GNSS): its answers, in order."""
-    for k, scan in enumerate(scans):
-        mgr.submit(vehicle, encode(scan_from_arrays(vehicle, "d1", k, scan.stamp_ns, scan.points_xyz)))
-        deadline = time.monotonic() + 60
-        while sum(isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == vehicle for m in list(out)) <= k:
-            assert time.monotonic() < deadline, "the service stopped answering"
-            time.sleep(0.002)
-    return sorted(
-        (m for m in out if isinstance(m, PoseMessage | ErrorMessage) and m.vehicle == vehicle),
-        key=lambda m: m.seq,
-    )
 
 
 def test_the_places_come_back_from_the_graphs_log_and_guess_where_a_sweep_was_taken() -> None:
