@@ -180,7 +180,7 @@ class GraphView:
                 st = self.states.get(map_name) or self.states.setdefault(map_name, GraphState(map_name))
                 st.keyframes.setdefault(key, {})[index] = Keyframe(seq, index, stamp_s, T_live.copy())
                 self.last[key] = T_live
-        for _, item in records:  # (described outside the lock: about a millisecond a keyframe)
+        for _, item in records:  # (described outside the lock)
             _, map_name, vehicle, session, _seq, index, _T, points = item[:8]
             home = self.session_map.get((vehicle, session), map_name)
             self.places.add(home, (vehicle, session, index), points)
@@ -250,12 +250,12 @@ class GraphView:
 
     def forget(self, map_name: str, revision: int) -> None:
         """A deleted map's graph leaves the view; ``revision`` stays the base of a later one."""
+        self.places.forget(map_name)  # (its own lock: never taken inside this one)
         with self.lock:
             self.states.pop(map_name, None)
             self.bases[map_name] = (revision, 0)
             self.counted_loops.pop(map_name, None)
             self.placed_before.pop(map_name, None)
-            self.places.forget(map_name)
             for key in [k for k, name in self.session_map.items() if name == map_name]:
                 del self.session_map[key]
                 self.corrections.pop(key, None)

@@ -38,10 +38,10 @@ PlaceKey = tuple[str, str, int]
 GUESSES = 2
 #: How far a guess may be from the sweep's pose: the place is the keyframe nearest in Scan Context,
 #: up to half the keyframe spacing (10 m) along the road from the sweep, less the query's shifts
-#: (``PlaceSettings.query_shifts_m``: the view 4 m ahead or behind that matched best): about 2.4 m
-#: at most on the simulated town's streets; the yaw comes from the descriptor's column shift (6 deg
-#: bins, about 1.4 deg off at most). A match on the map farther from the guess than this allows
-#: (the first sweep's chi-square test) is refused.
+#: (``PlaceSettings.query_shifts_m``: the view 4 m ahead or behind that matched best); the yaw
+#: comes from the descriptor's column shift (6 deg bins). What it is off by: docs/mapping.md,
+#: "Relocalization". A match on the map farther from the guess than this allows (the first
+#: sweep's chi-square test) is refused.
 GUESS_COVARIANCE = np.diag([3.0**2, 3.0**2, 1.0**2] + [np.radians(3.0) ** 2] * 2 + [np.radians(6.0) ** 2])
 
 
@@ -91,11 +91,8 @@ class MapPlaces:
         except InvalidCloudError:
             return []
 
-        def gone(key: object) -> bool:  # (a keyframe the graph no longer holds there)
-            return pose_of(cast(PlaceKey, key)) is None
-
-        with self._lock:
-            found = index.query(queries, k=4 * GUESSES, exclude=gone)
+        with self._lock:  # (the poses are read outside it: the graph's view has a lock of its own)
+            found = index.query(queries, k=4 * GUESSES)
             stored = [index.descriptor(c.key) for c in found]
         out: list[PosePrior] = []
         for candidate, descriptor in zip(found, stored, strict=True):
